@@ -1,0 +1,48 @@
+SHELL := /bin/bash
+PYTHON ?= python3
+LINT_PATHS = sb3_lifelong/ tests/ benchmarks/ examples/ setup.py
+# the Robotis OP3 model is read from a local copy of mujoco-menagerie when one sits beside the checkout
+MENAGERIE_ROOT ?= $(shell [ -d ../shared/menagerie ] && cd ../shared/menagerie && pwd)
+export MENAGERIE_ROOT
+# one torch / BLAS thread per process: on 2 shared cores more threads slow training down (see docs)
+export OMP_NUM_THREADS ?= 1
+export MKL_NUM_THREADS ?= 1
+export MUJOCO_GL ?= osmesa
+export PYOPENGL_PLATFORM ?= osmesa
+DEMO_DIR ?= demo_output
+
+.PHONY: install test test-all demo lint format check-codestyle type doc clean
+
+# torch first, pinned to the CPU wheel: a bare "torch" requirement would download a CUDA build
+install:
+	$(PYTHON) -m pip install -q torch==2.13.0
+	$(PYTHON) -m pip install -q -e ".[tests,extra,mujoco]"
+
+test: install
+	$(PYTHON) -m pytest -n 2 --timeout 900 tests/
+
+test-all: install
+	$(PYTHON) -m pytest -n 2 -m "" tests/
+
+demo: install
+	$(PYTHON) examples/demo.py --output $(DEMO_DIR)
+
+lint:
+	$(PYTHON) -m ruff check $(LINT_PATHS)
+
+format:
+	$(PYTHON) -m ruff check --select I --fix $(LINT_PATHS)
+	$(PYTHON) -m black $(LINT_PATHS)
+
+check-codestyle:
+	$(PYTHON) -m black --check $(LINT_PATHS)
+
+type:
+	$(PYTHON) -m mypy sb3_lifelong/
+
+doc:
+	$(PYTHON) -m pip install -q -e ".[docs]"
+	cd docs && $(PYTHON) -m sphinx -b html . _build/html
+
+clean:
+	rm -rf build dist *.egg-info .pytest_cache .mypy_cache .ruff_cache docs/_build $(DEMO_DIR)

@@ -1,0 +1,98 @@
+"""Base class of this package's off-policy algorithms: SB3's ``OffPolicyAlgorithm`` plus exact resumption."""
+
+import io
+import pathlib
+import random
+from typing import Any, Optional, TypeVar, Union
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.type_aliases import GymEnv
+
+SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
+
+
+def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, Any]:
+    """
+    Snapshot of every random stream training draws from, in a JSON-serialisable form: torch's global generator,
+    numpy's legacy global generator, Python's ``random``, and the action space's generator (warm-up actions).
+
+    :param action_space: the algorithm's action space
+    :return: the state, to be passed to :func:`restore_rng_state`
+    """
+    np_state = np.random.get_state()
+    py_version, py_internal, py_gauss = random.getstate()
+    state: dict[str, Any] = {
+        "torch": th.get_rng_state().tolist(),
+        "numpy": [np_state[0], np_state[1].tolist(), int(np_state[2]), int(np_state[3]), float(np_state[4])],
+        "python": [py_version, list(py_internal), py_gauss],
+    }
+    if action_space is not None:
+        state["action_space"] = action_space.np_random.bit_generator.state
+    return state
+
+
+def restore_rng_state(state: dict[str, Any], action_space: Optional[spaces.Space] = None) -> None:
+    """
+    Restore the random streams captured by :func:`capture_rng_state`.
+
+    :param state: the captured state
+    :param action_space: the algorithm's action space
+    """
+    th.set_rng_state(th.tensor(state["torch"], dtype=th.uint8))
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+    if action_space is not None and "action_space" in state:
+        action_space.np_random.bit_generator.state = state["action_space"]
+
+
+class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
+    """
+    SB3's ``OffPolicyAlgorithm`` whose ``save``/``load`` also carry the random streams, so that
+    ``load`` + ``load_replay_buffer`` + ``learn(..., reset_num_timesteps=False)`` continues exactly as an
+    uninterrupted run would (given an environment that is in the same state, e.g. at an episode boundary).
+
+    SB3 itself re-seeds every generator from ``seed`` when a model is loaded, which replays the random numbers
+    of the start of training instead of continuing them.
+    """
+
+    def save(
+        self,
+        path: Union[str, pathlib.Path, io.BufferedIOBase],
+        exclude: Optional[list[str]] = None,
+        include: Optional[list[str]] = None,
+    ) -> None:
+        self._rng_state = capture_rng_state(self.action_space)
+        try:
+            super().save(path, exclude=exclude, include=include)
+        finally:
+            del self._rng_state
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfLifelongAlgorithm],
+        path: Union[str, pathlib.Path, io.BufferedIOBase],
+        env: Optional[GymEnv] = None,
+        device: Union[th.device, str] = "auto",
+        custom_objects: Optional[dict[str, Any]] = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs,
+    ) -> SelfLifelongAlgorithm:
+        model = super().load(
+            path,
+            env=env,
+            device=device,
+            custom_objects=custom_objects,
+            print_system_info=print_system_info,
+            force_reset=force_reset,
+            **kwargs,
+        )
+        rng_state = model.__dict__.pop("_rng_state", None)
+        if rng_state is not None:
+            restore_rng_state(rng_state, model.action_space)
+        return model

@@ -1,0 +1,343 @@
+"""Policies shared by the algorithms of this package: a Gaussian actor and an actor-critic with target networks."""
+
+import copy
+import math
+from typing import Any, Optional, Union
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import (
+    BaseFeaturesExtractor,
+    CombinedExtractor,
+    FlattenExtractor,
+    create_mlp,
+    get_actor_critic_arch,
+)
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+from torch.nn import functional as F
+
+LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def gaussian_log_prob(actions: th.Tensor, mean: th.Tensor, std: th.Tensor) -> th.Tensor:
+    """
+    Log-density of a diagonal Gaussian, summed over the last (action) dimension.
+
+    Written out rather than through ``torch.distributions`` (no argument validation, no object creation):
+    it is called several times per gradient step.
+
+    :param actions: points at which to evaluate the density, shape ``[..., action_dim]``
+    :param mean: mean, broadcastable to ``actions``
+    :param std: standard deviation (> 0), broadcastable to ``actions``
+    :return: log-density, shape ``[...]``
+    """
+    z = (actions - mean) / std
+    return (-0.5 * z.pow(2) - th.log(std) - LOG_SQRT_2PI).sum(dim=-1)
+
+
+def gaussian_kl_per_dim(
+    mean_p: th.Tensor, std_p: th.Tensor, mean_q: th.Tensor, std_q: th.Tensor
+) -> th.Tensor:
+    """
+    ``KL(N(mean_p, std_p) || N(mean_q, std_q))`` for each action dimension (no sum).
+
+    :return: KL divergence with the broadcast shape of the inputs
+    """
+    var_ratio = (std_p / std_q).pow(2)
+    return 0.5 * (var_ratio + ((mean_p - mean_q) / std_q).pow(2) - 1.0 - th.log(var_ratio))
+
+
+class GaussianActor(BasePolicy):
+    """
+    Diagonal Gaussian actor for Box action spaces, working in the normalised action space ``[-1, 1]``.
+
+    The mean is squashed by ``tanh`` (optional) and the standard deviation is
+    ``softplus(h) * init_std / softplus(0) + min_std``, so that a freshly initialised actor has a standard
+    deviation close to ``init_std``. Sampled actions are clipped to ``[-1, 1]`` before they reach the environment.
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param net_arch: Network architecture
+    :param features_extractor: Network to extract features
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
+    :param squash_mean: Whether to squash the mean with ``tanh`` into ``[-1, 1]``
+    :param init_std: Standard deviation of the initial policy (normalised action units)
+    :param min_std: Lower bound of the standard deviation
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: nn.Module,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        squash_mean: bool = True,
+        init_std: float = 0.7,
+        min_std: float = 1e-4,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            normalize_images=normalize_images,
+            squash_output=True,
+        )
+        if init_std <= 0 or min_std < 0:
+            raise ValueError(f"init_std must be > 0 and min_std >= 0, got init_std={init_std}, min_std={min_std}")
+        self.net_arch = net_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+        self.squash_mean = squash_mean
+        self.init_std = init_std
+        self.min_std = min_std
+        action_dim = get_action_dim(self.action_space)
+        self.latent_pi = nn.Sequential(*create_mlp(features_dim, -1, net_arch, activation_fn))
+        last_layer_dim = net_arch[-1] if len(net_arch) > 0 else features_dim
+        self.mu = nn.Linear(last_layer_dim, action_dim)
+        self.std_head = nn.Linear(last_layer_dim, action_dim)
+        self._std_scale = init_std / math.log(2.0)  # softplus(0) = log(2)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                features_extractor=self.features_extractor,
+                squash_mean=self.squash_mean,
+                init_std=self.init_std,
+                min_std=self.min_std,
+            )
+        )
+        return data
+
+    def distribution_params(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param obs: Observation
+        :return: mean and standard deviation of the action distribution, each ``[batch, action_dim]``
+        """
+        features = self.extract_features(obs, self.features_extractor)
+        latent = self.latent_pi(features)
+        mean = self.mu(latent)
+        if self.squash_mean:
+            mean = th.tanh(mean)
+        std = F.softplus(self.std_head(latent)) * self._std_scale + self.min_std
+        return mean, std
+
+    def log_prob(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """
+        :param obs: Observation
+        :param actions: actions in the normalised action space, ``[batch, action_dim]``
+        :return: log-likelihood of ``actions``, ``[batch]``
+        """
+        mean, std = self.distribution_params(obs)
+        return gaussian_log_prob(actions, mean, std)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        mean, std = self.distribution_params(obs)
+        if deterministic:
+            return mean.clamp(-1.0, 1.0)
+        return (mean + std * th.randn_like(mean)).clamp(-1.0, 1.0)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self(observation, deterministic)
+
+
+class GaussianActorCriticPolicy(BasePolicy):
+    """
+    Gaussian actor, Q-function critic(s) and a target copy of each, as used by MPO and CRR.
+
+    :param observation_space: Observation space
+    :param action_space: Action space (Box)
+    :param lr_schedule: Learning rate schedule (could be constant)
+    :param net_arch: The specification of the policy and value networks (list, or dict with ``pi`` and ``qf``)
+    :param activation_fn: Activation function
+    :param squash_mean: Whether the actor's mean is squashed by ``tanh``
+    :param init_std: Standard deviation of the initial policy (normalised action units)
+    :param min_std: Lower bound of the policy's standard deviation
+    :param features_extractor_class: Features extractor to use
+    :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
+    :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
+    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+    :param n_critics: Number of critic networks (the minimum over them is used for targets)
+    :param share_features_extractor: Whether to share the features extractor between the actor and the critic
+    """
+
+    actor: GaussianActor
+    actor_target: GaussianActor
+    critic: ContinuousCritic
+    critic_target: ContinuousCritic
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: Optional[Union[list[int], dict[str, list[int]]]] = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        squash_mean: bool = True,
+        init_std: float = 0.7,
+        min_std: float = 1e-4,
+        features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
+        features_extractor_kwargs: Optional[dict[str, Any]] = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: Optional[dict[str, Any]] = None,
+        n_critics: int = 1,
+        share_features_extractor: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor_class,
+            features_extractor_kwargs,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            squash_output=True,
+            normalize_images=normalize_images,
+        )
+        if not isinstance(action_space, spaces.Box):
+            raise TypeError(f"{type(self).__name__} supports only gymnasium.spaces.Box actions, got {action_space}")
+        if net_arch is None:
+            net_arch = [256, 256]
+        actor_arch, critic_arch = get_actor_critic_arch(net_arch)
+        self.net_arch = net_arch
+        self.activation_fn = activation_fn
+        self.squash_mean = squash_mean
+        self.init_std = init_std
+        self.min_std = min_std
+        self.n_critics = n_critics
+        self.share_features_extractor = share_features_extractor
+        self.net_args = {
+            "observation_space": self.observation_space,
+            "action_space": self.action_space,
+            "net_arch": actor_arch,
+            "activation_fn": self.activation_fn,
+            "normalize_images": normalize_images,
+        }
+        self.actor_kwargs = self.net_args.copy()
+        self.actor_kwargs.update(dict(squash_mean=squash_mean, init_std=init_std, min_std=min_std))
+        self.critic_kwargs = self.net_args.copy()
+        self.critic_kwargs.update(
+            dict(n_critics=n_critics, net_arch=critic_arch, share_features_extractor=share_features_extractor)
+        )
+        self._build(lr_schedule)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        self.actor = self.make_actor()
+        self.actor.optimizer = self.optimizer_class(
+            self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
+        )
+        if self.share_features_extractor:
+            self.critic = self.make_critic(features_extractor=self.actor.features_extractor)
+            critic_parameters = [param for name, param in self.critic.named_parameters() if "features_extractor" not in name]
+        else:
+            self.critic = self.make_critic(features_extractor=None)
+            critic_parameters = list(self.critic.parameters())
+        self.critic.optimizer = self.optimizer_class(
+            critic_parameters, lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
+        )
+        # Target networks: exact copies, never trained by gradient
+        self.actor_target = copy.deepcopy(self.actor)
+        self.critic_target = copy.deepcopy(self.critic)
+        self.actor_target.set_training_mode(False)
+        self.critic_target.set_training_mode(False)
+        for param in list(self.actor_target.parameters()) + list(self.critic_target.parameters()):
+            param.requires_grad_(False)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                activation_fn=self.net_args["activation_fn"],
+                squash_mean=self.squash_mean,
+                init_std=self.init_std,
+                min_std=self.min_std,
+                n_critics=self.n_critics,
+                lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+                features_extractor_class=self.features_extractor_class,
+                features_extractor_kwargs=self.features_extractor_kwargs,
+                share_features_extractor=self.share_features_extractor,
+            )
+        )
+        return data
+
+    def make_actor(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> GaussianActor:
+        actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
+        return GaussianActor(**actor_kwargs).to(self.device)
+
+    def make_critic(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> ContinuousCritic:
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return ContinuousCritic(**critic_kwargs).to(self.device)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self.actor(observation, deterministic)
+
+    def set_training_mode(self, mode: bool) -> None:
+        """
+        Put the online networks in training or evaluation mode (targets always stay in evaluation mode).
+
+        :param mode: if true, set to training mode, else set to evaluation mode
+        """
+        self.actor.set_training_mode(mode)
+        self.critic.set_training_mode(mode)
+        self.training = mode
+
+
+class GaussianActorCriticMultiInputPolicy(GaussianActorCriticPolicy):
+    """
+    :class:`GaussianActorCriticPolicy` for Dict observation spaces (``CombinedExtractor`` by default).
+    See :class:`GaussianActorCriticPolicy` for the parameters.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: Optional[Union[list[int], dict[str, list[int]]]] = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        squash_mean: bool = True,
+        init_std: float = 0.7,
+        min_std: float = 1e-4,
+        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
+        features_extractor_kwargs: Optional[dict[str, Any]] = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: Optional[dict[str, Any]] = None,
+        n_critics: int = 1,
+        share_features_extractor: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch,
+            activation_fn,
+            squash_mean,
+            init_std,
+            min_std,
+            features_extractor_class,
+            features_extractor_kwargs,
+            normalize_images,
+            optimizer_class,
+            optimizer_kwargs,
+            n_critics,
+            share_features_extractor,
+        )

@@ -1,0 +1,414 @@
+import math
+from typing import Any, ClassVar, Optional, TypeVar, Union
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+from torch.nn import functional as F
+
+from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+from sb3_lifelong.common.policies import GaussianActor, gaussian_kl_per_dim, gaussian_log_prob
+from sb3_lifelong.common.utils import sample_gaussian, score_actions
+from sb3_lifelong.mpo.policies import MlpPolicy, MPOPolicy, MultiInputPolicy
+
+SelfMPO = TypeVar("SelfMPO", bound="MPO")
+
+# Lowest raw (pre-softplus) value of a dual variable: softplus(-18) ~ 1.5e-8
+DUAL_RAW_FLOOR = -18.0
+DUAL_EPSILON = 1e-8
+
+
+def inverse_softplus(value: float) -> float:
+    """:return: ``x`` such that ``softplus(x) == value`` (``value > 0``)"""
+    if value <= 0:
+        raise ValueError(f"Dual variables must be initialised > 0, got {value}")
+    return float(value + math.log(-math.expm1(-value)))
+
+
+def dual_value(raw: th.Tensor) -> th.Tensor:
+    """:return: the positive dual variable parametrised by ``raw``: ``softplus(raw) + 1e-8``"""
+    return F.softplus(raw) + DUAL_EPSILON
+
+
+def temperature_loss_and_weights(
+    q_values: th.Tensor, temperature: th.Tensor, epsilon: float
+) -> tuple[th.Tensor, th.Tensor]:
+    """
+    E-step of MPO: non-parametric improved policy over sampled actions, and the loss of the temperature dual.
+
+    ``weights = softmax_N(Q / eta)`` and
+    ``loss = eta * (epsilon + mean_B[logsumexp_N(Q / eta) - log N])`` (the gradient flows into ``eta`` only).
+
+    :param q_values: Q-values of the sampled actions, ``[num_samples, batch]`` (no gradient needed)
+    :param temperature: the temperature ``eta`` (scalar tensor, > 0)
+    :param epsilon: bound on ``KL(q || pi_old)`` per state
+    :return: the temperature loss (scalar) and the normalised weights ``[num_samples, batch]`` (detached)
+    """
+    q_values = q_values.detach()
+    num_samples = q_values.shape[0]
+    weights = th.softmax(q_values / temperature.detach(), dim=0)
+    log_normaliser = th.logsumexp(q_values / temperature, dim=0) - math.log(num_samples)
+    loss = temperature * (epsilon + log_normaliser.mean())
+    return loss, weights
+
+
+class MPO(LifelongOffPolicyAlgorithm):
+    """
+    Maximum a Posteriori Policy Optimisation (MPO), with a decoupled M-step and per-dimension KL constraints.
+
+    Papers: https://arxiv.org/abs/1806.06920 and https://arxiv.org/abs/1812.02256
+    (action penalty: Multi-Objective MPO, https://arxiv.org/abs/2005.07513)
+
+    Each gradient step samples ``num_samples`` actions per state from the target policy and scores them with
+    the target critic in one batched call. The same Q-values give the critic's expected-SARSA target and the
+    E-step weights, because the policy is improved on the batch's next observations
+    (``policy_on_next_obs=True``, as in Acme).
+
+    :param policy: The policy model to use (MlpPolicy, MultiInputPolicy, ...)
+    :param env: The environment to learn from (if registered in Gym, can be str)
+    :param learning_rate: learning rate of the actor and critic (Adam), a constant or a schedule of the
+        remaining progress
+    :param buffer_size: size of the replay buffer
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts
+    :param batch_size: Minibatch size for each gradient update
+    :param tau: the target networks' update coefficient, applied every ``target_update_interval`` updates
+        (1.0: hard copy, the default; use e.g. ``tau=0.005, target_update_interval=1`` for Polyak averaging)
+    :param gamma: the discount factor
+    :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and
+        unit like ``(5, "step")`` or ``(2, "episode")``.
+    :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as environment steps)
+    :param action_noise: extra action noise (the Gaussian policy explores on its own; usually None)
+    :param replay_buffer_class: Replay buffer class to use (for instance ``LifelongReplayBuffer``)
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+    :param n_steps: n-step returns for the critic (SB3's ``NStepReplayBuffer`` when no buffer class is given)
+    :param num_samples: number of actions sampled per state in the E-step and for the critic's target
+    :param epsilon: KL bound of the E-step (temperature dual)
+    :param epsilon_mean: per-dimension KL bound on the change of the policy's mean
+    :param epsilon_stddev: per-dimension KL bound on the change of the policy's standard deviation
+    :param init_temperature: initial value of the temperature dual
+    :param init_alpha_mean: initial value of the mean's Lagrange multipliers
+    :param init_alpha_stddev: initial value of the standard deviation's Lagrange multipliers
+    :param dual_learning_rate: learning rate of the dual variables' own Adam optimizer
+    :param action_penalty: add the Multi-Objective MPO action penalty, a second objective ``-||a - clip(a)||``
+        with its own temperature, which pulls samples (and the mean when it is not squashed) into bounds
+    :param epsilon_penalty: KL bound of the action penalty's E-step
+    :param target_update_interval: number of gradient updates between two target network updates
+    :param max_grad_norm: maximum norm of the actor's and the critic's gradients
+    :param policy_on_next_obs: improve the policy on the batch's next observations, so that one target critic
+        call serves both the E-step and the critic target; if False the policy is improved on the observations
+        (still one call, over both observations and next observations)
+    :param stats_window_size: Window size for the rollout logging
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages, 2 for debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    policy: MPOPolicy
+    actor: GaussianActor
+    actor_target: GaussianActor
+
+    def __init__(
+        self,
+        policy: Union[str, type[MPOPolicy]],
+        env: Union[GymEnv, str],
+        learning_rate: Union[float, Schedule] = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 1.0,
+        gamma: float = 0.99,
+        train_freq: Union[int, tuple[int, str]] = 1,
+        gradient_steps: int = 1,
+        action_noise: Optional[ActionNoise] = None,
+        replay_buffer_class: Optional[type[ReplayBuffer]] = None,
+        replay_buffer_kwargs: Optional[dict[str, Any]] = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        num_samples: int = 20,
+        epsilon: float = 0.1,
+        epsilon_mean: float = 2.5e-3,
+        epsilon_stddev: float = 1e-6,
+        init_temperature: float = 1.0,
+        init_alpha_mean: float = 1.0,
+        init_alpha_stddev: float = 10.0,
+        dual_learning_rate: float = 1e-2,
+        action_penalty: bool = False,
+        epsilon_penalty: float = 1e-3,
+        target_update_interval: int = 100,
+        max_grad_norm: float = 40.0,
+        policy_on_next_obs: bool = True,
+        stats_window_size: int = 100,
+        tensorboard_log: Optional[str] = None,
+        policy_kwargs: Optional[dict[str, Any]] = None,
+        verbose: int = 0,
+        seed: Optional[int] = None,
+        device: Union[th.device, str] = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size,
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
+            train_freq,
+            gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=(spaces.Box,),
+            support_multi_env=True,
+        )
+        self.num_samples = num_samples
+        self.epsilon = epsilon
+        self.epsilon_mean = epsilon_mean
+        self.epsilon_stddev = epsilon_stddev
+        self.init_temperature = init_temperature
+        self.init_alpha_mean = init_alpha_mean
+        self.init_alpha_stddev = init_alpha_stddev
+        self.dual_learning_rate = dual_learning_rate
+        self.action_penalty = action_penalty
+        self.epsilon_penalty = epsilon_penalty
+        self.target_update_interval = target_update_interval
+        self.max_grad_norm = max_grad_norm
+        self.policy_on_next_obs = policy_on_next_obs
+        self._check_hyperparameters()
+        if _init_setup_model:
+            self._setup_model()
+
+    def _check_hyperparameters(self) -> None:
+        checks = {
+            "num_samples": self.num_samples >= 1,
+            "epsilon": self.epsilon > 0,
+            "epsilon_mean": self.epsilon_mean > 0,
+            "epsilon_stddev": self.epsilon_stddev > 0,
+            "epsilon_penalty": self.epsilon_penalty > 0,
+            "dual_learning_rate": self.dual_learning_rate > 0,
+            "target_update_interval": self.target_update_interval >= 1,
+            "tau": 0.0 < self.tau <= 1.0,
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            values = ", ".join(f"{name}={getattr(self, name)!r}" for name in bad)
+            raise ValueError(
+                f"Invalid MPO hyperparameters: {values} (num_samples and target_update_interval must be >= 1, "
+                "epsilons and dual_learning_rate > 0, tau in (0, 1])"
+            )
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self._create_aliases()
+        action_dim = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        # Dual variables, parametrised through softplus to stay positive, with their own optimizer
+        self.log_temperature = th.full((1,), inverse_softplus(self.init_temperature), device=self.device).requires_grad_(
+            True
+        )
+        self.log_alpha_mean = th.full(
+            (action_dim,), inverse_softplus(self.init_alpha_mean), device=self.device
+        ).requires_grad_(True)
+        self.log_alpha_stddev = th.full(
+            (action_dim,), inverse_softplus(self.init_alpha_stddev), device=self.device
+        ).requires_grad_(True)
+        self.log_penalty_temperature = th.full(
+            (1,), inverse_softplus(self.init_temperature), device=self.device
+        ).requires_grad_(True)
+        dual_params = [self.log_temperature, self.log_alpha_mean, self.log_alpha_stddev]
+        if self.action_penalty:
+            dual_params.append(self.log_penalty_temperature)
+        self.dual_optimizer = th.optim.Adam(dual_params, lr=self.dual_learning_rate)
+
+    def _create_aliases(self) -> None:
+        self.actor = self.policy.actor
+        self.actor_target = self.policy.actor_target
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+
+    @property
+    def temperature(self) -> float:
+        """Current value of the E-step temperature dual."""
+        return float(dual_value(self.log_temperature).item())
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        # Switch to train mode (this affects batch norm / dropout)
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        num_samples = self.num_samples
+        stats: dict[str, list[th.Tensor]] = {
+            key: []
+            for key in (
+                "critic_loss",
+                "actor_loss",
+                "temperature",
+                "alpha_mean",
+                "alpha_stddev",
+                "kl_mean",
+                "kl_stddev",
+                "std_min",
+                "std_max",
+                "q_mean",
+                "ess",
+            )
+        }
+        if self.action_penalty:
+            stats["penalty_temperature"] = []
+
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+            obs, next_obs = replay_data.observations, replay_data.next_observations
+
+            # States on which the policy is improved
+            policy_obs = next_obs if self.policy_on_next_obs else obs
+            with th.no_grad():
+                if self.policy_on_next_obs:
+                    target_mean, target_std = self.actor_target.distribution_params(next_obs)
+                    sampled_actions = sample_gaussian(target_mean, target_std, num_samples)  # [N, B, A]
+                    sampled_q = score_actions(self.critic_target, next_obs, sampled_actions)  # [N, B]
+                    next_q = sampled_q.mean(dim=0)
+                else:
+                    # One actor call and one critic call over [obs; next_obs]
+                    both_obs = _concat_obs(obs, next_obs)
+                    both_mean, both_std = self.actor_target.distribution_params(both_obs)
+                    both_actions = sample_gaussian(both_mean, both_std, num_samples)  # [N, 2B, A]
+                    both_q = score_actions(self.critic_target, both_obs, both_actions)  # [N, 2B]
+                    target_mean, target_std = both_mean[:batch_size], both_std[:batch_size]
+                    sampled_actions, sampled_q = both_actions[:, :batch_size], both_q[:, :batch_size]
+                    next_q = both_q[:, batch_size:].mean(dim=0)
+                # Expected SARSA over the target policy's samples (n-step discount from the buffer)
+                target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q.unsqueeze(1)
+
+            # Critic: regression on the expected-SARSA target
+            current_q_values = self.critic(obs, replay_data.actions)
+            critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q) for current_q in current_q_values)
+            assert isinstance(critic_loss, th.Tensor)
+            self.critic.optimizer.zero_grad(set_to_none=True)
+            critic_loss.backward()
+            th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+            self.critic.optimizer.step()
+
+            # E-step: weights of the sampled actions, temperature dual
+            temperature = dual_value(self.log_temperature)
+            temperature_loss, weights = temperature_loss_and_weights(sampled_q, temperature, self.epsilon)
+            dual_loss = temperature_loss
+            all_weights = [weights]
+            if self.action_penalty:
+                penalty_temperature = dual_value(self.log_penalty_temperature)
+                penalty_q = -th.linalg.vector_norm(sampled_actions - sampled_actions.clamp(-1.0, 1.0), dim=-1)
+                penalty_loss, penalty_weights = temperature_loss_and_weights(
+                    penalty_q, penalty_temperature, self.epsilon_penalty
+                )
+                dual_loss = dual_loss + penalty_loss
+                all_weights.append(penalty_weights)
+                stats["penalty_temperature"].append(penalty_temperature.detach().squeeze())
+
+            # M-step, decoupled: mean with the target's std, std with the target's mean
+            online_mean, online_std = self.actor.distribution_params(policy_obs)
+            log_prob_mean = gaussian_log_prob(sampled_actions, online_mean.unsqueeze(0), target_std.unsqueeze(0))
+            log_prob_std = gaussian_log_prob(sampled_actions, target_mean.unsqueeze(0), online_std.unsqueeze(0))
+            policy_loss = sum(-(w * (log_prob_mean + log_prob_std)).sum(dim=0).mean() for w in all_weights)
+            assert isinstance(policy_loss, th.Tensor)
+
+            # Per-dimension KL(pi_target || pi_online), averaged over the batch: [A]
+            kl_mean = gaussian_kl_per_dim(target_mean, target_std, online_mean, target_std).mean(dim=0)
+            kl_stddev = gaussian_kl_per_dim(target_mean, target_std, target_mean, online_std).mean(dim=0)
+            alpha_mean = dual_value(self.log_alpha_mean)
+            alpha_stddev = dual_value(self.log_alpha_stddev)
+            kl_loss = (alpha_mean.detach() * kl_mean).sum() + (alpha_stddev.detach() * kl_stddev).sum()
+            dual_loss = (
+                dual_loss
+                + (alpha_mean * (self.epsilon_mean - kl_mean.detach())).sum()
+                + (alpha_stddev * (self.epsilon_stddev - kl_stddev.detach())).sum()
+            )
+            actor_loss = policy_loss + kl_loss
+
+            self.actor.optimizer.zero_grad(set_to_none=True)
+            self.dual_optimizer.zero_grad(set_to_none=True)
+            (actor_loss + dual_loss).backward()
+            th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
+            self.actor.optimizer.step()
+            self.dual_optimizer.step()
+            with th.no_grad():
+                for raw in self.dual_optimizer.param_groups[0]["params"]:
+                    raw.clamp_(min=DUAL_RAW_FLOOR)
+
+            if self._n_updates % self.target_update_interval == 0:
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+
+            stats["critic_loss"].append(critic_loss.detach())
+            stats["actor_loss"].append(policy_loss.detach())
+            stats["temperature"].append(temperature.detach().squeeze())
+            stats["alpha_mean"].append(alpha_mean.detach().mean())
+            stats["alpha_stddev"].append(alpha_stddev.detach().mean())
+            stats["kl_mean"].append(kl_mean.detach().mean())
+            stats["kl_stddev"].append(kl_stddev.detach().mean())
+            stats["std_min"].append(online_std.detach().min())
+            stats["std_max"].append(online_std.detach().max())
+            stats["q_mean"].append(current_q_values[0].detach().mean())
+            # Effective sample size of the E-step weights, as a fraction of num_samples
+            stats["ess"].append((1.0 / weights.pow(2).sum(dim=0)).mean() / num_samples)
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for key, values in stats.items():
+            if values:
+                self.logger.record(f"train/{key}", th.stack(values).mean().item())
+
+    def learn(
+        self: SelfMPO,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "MPO",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfMPO:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "actor", "critic", "actor_target", "critic_target"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "actor.optimizer", "critic.optimizer", "dual_optimizer"]
+        saved_pytorch_variables = ["log_temperature", "log_alpha_mean", "log_alpha_stddev", "log_penalty_temperature"]
+        return state_dicts, saved_pytorch_variables
+
+
+def _concat_obs(first: Any, second: Any) -> Any:
+    if isinstance(first, dict):
+        return {key: th.cat([first[key], second[key]], dim=0) for key in first}
+    return th.cat([first, second], dim=0)
+
+

@@ -1,0 +1,342 @@
+import math
+import os
+from typing import Optional
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
+
+from sb3_lifelong import MPO
+from sb3_lifelong.common.policies import gaussian_kl_per_dim, gaussian_log_prob
+from sb3_lifelong.common.utils import q_min, sample_gaussian, score_actions, tile_obs
+from sb3_lifelong.mpo.mpo import dual_value, inverse_softplus, temperature_loss_and_weights
+
+SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50, num_samples=8)
+
+
+class LineEnv(gym.Env):
+    """Deterministic 1-D task: move a point to the origin; fixed start, fixed episode length."""
+
+    def __init__(self, episode_length: int = 50, reward_scale: float = 1.0):
+        self.observation_space = spaces.Box(-10.0, 10.0, shape=(2,), dtype=np.float32)
+        self.action_space = spaces.Box(-2.0, 2.0, shape=(1,), dtype=np.float32)
+        self.episode_length = episode_length
+        self.reward_scale = reward_scale
+        self.x = 0.0
+        self.t = 0
+
+    def _obs(self) -> np.ndarray:
+        return np.array([self.x, self.t / self.episode_length], dtype=np.float32)
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        super().reset(seed=seed)
+        self.x, self.t = 3.0, 0
+        return self._obs(), {}
+
+    def step(self, action):
+        self.x = float(np.clip(self.x + 0.5 * float(action[0]), -10, 10))
+        self.t += 1
+        reward = -abs(self.x) * self.reward_scale
+        return self._obs(), reward, False, self.t >= self.episode_length, {}
+
+
+class DictObsWrapper(gym.ObservationWrapper):
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.observation_space = spaces.Dict({"state": env.observation_space, "scale": spaces.Box(0, 1, (1,))})
+
+    def observation(self, observation):
+        return {"state": observation, "scale": np.ones(1, dtype=np.float32)}
+
+
+def flat_params(model: MPO) -> th.Tensor:
+    tensors = [p.detach().flatten() for p in model.policy.parameters()]
+    tensors += [model.log_temperature.detach(), model.log_alpha_mean.detach(), model.log_alpha_stddev.detach()]
+    return th.cat(tensors)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Losses on hand-computed cases
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def test_temperature_dual_hand_computed():
+    q = th.tensor([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])  # N=3 samples, B=2 states
+    eta = th.tensor([2.0], requires_grad=True)
+    loss, weights = temperature_loss_and_weights(q, eta, epsilon=0.1)
+    # State 0: logsumexp([0.5, 1, 1.5]) - log 3; state 1: logsumexp([0,0,0]) - log 3 = 0
+    lse0 = math.log(math.exp(0.5) + math.exp(1.0) + math.exp(1.5)) - math.log(3)
+    expected = 2.0 * (0.1 + 0.5 * (lse0 + 0.0))
+    assert loss.item() == pytest.approx(expected, rel=1e-6)
+    expected_w0 = np.exp([0.5, 1.0, 1.5]) / np.exp([0.5, 1.0, 1.5]).sum()
+    np.testing.assert_allclose(weights[:, 0].numpy(), expected_w0, rtol=1e-6)
+    np.testing.assert_allclose(weights[:, 1].numpy(), [1 / 3] * 3, rtol=1e-6)
+    assert not weights.requires_grad
+    # d/d eta = epsilon + mean_B[lse - log N] - mean_B[sum_i w_i q_i / eta]
+    loss.backward()
+    expected_grad = 0.1 + 0.5 * lse0 - 0.5 * float((expected_w0 * np.array([1.0, 2.0, 3.0])).sum() / 2.0)
+    assert eta.grad.item() == pytest.approx(expected_grad, rel=1e-5)
+
+
+def test_kl_and_log_prob_hand_computed():
+    zero, one, two = th.tensor([0.0]), th.tensor([1.0]), th.tensor([2.0])
+    assert gaussian_kl_per_dim(zero, one, one, one).item() == pytest.approx(0.5)
+    assert gaussian_kl_per_dim(zero, one, zero, two).item() == pytest.approx(math.log(2) + 1 / 8 - 0.5)
+    assert gaussian_kl_per_dim(one, two, one, two).item() == pytest.approx(0.0, abs=1e-7)
+    mean, std = th.tensor([[0.5, -0.2]]), th.tensor([[0.3, 1.5]])
+    actions = th.tensor([[0.1, 0.7]])
+    expected = th.distributions.Normal(mean, std).log_prob(actions).sum(-1)
+    assert gaussian_log_prob(actions, mean, std).item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_dual_parametrisation():
+    for value in (1e-3, 1.0, 10.0):
+        assert dual_value(th.tensor(inverse_softplus(value))).item() == pytest.approx(value + 1e-8, rel=1e-5)
+    with pytest.raises(ValueError, match="> 0"):
+        inverse_softplus(0.0)
+
+
+def test_sample_and_score_shapes():
+    model = MPO("MlpPolicy", "Pendulum-v1", **SMALL)
+    obs = th.randn(5, 3)
+    mean, std = model.actor_target.distribution_params(obs)
+    actions = sample_gaussian(mean, std, 7)
+    assert actions.shape == (7, 5, 1)
+    q = score_actions(model.critic_target, obs, actions)
+    assert q.shape == (7, 5)
+    # the batched call equals one call per sample, on clipped actions
+    for n in range(7):
+        single = q_min(model.critic_target(obs, actions[n].clamp(-1, 1))).squeeze(1)
+        th.testing.assert_close(q[n], single)
+    tiled = tile_obs({"a": th.arange(3.0).reshape(3, 1)}, 2)
+    assert tiled["a"].flatten().tolist() == [0, 1, 2, 0, 1, 2]
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The SB3 contract
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def test_train_logs_and_predict(tmp_path):
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=1, **SMALL)
+    model.learn(150)
+    for key in (
+        "critic_loss",
+        "actor_loss",
+        "temperature",
+        "alpha_mean",
+        "alpha_stddev",
+        "kl_mean",
+        "kl_stddev",
+        "std_min",
+        "std_max",
+        "q_mean",
+    ):
+        assert f"train/{key}" in model.logger.name_to_value, key
+        assert np.isfinite(model.logger.name_to_value[f"train/{key}"])
+    obs = model.env.reset()
+    action, _ = model.predict(obs, deterministic=True)
+    assert action.shape == (1, 1)
+    # deterministic action = mean of the Gaussian, rescaled to the action bounds
+    with th.no_grad():
+        mean, _ = model.actor.distribution_params(th.as_tensor(obs))
+    np.testing.assert_allclose(action, model.policy.unscale_action(mean.clamp(-1, 1).numpy()), rtol=1e-5)
+    stochastic = np.stack([model.predict(obs, deterministic=False)[0] for _ in range(20)])
+    assert stochastic.std() > 0
+    assert np.all(np.abs(stochastic) <= 2.0)
+
+
+def test_save_load_round_trip(tmp_path):
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
+    model.learn(200)
+    path = tmp_path / "mpo.zip"
+    model.save(path)
+    loaded = MPO.load(path, env=make_vec_env("Pendulum-v1"))
+    th.testing.assert_close(flat_params(model), flat_params(loaded), rtol=0, atol=0)
+    for name in ("actor", "critic"):
+        original = getattr(model, name).optimizer.state_dict()["state"]
+        restored = getattr(loaded, name).optimizer.state_dict()["state"]
+        for key in original:
+            th.testing.assert_close(original[key]["exp_avg"], restored[key]["exp_avg"], rtol=0, atol=0)
+    dual_state = loaded.dual_optimizer.state_dict()["state"]
+    assert len(dual_state) == 3
+    th.testing.assert_close(
+        model.dual_optimizer.state_dict()["state"][0]["exp_avg_sq"], dual_state[0]["exp_avg_sq"], rtol=0, atol=0
+    )
+    assert loaded.num_samples == model.num_samples and loaded._n_updates == model._n_updates
+    obs = np.random.uniform(-1, 1, size=(4, 3)).astype(np.float32)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+    # the duals are still trained by the restored optimizer after loading
+    before = loaded.log_temperature.clone()
+    loaded.learn(100, reset_num_timesteps=False)
+    assert not th.equal(before, loaded.log_temperature)
+
+
+def _line_model(seed: int) -> MPO:
+    return MPO("MlpPolicy", LineEnv(episode_length=50), seed=seed, **SMALL)
+
+
+def test_resume_is_exact(tmp_path):
+    """save + load + load_replay_buffer + learn continues exactly like an uninterrupted run."""
+    uninterrupted = _line_model(seed=3)
+    uninterrupted.learn(200)
+    uninterrupted.learn(200, reset_num_timesteps=False)
+
+    first_half = _line_model(seed=3)
+    first_half.learn(200)  # 4 whole episodes: the environment is at an episode boundary
+    first_half.save(tmp_path / "model.zip")
+    first_half.save_replay_buffer(tmp_path / "buffer.pkl")
+    del first_half
+    th.manual_seed(12345)  # unrelated random draws between the two processes' lives must not matter
+    np.random.seed(12345)
+
+    resumed = MPO.load(tmp_path / "model.zip", env=LineEnv(episode_length=50))
+    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
+    resumed.learn(200, reset_num_timesteps=False)
+    assert resumed.num_timesteps == uninterrupted.num_timesteps == 400
+    th.testing.assert_close(flat_params(resumed), flat_params(uninterrupted), rtol=0, atol=0)
+
+
+def test_same_seed_same_run():
+    runs = []
+    for _ in range(2):
+        model = _line_model(seed=7)
+        model.learn(150)
+        runs.append(flat_params(model))
+    th.testing.assert_close(runs[0], runs[1], rtol=0, atol=0)
+    other = _line_model(seed=8)
+    other.learn(150)
+    assert not th.equal(runs[0], flat_params(other))
+
+
+def test_multi_env_and_callbacks():
+    class Counter(BaseCallback):
+        def __init__(self):
+            super().__init__()
+            self.calls = 0
+            self.rollout_ends = 0
+
+        def _on_step(self) -> bool:
+            self.calls += 1
+            return True
+
+        def _on_rollout_end(self) -> None:
+            self.rollout_ends += 1
+
+    env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
+    model = MPO("MlpPolicy", env, seed=0, **SMALL)
+    callback = Counter()
+    model.learn(200, callback=callback)
+    assert model.num_timesteps == 200
+    assert callback.calls == 100  # one call per vectorised step
+    assert model.replay_buffer.size() * 2 == 200
+    assert model._n_updates > 0
+
+
+def test_progress_bar_and_tensorboard(tmp_path):
+    pytest.importorskip("tensorboard")
+    pytest.importorskip("tqdm")
+    pytest.importorskip("rich")
+    model = MPO("MlpPolicy", LineEnv(episode_length=20), tensorboard_log=str(tmp_path), seed=0, **SMALL)
+    model.learn(120, tb_log_name="lifelong", progress_bar=True, log_interval=1)
+    model.learn(120, tb_log_name="lifelong", reset_num_timesteps=False, log_interval=1)
+    runs = sorted(os.listdir(tmp_path))
+    assert runs == ["lifelong_1"], runs  # the second call appended to the same run
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    accumulator = EventAccumulator(str(tmp_path / "lifelong_1"))
+    accumulator.Reload()
+    tags = accumulator.Tags()["scalars"]
+    assert "train/temperature" in tags and "train/kl_mean" in tags
+    steps = [event.step for event in accumulator.Scalars("train/temperature")]
+    assert max(steps) > 120  # logged by the second call, in the same run
+
+
+def test_set_env_between_stages():
+    model = MPO("MlpPolicy", LineEnv(), seed=0, **SMALL)
+    model.learn(100)
+    model.set_env(LineEnv(reward_scale=2.0))
+    model.learn(100, reset_num_timesteps=False)
+    assert model.num_timesteps == 200
+    assert model.replay_buffer.size() == 200
+    with pytest.raises(ValueError, match="Observation spaces do not match"):
+        model.set_env(gym.make("Pendulum-v1"))
+
+
+def test_dict_observations():
+    env = DictObsWrapper(gym.make("Pendulum-v1"))
+    model = MPO("MultiInputPolicy", env, seed=0, **SMALL)
+    model.learn(120)
+    action, _ = model.predict(env.observation_space.sample(), deterministic=True)
+    assert action.shape == (1,)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(n_steps=3),
+        dict(policy_on_next_obs=False),
+        dict(action_penalty=True, policy_kwargs=dict(net_arch=[32, 32], squash_mean=False)),
+        dict(tau=0.005, target_update_interval=1, policy_kwargs=dict(net_arch=[32, 32], n_critics=2)),
+    ],
+)
+def test_variants_train(kwargs):
+    params = {**SMALL, **kwargs}
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **params)
+    before = [p.clone() for p in model.actor_target.parameters()]
+    model.learn(160)
+    assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
+    changed = any(not th.equal(a, b) for a, b in zip(before, model.actor_target.parameters()))
+    assert changed  # the target networks were updated (every 100 updates, or Polyak every update)
+    if kwargs.get("action_penalty"):
+        assert "train/penalty_temperature" in model.logger.name_to_value
+
+
+def test_hard_target_update_interval():
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, target_update_interval=1000, **SMALL)
+    before = [p.clone() for p in model.critic_target.parameters()]
+    model.learn(150)  # ~100 updates < 1000: targets untouched
+    assert all(th.equal(a, b) for a, b in zip(before, model.critic_target.parameters()))
+
+
+def test_bad_action_space_and_hyperparameters():
+    with pytest.raises(AssertionError, match="Box"):
+        MPO("MlpPolicy", "CartPole-v1")
+    with pytest.raises(ValueError, match="num_samples"):
+        MPO("MlpPolicy", "Pendulum-v1", num_samples=0)
+    with pytest.raises(ValueError, match="epsilon_mean"):
+        MPO("MlpPolicy", "Pendulum-v1", epsilon_mean=-1.0)
+
+
+@pytest.mark.parametrize("reward_scale", [1e6, -1e6])
+def test_extreme_rewards_stay_finite(reward_scale):
+    env = Monitor(LineEnv(episode_length=20, reward_scale=reward_scale))
+    model = MPO("MlpPolicy", env, seed=0, **SMALL)
+    model.learn(400)
+    assert th.isfinite(flat_params(model)).all()
+    for raw in (model.log_temperature, model.log_alpha_mean, model.log_alpha_stddev):
+        value = dual_value(raw)
+        assert th.isfinite(value).all() and (value > 0).all()
+        assert (value < 1e6).all()
+    assert np.isfinite(model.logger.name_to_value["train/actor_loss"])
+
+
+def test_mpo_solves_pendulum():
+    model = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        learning_starts=1000,
+        batch_size=128,
+        learning_rate=1e-3,
+        policy_kwargs=dict(net_arch=[64, 64]),
+        seed=0,
+    )
+    model.learn(7000)
+    mean_reward, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
+    assert mean_reward >= -250, mean_reward
