@@ -340,3 +340,18 @@ def test_mpo_solves_pendulum():
     model.learn(7000)
     mean_reward, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
     assert mean_reward >= -250, mean_reward
+
+
+def test_n_steps_forwarded_to_buffer_class():
+    import warnings
+
+    from stable_baselines3.common.buffers import NStepReplayBuffer
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model = MPO("MlpPolicy", "Pendulum-v1", replay_buffer_class=NStepReplayBuffer, n_steps=3, gamma=0.9, **SMALL)
+    assert model.replay_buffer.n_steps == 3
+    assert model.replay_buffer.gamma == 0.9
+    model.learn(120)
+    sample = model.replay_buffer.sample(16)
+    assert sample.discounts is not None and th.all(sample.discounts <= 0.9 + 1e-6)

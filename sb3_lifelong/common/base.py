@@ -1,8 +1,11 @@
 """Base class of this package's off-policy algorithms: SB3's ``OffPolicyAlgorithm`` plus exact resumption."""
 
+import inspect
 import io
 import pathlib
 import random
+import warnings
+from collections.abc import Iterable
 from typing import Any, Optional, TypeVar, Union
 
 import numpy as np
@@ -22,7 +25,7 @@ def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, 
     :param action_space: the algorithm's action space
     :return: the state, to be passed to :func:`restore_rng_state`
     """
-    np_state = np.random.get_state()
+    np_state: tuple[Any, ...] = np.random.get_state()  # type: ignore[assignment]
     py_version, py_internal, py_gauss = random.getstate()
     state: dict[str, Any] = {
         "torch": th.get_rng_state().tolist(),
@@ -60,11 +63,25 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     of the start of training instead of continuing them.
     """
 
+    def _setup_model(self) -> None:
+        # A buffer class that computes n-step returns itself (e.g. LifelongReplayBuffer) gets the algorithm's
+        # n_steps and gamma, instead of SB3's warning that n_steps is ignored for custom buffer classes.
+        forwarded = False
+        if self.n_steps > 1 and self.replay_buffer_class is not None and self.replay_buffer is None:
+            parameters = inspect.signature(self.replay_buffer_class.__init__).parameters
+            if "n_steps" in parameters and "n_steps" not in self.replay_buffer_kwargs:
+                self.replay_buffer_kwargs.update({"n_steps": self.n_steps, "gamma": self.gamma})
+                forwarded = True
+        with warnings.catch_warnings():
+            if forwarded:
+                warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom")
+            super()._setup_model()
+
     def save(
         self,
         path: Union[str, pathlib.Path, io.BufferedIOBase],
-        exclude: Optional[list[str]] = None,
-        include: Optional[list[str]] = None,
+        exclude: Optional[Iterable[str]] = None,
+        include: Optional[Iterable[str]] = None,
     ) -> None:
         self._rng_state = capture_rng_state(self.action_space)
         try:

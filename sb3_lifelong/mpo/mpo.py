@@ -1,4 +1,5 @@
 import math
+from collections import defaultdict
 from typing import Any, ClassVar, Optional, TypeVar, Union
 
 import numpy as np
@@ -7,9 +8,10 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
+from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, gaussian_kl_per_dim, gaussian_log_prob
@@ -35,9 +37,7 @@ def dual_value(raw: th.Tensor) -> th.Tensor:
     return F.softplus(raw) + DUAL_EPSILON
 
 
-def temperature_loss_and_weights(
-    q_values: th.Tensor, temperature: th.Tensor, epsilon: float
-) -> tuple[th.Tensor, th.Tensor]:
+def temperature_loss_and_weights(q_values: th.Tensor, temperature: th.Tensor, epsilon: float) -> tuple[th.Tensor, th.Tensor]:
     """
     E-step of MPO: non-parametric improved policy over sampled actions, and the loss of the temperature dual.
 
@@ -225,9 +225,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         self._create_aliases()
         action_dim = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
         # Dual variables, parametrised through softplus to stay positive, with their own optimizer
-        self.log_temperature = th.full((1,), inverse_softplus(self.init_temperature), device=self.device).requires_grad_(
-            True
-        )
+        self.log_temperature = th.full((1,), inverse_softplus(self.init_temperature), device=self.device).requires_grad_(True)
         self.log_alpha_mean = th.full(
             (action_dim,), inverse_softplus(self.init_alpha_mean), device=self.device
         ).requires_grad_(True)
@@ -257,127 +255,131 @@ class MPO(LifelongOffPolicyAlgorithm):
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
-        num_samples = self.num_samples
-        stats: dict[str, list[th.Tensor]] = {
-            key: []
-            for key in (
-                "critic_loss",
-                "actor_loss",
-                "temperature",
-                "alpha_mean",
-                "alpha_stddev",
-                "kl_mean",
-                "kl_stddev",
-                "std_min",
-                "std_max",
-                "q_mean",
-                "ess",
-            )
-        }
-        if self.action_penalty:
-            stats["penalty_temperature"] = []
+        stats: dict[str, list[th.Tensor]] = defaultdict(list)
 
         for _ in range(gradient_steps):
             self._n_updates += 1
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-            obs, next_obs = replay_data.observations, replay_data.next_observations
-
-            # States on which the policy is improved
-            policy_obs = next_obs if self.policy_on_next_obs else obs
-            with th.no_grad():
-                if self.policy_on_next_obs:
-                    target_mean, target_std = self.actor_target.distribution_params(next_obs)
-                    sampled_actions = sample_gaussian(target_mean, target_std, num_samples)  # [N, B, A]
-                    sampled_q = score_actions(self.critic_target, next_obs, sampled_actions)  # [N, B]
-                    next_q = sampled_q.mean(dim=0)
-                else:
-                    # One actor call and one critic call over [obs; next_obs]
-                    both_obs = _concat_obs(obs, next_obs)
-                    both_mean, both_std = self.actor_target.distribution_params(both_obs)
-                    both_actions = sample_gaussian(both_mean, both_std, num_samples)  # [N, 2B, A]
-                    both_q = score_actions(self.critic_target, both_obs, both_actions)  # [N, 2B]
-                    target_mean, target_std = both_mean[:batch_size], both_std[:batch_size]
-                    sampled_actions, sampled_q = both_actions[:, :batch_size], both_q[:, :batch_size]
-                    next_q = both_q[:, batch_size:].mean(dim=0)
-                # Expected SARSA over the target policy's samples (n-step discount from the buffer)
-                target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q.unsqueeze(1)
-
-            # Critic: regression on the expected-SARSA target
-            current_q_values = self.critic(obs, replay_data.actions)
-            critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q) for current_q in current_q_values)
-            assert isinstance(critic_loss, th.Tensor)
-            self.critic.optimizer.zero_grad(set_to_none=True)
-            critic_loss.backward()
-            th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
-            self.critic.optimizer.step()
-
-            # E-step: weights of the sampled actions, temperature dual
-            temperature = dual_value(self.log_temperature)
-            temperature_loss, weights = temperature_loss_and_weights(sampled_q, temperature, self.epsilon)
-            dual_loss = temperature_loss
-            all_weights = [weights]
-            if self.action_penalty:
-                penalty_temperature = dual_value(self.log_penalty_temperature)
-                penalty_q = -th.linalg.vector_norm(sampled_actions - sampled_actions.clamp(-1.0, 1.0), dim=-1)
-                penalty_loss, penalty_weights = temperature_loss_and_weights(
-                    penalty_q, penalty_temperature, self.epsilon_penalty
-                )
-                dual_loss = dual_loss + penalty_loss
-                all_weights.append(penalty_weights)
-                stats["penalty_temperature"].append(penalty_temperature.detach().squeeze())
-
-            # M-step, decoupled: mean with the target's std, std with the target's mean
-            online_mean, online_std = self.actor.distribution_params(policy_obs)
-            log_prob_mean = gaussian_log_prob(sampled_actions, online_mean.unsqueeze(0), target_std.unsqueeze(0))
-            log_prob_std = gaussian_log_prob(sampled_actions, target_mean.unsqueeze(0), online_std.unsqueeze(0))
-            policy_loss = sum(-(w * (log_prob_mean + log_prob_std)).sum(dim=0).mean() for w in all_weights)
-            assert isinstance(policy_loss, th.Tensor)
-
-            # Per-dimension KL(pi_target || pi_online), averaged over the batch: [A]
-            kl_mean = gaussian_kl_per_dim(target_mean, target_std, online_mean, target_std).mean(dim=0)
-            kl_stddev = gaussian_kl_per_dim(target_mean, target_std, target_mean, online_std).mean(dim=0)
-            alpha_mean = dual_value(self.log_alpha_mean)
-            alpha_stddev = dual_value(self.log_alpha_stddev)
-            kl_loss = (alpha_mean.detach() * kl_mean).sum() + (alpha_stddev.detach() * kl_stddev).sum()
-            dual_loss = (
-                dual_loss
-                + (alpha_mean * (self.epsilon_mean - kl_mean.detach())).sum()
-                + (alpha_stddev * (self.epsilon_stddev - kl_stddev.detach())).sum()
-            )
-            actor_loss = policy_loss + kl_loss
-
-            self.actor.optimizer.zero_grad(set_to_none=True)
-            self.dual_optimizer.zero_grad(set_to_none=True)
-            (actor_loss + dual_loss).backward()
-            th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
-            self.actor.optimizer.step()
-            self.dual_optimizer.step()
-            with th.no_grad():
-                for raw in self.dual_optimizer.param_groups[0]["params"]:
-                    raw.clamp_(min=DUAL_RAW_FLOOR)
-
+            with record_function("mpo/sample_batch"):
+                replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            with th.no_grad(), record_function("mpo/target_sample_and_score"):
+                target_q, target_mean, target_std, sampled_actions, sampled_q = self._sample_and_score(replay_data)
+            with record_function("mpo/critic_update"):
+                self._update_critic(replay_data, target_q, stats)
+            with record_function("mpo/actor_and_dual_update"):
+                policy_obs = replay_data.next_observations if self.policy_on_next_obs else replay_data.observations
+                self._update_actor_and_duals(policy_obs, target_mean, target_std, sampled_actions, sampled_q, stats)
             if self._n_updates % self.target_update_interval == 0:
                 polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
                 polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
 
-            stats["critic_loss"].append(critic_loss.detach())
-            stats["actor_loss"].append(policy_loss.detach())
-            stats["temperature"].append(temperature.detach().squeeze())
-            stats["alpha_mean"].append(alpha_mean.detach().mean())
-            stats["alpha_stddev"].append(alpha_stddev.detach().mean())
-            stats["kl_mean"].append(kl_mean.detach().mean())
-            stats["kl_stddev"].append(kl_stddev.detach().mean())
-            stats["std_min"].append(online_std.detach().min())
-            stats["std_max"].append(online_std.detach().max())
-            stats["q_mean"].append(current_q_values[0].detach().mean())
-            # Effective sample size of the E-step weights, as a fraction of num_samples
-            stats["ess"].append((1.0 / weights.pow(2).sum(dim=0)).mean() / num_samples)
-
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in stats.items():
-            if values:
-                self.logger.record(f"train/{key}", th.stack(values).mean().item())
+            self.logger.record(f"train/{key}", th.stack(values).mean().item())
+
+    def _sample_and_score(
+        self, replay_data: ReplayBufferSamples
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
+        """
+        Sample ``num_samples`` actions per state from the target policy and score them with the target critic,
+        in one critic call that serves both the critic's target and the E-step.
+
+        :param replay_data: the batch
+        :return: the critic's target ``[B, 1]``, the target policy's mean and std ``[B, A]`` on the states the
+            policy is improved on, the sampled actions ``[N, B, A]`` and their Q-values ``[N, B]`` on those states
+        """
+        num_samples, batch_size = self.num_samples, replay_data.rewards.shape[0]
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+        obs, next_obs = replay_data.observations, replay_data.next_observations
+        if self.policy_on_next_obs:
+            target_mean, target_std = self.actor_target.distribution_params(next_obs)
+            sampled_actions = sample_gaussian(target_mean, target_std, num_samples)  # [N, B, A]
+            sampled_q = score_actions(self.critic_target, next_obs, sampled_actions)  # [N, B]
+            next_q = sampled_q.mean(dim=0)
+        else:
+            # One actor call and one critic call over [obs; next_obs]
+            both_obs = _concat_obs(obs, next_obs)
+            both_mean, both_std = self.actor_target.distribution_params(both_obs)
+            both_actions = sample_gaussian(both_mean, both_std, num_samples)  # [N, 2B, A]
+            both_q = score_actions(self.critic_target, both_obs, both_actions)  # [N, 2B]
+            target_mean, target_std = both_mean[:batch_size], both_std[:batch_size]
+            sampled_actions, sampled_q = both_actions[:, :batch_size], both_q[:, :batch_size]
+            next_q = both_q[:, batch_size:].mean(dim=0)
+        # Expected SARSA over the target policy's samples (n-step discount from the buffer when it has one)
+        target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q.unsqueeze(1)
+        return target_q, target_mean, target_std, sampled_actions, sampled_q
+
+    def _update_critic(self, replay_data: ReplayBufferSamples, target_q: th.Tensor, stats: dict[str, list[th.Tensor]]) -> None:
+        current_q_values = self.critic(replay_data.observations, replay_data.actions)
+        critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q) for current_q in current_q_values)
+        assert isinstance(critic_loss, th.Tensor)
+        self.critic.optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+        self.critic.optimizer.step()
+        stats["critic_loss"].append(critic_loss.detach())
+        stats["q_mean"].append(current_q_values[0].detach().mean())
+
+    def _update_actor_and_duals(
+        self,
+        policy_obs: Any,
+        target_mean: th.Tensor,
+        target_std: th.Tensor,
+        sampled_actions: th.Tensor,
+        sampled_q: th.Tensor,
+        stats: dict[str, list[th.Tensor]],
+    ) -> None:
+        # E-step: weights of the sampled actions, temperature dual
+        temperature = dual_value(self.log_temperature)
+        temperature_loss, weights = temperature_loss_and_weights(sampled_q, temperature, self.epsilon)
+        dual_loss = temperature_loss
+        all_weights = [weights]
+        if self.action_penalty:
+            penalty_temperature = dual_value(self.log_penalty_temperature)
+            penalty_q = -th.linalg.vector_norm(sampled_actions - sampled_actions.clamp(-1.0, 1.0), dim=-1)
+            penalty_loss, penalty_weights = temperature_loss_and_weights(penalty_q, penalty_temperature, self.epsilon_penalty)
+            dual_loss = dual_loss + penalty_loss
+            all_weights.append(penalty_weights)
+            stats["penalty_temperature"].append(penalty_temperature.detach().squeeze())
+
+        # M-step, decoupled: the mean is fitted with the target's std, the std with the target's mean
+        online_mean, online_std = self.actor.distribution_params(policy_obs)
+        log_prob_mean = gaussian_log_prob(sampled_actions, online_mean.unsqueeze(0), target_std.unsqueeze(0))
+        log_prob_std = gaussian_log_prob(sampled_actions, target_mean.unsqueeze(0), online_std.unsqueeze(0))
+        policy_loss = sum(-(w * (log_prob_mean + log_prob_std)).sum(dim=0).mean() for w in all_weights)
+        assert isinstance(policy_loss, th.Tensor)
+
+        # Per-dimension KL(pi_target || pi_online), averaged over the batch: [A]
+        kl_mean = gaussian_kl_per_dim(target_mean, target_std, online_mean, target_std).mean(dim=0)
+        kl_stddev = gaussian_kl_per_dim(target_mean, target_std, target_mean, online_std).mean(dim=0)
+        alpha_mean = dual_value(self.log_alpha_mean)
+        alpha_stddev = dual_value(self.log_alpha_stddev)
+        kl_loss = (alpha_mean.detach() * kl_mean).sum() + (alpha_stddev.detach() * kl_stddev).sum()
+        dual_loss = (
+            dual_loss
+            + (alpha_mean * (self.epsilon_mean - kl_mean.detach())).sum()
+            + (alpha_stddev * (self.epsilon_stddev - kl_stddev.detach())).sum()
+        )
+
+        self.actor.optimizer.zero_grad(set_to_none=True)
+        self.dual_optimizer.zero_grad(set_to_none=True)
+        (policy_loss + kl_loss + dual_loss).backward()
+        th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
+        self.actor.optimizer.step()
+        self.dual_optimizer.step()
+        with th.no_grad():
+            for raw in self.dual_optimizer.param_groups[0]["params"]:
+                raw.clamp_(min=DUAL_RAW_FLOOR)
+
+        stats["actor_loss"].append(policy_loss.detach())
+        stats["temperature"].append(temperature.detach().squeeze())
+        stats["alpha_mean"].append(alpha_mean.detach().mean())
+        stats["alpha_stddev"].append(alpha_stddev.detach().mean())
+        stats["kl_mean"].append(kl_mean.detach().mean())
+        stats["kl_stddev"].append(kl_stddev.detach().mean())
+        stats["std_min"].append(online_std.detach().min())
+        stats["std_max"].append(online_std.detach().max())
+        # Effective sample size of the E-step weights, as a fraction of num_samples
+        stats["ess"].append((1.0 / weights.pow(2).sum(dim=0)).mean() / self.num_samples)
 
     def learn(
         self: SelfMPO,
@@ -410,5 +412,3 @@ def _concat_obs(first: Any, second: Any) -> Any:
     if isinstance(first, dict):
         return {key: th.cat([first[key], second[key]], dim=0) for key in first}
     return th.cat([first, second], dim=0)
-
-

@@ -1,0 +1,139 @@
+"""
+Learning curves of MPO vs SB3's SAC on MuJoCo locomotion (Gymnasium v5 tasks).
+
+Each (env, algorithm, seed) run trains with one gradient step per environment step, evaluates the deterministic
+policy every ``--eval-freq`` steps on a separate environment, and appends a row to
+``benchmarks/results/quality/<env>__<algo>__s<seed>.csv`` after every evaluation (a stopped run keeps its curve).
+``--summarise`` turns the CSV files into a table (markdown) and one plot per environment.
+
+Usage::
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_mpo_quality.py --envs Hopper-v5 Walker2d-v5 --seeds 0 1 --steps 30000 --jobs 2
+    python benchmarks/bench_mpo_quality.py --summarise
+"""
+
+import argparse
+import csv
+import itertools
+import multiprocessing as mp
+import pathlib
+import time
+from typing import Any
+
+import numpy as np
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+CURVES = RESULTS / "quality"
+
+
+def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
+    env_id, algo, seed, steps, eval_freq, eval_episodes, learning_starts = config
+    import gymnasium as gym
+    import torch as th
+    from stable_baselines3 import SAC
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.monitor import Monitor
+
+    from sb3_lifelong import MPO
+
+    th.set_num_threads(1)
+    CURVES.mkdir(parents=True, exist_ok=True)
+    path = CURVES / f"{env_id}__{algo}__s{seed}.csv"
+    eval_env = Monitor(gym.make(env_id))
+    eval_env.reset(seed=10_000 + seed)
+    common: dict[str, Any] = dict(batch_size=256, learning_starts=learning_starts, seed=seed, verbose=0)
+    policy_kwargs = dict(net_arch=[256, 256])
+    model = (MPO if algo == "MPO" else SAC)("MlpPolicy", env_id, policy_kwargs=policy_kwargs, **common)
+    start = time.perf_counter()
+
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["timesteps", "mean_return", "std_return", "wall_s"])
+
+        class Evaluate(BaseCallback):
+            def _on_step(self) -> bool:
+                if self.num_timesteps % eval_freq == 0:
+                    mean, std = evaluate_policy(self.model, eval_env, n_eval_episodes=eval_episodes, deterministic=True)
+                    writer.writerow([self.num_timesteps, f"{mean:.2f}", f"{std:.2f}", f"{time.perf_counter() - start:.1f}"])
+                    handle.flush()
+                return True
+
+        model.learn(steps, callback=Evaluate())
+    return str(path)
+
+
+def summarise() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves: dict[tuple[str, str], list[np.ndarray]] = {}
+    for path in sorted(CURVES.glob("*.csv")):
+        env_id, algo, _ = path.stem.split("__")
+        data = np.genfromtxt(path, delimiter=",", skip_header=1, ndmin=2)
+        if data.size:
+            curves.setdefault((env_id, algo), []).append(data)
+    lines = [
+        "| env | algorithm | seeds | steps reached | final return (mean +- std over seeds) | best eval (mean over seeds) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for (env_id, algo), runs in sorted(curves.items()):
+        reached = min(int(run[-1, 0]) for run in runs)
+        finals = [run[run[:, 0] <= reached][-1, 1] for run in runs]
+        bests = [run[:, 1].max() for run in runs]
+        lines.append(
+            f"| {env_id} | {algo} | {len(runs)} | {reached} | {np.mean(finals):.0f} +- {np.std(finals):.0f} | "
+            f"{np.mean(bests):.0f} |"
+        )
+    table = "\n".join(lines)
+    print(table)
+    (RESULTS / "mpo_quality.md").write_text(
+        "# MPO vs SAC: evaluation return (deterministic policy, 5 episodes per evaluation)\n\n" + table + "\n"
+    )
+    for env_id in sorted({env for env, _ in curves}):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for (env, algo), runs in sorted(curves.items()):
+            if env != env_id:
+                continue
+            length = min(len(run) for run in runs)
+            steps = runs[0][:length, 0]
+            returns = np.stack([run[:length, 1] for run in runs])
+            ax.plot(steps, returns.mean(0), label=f"{algo} ({len(runs)} seeds)")
+            ax.fill_between(steps, returns.min(0), returns.max(0), alpha=0.2)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("evaluation return")
+        ax.set_title(env_id)
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(RESULTS / f"mpo_quality_{env_id}.png", dpi=100)
+        plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", nargs="+", default=["Hopper-v5", "Walker2d-v5"])
+    parser.add_argument("--algos", nargs="+", default=["MPO", "SAC"])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--steps", type=int, default=100_000)
+    parser.add_argument("--eval-freq", type=int, default=5000)
+    parser.add_argument("--eval-episodes", type=int, default=5)
+    parser.add_argument("--learning-starts", type=int, default=5000)
+    parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (one torch thread each)")
+    parser.add_argument("--summarise", action="store_true", help="only summarise the existing CSV files")
+    args = parser.parse_args()
+    if not args.summarise:
+        # seed-major order: with --jobs 2 the MPO and SAC runs of one (seed, env) run side by side
+        configs = [
+            (env, algo, seed, args.steps, args.eval_freq, args.eval_episodes, args.learning_starts)
+            for seed, env, algo in itertools.product(args.seeds, args.envs, args.algos)
+        ]
+        with mp.get_context("spawn").Pool(args.jobs) as pool:
+            for path in pool.imap_unordered(run_one, configs):
+                print("done:", path, flush=True)
+    summarise()
+
+
+if __name__ == "__main__":
+    main()
