@@ -1,0 +1,139 @@
+"""Callbacks for lifelong learning: evaluate the current policy on every environment the robot has seen."""
+
+import csv
+import os
+import pathlib
+from collections.abc import Mapping, Sequence
+from typing import Any, Optional, Union
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
+CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
+
+
+def _name_of(env: Any, index: int) -> str:
+    spec = getattr(env, "spec", None)
+    if spec is None and isinstance(env, VecEnv):
+        spec = env.get_attr("spec", indices=[0])[0]
+    base = spec.id if spec is not None else type(env).__name__
+    return f"{base}_{index}"
+
+
+def _as_vec_env(env: Union[gym.Env, VecEnv]) -> VecEnv:
+    if isinstance(env, VecEnv):
+        return env
+    return DummyVecEnv([lambda: Monitor(env)])
+
+
+class MultiEnvEvalCallback(BaseCallback):
+    """
+    Every ``eval_freq`` timesteps, evaluate the model's policy on each of several environments (Env-A, Env-B, ...)
+    and log ``eval/<name>/mean_reward`` and ``eval/<name>/std_reward`` (plus ``eval/mean_over_envs``) to the
+    model's logger (tensorboard, CSV, stdout), and append one row per environment to a CSV file.
+
+    Works the same during online learning (timesteps = environment steps) and offline training, where the
+    algorithms of this package count gradient updates as timesteps.
+
+    :param eval_envs: the environments, as a mapping name -> env (names appear in the logs) or a sequence
+        (named after their spec id and position)
+    :param eval_freq: evaluate every ``eval_freq`` timesteps (counted with ``model.num_timesteps``, so that the
+        number of parallel environments does not change the schedule)
+    :param n_eval_episodes: episodes per environment and evaluation
+    :param deterministic: evaluate the deterministic policy (the Gaussian's mean)
+    :param log_path: CSV file to append the results to (columns: timesteps, env, mean_reward, std_reward,
+        n_episodes), or None
+    :param eval_at_start: also evaluate before the first step
+    :param verbose: 1 prints each evaluation
+    """
+
+    def __init__(
+        self,
+        eval_envs: Union[Mapping[str, Union[gym.Env, VecEnv]], Sequence[Union[gym.Env, VecEnv]]],
+        eval_freq: int = 10_000,
+        n_eval_episodes: int = 5,
+        deterministic: bool = True,
+        log_path: Optional[Union[str, os.PathLike]] = None,
+        eval_at_start: bool = False,
+        verbose: int = 0,
+    ):
+        super().__init__(verbose)
+        if isinstance(eval_envs, Mapping):
+            named = dict(eval_envs)
+        else:
+            named = {_name_of(env, i): env for i, env in enumerate(eval_envs)}
+        if not named:
+            raise ValueError("MultiEnvEvalCallback needs at least one evaluation environment")
+        if eval_freq < 1 or n_eval_episodes < 1:
+            raise ValueError(f"eval_freq and n_eval_episodes must be >= 1, got {eval_freq} and {n_eval_episodes}")
+        bad = [name for name in named if not name or "/" in name]
+        if bad:
+            raise ValueError(f"Evaluation environment names must be non-empty and contain no '/': {bad}")
+        self.eval_envs = {name: _as_vec_env(env) for name, env in named.items()}
+        self.eval_freq = eval_freq
+        self.n_eval_episodes = n_eval_episodes
+        self.deterministic = deterministic
+        self.log_path = pathlib.Path(log_path) if log_path is not None else None
+        self.eval_at_start = eval_at_start
+        self.results: list[dict[str, Any]] = []
+        self._next_eval = 0
+
+    def _init_callback(self) -> None:
+        # first evaluation at the next multiple of eval_freq (learn may resume at any timestep)
+        self._next_eval = (self.num_timesteps // self.eval_freq + 1) * self.eval_freq
+        if self.log_path is not None:
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            if not self.log_path.exists():
+                with open(self.log_path, "w", newline="") as handle:
+                    csv.writer(handle).writerow(CSV_FIELDS)
+
+    def _on_training_start(self) -> None:
+        if self.eval_at_start:
+            self.evaluate()
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next_eval:
+            self.evaluate()
+            while self._next_eval <= self.num_timesteps:
+                self._next_eval += self.eval_freq
+        return True
+
+    def evaluate(self) -> dict[str, float]:
+        """
+        Evaluate now on every environment, log and record the results.
+
+        :return: mean reward per environment name
+        """
+        means: dict[str, float] = {}
+        rows = []
+        for name, env in self.eval_envs.items():
+            episode_rewards, _ = evaluate_policy(
+                self.model,
+                env,
+                n_eval_episodes=self.n_eval_episodes,
+                deterministic=self.deterministic,
+                return_episode_rewards=True,
+                warn=False,
+            )
+            mean, std = float(np.mean(episode_rewards)), float(np.std(episode_rewards))
+            means[name] = mean
+            self.logger.record(f"eval/{name}/mean_reward", mean)
+            self.logger.record(f"eval/{name}/std_reward", std)
+            row = dict(
+                timesteps=self.num_timesteps, env=name, mean_reward=mean, std_reward=std, n_episodes=len(episode_rewards)
+            )
+            rows.append(row)
+            if self.verbose >= 1:
+                print(f"Eval at {self.num_timesteps}: {name} mean reward {mean:.2f} +/- {std:.2f}")
+        self.logger.record("eval/mean_over_envs", float(np.mean(list(means.values()))))
+        self.results.extend(rows)
+        if self.log_path is not None:
+            with open(self.log_path, "a", newline="") as handle:
+                writer = csv.DictWriter(handle, fieldnames=CSV_FIELDS)
+                writer.writerows(rows)
+        self.logger.dump(self.num_timesteps)
+        return means

@@ -1,0 +1,53 @@
+import csv
+
+import gymnasium as gym
+import pytest
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_lifelong import MPO
+from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
+
+SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50, num_samples=8)
+
+
+def test_evaluates_every_env_on_schedule(tmp_path):
+    envs = {"env_a": gym.make("Pendulum-v1", g=10.0), "env_b": gym.make("Pendulum-v1", g=5.0)}
+    log_path = tmp_path / "eval.csv"
+    callback = MultiEnvEvalCallback(envs, eval_freq=100, n_eval_episodes=2, log_path=log_path)
+    model = MPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=0), seed=0, **SMALL)
+    model.learn(300, callback=callback)
+    # timesteps 100, 200, 300 (n_envs=2 steps by 2: the schedule follows num_timesteps, not calls)
+    assert [row["timesteps"] for row in callback.results] == [100, 100, 200, 200, 300, 300]
+    assert {row["env"] for row in callback.results} == {"env_a", "env_b"}
+    with open(log_path) as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 6 and rows[0]["env"] == "env_a"
+    assert all(float(row["mean_reward"]) < 0 for row in rows)
+    # learning again appends to the same CSV and continues the schedule
+    model.learn(100, callback=callback, reset_num_timesteps=False)
+    with open(log_path) as handle:
+        assert [int(row["timesteps"]) for row in csv.DictReader(handle)][-2:] == [400, 400]
+
+
+def test_logged_to_tensorboard(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    envs = [gym.make("Pendulum-v1"), gym.make("Pendulum-v1", g=3.0)]
+    callback = MultiEnvEvalCallback(envs, eval_freq=60, n_eval_episodes=1)
+    model = MPO("MlpPolicy", "Pendulum-v1", tensorboard_log=str(tmp_path), seed=0, **SMALL)
+    model.learn(120, callback=callback, tb_log_name="run")
+    accumulator = EventAccumulator(str(tmp_path / "run_1"))
+    accumulator.Reload()
+    tags = accumulator.Tags()["scalars"]
+    assert "eval/Pendulum-v1_0/mean_reward" in tags and "eval/Pendulum-v1_1/mean_reward" in tags
+    assert [event.step for event in accumulator.Scalars("eval/Pendulum-v1_0/mean_reward")] == [60, 120]
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="at least one"):
+        MultiEnvEvalCallback({})
+    with pytest.raises(ValueError, match="eval_freq"):
+        MultiEnvEvalCallback([gym.make("Pendulum-v1")], eval_freq=0)
+    with pytest.raises(ValueError, match="no '/'"):
+        MultiEnvEvalCallback({"a/b": gym.make("Pendulum-v1")})
