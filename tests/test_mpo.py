@@ -114,6 +114,16 @@ def test_sample_and_score_shapes():
     for n in range(7):
         single = q_min(model.critic_target(obs, actions[n].clamp(-1, 1))).squeeze(1)
         th.testing.assert_close(q[n], single)
+    # the no-grad path (reused buffers, in-place ReLU, features once per state) gives the same values, twice
+    with th.no_grad():
+        fast = score_actions(model.critic_target, obs, actions)
+        again = score_actions(model.critic_target, obs, actions)
+    th.testing.assert_close(fast, q.detach(), rtol=0, atol=0)
+    th.testing.assert_close(again, fast, rtol=0, atol=0)
+    two = MPO("MlpPolicy", "Pendulum-v1", **{**SMALL, "policy_kwargs": dict(net_arch=[16], n_critics=2)})
+    with th.no_grad():
+        q_two = score_actions(two.critic, obs, actions)
+    th.testing.assert_close(q_two, score_actions(two.critic, obs, actions).detach(), rtol=0, atol=0)
     tiled = tile_obs({"a": th.arange(3.0).reshape(3, 1)}, 2)
     assert tiled["a"].flatten().tolist() == [0, 1, 2, 0, 1, 2]
 

@@ -77,6 +77,21 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
                 warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom")
             super()._setup_model()
 
+    def distill(self, student_class: Optional[type] = None, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
+        """
+        Distil this model's whole replay buffer into a fresh policy, offline (the Offline Distillation Pipeline).
+        See :func:`sb3_lifelong.common.distill.distill` for the arguments.
+
+        :param student_class: the offline algorithm (default CRR; BC for behaviour cloning)
+        :param gradient_steps: number of offline gradient updates
+        :param kwargs: ``eval_env``, ``eval_freq``, ``progress_bar``, ... and the student's hyperparameters
+            (``advantage_transform="exp"``, ``beta=1.0``, ...)
+        :return: the trained student
+        """
+        from sb3_lifelong.common.distill import distill
+
+        return distill(self, student_class=student_class, gradient_steps=gradient_steps, **kwargs)
+
     def save(
         self,
         path: Union[str, pathlib.Path, io.BufferedIOBase],

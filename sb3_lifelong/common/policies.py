@@ -38,9 +38,7 @@ def gaussian_log_prob(actions: th.Tensor, mean: th.Tensor, std: th.Tensor) -> th
     return (-0.5 * z.pow(2) - th.log(std) - LOG_SQRT_2PI).sum(dim=-1)
 
 
-def gaussian_kl_per_dim(
-    mean_p: th.Tensor, std_p: th.Tensor, mean_q: th.Tensor, std_q: th.Tensor
-) -> th.Tensor:
+def gaussian_kl_per_dim(mean_p: th.Tensor, std_p: th.Tensor, mean_q: th.Tensor, std_q: th.Tensor) -> th.Tensor:
     """
     ``KL(N(mean_p, std_p) || N(mean_q, std_q))`` for each action dimension (no sum).
 
