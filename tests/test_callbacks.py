@@ -1,6 +1,7 @@
 import csv
 
 import gymnasium as gym
+import numpy as np
 import pytest
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -26,7 +27,7 @@ def test_evaluates_every_env_on_schedule(tmp_path):
     # learning again appends to the same CSV and continues the schedule
     model.learn(100, callback=callback, reset_num_timesteps=False)
     with open(log_path) as handle:
-        assert [int(row["timesteps"]) for row in csv.DictReader(handle)][-2:] == [400, 400]
+        assert [int(row["timesteps"]) for row in csv.DictReader(handle)] == [100, 100, 200, 200, 300, 300, 400, 400]
 
 
 def test_logged_to_tensorboard(tmp_path):
@@ -51,3 +52,32 @@ def test_bad_arguments():
         MultiEnvEvalCallback([gym.make("Pendulum-v1")], eval_freq=0)
     with pytest.raises(ValueError, match="no '/'"):
         MultiEnvEvalCallback({"a/b": gym.make("Pendulum-v1")})
+
+
+def test_source_q_callback_groups_by_source(tmp_path):
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.common.callbacks import SourceQCallback
+
+    model = MPO("MlpPolicy", "Pendulum-v1", replay_buffer_class=LifelongReplayBuffer, seed=0, **SMALL)
+    model.replay_buffer.set_source(0, name="env_a")
+    model.learn(100)
+    model.replay_buffer.set_source(1, name="env_b")
+    callback = SourceQCallback(log_freq=50, batch_size=512, log_path=tmp_path / "q.csv")
+    model.learn(100, callback=callback, reset_num_timesteps=False)
+    names = {row["name"] for row in callback.results}
+    assert names == {"env_a", "env_b"}
+    assert [row["timesteps"] for row in callback.results if row["name"] == "env_a"] == [150, 200]
+    # each source's average is over its own data: recompute it directly for the last measurement
+    means = callback.measure()
+    assert set(means) == {"env_a", "env_b"} and all(np.isfinite(v) for v in means.values())
+    assert "diagnostics/q_mean/env_a" in model.logger.name_to_value
+    with open(tmp_path / "q.csv") as handle:
+        assert len(list(csv.DictReader(handle))) == 6  # two measurements during learn, one by hand
+
+
+def test_source_q_callback_needs_source_tags():
+    from sb3_lifelong.common.callbacks import SourceQCallback
+
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
+    with pytest.raises(TypeError, match="source tags"):
+        model.learn(60, callback=SourceQCallback(log_freq=10))

@@ -1,6 +1,7 @@
 """Callbacks for lifelong learning: evaluate the current policy on every environment the robot has seen."""
 
 import csv
+import inspect
 import os
 import pathlib
 from collections.abc import Mapping, Sequence
@@ -84,7 +85,7 @@ class MultiEnvEvalCallback(BaseCallback):
 
     def _init_callback(self) -> None:
         # first evaluation at the next multiple of eval_freq (learn may resume at any timestep)
-        self._next_eval = (self.num_timesteps // self.eval_freq + 1) * self.eval_freq
+        self._next_eval = (self.model.num_timesteps // self.eval_freq + 1) * self.eval_freq
         if self.log_path is not None:
             self.log_path.parent.mkdir(parents=True, exist_ok=True)
             if not self.log_path.exists():
@@ -136,4 +137,78 @@ class MultiEnvEvalCallback(BaseCallback):
                 writer = csv.DictWriter(handle, fieldnames=CSV_FIELDS)
                 writer.writerows(rows)
         self.logger.dump(self.num_timesteps)
+        return means
+
+
+class SourceQCallback(BaseCallback):
+    """
+    Diagnostic (needs source tags): every ``log_freq`` timesteps, the average Q-value the model's critic gives to
+    each source's data (``diagnostics/q_mean/<source name>``): the overestimation curves of the paper, where the
+    Q-values of an environment that is no longer visited drift away. Also written to ``log_path`` as CSV.
+
+    The model must have ``critic`` (MPO, CRR, SAC, TD3) and a replay buffer that returns source ids
+    (:class:`~sb3_lifelong.LifelongReplayBuffer` or a view of several). Uniform samples of ``batch_size``
+    transitions are grouped by source, so each source's average is over its own data.
+
+    :param log_freq: period, in timesteps (updates when training offline)
+    :param batch_size: transitions sampled for each measurement
+    :param log_path: optional CSV file (columns: timesteps, source, name, q_mean, n)
+    """
+
+    def __init__(self, log_freq: int = 10_000, batch_size: int = 4096, log_path: Optional[Union[str, os.PathLike]] = None):
+        super().__init__()
+        if log_freq < 1 or batch_size < 1:
+            raise ValueError(f"log_freq and batch_size must be >= 1, got {log_freq} and {batch_size}")
+        self.log_freq = log_freq
+        self.batch_size = batch_size
+        self.log_path = pathlib.Path(log_path) if log_path is not None else None
+        self.results: list[dict[str, Any]] = []
+        self._next = 0
+
+    def _init_callback(self) -> None:
+        buffer = getattr(self.model, "replay_buffer", None)
+        if buffer is None or "return_sources" not in inspect.signature(buffer.sample).parameters:
+            raise TypeError(
+                "SourceQCallback is a diagnostic that needs source tags: use a LifelongReplayBuffer "
+                f"(got {type(buffer).__name__})"
+            )
+        if not hasattr(self.model, "critic"):
+            raise TypeError(f"SourceQCallback needs a model with a critic, got {type(self.model).__name__}")
+        self._next = (self.model.num_timesteps // self.log_freq + 1) * self.log_freq
+        if self.log_path is not None and not self.log_path.exists():
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.log_path, "w", newline="") as handle:
+                csv.writer(handle).writerow(["timesteps", "source", "name", "q_mean", "n"])
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next:
+            self.measure()
+            while self._next <= self.num_timesteps:
+                self._next += self.log_freq
+        return True
+
+    def measure(self) -> dict[str, float]:
+        """:return: the average Q-value per source name, now"""
+        import torch as th
+
+        buffer: Any = self.model.replay_buffer  # type: ignore[attr-defined]
+        if buffer.size() == 0:
+            return {}
+        samples, sources = buffer.sample(self.batch_size, return_sources=True)
+        critic: Any = self.model.critic  # type: ignore[attr-defined]
+        with th.no_grad():
+            q_values = critic(samples.observations, samples.actions)[0].flatten()
+        names = buffer.sources
+        means: dict[str, float] = {}
+        rows = []
+        for source in th.unique(sources).tolist():
+            mask = sources == source
+            name = names.get(source, {}).get("name", f"source_{source}")
+            means[name] = float(q_values[mask].mean())
+            self.logger.record(f"diagnostics/q_mean/{name}", means[name])
+            rows.append(dict(timesteps=self.num_timesteps, source=source, name=name, q_mean=means[name], n=int(mask.sum())))
+        self.results.extend(rows)
+        if self.log_path is not None:
+            with open(self.log_path, "a", newline="") as handle:
+                csv.DictWriter(handle, fieldnames=["timesteps", "source", "name", "q_mean", "n"]).writerows(rows)
         return means
