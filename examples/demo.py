@@ -95,7 +95,7 @@ def main() -> None:
     for step, mean, std in callback.rows:
         print(f"| {step} | {mean:.1f} +- {std:.1f} |")
     print(f"\ntrained {args.steps} steps in {elapsed:.0f} s ({args.steps / elapsed:.0f} steps/s)")
-    print(f"outputs in {out}/: learning_curve.png, eval.csv, mpo_demo.zip, tensorboard/ (tensorboard --logdir {out}/tensorboard)")
+    print(f"outputs in {out}/: learning_curve.png, eval.csv, mpo_demo.zip, tensorboard/")
 
 
 if __name__ == "__main__":

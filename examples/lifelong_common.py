@@ -1,0 +1,313 @@
+"""
+Shared code of the example scripts: presets, environment factories, the online stages and the distillation.
+
+Layout of an experiment's output directory::
+
+    <output>/seed_<k>/<method>/eval.csv      timesteps, env, mean_reward, std_reward, n_episodes
+    <output>/seed_<k>/<method>/q_sources.csv  (collectors) average Q per source of the buffer
+    <output>/tensorboard/                     one run per method and seed (distillation inside the collector's run)
+    <output>/summary.csv, summary.md          final return per method, env and seed
+    <output>/*.png                            the figures (python -m sb3_lifelong.plotting <output>)
+
+Methods: ``MPO`` (the collector across all stages), ``CRR_indicator`` / ``CRR_beta1`` (the conservative
+online baselines, continuing from the same Stage-1 agent), ``distilled`` (CRR, exp transform, beta=1, on the
+collector's whole buffer) and ``distilled_indicator`` (same, indicator transform: the imbalance baseline).
+"""
+
+import argparse
+import copy
+import csv
+import json
+import pathlib
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any, Optional, Union
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+
+import sb3_lifelong.envs  # noqa: F401  (registers the OP3 task)
+from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
+from sb3_lifelong.common.callbacks import MultiEnvEvalCallback, SourceQCallback
+from sb3_lifelong.envs import DynamicsSchedule
+
+Stage = Union[str, Mapping[str, float]]
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # minutes on 2 CPU cores: HalfCheetah, small networks
+    "quick": dict(
+        env_id="HalfCheetah-v5",
+        stage_steps=[10_000, 20_000],
+        distill_steps=10_000,
+        eval_freq=2_500,
+        eval_episodes=3,
+        seeds=[0],
+        net_arch=[64, 64],
+        batch_size=128,
+        num_samples=10,
+        learning_starts=2_000,
+        learning_rate=1e-3,
+    ),
+    # the paper's set-up: OP3 walking, 0.2M steps in Env-A then 1M in Env-B, 3 seeds
+    "paper": dict(
+        env_id="sb3_lifelong/OP3Walk-v0",
+        stage_steps=[200_000, 1_000_000],
+        distill_steps=500_000,
+        eval_freq=20_000,
+        eval_episodes=5,
+        seeds=[0, 1, 2],
+        net_arch=[256, 256],
+        batch_size=256,
+        num_samples=20,
+        learning_starts=10_000,
+        learning_rate=3e-4,
+    ),
+    # seconds: for the tests
+    "tiny": dict(
+        env_id="HalfCheetah-v5",
+        stage_steps=[300, 300],
+        distill_steps=200,
+        eval_freq=150,
+        eval_episodes=1,
+        seeds=[0],
+        net_arch=[16, 16],
+        batch_size=32,
+        num_samples=4,
+        learning_starts=100,
+        learning_rate=1e-3,
+        max_episode_steps=100,
+    ),
+}
+
+
+def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="quick")
+    parser.add_argument("--paper", action="store_const", const="paper", dest="preset", help="same as --preset paper")
+    parser.add_argument("--output", default=None, help="output directory (default: runs/<script>_<preset>)")
+    parser.add_argument("--env", default=None, help="override the preset's environment id")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None)
+    parser.add_argument("--stage-steps", type=int, nargs="+", default=None, help="environment steps of each stage")
+    parser.add_argument("--distill-steps", type=int, default=None)
+    parser.add_argument("--eval-freq", type=int, default=None)
+    parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
+    parser.add_argument("--no-plots", action="store_true")
+
+
+def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
+    config = dict(PRESETS[args.preset])
+    overrides = dict(
+        env_id=args.env,
+        seeds=args.seeds,
+        stage_steps=args.stage_steps,
+        distill_steps=args.distill_steps,
+        eval_freq=args.eval_freq,
+    )
+    config.update({key: value for key, value in overrides.items() if value is not None})
+    config["preset"] = args.preset
+    return config
+
+
+def make_schedule(
+    env_id: str,
+    stages: Sequence[Stage],
+    switch_at: Optional[Sequence[int]] = None,
+    max_episode_steps: Optional[int] = None,
+    **kwargs: Any,
+) -> Any:
+    """The robot with its lifetime of stages; the true physical parameters are appended to the observation."""
+    make_kwargs = {} if max_episode_steps is None else dict(max_episode_steps=max_episode_steps)
+    return DynamicsSchedule(
+        gym.make(env_id, **make_kwargs), stages=list(stages), switch_at=switch_at, append_params=True, **kwargs
+    )
+
+
+def make_eval_envs(
+    env_id: str, stages: Sequence[Stage], names: Sequence[str], max_episode_steps: Optional[int] = None
+) -> dict[str, Any]:
+    """One environment per stage, pinned to it (same observation layout as the training env)."""
+    envs = {}
+    for index, name in enumerate(names):
+        env = make_schedule(env_id, stages, max_episode_steps=max_episode_steps)
+        env.set_stage(index, immediate=True)
+        envs[name] = env
+    return envs
+
+
+def algo_kwargs(config: dict[str, Any], seed: int) -> dict[str, Any]:
+    return dict(
+        policy_kwargs=dict(net_arch=list(config["net_arch"])),
+        batch_size=config["batch_size"],
+        learning_rate=config["learning_rate"],
+        seed=seed,
+    )
+
+
+def eval_callbacks(
+    directory: pathlib.Path, eval_envs: dict[str, Any], config: dict[str, Any], source_q: bool = True
+) -> list[Any]:
+    directory.mkdir(parents=True, exist_ok=True)
+    callbacks: list[Any] = [
+        MultiEnvEvalCallback(
+            eval_envs, eval_freq=config["eval_freq"], n_eval_episodes=config["eval_episodes"], log_path=directory / "eval.csv"
+        )
+    ]
+    if source_q:
+        callbacks.append(SourceQCallback(log_freq=config["eval_freq"], log_path=directory / "q_sources.csv"))
+    return callbacks
+
+
+def make_collector(env: Any, config: dict[str, Any], seed: int, tensorboard_log: str) -> MPO:
+    return MPO(
+        "MlpPolicy",
+        env,
+        replay_buffer_class=LifelongReplayBuffer,
+        learning_starts=config["learning_starts"],
+        num_samples=config["num_samples"],
+        tensorboard_log=tensorboard_log,
+        **algo_kwargs(config, seed),
+    )
+
+
+def continue_with_crr(
+    policy_state: dict[str, Any],
+    buffer: Any,
+    num_timesteps: int,
+    env: Any,
+    config: dict[str, Any],
+    seed: int,
+    tensorboard_log: str,
+    **crr_kwargs: Any,
+) -> CRR:
+    """
+    An online CRR agent that starts from the Stage-1 agent: same networks (weights copied), a copy of its
+    buffer, and its timestep count, so that its curves continue the Stage-1 curves.
+    """
+    crr = CRR(
+        "MlpPolicy",
+        env,
+        replay_buffer_class=LifelongReplayBuffer,
+        learning_starts=0,
+        tensorboard_log=tensorboard_log,
+        **algo_kwargs(config, seed),
+        **crr_kwargs,
+    )
+    crr.policy.load_state_dict(policy_state)
+    crr.replay_buffer = copy.deepcopy(buffer)
+    crr.num_timesteps = num_timesteps
+    return crr
+
+
+def final_returns(callback: MultiEnvEvalCallback) -> dict[str, float]:
+    """:return: the mean reward of the last evaluation, per environment"""
+    if not callback.results:
+        callback.evaluate()
+    last = max(row["timesteps"] for row in callback.results)
+    return {row["env"]: row["mean_reward"] for row in callback.results if row["timesteps"] == last}
+
+
+def write_summary(output: pathlib.Path, rows: list[dict[str, Any]], config: dict[str, Any], elapsed: float) -> str:
+    """Write ``summary.csv`` / ``summary.md`` (mean +- std over seeds) and return the markdown table."""
+    with open(output / "summary.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["seed", "method", "env", "final_return"])
+        writer.writeheader()
+        writer.writerows(rows)
+    methods = list(dict.fromkeys(row["method"] for row in rows))
+    envs = list(dict.fromkeys(row["env"] for row in rows))
+    header = "| method | " + " | ".join(envs) + " | mean over envs |"
+    lines = [header, "|" + " --- |" * (len(envs) + 2)]
+    for method in methods:
+        cells = []
+        per_seed_means: dict[int, list[float]] = {}
+        for env in envs:
+            values = [row["final_return"] for row in rows if row["method"] == method and row["env"] == env]
+            for row in rows:
+                if row["method"] == method and row["env"] == env:
+                    per_seed_means.setdefault(row["seed"], []).append(row["final_return"])
+            cells.append(f"{np.mean(values):.0f} +- {np.std(values):.0f}" if values else "-")
+        overall = [float(np.mean(v)) for v in per_seed_means.values()]
+        lines.append(f"| {method} | " + " | ".join(cells) + f" | {np.mean(overall):.0f} +- {np.std(overall):.0f} |")
+    table = "\n".join(lines)
+    seeds = sorted({row["seed"] for row in rows})
+    (output / "summary.md").write_text(
+        f"# {output.name}\n\nFinal evaluation return (mean +- std over seeds {seeds}; deterministic policy, "
+        f"{config['eval_episodes']} episodes per env).\n\n{table}\n\nConfig: `{json.dumps(config)}`\n\n"
+        f"Wall clock: {elapsed:.0f} s\n"
+    )
+    return table
+
+
+def set_threads() -> None:
+    th.set_num_threads(1)
+
+
+def now() -> float:
+    return time.perf_counter()
+
+
+def run_sequential(
+    config: dict[str, Any],
+    stages: Sequence[Stage],
+    env_names: Sequence[str],
+    output: pathlib.Path,
+    baselines: bool = True,
+) -> list[dict[str, Any]]:
+    """
+    The sequential lifelong experiment: MPO collects through every stage (the robot changes at the stage
+    boundaries, counted by the wrapper); the CRR baselines continue from the Stage-1 agent through the later
+    stages; at the end the collector's whole buffer is distilled offline (CRR exp beta=1, and CRR indicator).
+
+    :return: rows ``{seed, method, env, final_return}``
+    """
+    steps = list(config["stage_steps"])
+    if len(steps) != len(stages):
+        raise ValueError(f"{len(stages)} stages need {len(stages)} stage lengths, got {steps}")
+    switch_at = list(np.cumsum(steps)[:-1])
+    tensorboard_log = str(output / "tensorboard")
+    rows: list[dict[str, Any]] = []
+    for seed in config["seeds"]:
+        run_dir = output / f"seed_{seed}"
+        episode_steps = config.get("max_episode_steps")
+        eval_envs = make_eval_envs(config["env_id"], stages, env_names, episode_steps)
+
+        # Online: MPO through every stage, one buffer for the whole life
+        env = make_schedule(config["env_id"], stages, switch_at, episode_steps)
+        mpo = make_collector(env, config, seed, tensorboard_log)
+        mpo_callbacks = eval_callbacks(run_dir / "MPO", eval_envs, config)
+        mpo.learn(steps[0], callback=mpo_callbacks, tb_log_name=f"MPO_s{seed}")
+        stage1_agent = copy.deepcopy(mpo.policy.state_dict()), copy.deepcopy(mpo.replay_buffer), mpo.num_timesteps
+        for stage_steps in steps[1:]:
+            mpo.learn(stage_steps, callback=mpo_callbacks, tb_log_name=f"MPO_s{seed}", reset_num_timesteps=False)
+        rows += [dict(seed=seed, method="MPO", env=k, final_return=v) for k, v in final_returns(mpo_callbacks[0]).items()]
+
+        # Online baselines: conservative CRR continuing from the Stage-1 agent
+        if baselines:
+            for method, crr_kwargs in (
+                ("CRR_indicator", dict(advantage_transform="indicator")),
+                ("CRR_beta1", dict(advantage_transform="exp", beta=1.0)),
+            ):
+                crr_env = make_schedule(config["env_id"], stages, switch_at, episode_steps, start_timestep=steps[0])
+                crr = continue_with_crr(*stage1_agent, crr_env, config, seed, tensorboard_log, **crr_kwargs)
+                callbacks = eval_callbacks(run_dir / method, eval_envs, config)
+                crr.learn(sum(steps[1:]), callback=callbacks, tb_log_name=f"{method}_s{seed}", reset_num_timesteps=False)
+                rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
+
+        # Offline: distil the whole lifetime buffer, no task boundaries
+        for method, distill_kwargs in (
+            ("distilled", dict(advantage_transform="exp", beta=1.0)),
+            ("distilled_indicator", dict(advantage_transform="indicator")),
+        ):
+            callbacks = eval_callbacks(run_dir / method, eval_envs, config)
+            mpo.distill(
+                CRR,
+                gradient_steps=config["distill_steps"],
+                callback=callbacks,
+                tb_log_name=method,
+                **algo_kwargs(config, seed),
+                **distill_kwargs,
+            )
+            rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
+        described = [stage if isinstance(stage, str) else dict(stage) for stage in stages]
+        layout = dict(stages=described, names=list(env_names), switch_at=[int(t) for t in switch_at])
+        (run_dir / "stages.json").write_text(json.dumps(layout))
+    return rows
