@@ -414,6 +414,12 @@ def test_view_and_merge(tmp_path):
     inds = np.arange(100)
     for field in ("rewards", "discounts", "next_observations", "dones"):
         th.testing.assert_close(getattr(view._get_samples(inds), field), getattr(merged._get_samples(inds), field))
+    # copies of a common ancestor: keep the shared head once
+    partial = merge_buffers([a, b], starts=[0, 20])
+    rp = all_rows(partial)
+    np.testing.assert_array_equal(rp["observations"], np.concatenate([ra["observations"], rb["observations"][20:]]))
+    with pytest.raises(ValueError, match="starts"):
+        merge_buffers([a, b], starts=[0, 61])
     fill(b, 5, 1, seed=9)
     assert view.size() == 105  # a view follows its buffers
     with pytest.raises(RuntimeError):

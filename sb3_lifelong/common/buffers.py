@@ -799,7 +799,10 @@ class LifelongBufferView(_LifelongSampler):
 
 
 def merge_buffers(
-    buffers: Sequence[LifelongReplayBuffer], path: Optional[Union[str, os.PathLike]] = None, **kwargs: Any
+    buffers: Sequence[LifelongReplayBuffer],
+    path: Optional[Union[str, os.PathLike]] = None,
+    starts: Optional[Sequence[int]] = None,
+    **kwargs: Any,
 ) -> LifelongReplayBuffer:
     """
     Materialise several buffers into a new one (copied in blocks, so it works for buffers larger than RAM
@@ -807,18 +810,28 @@ def merge_buffers(
 
     :param buffers: The buffers to copy, in order
     :param path: Directory of the new buffer (None: in memory)
+    :param starts: For each buffer, the index of its first transition to copy (default 0: all of it). For
+        agents copied from a common ancestor (buffer included), pass the ancestor's size for the copies so that
+        the shared transitions are kept once.
     :param kwargs: Further constructor arguments of the new buffer (``chunk_size``, ``n_steps``, ...)
     :return: The merged buffer
     """
+    if starts is None:
+        starts = [0] * len(buffers)
+    if len(starts) != len(buffers) or any(not 0 <= int(s) <= b.size() for s, b in zip(starts, buffers)):
+        raise ValueError(
+            f"starts must give one index in [0, size] per buffer: got {list(starts)} for sizes {[b.size() for b in buffers]}"
+        )
     view = LifelongBufferView(buffers)
     first = buffers[0]
-    merged = LifelongReplayBuffer(view.size(), first.observation_space, first.action_space, path=path, **kwargs)
+    total_size = sum(buffer.size() - int(start) for buffer, start in zip(buffers, starts))
+    merged = LifelongReplayBuffer(total_size, first.observation_space, first.action_space, path=path, **kwargs)
     for source, info in view.sources.items():
         merged._ensure_source(source, info["name"], info["metadata"])
-    for buffer in buffers:
+    for buffer, first_row in zip(buffers, starts):
         base = merged.store.next_stream_id
         total = buffer.size()
-        for start in range(0, total, _COPY_BLOCK):
+        for start in range(int(first_row), total, _COPY_BLOCK):
             stop = min(total, start + _COPY_BLOCK)
             rows = {name: np.asarray(buffer.store.read_range(name, start, stop)) for name in FIELD_NAMES}
             rows["streams"] = (rows["streams"].astype(np.int64) + base).astype(np.uint32)

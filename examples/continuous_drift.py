@@ -1,0 +1,82 @@
+"""
+No task boundaries: the robot wears gradually. The right hip deforms linearly from 0 to 0.3 rad over the whole
+life while MPO collects; the lifetime buffer is then distilled. The policies are evaluated on the robot at the
+start, the middle and the end of its life.
+
+Usage::
+
+    python examples/continuous_drift.py
+    python examples/continuous_drift.py --paper
+"""
+
+import argparse
+import pathlib
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+
+import gymnasium as gym
+from lifelong_common import (
+    add_common_arguments,
+    algo_kwargs,
+    eval_callbacks,
+    final_returns,
+    make_collector,
+    now,
+    resolve_config,
+    set_threads,
+    write_summary,
+)
+
+from sb3_lifelong import CRR
+from sb3_lifelong.envs import DynamicsSchedule, LinearRamp
+
+END_DEFORMATION = 0.3
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_arguments(parser)
+    args = parser.parse_args()
+    set_threads()
+    config = resolve_config(args)
+    lifetime = sum(config["stage_steps"])
+    output = pathlib.Path(args.output or f"runs/continuous_drift_{args.preset}")
+    output.mkdir(parents=True, exist_ok=True)
+    make_kwargs = {} if config.get("max_episode_steps") is None else dict(max_episode_steps=config["max_episode_steps"])
+    observed = ["hip_deformation"]
+
+    def robot(deformation: float) -> DynamicsSchedule:
+        env = DynamicsSchedule(gym.make(config["env_id"], **make_kwargs), append_params=True, observed_params=observed)
+        env.set_params(hip_deformation=deformation, immediate=True)
+        return env
+
+    rows = []
+    start = now()
+    for seed in config["seeds"]:
+        run_dir = output / f"seed_{seed}"
+        eval_envs = {f"hip_{d:.2f}": robot(d) for d in (0.0, END_DEFORMATION / 2, END_DEFORMATION)}
+        ramp = LinearRamp(0.0, END_DEFORMATION, begin=0, finish=lifetime)
+        env = DynamicsSchedule(
+            gym.make(config["env_id"], **make_kwargs),
+            schedules={"hip_deformation": ramp},
+            append_params=True,
+            observed_params=observed,
+        )
+        mpo = make_collector(env, config, seed, str(output / "tensorboard"))
+        callbacks = eval_callbacks(run_dir / "MPO", eval_envs, config)
+        mpo.learn(lifetime, callback=callbacks, tb_log_name=f"MPO_s{seed}")
+        rows += [dict(seed=seed, method="MPO", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
+        callbacks = eval_callbacks(run_dir / "distilled", eval_envs, config)
+        mpo.distill(CRR, gradient_steps=config["distill_steps"], callback=callbacks, beta=1.0, **algo_kwargs(config, seed))
+        rows += [dict(seed=seed, method="distilled", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
+    print(write_summary(output, rows, config, now() - start))
+    if not args.no_plots:
+        from sb3_lifelong.plotting import plot_experiment
+
+        for path in plot_experiment(output):
+            print("wrote", path)
+
+
+if __name__ == "__main__":
+    main()

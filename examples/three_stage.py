@@ -1,0 +1,47 @@
+"""
+Three environments one after the other (Env-A, Env-B, Env-C), then offline distillation of the whole buffer.
+
+Usage::
+
+    python examples/three_stage.py                    # quick CPU preset (HalfCheetah, minutes)
+    python examples/three_stage.py --paper            # OP3: default, hip 0.2 rad, hip 0.2 rad + feet x1.6
+"""
+
+import argparse
+import pathlib
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+
+from lifelong_common import add_common_arguments, now, resolve_config, run_sequential, set_threads, write_summary
+
+STAGES = {
+    "quick": [{}, {"hip_deformation": 0.3}, {"hip_deformation": 0.3, "friction": 0.1}],
+    "tiny": [{}, {"hip_deformation": 0.3}, {"hip_deformation": 0.3, "friction": 0.1}],
+    "paper": ["default", "hip_0.2", "hip_0.2+foot_1.6"],
+}
+STAGE_STEPS = {"quick": [10_000, 10_000, 10_000], "tiny": [200, 200, 200], "paper": [200_000, 1_000_000, 1_000_000]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_arguments(parser)
+    args = parser.parse_args()
+    set_threads()
+    if args.stage_steps is None:
+        args.stage_steps = STAGE_STEPS[args.preset]
+    config = resolve_config(args)
+    output = pathlib.Path(args.output or f"runs/three_stage_{args.preset}")
+    output.mkdir(parents=True, exist_ok=True)
+    start = now()
+    rows = run_sequential(config, STAGES[args.preset], ["Env-A", "Env-B", "Env-C"], output, baselines=not args.no_baselines)
+    print(write_summary(output, rows, config, now() - start))
+    if not args.no_plots:
+        from sb3_lifelong.plotting import plot_experiment
+
+        for path in plot_experiment(output):
+            print("wrote", path)
+
+
+if __name__ == "__main__":
+    main()
