@@ -11,7 +11,7 @@ export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 DEMO_DIR ?= demo_output
 
-.PHONY: install test test-all demo lint format check-codestyle type doc clean
+.PHONY: install test test-all demo demo-mpo lint format check-codestyle type doc clean
 
 # torch first, pinned to the CPU wheel: a bare "torch" requirement would download a CUDA build
 install:
@@ -24,8 +24,13 @@ test: install
 test-all: install
 	$(PYTHON) -m pytest -n 2 -m "" tests/
 
+# the quick two-stage pipeline (Env-A then Env-B, baselines, distillation): plots, tensorboard logs, summary table
 demo: install
-	$(PYTHON) examples/demo.py --output $(DEMO_DIR)
+	$(PYTHON) examples/two_stage.py --output $(DEMO_DIR)
+
+# MPO alone on a small MuJoCo task, with a learning curve
+demo-mpo: install
+	$(PYTHON) examples/demo.py --output $(DEMO_DIR)/mpo
 
 lint:
 	$(PYTHON) -m ruff check $(LINT_PATHS)
