@@ -1,0 +1,241 @@
+"""Perturbations reach the physics on every robot; OP3 and dm_control walker envs pass the env checkers."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+# headless rendering backend; must be chosen before MuJoCo is imported (the Makefile exports the same)
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+from sb3_lifelong.envs import DMC_WALKER_ID, OP3_WALK_ID, PAPER_PRESETS, PERTURBATIONS, DynamicsSchedule
+
+# the OP3 model is read from the local mujoco-menagerie copy beside the checkout when there is one
+_SHARED_MENAGERIE = Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
+if _SHARED_MENAGERIE.is_dir():
+    os.environ.setdefault("MENAGERIE_ROOT", str(_SHARED_MENAGERIE))
+
+GYM_ROBOTS = ["Walker2d-v5", "Hopper-v5", "HalfCheetah-v5", "Humanoid-v5", DMC_WALKER_ID]
+TEST_VALUES = dict(
+    hip_deformation=0.3,
+    foot_scale=1.5,
+    ground_softness=0.1,
+    friction=0.3,
+    mass_scale=1.5,
+    gravity=5.0,
+    actuator_strength=0.5,
+    joint_damping=10.0,
+)
+
+
+def op3_or_skip() -> None:
+    try:
+        from sb3_lifelong.envs.op3 import make_op3_spec
+
+        make_op3_spec()
+    except Exception as e:
+        pytest.skip(f"robotis_op3 not available from mujoco-menagerie (set MENAGERIE_ROOT to a local copy): {e}")
+
+
+def fixed_policy(step: int, n: int) -> np.ndarray:
+    return 0.8 * np.sin(2 * np.pi * step * 0.05 + np.arange(n))
+
+
+def rollout_return(env: gym.Env, policy=fixed_policy, steps: int = 150) -> float:
+    env.reset(seed=0)
+    total = 0.0
+    for i in range(steps):
+        _, reward, terminated, truncated, _ = env.step(policy(i, env.action_space.shape[0]))
+        total += float(reward)
+        if terminated or truncated:
+            break
+    return total
+
+
+@pytest.mark.parametrize("env_id", GYM_ROBOTS)
+def test_every_perturbation_changes_zero_shot_return(env_id: str) -> None:
+    env = DynamicsSchedule(gym.make(env_id))
+    nominal = rollout_return(env)
+    assert rollout_return(env) == nominal  # deterministic
+    for name in env.supported_params:
+        value = TEST_VALUES[name]
+        _, high = env.editor.valid_range(name)
+        value = min(value, high)
+        env.set_params({name: value}, immediate=True)
+        changed = rollout_return(env)
+        assert abs(changed - nominal) > 1e-3 * max(1.0, abs(nominal)), (name, nominal, changed)
+    env.set_params({}, immediate=True)
+    assert rollout_return(env) == nominal  # back to the nominal robot, bit for bit
+
+
+@pytest.mark.parametrize("env_id", ["Walker2d-v5", "Humanoid-v5", DMC_WALKER_ID])
+def test_contact_changes_reach_the_contacts(env_id: str) -> None:
+    env = DynamicsSchedule(gym.make(env_id), stages=[{"friction": 0.3, "ground_softness": 0.08}])
+    env.reset(seed=0)
+    model, data = env.unwrapped.model, env.unwrapped.data
+    floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+    feet = {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, g) for g in env.editor.description.foot_geoms}
+    found = 0
+    for i in range(200):
+        env.step(fixed_policy(i, env.action_space.shape[0]))
+        for c in data.contact[: data.ncon]:
+            if floor in (c.geom1, c.geom2) and (feet & {c.geom1, c.geom2}):
+                assert c.friction[0] == pytest.approx(0.3) and c.solref[0] == pytest.approx(0.08)
+                found += 1
+        if found > 5:
+            break
+    assert found > 5, "no foot-floor contact seen"
+
+
+def test_nominal_contact_is_what_mujoco_mixes() -> None:
+    # Walker2d's feet have friction 1.9 > floor 0.7: MuJoCo takes the max, so the nominal friction is 1.9, and a
+    # floor friction set without raising the floor's priority would change nothing
+    env = DynamicsSchedule(gym.make("Walker2d-v5"))
+    assert env.nominal_params["friction"] == pytest.approx(1.9)
+    assert env.nominal_params["ground_softness"] == pytest.approx(0.02)
+    env.set_params(friction=0.1, immediate=True)
+    model = env.unwrapped.model
+    assert model.geom_priority[0] > model.geom_priority[1:].max()
+
+
+def test_recompile_when_feet_have_mass() -> None:
+    env = DynamicsSchedule(gym.make("Walker2d-v5"))
+    model = env.unwrapped.model
+    foot = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "foot")
+    mass0, total0 = float(model.body_mass[foot]), float(model.body_subtreemass[0])
+    env.set_params(foot_scale=1.5, immediate=True)
+    assert env.editor.last_apply_recompiled
+    assert model.body_mass[foot] > mass0 * 1.2  # longer capsule, same density
+    assert model.body_subtreemass[0] == pytest.approx(total0 + 2 * (model.body_mass[foot] - mass0))  # both feet
+    # identical to a model compiled from scratch with the longer feet
+    spec = mujoco.MjSpec.from_file(env.unwrapped.fullpath)
+    for name in ("foot_geom", "foot_left_geom"):
+        spec.geom(name).size[1] *= 1.5
+    fresh = spec.compile()
+    for field in ("body_mass", "body_inertia", "body_ipos", "geom_size", "geom_rbound", "body_subtreemass", "dof_invweight0"):
+        np.testing.assert_array_equal(getattr(model, field), getattr(fresh, field), err_msg=field)
+    env.set_params({}, immediate=True)
+    assert model.body_mass[foot] == mass0 and not env.editor.last_apply_recompiled
+
+
+def test_field_edits_update_derived_constants() -> None:
+    env = DynamicsSchedule(gym.make("Hopper-v5"), stages=[{"mass_scale": 2.0, "gravity": 3.0, "actuator_strength": 0.5}])
+    model = env.unwrapped.model
+    total = float(model.body_subtreemass[0])
+    env2 = gym.make("Hopper-v5")
+    assert total == pytest.approx(2.0 * float(env2.unwrapped.model.body_subtreemass[0]))  # mj_setConst ran
+    np.testing.assert_allclose(model.opt.gravity, [0.0, 0.0, -3.0])
+    np.testing.assert_allclose(model.actuator_gear[:, 0], 0.5 * env2.unwrapped.model.actuator_gear[:, 0])
+
+
+def test_perturbations_are_documented() -> None:
+    for p in PERTURBATIONS.values():
+        assert p.unit and p.description and p.low < p.high and p.obs_scale > 0
+
+
+# ---------------------------------------------------------------------------------------------- OP3 and dm_control
+
+
+def test_op3_env_checkers() -> None:
+    op3_or_skip()
+    env = gym.make(OP3_WALK_ID)
+    gym_check_env(env.unwrapped, skip_render_check=True)
+    sb3_check_env(gym.make(OP3_WALK_ID).unwrapped)
+    wrapped = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=[{}, "hip_0.3"], switch_at=[5], append_params=True)
+    gym_check_env(wrapped, skip_render_check=True)
+    wrapped = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=[{}, "hip_0.3"], switch_at=[5], append_params=True)
+    obs, info = wrapped.reset(seed=0)
+    assert obs.shape == (69,) and info["stage"] == 0 and info["dynamics_params"]["ground_softness"] == pytest.approx(0.004)
+
+
+def test_dmc_walker_env_checkers() -> None:
+    gym_check_env(gym.make(DMC_WALKER_ID).unwrapped, skip_render_check=True)
+    sb3_check_env(DynamicsSchedule(gym.make(DMC_WALKER_ID), stages=["foot_1.2"], append_params=True))
+
+
+def test_op3_task_basics() -> None:
+    op3_or_skip()
+    env = gym.make(OP3_WALK_ID)
+    assert env.spec.max_episode_steps == 1000
+    u = env.unwrapped
+    assert env.action_space.shape == (20,) and env.observation_space.shape == (68,)
+    assert u.dt == pytest.approx(0.02)  # 50 Hz control
+    env.reset(seed=0)
+    total = 0.0
+    for _ in range(50):  # the standing pose holds
+        _, reward, terminated, _, _ = env.step(np.zeros(20))
+        total += reward
+        assert not terminated
+    assert total == pytest.approx(50 * 1.0, abs=2.0)  # alive bonus, little speed, little jitter
+    # a fall terminates: lay the torso on its side
+    u.data.qpos[3:7] = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0]
+    assert env.step(np.zeros(20))[2]
+
+
+def test_op3_paper_presets_hurt_a_fixed_gait() -> None:
+    op3_or_skip()
+    from sb3_lifelong.envs.op3 import OP3OpenLoopGait
+
+    gait = OP3OpenLoopGait()
+    env = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=["default", *PAPER_PRESETS])
+    returns, distances = {}, {}
+    for i, name in enumerate(["default", *PAPER_PRESETS]):
+        env.set_stage(i, immediate=True)
+        returns[name] = rollout_return(env, lambda step, n: gait(step), steps=300)
+        distances[name] = float(env.unwrapped.data.qpos[0])
+    assert distances["default"] > 0.4  # the gait walks the nominal robot forward
+    for name in PAPER_PRESETS:
+        assert returns[name] < returns["default"], returns
+        assert distances[name] < 0.8 * distances["default"], distances
+
+
+def test_op3_foot_scale_is_a_field_edit_equal_to_recompiling() -> None:
+    op3_or_skip()
+    from sb3_lifelong.envs.op3 import OP3_FOOT_GEOMS, OP3OpenLoopGait, make_op3_spec
+
+    env = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=["foot_1.6"])
+    assert not env.editor.last_apply_recompiled  # massless feet: geometry only
+    spec = make_op3_spec()
+    for name in OP3_FOOT_GEOMS:
+        spec.geom(name).size[:2] *= 1.6
+    fresh = spec.compile()
+    model = env.unwrapped.model
+    for field in ("geom_size", "geom_rbound", "geom_aabb", "body_mass", "body_subtreemass"):
+        np.testing.assert_allclose(getattr(model, field), getattr(fresh, field), rtol=1e-12, atol=1e-15, err_msg=field)
+    gait = OP3OpenLoopGait()
+    a = rollout_return(env, lambda step, n: gait(step), steps=100)
+    env.unwrapped.model = fresh  # same trajectory on the recompiled model
+    env.unwrapped.data = mujoco.MjData(fresh)
+    b = rollout_return(env.env, lambda step, n: gait(step), steps=100)
+    assert a == pytest.approx(b, rel=1e-9)
+
+
+def test_op3_render_rgb_array() -> None:
+    op3_or_skip()
+    # in a fresh process: MuJoCo picks its OpenGL backend when first imported, which may have happened already here
+    script = (
+        "import gymnasium as gym, sb3_lifelong.envs\n"
+        "env = gym.make('sb3_lifelong/OP3Walk-v0', render_mode='rgb_array', width=64, height=48)\n"
+        "env.reset(seed=0)\n"
+        "frame = env.render()\n"
+        "assert frame.shape == (48, 64, 3) and frame.std() > 0, frame.shape\n"
+        "env.close()\n"
+        "print('RENDER_OK')\n"
+    )
+    env = dict(os.environ)
+    env.setdefault("MUJOCO_GL", "osmesa")
+    env.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    if "RENDER_OK" not in result.stdout:
+        if re.search(r"OpenGL|osmesa|EGL|glfw|gladLoadGL", result.stderr, re.IGNORECASE):
+            pytest.skip(f"no OpenGL backend here: {result.stderr.strip().splitlines()[-1]}")
+        raise AssertionError(result.stderr)

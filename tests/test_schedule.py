@@ -1,0 +1,271 @@
+"""DynamicsSchedule: stage switching by global timestep, schedulers, manual control, errors, env checkers."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3 import SAC
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import SubprocVecEnv
+
+from sb3_lifelong.envs import (
+    Constant,
+    Cyclic,
+    Drift,
+    DynamicsSchedule,
+    LinearRamp,
+    RandomWalk,
+    SawWave,
+    UniformPerEpisode,
+)
+
+ENV_ID = "HalfCheetah-v5"  # fastest Gymnasium MuJoCo env
+
+
+def wrapped(**kwargs) -> DynamicsSchedule:
+    return DynamicsSchedule(gym.make(ENV_ID), **kwargs)
+
+
+class StageRecorder(BaseCallback):
+    """Records (timestep before the step, stage, gravity) of every collected transition."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list = []
+
+    def _on_step(self) -> bool:
+        t = self.model.num_timesteps - self.training_env.num_envs
+        for info in self.locals["infos"]:
+            self.records.append((t, info["stage"], info["dynamics_params"]["gravity"]))
+        return True
+
+
+@pytest.mark.parametrize("n_envs,switch", [(1, 101), (2, 100), (2, 101)])
+def test_switch_at_exact_model_timestep_across_learn_calls(n_envs: int, switch: int) -> None:
+    vec_env = make_vec_env(
+        ENV_ID,
+        n_envs=n_envs,
+        seed=0,
+        wrapper_class=DynamicsSchedule,
+        wrapper_kwargs=dict(stages=[{}, {"gravity": 5.0}], switch_at=[switch], n_envs=n_envs, mid_episode=True),
+    )
+    # SAC that never trains (learning_starts beyond the run): only the collection loop is exercised
+    model = SAC("MlpPolicy", vec_env, learning_starts=10_000, buffer_size=1_000, seed=0, policy_kwargs=dict(net_arch=[8]))
+    recorder = StageRecorder()
+    model.learn(80, callback=recorder)
+    model.learn(80, callback=recorder, reset_num_timesteps=False)
+    assert model.num_timesteps >= 160
+    for t, stage, gravity in recorder.records:
+        expected = int(t >= switch)
+        assert stage == expected, (t, stage)
+        assert gravity == (5.0 if expected else 9.81)
+    first_new = min(t for t, stage, _ in recorder.records if stage == 1)
+    assert first_new == switch + (-switch) % n_envs  # first model timestep >= switch reachable with n_envs
+    # the wrappers count exactly like SB3
+    assert vec_env.get_attr("timestep") == [model.num_timesteps] * n_envs
+
+
+def test_switch_applies_at_episode_start_by_default() -> None:
+    env = gym.wrappers.TimeLimit(gym.make(ENV_ID).unwrapped, max_episode_steps=30)
+    env = DynamicsSchedule(env, stages=[{}, {"gravity": 3.0}], switch_at=[45])
+    _, info = env.reset(seed=0)
+    assert info["stage"] == 0
+    stages = []
+    for _ in range(90):
+        _, _, terminated, truncated, info = env.step(env.action_space.sample())
+        stages.append(info["stage"])
+        if terminated or truncated:
+            _, info = env.reset()
+            stages.append(("reset", info["stage"]))
+    # the switch is due at 45 (mid episode) and happens at the reset after step 60
+    assert stages[:61] == [0] * 30 + [("reset", 0)] + [0] * 30
+    assert stages[61] == ("reset", 1)
+    assert env.unwrapped.model.opt.gravity[2] == pytest.approx(-3.0)
+
+
+def test_subproc_vec_env_same_schedule() -> None:
+    vec_env = make_vec_env(
+        ENV_ID,
+        n_envs=2,
+        seed=0,
+        vec_env_cls=SubprocVecEnv,
+        wrapper_class=DynamicsSchedule,
+        wrapper_kwargs=dict(
+            stages=[{}, {"friction": 0.2}],
+            switch_at=[10],
+            schedules={"mass_scale": RandomWalk(1.0, 0.05, period=2, low=0.5, high=1.5)},
+            n_envs=2,
+            mid_episode=True,
+        ),
+    )
+    try:
+        vec_env.reset()
+        seen = []
+        for _ in range(12):
+            _, _, _, infos = vec_env.step(np.zeros((2, 6)))
+            assert infos[0]["dynamics_params"] == infos[1]["dynamics_params"]
+            assert infos[0]["stage"] == infos[1]["stage"]
+            seen.append(infos[0]["stage"])
+        assert seen == [0] * 5 + [1] * 7
+        assert len({p for p in vec_env.get_attr("timestep")}) == 1
+    finally:
+        vec_env.close()
+
+
+def test_info_and_append_params() -> None:
+    env = wrapped(stages=[{"hip_deformation": 0.25, "gravity": 9.81 * 0.5}], append_params=True)
+    assert env.observation_space.shape == (17 + 2,)
+    assert env.observed_params == ["gravity", "hip_deformation"]
+    obs, info = env.reset(seed=1)
+    assert info["stage"] == 0
+    assert set(info["dynamics_params"]) == set(env.supported_params)
+    assert info["dynamics_params"]["hip_deformation"] == 0.25
+    assert obs[-1] == pytest.approx(0.25 / 0.5)  # (value - nominal) / obs_scale
+    assert obs[-2] == pytest.approx(-0.5)
+    obs, _, _, _, info = env.step(env.action_space.sample())
+    assert obs.shape == (19,) and info["dynamics_params"]["gravity"] == pytest.approx(4.905)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(stages=[{}, {"foot_scale": 1.3}], switch_at=[3], append_params=True, mid_episode=True),
+        dict(schedules={"friction": UniformPerEpisode(0.2, 1.0)}, append_params=True),
+        # a change under way makes two seeded episodes differ (the env is non-stationary on purpose), which
+        # Gymnasium's determinism check rejects: ramp after the checker's few steps
+        dict(schedules={"gravity": LinearRamp(9.81, 5.0, 10_000, 20_000)}, mid_episode=True),
+    ],
+)
+def test_env_checkers_on_wrapped_env(kwargs) -> None:
+    gym_check_env(wrapped(**kwargs), skip_render_check=True)
+    sb3_check_env(wrapped(**kwargs), warn=True)
+
+
+def test_set_stage_set_params_resume() -> None:
+    env = wrapped(stages=[{}, "hip_0.3"], switch_at=[1000])
+    env.reset(seed=0)
+    env.set_stage(1)
+    assert env.stage == 0  # applied at the next episode start
+    _, info = env.reset()
+    assert info["stage"] == 1 and info["dynamics_params"]["hip_deformation"] == 0.3
+    index = env.set_params({"friction": 0.3}, immediate=True)
+    assert index == 2 and env.stage == 2
+    assert env.dynamics_params["friction"] == 0.3 and env.dynamics_params["hip_deformation"] == 0.0
+    assert env.set_params(hip_deformation=0.3) == 1  # an equal setting reuses its stage
+    env.resume_schedule()
+    _, info = env.reset()
+    assert info["stage"] == 0 and info["dynamics_params"] == env.nominal_params
+    env.set_timestep(2000)
+    _, info = env.reset()
+    assert info["stage"] == 1
+
+
+def test_schedulers_follow_definitions() -> None:
+    ramp = LinearRamp(1.0, 2.0, begin=100, finish=200)
+    ramp.bind("mass_scale", 0.05, 20.0, 0)
+    assert [ramp.value(t) for t in (0, 100, 150, 200, 500)] == [1.0, 1.0, 1.5, 2.0, 2.0]
+
+    walk = RandomWalk(1.0, 0.1, period=10, low=0.8, high=1.2, seed=3)
+    walk.bind("mass_scale", 0.05, 20.0, 0)
+    values = [walk.value(t) for t in range(0, 2000)]
+    assert values[:10] == [1.0] * 10 and len(set(values[10:20])) == 1  # changes only every period
+    steps = np.diff(values[::10])
+    assert np.all((np.array(values) >= 0.8) & (np.array(values) <= 1.2))
+    assert np.std(steps[np.abs(steps) > 0]) < 0.15
+    again = RandomWalk(1.0, 0.1, period=10, low=0.8, high=1.2, seed=3)
+    again.bind("mass_scale", 0.05, 20.0, 99)
+    assert [again.value(t) for t in range(0, 2000, 7)] == values[::7]  # same seed, same walk, any query order
+    assert walk.value(15) == values[15]  # going back in time replays
+
+    up = Drift(1.0, 0.05, direction=1, period=1, high=1.5, seed=0)
+    up.bind("mass_scale", 0.05, 20.0, 0)
+    drift = [up.value(t) for t in range(200)]
+    assert np.all(np.diff(drift) >= 0) and drift[-1] == 1.5
+
+    cyc = Cyclic(1.0, 0.05, direction=-1, period=1, low=0.5, seed=0)
+    cyc.bind("mass_scale", 0.05, 20.0, 0)
+    cycle = np.array([cyc.value(t) for t in range(300)])
+    assert cycle.min() > 0.5 and np.sum(np.diff(cycle) > 0) >= 2  # went back to start more than once
+    assert np.all(cycle[1:][np.diff(cycle) > 0] == 1.0)
+
+    saw = SawWave(0.5, 1.5, half_period=100)
+    saw.bind("mass_scale", 0.05, 20.0, 0)
+    assert [saw.value(t) for t in (0, 50, 100, 150, 200, 250)] == pytest.approx([0.5, 1.0, 1.5, 1.0, 0.5, 1.0])
+
+    const = Constant(0.7)
+    const.bind("friction", 0.0, 10.0, 0)
+    assert const.value(12345) == 0.7
+
+
+def test_uniform_per_episode_reproducible_and_in_bounds() -> None:
+    def draws(seed: int) -> list:
+        env = wrapped(schedules={"friction": UniformPerEpisode(0.2, 0.6)})
+        out = [env.reset(seed=seed)[1]["dynamics_params"]["friction"]]
+        out += [env.reset()[1]["dynamics_params"]["friction"] for _ in range(5)]
+        return out
+
+    a, b, c = draws(0), draws(0), draws(1)
+    assert a == b and a != c
+    assert all(0.2 <= v <= 0.6 for v in a) and len(set(a)) == 6
+
+
+def test_continuous_schedule_mid_episode_reaches_physics() -> None:
+    env = wrapped(schedules={"gravity": LinearRamp(9.81, 1.0, 0, 100)}, mid_episode=True)
+    env.reset(seed=0)
+    for t in range(120):
+        _, _, _, _, info = env.step(np.zeros(6))
+        expected = 9.81 + (1.0 - 9.81) * min(t / 100, 1.0)
+        assert info["dynamics_params"]["gravity"] == pytest.approx(expected)
+        assert -env.unwrapped.model.opt.gravity[2] == pytest.approx(expected)
+        assert info["stage"] == 0
+
+
+def test_mid_episode_change_keeps_the_robot_state() -> None:
+    env = DynamicsSchedule(gym.make("Walker2d-v5"))
+    env.reset(seed=0)
+    for _ in range(20):
+        env.step(env.action_space.sample())
+    data = env.unwrapped.data
+    qpos, qvel, time = data.qpos.copy(), data.qvel.copy(), data.time
+    for setting in ({"mass_scale": 1.3}, {"foot_scale": 1.4}, {}):  # field edits and a recompile
+        env.set_params(setting, immediate=True)
+        np.testing.assert_array_equal(data.qpos, qpos)
+        np.testing.assert_array_equal(data.qvel, qvel)
+        assert data.time == time
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (
+            dict(stages=[{"hip_deformaton": 0.3}]),
+            r"unknown dynamics parameter 'hip_deformaton'.*Allowed: hip_deformation \[rad\]",
+        ),
+        (dict(stages=[{"foot_scale": -1.0}]), r"foot_scale=-1.0 x nominal is outside its physical range"),
+        (dict(stages=[{"ground_softness": 0.001}]), r"ground_softness.*outside.*\[0.02"),  # below 2 time steps
+        (dict(stages=[{"gravity": float("nan")}]), r"gravity=nan"),
+        (dict(stages=[{}, {}, {}], switch_at=[200, 100]), r"strictly increasing.*out of order"),
+        (dict(stages=[{}, {}, {}], switch_at=[100]), r"one global timestep per stage"),
+        (dict(stages=[{}, {}], switch_at=[0]), r"strictly increasing positive"),
+        (dict(stages=["hip_9"]), r"unknown preset 'hip_9'"),
+        (dict(schedules={"mass": RandomWalk(1.0, 0.1)}), r"unknown dynamics parameter 'mass'.*mass_scale"),
+        (dict(schedules={"friction": RandomWalk(1.0, 0.1, low=-1.0)}), r"bounds \[-1.0, .*physical range"),
+        (dict(schedules={"friction": Cyclic(1.0, 0.1, high=1.0)}), r"start must differ"),
+        (dict(n_envs=0), r"n_envs must be >= 1"),
+    ],
+)
+def test_clear_errors(kwargs, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        wrapped(**kwargs)
+
+
+def test_errors_for_unsupported_envs_and_manual_calls() -> None:
+    with pytest.raises(TypeError, match="not a MuJoCo env"):
+        DynamicsSchedule(gym.make("CartPole-v1"))
+    env = wrapped()
+    with pytest.raises(ValueError, match=r"stage must be an index in \[0, 0\]"):
+        env.set_stage(3)
+    with pytest.raises(ValueError, match="unknown dynamics parameter 'grav'"):
+        env.set_params(grav=1.0)
