@@ -21,11 +21,11 @@ from lifelong_common import (
     algo_kwargs,
     eval_callbacks,
     final_returns,
+    finish,
     make_collector,
     now,
     resolve_config,
     set_threads,
-    write_summary,
 )
 
 from sb3_lifelong import CRR
@@ -70,12 +70,7 @@ def main() -> None:
         callbacks = eval_callbacks(run_dir / "distilled", eval_envs, config)
         mpo.distill(CRR, gradient_steps=config["distill_steps"], callback=callbacks, beta=1.0, **algo_kwargs(config, seed))
         rows += [dict(seed=seed, method="distilled", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-    print(write_summary(output, rows, config, now() - start))
-    if not args.no_plots:
-        from sb3_lifelong.plotting import plot_experiment
-
-        for path in plot_experiment(output):
-            print("wrote", path)
+    finish(output, rows, config, now() - start, plots=not args.no_plots)
 
 
 if __name__ == "__main__":

@@ -237,6 +237,16 @@ def write_summary(output: pathlib.Path, rows: list[dict[str, Any]], config: dict
     return table
 
 
+def finish(output: pathlib.Path, rows: list[dict[str, Any]], config: dict[str, Any], elapsed: float, plots: bool) -> None:
+    """Write and print the summary table, then the figures."""
+    print(write_summary(output, rows, config, elapsed))
+    if plots:
+        from sb3_lifelong.plotting import plot_experiment
+
+        for path in plot_experiment(output):
+            print("wrote", path)
+
+
 def set_threads() -> None:
     th.set_num_threads(1)
 

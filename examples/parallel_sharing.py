@@ -24,13 +24,13 @@ from lifelong_common import (
     algo_kwargs,
     eval_callbacks,
     final_returns,
+    finish,
     make_collector,
     make_eval_envs,
     make_schedule,
     now,
     resolve_config,
     set_threads,
-    write_summary,
 )
 
 from sb3_lifelong import CRR
@@ -106,12 +106,7 @@ def main() -> None:
                 **kwargs,
             )
             rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-    print(write_summary(output, rows, config, now() - start))
-    if not args.no_plots:
-        from sb3_lifelong.plotting import plot_experiment
-
-        for path in plot_experiment(output):
-            print("wrote", path)
+    finish(output, rows, config, now() - start, plots=not args.no_plots)
 
 
 if __name__ == "__main__":

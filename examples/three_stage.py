@@ -13,7 +13,7 @@ import sys
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 
-from lifelong_common import add_common_arguments, now, resolve_config, run_sequential, set_threads, write_summary
+from lifelong_common import add_common_arguments, finish, now, resolve_config, run_sequential, set_threads
 
 STAGES = {
     "quick": [{}, {"hip_deformation": 0.3}, {"hip_deformation": 0.3, "friction": 0.1}],
@@ -35,12 +35,7 @@ def main() -> None:
     output.mkdir(parents=True, exist_ok=True)
     start = now()
     rows = run_sequential(config, STAGES[args.preset], ["Env-A", "Env-B", "Env-C"], output, baselines=not args.no_baselines)
-    print(write_summary(output, rows, config, now() - start))
-    if not args.no_plots:
-        from sb3_lifelong.plotting import plot_experiment
-
-        for path in plot_experiment(output):
-            print("wrote", path)
+    finish(output, rows, config, now() - start, plots=not args.no_plots)
 
 
 if __name__ == "__main__":
