@@ -1,6 +1,8 @@
 import os
 
+from sb3_lifelong.bc import BC
 from sb3_lifelong.common.buffers import LifelongReplayBuffer
+from sb3_lifelong.crr import CRR
 from sb3_lifelong.mpo import MPO
 
 # Read version from file
@@ -9,6 +11,8 @@ with open(version_file) as file_handler:
     __version__ = file_handler.read().strip()
 
 __all__ = [
-    "LifelongReplayBuffer",
+    "BC",
+    "CRR",
     "MPO",
+    "LifelongReplayBuffer",
 ]

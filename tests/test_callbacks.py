@@ -41,8 +41,8 @@ def test_logged_to_tensorboard(tmp_path):
     accumulator = EventAccumulator(str(tmp_path / "run_1"))
     accumulator.Reload()
     tags = accumulator.Tags()["scalars"]
-    assert "eval/Pendulum-v1_0/mean_reward" in tags and "eval/Pendulum-v1_1/mean_reward" in tags
-    assert [event.step for event in accumulator.Scalars("eval/Pendulum-v1_0/mean_reward")] == [60, 120]
+    assert "eval/Pendulum-v1/mean_reward" in tags and "eval/Pendulum-v1_1/mean_reward" in tags
+    assert [event.step for event in accumulator.Scalars("eval/Pendulum-v1/mean_reward")] == [60, 120]
 
 
 def test_bad_arguments():

@@ -12,23 +12,52 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
 
 
-def _name_of(env: Any, index: int) -> str:
+EvalEnvs = Union[GymEnv, str, Sequence[Union[GymEnv, str]], Mapping[str, Union[GymEnv, str]]]
+
+
+def _env_name(env: Any, index: int) -> str:
+    if isinstance(env, str):
+        return env
     spec = getattr(env, "spec", None)
     if spec is None and isinstance(env, VecEnv):
-        spec = env.get_attr("spec", indices=[0])[0]
-    base = spec.id if spec is not None else type(env).__name__
-    return f"{base}_{index}"
+        try:
+            spec = env.get_attr("spec", indices=[0])[0]
+        except Exception:
+            spec = None
+    return spec.id if spec is not None and getattr(spec, "id", None) else f"env{index}"
 
 
-def _as_vec_env(env: Union[gym.Env, VecEnv]) -> VecEnv:
-    if isinstance(env, VecEnv):
-        return env
-    return DummyVecEnv([lambda: Monitor(env)])
+def make_eval_envs(eval_env: EvalEnvs) -> dict[str, VecEnv]:
+    """
+    Normalise one or several evaluation environments to named ``VecEnv`` objects (gym ids are made, gym envs
+    are wrapped in ``Monitor`` and ``DummyVecEnv``).
+
+    :param eval_env: an env, a gym id, a list of them (named after their gym id) or a dict name -> env
+    :return: dict name -> VecEnv
+    """
+    if isinstance(eval_env, dict):
+        named = list(eval_env.items())
+    elif isinstance(eval_env, (list, tuple)):
+        named = [(_env_name(env, index), env) for index, env in enumerate(eval_env)]
+    else:
+        named = [(_env_name(eval_env, 0), eval_env)]
+    result: dict[str, VecEnv] = {}
+    for name, env in named:
+        unique, suffix = name, 1
+        while unique in result:
+            unique, suffix = f"{name}_{suffix}", suffix + 1
+        if isinstance(env, str):
+            env = gym.make(env)
+        if not isinstance(env, VecEnv):
+            env = DummyVecEnv([lambda env=env: env if isinstance(env, Monitor) else Monitor(env)])  # type: ignore[misc]
+        result[unique] = env
+    return result
 
 
 class MultiEnvEvalCallback(BaseCallback):
@@ -40,8 +69,8 @@ class MultiEnvEvalCallback(BaseCallback):
     Works the same during online learning (timesteps = environment steps) and offline training, where the
     algorithms of this package count gradient updates as timesteps.
 
-    :param eval_envs: the environments, as a mapping name -> env (names appear in the logs) or a sequence
-        (named after their spec id and position)
+    :param eval_envs: the environments: a mapping name -> env or gym id (names appear in the logs), a sequence
+        of envs or gym ids (named after their gym id), or one env (see :func:`make_eval_envs`)
     :param eval_freq: evaluate every ``eval_freq`` timesteps (counted with ``model.num_timesteps``, so that the
         number of parallel environments does not change the schedule)
     :param n_eval_episodes: episodes per environment and evaluation
@@ -54,7 +83,7 @@ class MultiEnvEvalCallback(BaseCallback):
 
     def __init__(
         self,
-        eval_envs: Union[Mapping[str, Union[gym.Env, VecEnv]], Sequence[Union[gym.Env, VecEnv]]],
+        eval_envs: EvalEnvs,
         eval_freq: int = 10_000,
         n_eval_episodes: int = 5,
         deterministic: bool = True,
@@ -63,18 +92,15 @@ class MultiEnvEvalCallback(BaseCallback):
         verbose: int = 0,
     ):
         super().__init__(verbose)
-        if isinstance(eval_envs, Mapping):
-            named = dict(eval_envs)
-        else:
-            named = {_name_of(env, i): env for i, env in enumerate(eval_envs)}
-        if not named:
+        if isinstance(eval_envs, (Mapping, list, tuple)) and len(eval_envs) == 0:
             raise ValueError("MultiEnvEvalCallback needs at least one evaluation environment")
         if eval_freq < 1 or n_eval_episodes < 1:
             raise ValueError(f"eval_freq and n_eval_episodes must be >= 1, got {eval_freq} and {n_eval_episodes}")
-        bad = [name for name in named if not name or "/" in name]
-        if bad:
-            raise ValueError(f"Evaluation environment names must be non-empty and contain no '/': {bad}")
-        self.eval_envs = {name: _as_vec_env(env) for name, env in named.items()}
+        if isinstance(eval_envs, Mapping):
+            bad = [name for name in eval_envs if not name or "/" in name]
+            if bad:
+                raise ValueError(f"Evaluation environment names must be non-empty and contain no '/': {bad}")
+        self.eval_envs = make_eval_envs(eval_envs)
         self.eval_freq = eval_freq
         self.n_eval_episodes = n_eval_episodes
         self.deterministic = deterministic
@@ -112,7 +138,7 @@ class MultiEnvEvalCallback(BaseCallback):
         means: dict[str, float] = {}
         rows = []
         for name, env in self.eval_envs.items():
-            episode_rewards, _ = evaluate_policy(
+            episode_rewards, episode_lengths = evaluate_policy(
                 self.model,
                 env,
                 n_eval_episodes=self.n_eval_episodes,
@@ -124,8 +150,9 @@ class MultiEnvEvalCallback(BaseCallback):
             means[name] = mean
             self.logger.record(f"eval/{name}/mean_reward", mean)
             self.logger.record(f"eval/{name}/std_reward", std)
+            self.logger.record(f"eval/{name}/mean_ep_length", float(np.mean(episode_lengths)))
             row = dict(
-                timesteps=self.num_timesteps, env=name, mean_reward=mean, std_reward=std, n_episodes=len(episode_rewards)
+                timesteps=self.num_timesteps, env=name, mean_reward=mean, std_reward=std, n_episodes=self.n_eval_episodes
             )
             rows.append(row)
             if self.verbose >= 1:

@@ -79,10 +79,10 @@ def distill(
     else:
         data = source
 
-    student = student_class.from_offline_data(data, policy=policy, **student_kwargs)
+    student = student_class.from_offline_data(data, policy=policy, **student_kwargs)  # type: ignore[attr-defined]
 
     teacher_dir = teacher.logger.get_dir() if teacher is not None and teacher._logger is not None else None
-    if teacher_dir is not None and teacher.tensorboard_log is not None:
+    if teacher is not None and teacher_dir is not None and teacher.tensorboard_log is not None:
         formats = ["csv", "tensorboard"] + (["stdout"] if student.verbose >= 1 else [])
         student.set_logger(configure(os.path.join(teacher_dir, tb_log_name), formats))
     student.learn_offline(

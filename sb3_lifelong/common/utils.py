@@ -53,6 +53,7 @@ def _run_mlp_no_grad(critic: nn.Module, index: int, mlp: nn.Module, inputs: th.T
     buffers: dict[tuple[int, int, int], th.Tensor] = critic.__dict__.setdefault("_no_grad_buffers", {})
     x = inputs
     owned = False
+    module: nn.Module
     for position, module in enumerate(mlp):  # type: ignore[arg-type]
         if isinstance(module, nn.Linear):
             key = (index, position, x.shape[0])

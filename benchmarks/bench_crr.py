@@ -1,0 +1,214 @@
+"""
+CRR benchmark: sb3-lifelong's CRR against d3rlpy's CRR on the same offline dataset, in the same run, with the same
+networks (actor and critic 256x256 ReLU), batch (256), number of updates, learning rates (3e-4), advantage
+(mean over 4 policy samples), transform (exp, beta=1, clipped at 20), hard target update every 100 updates,
+one critic, one torch thread each.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_crr.py --updates 5000 \
+        --data benchmarks/results/crr_hopper_medium_replay.npz --d3rlpy-python /tmp/d3venv/bin/python
+
+The dataset is written by ``benchmarks/crr_collect.py``. d3rlpy is a benchmark-only dependency, installed in its
+own virtual environment (``python -m venv --system-site-packages /tmp/d3venv && /tmp/d3venv/bin/pip install
+d3rlpy``); each implementation runs in its own process. Throughput is measured on the training loop alone
+(data loading and evaluation excluded); the return is the mean over ``--eval-episodes`` deterministic episodes
+with seeds 0, 1, ... of the final policy.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+HIDDEN = [256, 256]
+
+
+def evaluate(act, env_id: str, episodes: int) -> tuple[float, float]:
+    import gymnasium as gym
+
+    env = gym.make(env_id)
+    returns = []
+    for seed in range(episodes):
+        obs, _ = env.reset(seed=seed)
+        total, done = 0.0, False
+        while not done:
+            obs, reward, terminated, truncated, _ = env.step(act(obs))
+            total += float(reward)
+            done = terminated or truncated
+        returns.append(total)
+    return float(np.mean(returns)), float(np.std(returns))
+
+
+def run_ours(args: argparse.Namespace, data: dict) -> dict:
+    import gymnasium as gym
+    import torch as th
+
+    from sb3_lifelong import CRR
+
+    th.set_num_threads(1)
+    env = gym.make(args.env)
+    model = CRR.from_offline_data(
+        data,
+        env=None,
+        observation_space=env.observation_space,
+        action_space=env.action_space,
+        batch_size=256,
+        learning_rate=3e-4,
+        gamma=0.99,
+        num_samples=4,
+        advantage_baseline="mean",
+        advantage_transform="exp",
+        beta=1.0,
+        max_weight=20.0,
+        tau=1.0,
+        target_update_interval=100,
+        policy_kwargs=dict(net_arch=HIDDEN, n_critics=1),
+        seed=args.seed,
+    )
+    model.learn_offline(20, log_interval=0)  # warm-up, not timed
+    start = time.perf_counter()
+    model.learn_offline(args.updates, log_interval=0)
+    seconds = time.perf_counter() - start
+    mean, std = (np.nan, np.nan)
+    if args.eval_episodes > 0:
+        mean, std = evaluate(lambda obs: model.predict(obs, deterministic=True)[0], args.env, args.eval_episodes)
+    return {"impl": "sb3-lifelong CRR", "updates": args.updates, "seconds": seconds, "return": mean, "return_std": std}
+
+
+def run_d3rlpy(args: argparse.Namespace, data: dict) -> dict:
+    import d3rlpy
+    import torch as th
+
+    th.set_num_threads(1)
+    d3rlpy.seed(args.seed)
+    timeouts = data["timeouts"].astype(np.float32)
+    timeouts[-1] = 0.0 if data["terminals"][-1] else 1.0  # the last trajectory ends with the data
+    dataset = d3rlpy.dataset.MDPDataset(
+        observations=data["observations"],
+        actions=data["actions"],
+        rewards=data["rewards"],
+        terminals=data["terminals"].astype(np.float32),
+        timeouts=timeouts,
+    )
+    encoder = d3rlpy.models.VectorEncoderFactory(hidden_units=HIDDEN)
+    algo = d3rlpy.algos.CRRConfig(
+        batch_size=256,
+        gamma=0.99,
+        actor_learning_rate=3e-4,
+        critic_learning_rate=3e-4,
+        actor_encoder_factory=encoder,
+        critic_encoder_factory=encoder,
+        beta=1.0,
+        n_action_samples=4,
+        advantage_type="mean",
+        weight_type="exp",
+        max_weight=20.0,
+        n_critics=1,
+        target_update_type="hard",
+        target_update_interval=100,
+    ).create(device="cpu:0")
+    common = dict(show_progress=False, logger_adapter=d3rlpy.logging.NoopAdapterFactory(), save_interval=10**9)
+    algo.fit(dataset, n_steps=20, n_steps_per_epoch=20, **common)  # builds the networks; warm-up, not timed
+    start = time.perf_counter()
+    algo.fit(dataset, n_steps=args.updates, n_steps_per_epoch=args.updates, **common)
+    seconds = time.perf_counter() - start
+    mean, std = (np.nan, np.nan)
+    if args.eval_episodes > 0:
+        mean, std = evaluate(lambda obs: algo.predict(obs[None].astype(np.float32))[0], args.env, args.eval_episodes)
+    return {
+        "impl": f"d3rlpy {d3rlpy.__version__} CRR",
+        "updates": args.updates,
+        "seconds": seconds,
+        "return": mean,
+        "return_std": std,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default="benchmarks/results/crr_hopper_medium_replay.npz")
+    parser.add_argument("--env", default="Hopper-v5")
+    parser.add_argument("--updates", type=int, default=5_000)
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--impl", choices=["ours", "d3rlpy", "both"], default="both")
+    parser.add_argument("--d3rlpy-python", default="/tmp/d3venv/bin/python", help="interpreter that has d3rlpy")
+    parser.add_argument("--output", default="benchmarks/results/crr_hopper.md")
+    parser.add_argument("--speed-rounds", type=int, default=3, help="interleaved throughput-only rounds (0: none)")
+    parser.add_argument("--speed-updates", type=int, default=300, help="updates per throughput-only round")
+    args = parser.parse_args()
+    with np.load(args.data) as npz:
+        data = {key: npz[key] for key in npz.files}
+    if args.impl == "ours":
+        print(json.dumps(run_ours(args, data)))
+        return
+    if args.impl == "d3rlpy":
+        print(json.dumps(run_d3rlpy(args, data)))
+        return
+    results: list[dict[str, Any]] = []
+    base = [a for a in sys.argv[1:]]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    pythons = {"ours": sys.executable, "d3rlpy": args.d3rlpy_python}
+
+    def child(impl: str, *extra: str) -> dict[str, Any]:
+        command = [pythons[impl], __file__, *base, *extra, "--impl", impl]
+        proc = subprocess.run(command, capture_output=True, text=True, env=env)
+        if proc.returncode != 0:
+            return {"impl": impl, "error": proc.stderr.strip().splitlines()[-1] if proc.stderr else "failed"}
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    for impl in pythons:
+        results.append(child(impl))
+    # Throughput alone, the two implementations alternating, so that both see the same (shared) machine load
+    speed: dict[str, list[float]] = {impl: [] for impl in pythons}
+    for _ in range(args.speed_rounds):
+        for impl in pythons:
+            block = child(impl, "--updates", str(args.speed_updates), "--eval-episodes", "0")
+            if "error" not in block:
+                speed[impl].append(block["updates"] / block["seconds"])
+    behaviour = {}
+    stats_path = args.data.replace(".npz", ".json")
+    if os.path.exists(stats_path):
+        with open(stats_path) as file:
+            behaviour = json.load(file)
+    lines = [
+        f"# CRR on {args.env}, offline ({len(data['rewards'])} transitions, {os.path.basename(args.data)})",
+        "",
+        "Command: `OMP_NUM_THREADS=1 python benchmarks/bench_crr.py " + " ".join(base) + "`",
+        "",
+        f"| implementation | updates | updates/s (quality run) | updates/s (best of {args.speed_rounds} interleaved blocks "
+        f"of {args.speed_updates}) | final return (mean +- std, {args.eval_episodes} episodes) |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for impl_key, result in zip(pythons, results):
+        best = f"{max(speed[impl_key]):.1f}" if speed[impl_key] else "-"
+        if "error" in result:
+            lines.append(f"| {result['impl']} | - | - | {best} | error: {result['error']} |")
+        else:
+            ups = result["updates"] / result["seconds"]
+            score = f"{result['return']:.1f} +- {result['return_std']:.1f}"
+            lines.append(f"| {result['impl']} | {result['updates']} | {ups:.1f} | {best} | {score} |")
+    if behaviour:
+        lines.append(
+            f"| behaviour: final collecting policy (deterministic) | - | - | - | {behaviour['behaviour_policy_return']:.1f} |"
+        )
+        lines.append(f"| behaviour: dataset episodes (mean) | - | - | - | {behaviour['dataset_mean_return']:.1f} |")
+    ok = [r for r in results if "error" not in r]
+    if len(ok) == 2:
+        speedup = (ok[0]["updates"] / ok[0]["seconds"]) / (ok[1]["updates"] / ok[1]["seconds"])
+        lines += ["", f"Speed ratio ours / d3rlpy, quality runs (one after the other): {speedup:.2f}x"]
+    if speed["ours"] and speed["d3rlpy"]:
+        lines += [f"Speed ratio ours / d3rlpy, best interleaved blocks: {max(speed['ours']) / max(speed['d3rlpy']):.2f}x"]
+    dump = {"results": results, "speed_blocks_updates_per_s": speed, "behaviour": behaviour}
+    lines += ["", "```json", json.dumps(dump, indent=2), "```", ""]
+    with open(args.output, "w") as file:
+        file.write("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,422 @@
+"""
+Loading and validating offline data: d4rl-style dicts and ``.npz`` files, Minari datasets and SB3 replay buffers.
+
+The canonical in-memory form is a *d4rl dict* of equal-length arrays:
+
+- ``observations`` ``[N, *obs_shape]`` and ``next_observations`` ``[N, *obs_shape]``
+- ``actions`` ``[N, action_dim]`` (or ``[N]``), in the units of the environment unless stated otherwise
+- ``rewards`` ``[N]`` (or ``[N, 1]``)
+- ``terminals`` ``[N]``: the episode ended in a terminal state (no bootstrapping)
+- ``timeouts`` ``[N]`` (optional): the episode was cut by a time limit (bootstrapping continues)
+
+It is turned into an :class:`OfflineReplayBuffer`, an SB3 ``ReplayBuffer`` that also knows each transition's next
+action in the data (for SARSA targets).
+"""
+
+import os
+import warnings
+from collections.abc import Mapping
+from typing import Any, NamedTuple, Optional, Union
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.vec_env import VecNormalize
+
+__all__ = [
+    "OPTIONAL_KEYS",
+    "REQUIRED_KEYS",
+    "OfflineData",
+    "OfflineDataError",
+    "OfflineReplayBuffer",
+    "OfflineSamples",
+    "d4rl_to_replay_buffer",
+    "infer_spaces",
+    "load_d4rl",
+    "minari_to_d4rl",
+    "next_actions_of",
+    "replay_buffer_to_d4rl",
+    "validate_d4rl",
+]
+
+REQUIRED_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals")
+OPTIONAL_KEYS = ("timeouts",)
+
+# What the offline entry points accept
+OfflineData = Union[ReplayBuffer, Mapping[str, Any], str, os.PathLike, Any]
+
+
+class OfflineDataError(ValueError):
+    """Offline data that cannot be used as it is: missing keys, mismatched lengths, wrong dtypes, NaN."""
+
+
+class OfflineSamples(NamedTuple):
+    """``ReplayBufferSamples`` plus the next action recorded in the data (for SARSA targets)."""
+
+    observations: th.Tensor
+    actions: th.Tensor
+    next_observations: th.Tensor
+    dones: th.Tensor
+    rewards: th.Tensor
+    discounts: Optional[th.Tensor] = None
+    # action taken at next_observations in the data, normalised; zeros where unknown
+    next_actions: Optional[th.Tensor] = None
+    # 1.0 where next_actions is known, [batch, 1]
+    next_action_mask: Optional[th.Tensor] = None
+
+
+def _as_array(data: Mapping[str, Any], key: str) -> np.ndarray:
+    try:
+        return np.asarray(data[key])
+    except Exception as error:  # ragged lists, exotic objects
+        raise OfflineDataError(f"offline data key {key!r} cannot be read as an array: {error}") from error
+
+
+def _check_numeric(key: str, array: np.ndarray, allow_int: bool) -> None:
+    kind = array.dtype.kind
+    allowed = "fiu" if allow_int else "f"
+    if kind not in allowed:
+        expected = "a numeric (float or integer)" if allow_int else "a floating-point"
+        raise OfflineDataError(f"offline data key {key!r} must have {expected} dtype, got {array.dtype}")
+    if kind == "f" and not np.isfinite(array).all():
+        bad = np.flatnonzero(~np.isfinite(array.reshape(len(array), -1)).all(axis=1))
+        raise OfflineDataError(
+            f"offline data key {key!r} holds NaN or infinite values in {len(bad)} rows (first: row {int(bad[0])})"
+        )
+
+
+def _check_flags(key: str, array: np.ndarray) -> np.ndarray:
+    if array.dtype.kind == "b":
+        return array.reshape(len(array))
+    if array.dtype.kind not in "fiu":
+        raise OfflineDataError(f"offline data key {key!r} must be boolean (or 0/1 numbers), got dtype {array.dtype}")
+    if array.size and not np.isin(array, (0, 1)).all():
+        raise OfflineDataError(f"offline data key {key!r} must hold only 0/1 (or booleans), got other values")
+    return array.astype(bool).reshape(len(array))
+
+
+def validate_d4rl(data: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """
+    Check a d4rl-style dict and return a clean copy of its standard keys (other keys are dropped).
+
+    :param data: mapping with ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals`` and
+        optionally ``timeouts``
+    :return: dict with float observations, ``actions`` ``[N, action_dim]``, ``rewards`` ``[N]`` (float32), boolean
+        ``terminals`` and ``timeouts``
+    :raises OfflineDataError: on missing keys, mismatched lengths or shapes, wrong dtypes, NaN or infinite values
+    """
+    if not isinstance(data, Mapping):
+        raise OfflineDataError(f"offline data must be a mapping of arrays, got {type(data).__name__}")
+    missing = [key for key in REQUIRED_KEYS if key not in data]
+    if missing:
+        raise OfflineDataError(
+            f"offline data is missing the key(s) {missing}; required: {list(REQUIRED_KEYS)}, optional: "
+            f"{list(OPTIONAL_KEYS)}; found: {sorted(data.keys())}"
+        )
+    arrays = {key: _as_array(data, key) for key in REQUIRED_KEYS + OPTIONAL_KEYS if key in data}
+    for key, array in arrays.items():
+        if array.ndim == 0:
+            raise OfflineDataError(f"offline data key {key!r} must be an array with one row per transition, got a scalar")
+    lengths = {key: len(array) for key, array in arrays.items()}
+    if len(set(lengths.values())) != 1:
+        raise OfflineDataError(f"offline data arrays must all have the same length, got {lengths}")
+    total = lengths["observations"]
+    if total == 0:
+        raise OfflineDataError("offline data is empty (0 transitions)")
+    obs, next_obs = arrays["observations"], arrays["next_observations"]
+    if obs.shape != next_obs.shape:
+        raise OfflineDataError(f"observations {obs.shape} and next_observations {next_obs.shape} must have the same shape")
+    _check_numeric("observations", obs, allow_int=True)
+    _check_numeric("next_observations", next_obs, allow_int=True)
+    actions = arrays["actions"]
+    _check_numeric("actions", actions, allow_int=False)
+    if actions.ndim == 1:
+        actions = actions.reshape(total, 1)
+    elif actions.ndim > 2:
+        raise OfflineDataError(f"actions must be [N, action_dim] (or [N]), got shape {actions.shape}")
+    rewards = arrays["rewards"]
+    _check_numeric("rewards", rewards, allow_int=True)
+    if rewards.ndim > 2 or (rewards.ndim == 2 and rewards.shape[1] != 1):
+        raise OfflineDataError(f"rewards must be [N] (or [N, 1]), got shape {rewards.shape}")
+    flags = {}
+    for key in ("terminals", "timeouts"):
+        if key in arrays:
+            if arrays[key].ndim > 2 or arrays[key].size != total:
+                raise OfflineDataError(f"{key} must be [N] (or [N, 1]), got shape {arrays[key].shape}")
+            flags[key] = _check_flags(key, arrays[key])
+        else:
+            flags[key] = np.zeros(total, dtype=bool)
+
+    def float_obs(array: np.ndarray) -> np.ndarray:
+        return array.astype(np.float32) if array.dtype == np.float64 else array
+
+    return {
+        "observations": float_obs(obs),
+        "next_observations": float_obs(next_obs),
+        "actions": actions.astype(np.float32),
+        "rewards": rewards.reshape(total).astype(np.float32),
+        "terminals": flags["terminals"],
+        "timeouts": flags["timeouts"],
+    }
+
+
+def load_d4rl(data: Union[Mapping[str, Any], str, os.PathLike]) -> dict[str, np.ndarray]:
+    """
+    Read and validate a d4rl-style dict or ``.npz`` file (read without pickle).
+
+    :param data: the dict, or the path of a ``.npz`` file
+    :return: the validated dict (see :func:`validate_d4rl`)
+    """
+    if isinstance(data, (str, os.PathLike)):
+        path = os.fspath(data)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"no offline data file at {path!r}")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                if not hasattr(npz, "files"):
+                    raise OfflineDataError(f"{path!r} holds a single array, not a d4rl-style .npz archive of named arrays")
+                data = {key: npz[key] for key in npz.files}
+        except ValueError as error:  # object arrays need pickle: refused
+            raise OfflineDataError(f"cannot read {path!r} without pickle: {error}") from error
+    return validate_d4rl(data)  # type: ignore[arg-type]
+
+
+def minari_to_d4rl(dataset: Any) -> tuple[dict[str, np.ndarray], Optional[spaces.Space], Optional[spaces.Space]]:
+    """
+    Flatten a Minari dataset into a d4rl dict (``observations[t]``, ``observations[t + 1]`` of each episode become a
+    transition; ``terminations`` and ``truncations`` become ``terminals`` and ``timeouts``).
+
+    :param dataset: a Minari dataset id (loaded with ``minari.load_dataset``; needs ``minari`` installed) or a
+        dataset object with ``iterate_episodes()``
+    :return: the validated dict, and the dataset's observation and action spaces (None when it has none)
+    """
+    if isinstance(dataset, str):
+        try:
+            import minari
+        except ImportError as error:
+            raise ImportError(
+                f"{dataset!r} is not a file, so it was taken as a Minari dataset id; loading it needs the optional "
+                "package minari (`pip install minari`)"
+            ) from error
+        dataset = minari.load_dataset(dataset)
+    columns: dict[str, list[np.ndarray]] = {key: [] for key in ("observations", "next_observations", "actions")}
+    columns.update(rewards=[], terminals=[], timeouts=[])
+    for episode in dataset.iterate_episodes():
+        observations = episode.observations
+        if isinstance(observations, dict):
+            raise OfflineDataError("Minari episodes with dict observations are not supported; flatten them first")
+        observations = np.asarray(observations)
+        steps = len(episode.actions)
+        if len(observations) != steps + 1:
+            raise OfflineDataError(
+                f"Minari episode {getattr(episode, 'id', '?')}: expected {steps + 1} observations for {steps} actions, "
+                f"got {len(observations)}"
+            )
+        columns["observations"].append(observations[:-1])
+        columns["next_observations"].append(observations[1:])
+        columns["actions"].append(np.asarray(episode.actions))
+        columns["rewards"].append(np.asarray(episode.rewards))
+        columns["terminals"].append(np.asarray(episode.terminations, dtype=bool))
+        columns["timeouts"].append(np.asarray(episode.truncations, dtype=bool))
+    if not columns["observations"]:
+        raise OfflineDataError("the Minari dataset has no episodes")
+    data = validate_d4rl({key: np.concatenate(values) for key, values in columns.items()})
+    return data, getattr(dataset, "observation_space", None), getattr(dataset, "action_space", None)
+
+
+def replay_buffer_to_d4rl(buffer: ReplayBuffer) -> dict[str, np.ndarray]:
+    """
+    Export an SB3 ``ReplayBuffer`` (or any buffer with a ``to_d4rl()`` method) as a d4rl dict, each env's
+    transitions contiguous and in time order. Actions stay as stored, i.e. normalised to ``[-1, 1]`` for the
+    buffers that SB3 algorithms with squashed policies fill.
+
+    :param buffer: the buffer (not a ``DictReplayBuffer``; ``optimize_memory_usage`` is supported)
+    :return: the validated dict
+    """
+    to_d4rl = getattr(buffer, "to_d4rl", None)
+    if callable(to_d4rl):
+        return validate_d4rl(to_d4rl())
+    if isinstance(buffer.observations, dict):
+        raise OfflineDataError("Dict-observation replay buffers cannot be exported to a d4rl dict")
+    size = buffer.size()
+    if size == 0:
+        raise OfflineDataError("the replay buffer is empty")
+    # rows in time order: a full circular buffer starts at pos
+    order = (np.arange(size) + buffer.pos) % buffer.buffer_size if buffer.full else np.arange(size)
+    columns: dict[str, list[np.ndarray]] = {key: [] for key in REQUIRED_KEYS + OPTIONAL_KEYS}
+    for env_index in range(buffer.n_envs):
+        if buffer.optimize_memory_usage:
+            next_obs = buffer.observations[(order + 1) % buffer.buffer_size, env_index]
+        else:
+            next_obs = buffer.next_observations[order, env_index]
+        dones = buffer.dones[order, env_index].astype(bool)
+        timeouts = buffer.timeouts[order, env_index].astype(bool) & dones
+        columns["observations"].append(buffer.observations[order, env_index])
+        columns["next_observations"].append(next_obs)
+        columns["actions"].append(buffer.actions[order, env_index])
+        columns["rewards"].append(buffer.rewards[order, env_index])
+        columns["terminals"].append(dones & ~timeouts)
+        columns["timeouts"].append(timeouts)
+    if buffer.optimize_memory_usage:  # the last row's next observation is not stored
+        for key in columns:
+            columns[key] = [value[:-1] for value in columns[key]]
+    return validate_d4rl({key: np.concatenate(values) for key, values in columns.items()})
+
+
+def next_actions_of(data: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """
+    The action taken at each transition's next observation, where the data shows it: row ``i + 1`` continues row
+    ``i`` when row ``i`` did not end an episode and ``observations[i + 1] == next_observations[i]``.
+
+    :param data: a validated d4rl dict
+    :return: ``next_actions`` (zeros where unknown) and a boolean mask of where they are known
+    """
+    obs, next_obs, actions = data["observations"], data["next_observations"], data["actions"]
+    total = len(obs)
+    known = np.zeros(total, dtype=bool)
+    next_actions = np.zeros_like(actions)
+    if total > 1:
+        ended = data["terminals"][:-1] | data["timeouts"][:-1]
+        continues = (next_obs[:-1] == obs[1:]).reshape(total - 1, -1).all(axis=1) & ~ended
+        known[:-1] = continues
+        next_actions[:-1][continues] = actions[1:][continues]
+    return next_actions, known
+
+
+def _is_box_bounded(space: spaces.Space) -> bool:
+    return isinstance(space, spaces.Box) and bool(np.all(np.isfinite(space.low)) and np.all(np.isfinite(space.high)))
+
+
+def infer_spaces(
+    data: Mapping[str, np.ndarray],
+    observation_space: Optional[spaces.Space] = None,
+    action_space: Optional[spaces.Space] = None,
+    normalized_actions: bool = False,
+) -> tuple[spaces.Space, spaces.Box]:
+    """
+    Observation and action spaces of a d4rl dict: the given ones (checked against the data), or inferred.
+
+    Inference: an unbounded Box of the observations' shape; for actions ``Box(-1, 1)`` when they are normalised
+    or all lie in ``[-1, 1]``, otherwise the per-dimension range of the data (with a warning: pass the
+    environment's action space when you know it).
+
+    :param data: a validated d4rl dict
+    :param observation_space: observation space to use
+    :param action_space: action space to use (a bounded Box)
+    :param normalized_actions: whether the data's actions are already normalised to ``[-1, 1]``
+    :return: the observation space and the action space
+    """
+    obs, actions = data["observations"], data["actions"]
+    if observation_space is None:
+        if obs.dtype == np.uint8:
+            observation_space = spaces.Box(0, 255, shape=obs.shape[1:], dtype=np.uint8)
+        else:
+            observation_space = spaces.Box(-np.inf, np.inf, shape=obs.shape[1:], dtype=np.float32)
+    elif observation_space.shape != obs.shape[1:]:
+        raise OfflineDataError(
+            f"observations have shape {obs.shape[1:]} per transition, the observation space {observation_space}"
+        )
+    if action_space is None:
+        if normalized_actions or (np.abs(actions) <= 1.0).all():
+            action_space = spaces.Box(-1.0, 1.0, shape=actions.shape[1:], dtype=np.float32)
+        else:
+            low, high = actions.min(axis=0), actions.max(axis=0)
+            high = np.where(high > low, high, low + 1.0)
+            warnings.warn(
+                "The action space was inferred from the range of the data's actions "
+                f"(low={low.tolist()}, high={high.tolist()}); pass action_space= (or env=) to use the true bounds",
+                stacklevel=3,
+            )
+            action_space = spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+    if not isinstance(action_space, spaces.Box):
+        raise OfflineDataError(f"offline learning here needs a continuous (Box) action space, got {action_space}")
+    if not _is_box_bounded(action_space):
+        raise OfflineDataError(
+            f"the action space must have finite bounds (actions are normalised with them), got {action_space}"
+        )
+    if action_space.shape != actions.shape[1:]:
+        raise OfflineDataError(f"actions have shape {actions.shape[1:]} per transition, the action space {action_space}")
+    return observation_space, action_space
+
+
+class OfflineReplayBuffer(ReplayBuffer):
+    """
+    A full, single-env SB3 ``ReplayBuffer`` built from offline data, that also samples each transition's next
+    action in the data (``OfflineSamples.next_actions``, for SARSA critic targets).
+
+    Build it with :func:`d4rl_to_replay_buffer`. ``add`` keeps working (the buffer is circular, like SB3's); rows
+    added that way have no known next action.
+    """
+
+    next_actions: np.ndarray
+    next_action_known: np.ndarray
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.next_actions = np.zeros_like(self.actions[:, 0])
+        self.next_action_known = np.zeros(self.buffer_size, dtype=bool)
+
+    def add(self, *args: Any, **kwargs: Any) -> None:
+        self.next_action_known[self.pos] = False
+        super().add(*args, **kwargs)
+
+    def _get_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize] = None) -> OfflineSamples:  # type: ignore[override]
+        obs = self._normalize_obs(self.observations[batch_inds, 0], env)
+        next_obs = self._normalize_obs(self.next_observations[batch_inds, 0], env)
+        dones = self.dones[batch_inds, 0] * (1 - self.timeouts[batch_inds, 0])
+        return OfflineSamples(
+            observations=self.to_torch(obs),  # type: ignore[arg-type]
+            actions=self.to_torch(self.actions[batch_inds, 0]),
+            next_observations=self.to_torch(next_obs),  # type: ignore[arg-type]
+            dones=self.to_torch(dones.reshape(-1, 1)),
+            rewards=self.to_torch(self._normalize_reward(self.rewards[batch_inds, 0].reshape(-1, 1), env)),
+            next_actions=self.to_torch(self.next_actions[batch_inds]),
+            next_action_mask=self.to_torch(self.next_action_known[batch_inds].astype(np.float32).reshape(-1, 1)),
+        )
+
+
+def d4rl_to_replay_buffer(
+    data: Mapping[str, np.ndarray],
+    observation_space: spaces.Space,
+    action_space: spaces.Box,
+    device: Union[th.device, str] = "auto",
+    normalized_actions: bool = False,
+) -> OfflineReplayBuffer:
+    """
+    Copy a validated d4rl dict into an :class:`OfflineReplayBuffer`, normalising the actions to ``[-1, 1]`` with
+    the action space's bounds (as SB3 stores them for squashed policies). Actions outside the bounds are clipped,
+    with a warning.
+
+    :param data: a validated d4rl dict (see :func:`validate_d4rl`)
+    :param observation_space: observation space
+    :param action_space: bounded Box action space
+    :param device: device of the sampled tensors
+    :param normalized_actions: whether the data's actions are already normalised to ``[-1, 1]``
+    :return: the full buffer
+    """
+    total = len(data["observations"])
+    actions: np.ndarray = data["actions"].astype(np.float32)
+    if not normalized_actions:
+        low, high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
+        actions = 2.0 * (actions - low) / (high - low) - 1.0
+    outside = np.abs(actions) > 1.0 + 1e-5
+    if outside.any():
+        warnings.warn(
+            f"{int(outside.any(axis=1).sum())} of {total} actions lie outside the action space's bounds: clipped",
+            stacklevel=3,
+        )
+    actions = np.clip(actions, -1.0, 1.0)
+    buffer = OfflineReplayBuffer(total, observation_space, action_space, device=device, n_envs=1)
+    buffer.observations[:, 0] = data["observations"]
+    buffer.next_observations[:, 0] = data["next_observations"]
+    buffer.actions[:, 0] = actions
+    buffer.rewards[:, 0] = data["rewards"]
+    buffer.dones[:, 0] = data["terminals"] | data["timeouts"]
+    buffer.timeouts[:, 0] = data["timeouts"]
+    next_actions, known = next_actions_of({**data, "actions": actions})
+    buffer.next_actions[:] = next_actions
+    buffer.next_action_known[:] = known
+    buffer.pos = 0
+    buffer.full = True
+    return buffer

@@ -1,0 +1,355 @@
+"""
+Learning from data with no environment: the offline path shared by CRR, BC (and policy distillation).
+
+:class:`OfflineAlgorithmMixin` adds three methods to an SB3 off-policy algorithm:
+
+- ``Algo.from_offline_data(data, policy="MlpPolicy", **hyperparameters)``: build a model from data, taking the
+  observation and action spaces from the data (or ``env=`` / ``observation_space=`` / ``action_space=``);
+- ``model.set_offline_data(data)``: (re)attach data, e.g. after ``Algo.load(path)``;
+- ``model.learn_offline(gradient_steps, ...)``: gradient updates on the data, where ``num_timesteps`` counts
+  updates, so that SB3 callbacks, ``progress_bar=True``, tensorboard logging and ``reset_num_timesteps=False``
+  resumption all work in update units.
+
+``data`` may be an SB3 ``ReplayBuffer`` (including ``LifelongReplayBuffer``; used as it is), a d4rl-style dict,
+the path of a ``.npz`` file holding one, or a Minari dataset (id or object; needs ``minari``).
+"""
+
+import os
+import time
+from collections import deque
+from collections.abc import Mapping
+from typing import Any, Optional, TypeVar, Union
+
+import gymnasium as gym
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common import utils
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ProgressBarCallback
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from sb3_lifelong.common.callbacks import EvalEnvs, MultiEnvEvalCallback, make_eval_envs
+from sb3_lifelong.common.datasets import (
+    OfflineData,
+    OfflineDataError,
+    OfflineReplayBuffer,
+    d4rl_to_replay_buffer,
+    infer_spaces,
+    load_d4rl,
+    minari_to_d4rl,
+    replay_buffer_to_d4rl,
+)
+
+__all__ = [
+    "MultiEnvEvalCallback",
+    "NoEnvironment",
+    "OfflineAlgorithmMixin",
+    "OfflineProgressBarCallback",
+    "make_eval_envs",
+    "resolve_data",
+]
+
+SelfOffline = TypeVar("SelfOffline", bound="OfflineAlgorithmMixin")
+
+
+def _is_minari(data: Any) -> bool:
+    return hasattr(data, "iterate_episodes")
+
+
+def resolve_data(
+    data: OfflineData,
+    observation_space: Optional[spaces.Space] = None,
+    action_space: Optional[spaces.Space] = None,
+    device: Union[th.device, str] = "auto",
+    normalized_actions: Optional[bool] = None,
+) -> ReplayBuffer:
+    """
+    Turn any supported data source into a replay buffer.
+
+    :param data: an SB3 ``ReplayBuffer`` (returned as it is, after checking its spaces), a d4rl dict, the path of
+        a ``.npz`` file, a Minari dataset id or object
+    :param observation_space: observation space (inferred from the data when None)
+    :param action_space: action space, a bounded Box (inferred from the data when None)
+    :param device: device of the sampled tensors (new buffers only)
+    :param normalized_actions: whether the actions of dict / ``.npz`` / Minari data are already normalised to
+        ``[-1, 1]``; default False: they are in the environment's units (the d4rl convention). Replay buffers are
+        always taken as SB3 fills them (normalised actions).
+    :return: the replay buffer
+    """
+    if isinstance(data, ReplayBuffer):
+        if normalized_actions is False:
+            raise ValueError(
+                "A ReplayBuffer holds normalised actions (as SB3 stores them): normalized_actions=False is invalid"
+            )
+        if data.size() == 0:
+            raise OfflineDataError("the replay buffer is empty")
+        for name, given, stored in (
+            ("observation", observation_space, data.observation_space),
+            ("action", action_space, data.action_space),
+        ):
+            if given is not None and (given.shape != stored.shape or type(given) is not type(stored)):
+                raise OfflineDataError(f"the replay buffer's {name} space {stored} does not match {given}")
+        if not isinstance(data.action_space, spaces.Box):
+            raise OfflineDataError(f"offline learning here needs a continuous (Box) action space, got {data.action_space}")
+        return data
+    spaces_from_data: tuple[Optional[spaces.Space], Optional[spaces.Space]] = (None, None)
+    if _is_minari(data) or (isinstance(data, str) and not data.endswith(".npz") and not os.path.exists(data)):
+        d4rl, *spaces_from_data = minari_to_d4rl(data)  # type: ignore[assignment]
+    elif isinstance(data, (Mapping, str, os.PathLike)):
+        d4rl = load_d4rl(data)  # type: ignore[arg-type]
+    else:
+        raise TypeError(
+            "offline data must be an SB3 ReplayBuffer, a d4rl-style dict, the path of a .npz file or a Minari dataset, "
+            f"got {type(data).__name__}"
+        )
+    observation_space = observation_space if observation_space is not None else spaces_from_data[0]
+    if action_space is None and spaces_from_data[1] is not None and isinstance(spaces_from_data[1], spaces.Box):
+        action_space = spaces_from_data[1]
+    normalized = bool(normalized_actions)
+    observation_space, action_space = infer_spaces(d4rl, observation_space, action_space, normalized)
+    return d4rl_to_replay_buffer(d4rl, observation_space, action_space, device=device, normalized_actions=normalized)
+
+
+def with_next_actions(buffer: ReplayBuffer) -> OfflineReplayBuffer:
+    """
+    :param buffer: a replay buffer
+    :return: the buffer itself if it records next actions, else a copy that does (for SARSA targets)
+    """
+    if isinstance(buffer, OfflineReplayBuffer):
+        return buffer
+    data = replay_buffer_to_d4rl(buffer)
+    return d4rl_to_replay_buffer(
+        data, buffer.observation_space, buffer.action_space, device=buffer.device, normalized_actions=True  # type: ignore[arg-type]
+    )
+
+
+class NoEnvironment(gym.Env):
+    """
+    Stand-in training environment while a model with no environment trains offline, so that callbacks which look
+    at ``training_env`` (SB3's ``EvalCallback``, ...) work. It cannot be reset or stepped.
+
+    :param observation_space: the model's observation space
+    :param action_space: the model's action space
+    """
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space):
+        self.observation_space = observation_space
+        self.action_space = action_space
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict[str, Any]] = None) -> Any:
+        raise RuntimeError("offline training has no environment: this placeholder cannot be reset or stepped")
+
+    def step(self, action: Any) -> Any:
+        raise RuntimeError("offline training has no environment: this placeholder cannot be reset or stepped")
+
+
+class OfflineProgressBarCallback(ProgressBarCallback):
+    """SB3's progress bar, advancing by one per gradient update (there is no training env to count)."""
+
+    def _on_step(self) -> bool:
+        self.pbar.update(1)
+        return True
+
+
+class OfflineAlgorithmMixin:
+    """
+    Offline training for SB3 off-policy algorithms (mix in before the algorithm's base class). The algorithm's
+    ``train(gradient_steps, batch_size)`` is reused unchanged: offline training is its training step run on a
+    fixed buffer, with no rollouts.
+
+    The algorithm's ``__init__`` must accept ``env=None``.
+    """
+
+    # attributes provided by OffPolicyAlgorithm
+    replay_buffer: Optional[ReplayBuffer]
+    observation_space: spaces.Space
+    action_space: spaces.Space
+
+    @classmethod
+    def from_offline_data(
+        cls: type[SelfOffline],
+        data: OfflineData,
+        policy: Any = "MlpPolicy",
+        env: Optional[GymEnv] = None,
+        observation_space: Optional[spaces.Space] = None,
+        action_space: Optional[spaces.Space] = None,
+        normalized_actions: Optional[bool] = None,
+        **kwargs: Any,
+    ) -> SelfOffline:
+        """
+        Build a model whose replay buffer holds ``data``, ready for :meth:`learn_offline`.
+
+        :param data: an SB3 ``ReplayBuffer`` (used as it is, e.g. a ``LifelongReplayBuffer``), a d4rl-style dict
+            (``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals``, optional
+            ``timeouts``), the path of a ``.npz`` file holding one, or a Minari dataset (id or object)
+        :param policy: the policy (``"MlpPolicy"``, ...)
+        :param env: optional environment: gives the spaces, and lets the model ``learn()`` online afterwards
+        :param observation_space: observation space (default: the env's, the buffer's, or inferred from the data)
+        :param action_space: bounded Box action space (default: the env's, the buffer's, or inferred from the data;
+            give it when the data's actions do not reach the true bounds)
+        :param normalized_actions: whether dict / ``.npz`` / Minari actions are already normalised to ``[-1, 1]``
+            (default False: environment units)
+        :param kwargs: the algorithm's hyperparameters (``batch_size``, ``seed``, ``tensorboard_log``, ...);
+            ``buffer_size`` is set to the data's size
+        :return: the model
+        """
+        device = kwargs.get("device", "auto")
+        if env is not None:
+            model = cls(policy, env, _init_setup_model=False, **kwargs)  # type: ignore[call-arg]
+            observation_space = observation_space or model.observation_space
+            action_space = action_space or model.action_space
+        buffer = resolve_data(data, observation_space, action_space, utils.get_device(device), normalized_actions)
+        if env is None:
+            model = cls(policy, None, _init_setup_model=False, **kwargs)  # type: ignore[call-arg]
+            model.observation_space = buffer.observation_space
+            model.action_space = buffer.action_space
+            model.n_envs = 1  # type: ignore[attr-defined]
+        elif buffer.observation_space.shape != model.observation_space.shape:
+            raise OfflineDataError(
+                f"the data's observation space {buffer.observation_space} does not match the env's {model.observation_space}"
+            )
+        model._check_offline_spaces()
+        model.replay_buffer = buffer
+        model.buffer_size = buffer.buffer_size  # type: ignore[attr-defined]
+        model._setup_model()  # type: ignore[attr-defined]
+        return model
+
+    def _check_offline_spaces(self) -> None:
+        if not isinstance(self.action_space, spaces.Box):
+            raise OfflineDataError(f"{type(self).__name__} needs a continuous (Box) action space, got {self.action_space}")
+
+    def set_offline_data(self, data: OfflineData, normalized_actions: Optional[bool] = None) -> None:
+        """
+        Replace the replay buffer by ``data`` (same spaces as the model), e.g. to resume offline training after
+        ``load`` (``load_replay_buffer`` works too), or to distil another dataset.
+
+        :param data: see :meth:`from_offline_data`
+        :param normalized_actions: see :meth:`from_offline_data`
+        """
+        device = getattr(self, "device", "auto")
+        buffer = resolve_data(data, self.observation_space, self.action_space, device, normalized_actions)
+        if buffer.observation_space.shape != self.observation_space.shape:
+            raise OfflineDataError(
+                f"the data's observation space {buffer.observation_space} does not match the model's {self.observation_space}"
+            )
+        self.replay_buffer = buffer
+
+    def _prepare_offline_buffer(self) -> None:
+        """Hook: adapt ``self.replay_buffer`` before offline training (e.g. add next actions for SARSA)."""
+
+    def learn_offline(
+        self: SelfOffline,
+        gradient_steps: int,
+        callback: MaybeCallback = None,
+        eval_env: Optional[EvalEnvs] = None,
+        eval_freq: int = 10_000,
+        n_eval_episodes: int = 5,
+        log_interval: int = 1_000,
+        tb_log_name: str = "offline",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfOffline:
+        """
+        Train on the replay buffer's data for ``gradient_steps`` gradient updates, with no environment interaction.
+
+        ``num_timesteps`` counts gradient updates here: callbacks are called once per update (``EvalCallback`` and
+        ``CheckpointCallback`` frequencies are in updates), and tensorboard curves are against updates.
+
+        :param gradient_steps: number of gradient updates (added to the current count when
+            ``reset_num_timesteps=False``)
+        :param callback: callback(s) called after every update
+        :param eval_env: environment(s) to evaluate on every ``eval_freq`` updates: an env, a gym id, a list
+            (named after the gym ids) or a dict name -> env; logs ``eval/<name>/mean_reward``
+        :param eval_freq: evaluation period, in updates
+        :param n_eval_episodes: episodes per environment and evaluation
+        :param log_interval: dump the logs (``train/*``, ``time/*``) every this many updates
+        :param tb_log_name: name of the tensorboard run
+        :param reset_num_timesteps: whether to reset the update counter (False: continue a run, e.g. after ``load``;
+            the tensorboard run is continued too)
+        :param progress_bar: display a progress bar (needs tqdm and rich)
+        :return: the trained model
+        """
+        algo: Any = self
+        if algo.replay_buffer is None or algo.replay_buffer.size() == 0:
+            raise ValueError(
+                "No offline data: build the model with from_offline_data(...), or call set_offline_data(...) or "
+                "load_replay_buffer(...) first"
+            )
+        if gradient_steps < 0:
+            raise ValueError(f"gradient_steps must be >= 0, got {gradient_steps}")
+        self._prepare_offline_buffer()
+        algo.start_time = time.time_ns()
+        if algo.ep_info_buffer is None or reset_num_timesteps:
+            algo.ep_info_buffer = deque(maxlen=algo._stats_window_size)
+            algo.ep_success_buffer = deque(maxlen=algo._stats_window_size)
+        if reset_num_timesteps:
+            algo.num_timesteps = 0
+            algo._episode_num = 0
+        total_timesteps = gradient_steps + algo.num_timesteps
+        algo._total_timesteps = total_timesteps
+        algo._num_timesteps_at_start = algo.num_timesteps
+        if not algo._custom_logger:
+            algo._logger = utils.configure_logger(algo.verbose, algo.tensorboard_log, tb_log_name, reset_num_timesteps)
+
+        placeholder = algo.env is None
+        if placeholder:
+            algo.env = DummyVecEnv([lambda: NoEnvironment(algo.observation_space, algo.action_space)])
+        try:
+            self._run_offline(total_timesteps, callback, eval_env, eval_freq, n_eval_episodes, log_interval, progress_bar)
+        finally:
+            if placeholder:
+                algo.env = None
+        return self
+
+    def _run_offline(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback,
+        eval_env: Optional[EvalEnvs],
+        eval_freq: int,
+        n_eval_episodes: int,
+        log_interval: int,
+        progress_bar: bool,
+    ) -> None:
+        algo: Any = self
+        callbacks: list[BaseCallback] = []
+        if isinstance(callback, list):
+            callbacks.extend(callback)
+        elif isinstance(callback, BaseCallback):
+            callbacks.append(callback)
+        elif callback is not None:
+            raise TypeError(f"callback must be a BaseCallback or a list of them, got {type(callback).__name__}")
+        if eval_env is not None:
+            callbacks.append(MultiEnvEvalCallback(eval_env, eval_freq, n_eval_episodes, verbose=algo.verbose))
+        if progress_bar:
+            callbacks.append(OfflineProgressBarCallback())
+        callback_list = CallbackList(callbacks)
+        callback_list.init_callback(algo)
+        callback_list.on_training_start(locals(), globals())
+
+        batch_size = algo.batch_size
+        last_dump = algo.num_timesteps
+        while algo.num_timesteps < total_timesteps:
+            algo._update_current_progress_remaining(algo.num_timesteps, total_timesteps)
+            algo.train(gradient_steps=1, batch_size=batch_size)
+            algo.num_timesteps += 1
+            callback_list.update_locals(locals())
+            if not callback_list.on_step():
+                break
+            if log_interval > 0 and algo.num_timesteps % log_interval == 0:
+                self._dump_offline_logs()
+                last_dump = algo.num_timesteps
+        if algo.num_timesteps != last_dump and log_interval > 0:
+            self._dump_offline_logs()
+        callback_list.on_training_end()
+
+    def _dump_offline_logs(self) -> None:
+        algo: Any = self
+        elapsed = max((time.time_ns() - algo.start_time) / 1e9, 1e-9)
+        updates = algo.num_timesteps - algo._num_timesteps_at_start
+        algo.logger.record("time/updates", algo.num_timesteps, exclude="tensorboard")
+        algo.logger.record("time/updates_per_second", int(updates / elapsed))
+        algo.logger.record("time/time_elapsed", int(elapsed), exclude="tensorboard")
+        algo.logger.record("train/n_updates", algo._n_updates, exclude="tensorboard")
+        algo.logger.dump(step=algo.num_timesteps)

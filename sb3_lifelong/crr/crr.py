@@ -1,0 +1,391 @@
+"""Critic Regularized Regression (CRR), online and offline."""
+
+import math
+from typing import Any, ClassVar, Optional, TypeVar, Union
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+from torch.nn import functional as F
+
+from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+from sb3_lifelong.common.distributional import CategoricalCritic, categorical_projection
+from sb3_lifelong.common.offline import OfflineAlgorithmMixin, with_next_actions
+from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
+from sb3_lifelong.common.utils import sample_gaussian, score_actions, tile_obs
+from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy
+
+SelfCRR = TypeVar("SelfCRR", bound="CRR")
+
+ADVANTAGE_TRANSFORMS = ("exp", "indicator")
+ADVANTAGE_BASELINES = ("mean", "max")
+CRITIC_TARGETS = ("policy", "sarsa")
+
+
+def advantage_baseline(sampled_q: th.Tensor, kind: str = "mean") -> th.Tensor:
+    """
+    Value estimate of each state from the Q-values of actions sampled from the policy.
+
+    :param sampled_q: ``[num_samples, batch]``
+    :param kind: ``"mean"`` (expected value, CRR's ``A_mean``) or ``"max"`` (CRR's ``A_max``)
+    :return: ``[batch]``
+    """
+    if kind == "mean":
+        return sampled_q.mean(dim=0)
+    if kind == "max":
+        return sampled_q.max(dim=0).values
+    raise ValueError(f"advantage baseline must be one of {ADVANTAGE_BASELINES}, got {kind!r}")
+
+
+def crr_weights(
+    advantages: th.Tensor, transform: str = "exp", beta: float = 1.0, max_weight: float = 20.0
+) -> tuple[th.Tensor, th.Tensor]:
+    """
+    CRR's weights of the data's actions in the policy's regression.
+
+    - ``"exp"``: ``min(exp(A / beta), max_weight)`` (computed without overflow);
+    - ``"indicator"``: ``1[A > 0]`` (the limit of ``exp`` clipped to 1 when ``beta -> 0``).
+
+    :param advantages: advantages of the data's actions, any shape
+    :param transform: ``"exp"`` or ``"indicator"``
+    :param beta: temperature of ``exp`` (> 0)
+    :param max_weight: upper bound of ``exp``'s weights (>= 1)
+    :return: the weights and a boolean mask of the weights clipped at ``max_weight``, shaped like ``advantages``
+    """
+    if transform == "exp":
+        log_max = math.log(max_weight)
+        scaled = advantages / beta
+        clipped = scaled >= log_max
+        return th.exp(scaled.clamp(max=log_max)), clipped
+    if transform == "indicator":
+        return (advantages > 0).to(advantages.dtype), th.zeros_like(advantages, dtype=th.bool)
+    raise ValueError(f"advantage transform must be one of {ADVANTAGE_TRANSFORMS}, got {transform!r}")
+
+
+class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
+    """
+    Critic Regularized Regression (CRR), usable online (``learn``) and offline (``from_offline_data`` +
+    ``learn_offline``).
+
+    Paper: https://arxiv.org/abs/2006.15134
+
+    The policy regresses the data's actions, weighted by a transform of their advantage
+    ``A(s, a) = Q(s, a) - baseline(s)``, where the baseline is the mean (or max) of ``Q`` over ``num_samples``
+    actions sampled from the policy (one batched critic call). The critic is trained on the TD target with an
+    action sampled from the target policy (or, ``critic_target="sarsa"``, the next action recorded in the data).
+    Both the critic loss and the advantages use the same (pre-update) critic, like Acme's CRR.
+
+    :param policy: The policy model to use (MlpPolicy, MultiInputPolicy, ...)
+    :param env: The environment to learn from (if registered in Gym, can be str); None for offline training
+    :param learning_rate: learning rate of the actor and critic (Adam), a constant or a schedule of the
+        remaining progress
+    :param buffer_size: size of the replay buffer (online; offline it is the data's size)
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts (online)
+    :param batch_size: Minibatch size for each gradient update
+    :param tau: the target networks' update coefficient, applied every ``target_update_interval`` updates
+        (1.0: hard copy, the default; use e.g. ``tau=0.005, target_update_interval=1`` for Polyak averaging)
+    :param gamma: the discount factor
+    :param train_freq: Update the model every ``train_freq`` steps (online). Alternatively pass a tuple of
+        frequency and unit like ``(5, "step")`` or ``(2, "episode")``.
+    :param gradient_steps: How many gradient steps to do after each rollout (online; -1: as many as env steps)
+    :param action_noise: extra action noise (online; the Gaussian policy explores on its own; usually None)
+    :param replay_buffer_class: Replay buffer class to use (for instance ``LifelongReplayBuffer``)
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+    :param n_steps: n-step returns for the critic (online; SB3's ``NStepReplayBuffer`` when no buffer class is given)
+    :param num_samples: number of policy actions sampled per state for the advantage's baseline
+    :param advantage_baseline: ``"mean"`` or ``"max"`` of the sampled actions' Q-values
+    :param advantage_transform: ``"exp"`` (``exp(A / beta)`` clipped at ``max_weight``) or ``"indicator"``
+        (``1[A > 0]``)
+    :param beta: temperature of the ``exp`` transform (higher: closer to behaviour cloning, more conservative)
+    :param max_weight: upper bound of the ``exp`` transform's weights
+    :param critic_target: ``"policy"`` (TD target with actions sampled from the target policy) or ``"sarsa"``
+        (with the data's next action; offline only, falls back to a policy sample where the data does not show it)
+    :param n_target_samples: number of target-policy actions averaged in the TD target
+    :param target_update_interval: number of gradient updates between two target network updates
+    :param max_grad_norm: maximum norm of the actor's and the critic's gradients (None: no clipping)
+    :param stats_window_size: Window size for the rollout logging
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation (e.g. ``net_arch``,
+        ``n_critics``, ``distributional_critic=True, v_min=..., v_max=...``)
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages, 2 for debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    policy: CRRPolicy
+    actor: GaussianActor
+    actor_target: GaussianActor
+
+    def __init__(
+        self,
+        policy: Union[str, type[CRRPolicy]],
+        env: Optional[Union[GymEnv, str]] = None,
+        learning_rate: Union[float, Schedule] = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 1.0,
+        gamma: float = 0.99,
+        train_freq: Union[int, tuple[int, str]] = 1,
+        gradient_steps: int = 1,
+        action_noise: Optional[ActionNoise] = None,
+        replay_buffer_class: Optional[type[ReplayBuffer]] = None,
+        replay_buffer_kwargs: Optional[dict[str, Any]] = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        num_samples: int = 4,
+        advantage_baseline: str = "mean",
+        advantage_transform: str = "exp",
+        beta: float = 1.0,
+        max_weight: float = 20.0,
+        critic_target: str = "policy",
+        n_target_samples: int = 1,
+        target_update_interval: int = 100,
+        max_grad_norm: Optional[float] = None,
+        stats_window_size: int = 100,
+        tensorboard_log: Optional[str] = None,
+        policy_kwargs: Optional[dict[str, Any]] = None,
+        verbose: int = 0,
+        seed: Optional[int] = None,
+        device: Union[th.device, str] = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(
+            policy,
+            env,  # type: ignore[arg-type]
+            learning_rate,
+            buffer_size,
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
+            train_freq,
+            gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=(spaces.Box,),
+            support_multi_env=True,
+        )
+        self.num_samples = num_samples
+        self.advantage_baseline = advantage_baseline
+        self.advantage_transform = advantage_transform
+        self.beta = beta
+        self.max_weight = max_weight
+        self.critic_target_type = critic_target
+        self.n_target_samples = n_target_samples
+        self.target_update_interval = target_update_interval
+        self.max_grad_norm = max_grad_norm
+        self._check_hyperparameters()
+        if _init_setup_model:
+            self._setup_model()
+
+    def _check_hyperparameters(self) -> None:
+        checks = {
+            "num_samples": self.num_samples >= 1,
+            "advantage_baseline": self.advantage_baseline in ADVANTAGE_BASELINES,
+            "advantage_transform": self.advantage_transform in ADVANTAGE_TRANSFORMS,
+            "beta": self.beta > 0,
+            "max_weight": self.max_weight >= 1.0,
+            "critic_target": self.critic_target_type in CRITIC_TARGETS,
+            "n_target_samples": self.n_target_samples >= 1,
+            "target_update_interval": self.target_update_interval >= 1,
+            "tau": 0.0 < self.tau <= 1.0,
+            "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            attributes = {"critic_target": "critic_target_type"}
+            values = ", ".join(f"{name}={getattr(self, attributes.get(name, name))!r}" for name in bad)
+            raise ValueError(
+                f"Invalid CRR hyperparameters: {values} (num_samples, n_target_samples and target_update_interval must "
+                f"be >= 1, beta > 0, max_weight >= 1, tau in (0, 1], advantage_baseline in {ADVANTAGE_BASELINES}, "
+                f"advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS})"
+            )
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self._create_aliases()
+
+    def _create_aliases(self) -> None:
+        self.actor = self.policy.actor
+        self.actor_target = self.policy.actor_target
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+
+    def _prepare_offline_buffer(self) -> None:
+        if self.critic_target_type == "sarsa":
+            assert self.replay_buffer is not None
+            self.replay_buffer = with_next_actions(self.replay_buffer)
+
+    def _target_actions(self, replay_data: Any) -> th.Tensor:
+        """:return: next actions for the TD target, ``[n_target_samples, batch, action_dim]``"""
+        next_obs = replay_data.next_observations
+        mean, std = self.actor_target.distribution_params(next_obs)
+        actions = sample_gaussian(mean, std, self.n_target_samples).clamp(-1.0, 1.0)
+        if self.critic_target_type == "sarsa":
+            next_actions = getattr(replay_data, "next_actions", None)
+            if next_actions is None:
+                raise ValueError(
+                    "critic_target='sarsa' needs the data's next actions: train offline (learn_offline) on offline data"
+                )
+            mask = replay_data.next_action_mask.unsqueeze(0)  # [1, B, 1]
+            actions = mask * next_actions.unsqueeze(0) + (1.0 - mask) * actions
+        return actions
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        # Switch to train mode (this affects batch norm / dropout)
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+        categorical = isinstance(self.critic, CategoricalCritic)
+        stats: dict[str, list[th.Tensor]] = {
+            key: [] for key in ("critic_loss", "actor_loss", "advantage_mean", "weight_mean", "weight_clip_frac", "q_mean")
+        }
+
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+            obs, actions = replay_data.observations, replay_data.actions
+            bootstrap = (1 - replay_data.dones) * discounts  # [B, 1]
+
+            with th.no_grad():
+                next_actions = self._target_actions(replay_data)  # [T, B, A]
+                num_target = next_actions.shape[0]
+                next_obs = replay_data.next_observations
+                if num_target > 1:
+                    next_obs = tile_obs(next_obs, num_target)
+                flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
+                if categorical:
+                    assert isinstance(self.critic_target, CategoricalCritic)
+                    target_logits = th.stack(self.critic_target.logits(next_obs, flat_next_actions))  # [C, T*B, K]
+                    target_probs = th.softmax(target_logits, dim=-1)
+                    # per transition, the distribution of the critic with the lowest expected value
+                    pick = (target_probs * self.critic_target.support).sum(-1).argmin(dim=0)  # [T*B]
+                    target_probs = target_probs.gather(0, pick.view(1, -1, 1).expand(1, *target_probs.shape[1:]))[0]
+                    target_probs = target_probs.view(num_target, -1, target_probs.shape[-1]).mean(dim=0)
+                    target = categorical_projection(target_probs, replay_data.rewards, bootstrap, self.critic_target.support)
+                else:
+                    next_q = score_actions(self.critic_target, next_obs, next_actions, True).mean(0)  # type: ignore[arg-type]
+                    target = replay_data.rewards + bootstrap * next_q.unsqueeze(1)
+
+            # Critic loss, and the Q-values of the data's actions for the advantage (same critic)
+            if categorical:
+                assert isinstance(self.critic, CategoricalCritic)
+                logits = self.critic.logits(obs, actions)
+                critic_loss = sum(-(target * F.log_softmax(lg, dim=-1)).sum(dim=-1).mean() for lg in logits)
+                with th.no_grad():
+                    data_q = th.cat([self.critic.expected(lg) for lg in logits], dim=1).min(dim=1).values
+            else:
+                current_q_values = self.critic(obs, actions)
+                critic_loss = 0.5 * sum(F.mse_loss(current_q, target) for current_q in current_q_values)  # type: ignore[assignment]
+                data_q = th.cat(current_q_values, dim=1).detach().min(dim=1).values  # [B]
+            assert isinstance(critic_loss, th.Tensor)
+
+            # Advantage of the data's actions against the policy's own actions (before the critic step)
+            mean, std = self.actor.distribution_params(obs)
+            with th.no_grad():
+                sampled_actions = sample_gaussian(mean, std, self.num_samples)  # [N, B, A]
+                sampled_q = score_actions(self.critic, obs, sampled_actions)  # type: ignore[arg-type]
+                advantages = data_q - advantage_baseline(sampled_q, self.advantage_baseline)
+                weights, clipped = crr_weights(advantages, self.advantage_transform, self.beta, self.max_weight)
+
+            self.critic.optimizer.zero_grad(set_to_none=True)
+            critic_loss.backward()
+            if self.max_grad_norm is not None:
+                th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+            self.critic.optimizer.step()
+
+            # Weighted regression of the data's actions
+            actor_loss = -(weights * gaussian_log_prob(actions, mean, std)).mean()
+            self.actor.optimizer.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            if self.max_grad_norm is not None:
+                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
+            self.actor.optimizer.step()
+
+            if self._n_updates % self.target_update_interval == 0:
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+
+            stats["critic_loss"].append(critic_loss.detach())
+            stats["actor_loss"].append(actor_loss.detach())
+            stats["advantage_mean"].append(advantages.mean())
+            stats["weight_mean"].append(weights.mean())
+            stats["weight_clip_frac"].append(clipped.float().mean())
+            stats["q_mean"].append(data_q.mean())
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for key, values in stats.items():
+            if values:
+                self.logger.record_mean(f"train/{key}", th.stack(values).mean().item())
+
+    def learn(
+        self: SelfCRR,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "CRR",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfCRR:
+        if self.critic_target_type == "sarsa":
+            raise ValueError("critic_target='sarsa' needs the data's next actions: it is for offline training only")
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def learn_offline(  # type: ignore[override]
+        self: SelfCRR,
+        gradient_steps: int,
+        callback: MaybeCallback = None,
+        eval_env: Any = None,
+        eval_freq: int = 10_000,
+        n_eval_episodes: int = 5,
+        log_interval: int = 1_000,
+        tb_log_name: str = "CRR",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfCRR:
+        return super().learn_offline(
+            gradient_steps,
+            callback=callback,
+            eval_env=eval_env,
+            eval_freq=eval_freq,
+            n_eval_episodes=n_eval_episodes,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "actor", "critic", "actor_target", "critic_target"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
+        return state_dicts, []

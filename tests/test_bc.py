@@ -1,0 +1,101 @@
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+
+from sb3_lifelong import BC
+from sb3_lifelong.bc.policies import BCPolicy
+
+SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32)
+
+
+def linear_data(n: int = 300, seed: int = 0) -> dict:
+    """Actions are a fixed linear function of the observation, in [-2, 2]."""
+    rng = np.random.default_rng(seed)
+    obs = rng.uniform(-1, 1, size=(n, 2)).astype(np.float32)
+    actions = np.clip(1.5 * obs[:, :1] - 0.5 * obs[:, 1:], -2, 2).astype(np.float32)
+    return {
+        "observations": obs,
+        "actions": actions,
+        "rewards": np.zeros(n, dtype=np.float32),
+        "next_observations": obs,
+        "terminals": np.ones(n, dtype=bool),
+    }
+
+
+def flat_params(model: BC) -> th.Tensor:
+    return th.cat([p.detach().flatten() for p in model.policy.parameters()])
+
+
+def bc_model(seed: int = 0, **kwargs) -> BC:
+    return BC.from_offline_data(linear_data(), action_space=spaces.Box(-2, 2, (1,)), seed=seed, **{**SMALL, **kwargs})
+
+
+def test_policy_has_only_an_actor():
+    model = bc_model()
+    assert isinstance(model.policy, BCPolicy)
+    assert not hasattr(model.policy, "critic")
+    assert set(model.policy.state_dict()) == {f"actor.{key}" for key in model.actor.state_dict()}
+
+
+@pytest.mark.parametrize("loss", ["nll", "mse"])
+def test_clones_a_linear_policy(loss):
+    model = bc_model(loss=loss, learning_rate=3e-3)
+    model.learn_offline(600, log_interval=0)
+    data = linear_data(n=50, seed=1)
+    predicted, _ = model.predict(data["observations"], deterministic=True)
+    assert np.abs(predicted - data["actions"]).mean() < 0.15
+    if loss == "nll":  # the standard deviation shrinks towards the (zero) noise of the data
+        with th.no_grad():
+            _, std = model.actor.distribution_params(th.as_tensor(data["observations"]))
+        assert float(std.mean()) < 0.2
+    else:  # mse leaves the standard deviation alone
+        with th.no_grad():
+            _, std = model.actor.distribution_params(th.as_tensor(data["observations"]))
+        assert float(std.mean()) == pytest.approx(0.7, rel=0.2)
+
+
+def test_logs(tmp_path):
+    model = bc_model()
+    model.tensorboard_log = str(tmp_path)
+    model.learn_offline(30, log_interval=10)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    accumulator = EventAccumulator(str(tmp_path / "BC_1"))
+    accumulator.Reload()
+    tags = accumulator.Tags()["scalars"]
+    for key in ("actor_loss", "nll", "mse", "std_mean"):
+        assert f"train/{key}" in tags
+    assert [event.step for event in accumulator.Scalars("train/nll")] == [10, 20, 30]
+
+
+def test_save_load_and_resume_exact(tmp_path):
+    uninterrupted = bc_model(seed=2)
+    uninterrupted.learn_offline(40, log_interval=0)
+    uninterrupted.learn_offline(40, reset_num_timesteps=False, log_interval=0)
+
+    first = bc_model(seed=2)
+    first.learn_offline(40, log_interval=0)
+    first.save(tmp_path / "bc.zip")
+    del first
+    th.manual_seed(1)
+    np.random.seed(1)
+    resumed = BC.load(tmp_path / "bc.zip")
+    assert resumed.get_env() is None and resumed.loss == "nll"
+    resumed.set_offline_data(linear_data())
+    resumed.learn_offline(40, reset_num_timesteps=False, log_interval=0)
+    assert resumed.num_timesteps == 80
+    th.testing.assert_close(flat_params(resumed), flat_params(uninterrupted), rtol=0, atol=0)
+
+
+def test_online_learn_runs():
+    model = BC("MlpPolicy", "Pendulum-v1", learning_starts=50, seed=0, **SMALL)
+    model.learn(100)
+    assert model._n_updates > 0
+
+
+def test_bad_hyperparameters():
+    with pytest.raises(ValueError, match="loss"):
+        BC("MlpPolicy", "Pendulum-v1", loss="l1")
+    with pytest.raises(ValueError, match="max_grad_norm"):
+        BC("MlpPolicy", "Pendulum-v1", max_grad_norm=0.0)

@@ -1,0 +1,71 @@
+import csv
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3 import SAC
+
+from sb3_lifelong import BC, CRR, MPO, LifelongReplayBuffer
+from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
+from sb3_lifelong.common.distill import distill
+
+
+def net() -> dict:
+    # a fresh dict each time: SB3 writes into the policy_kwargs it is given
+    return dict(net_arch=[32, 32])
+
+
+def student_kwargs(**kwargs) -> dict:
+    return dict(policy_kwargs=net(), batch_size=32, seed=0, **kwargs)
+
+
+def test_distill_from_mpo_logs_into_the_same_run(tmp_path):
+    model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net(), batch_size=32, learning_starts=50, num_samples=8, seed=0)
+    model.tensorboard_log = str(tmp_path)
+    model.learn(250, tb_log_name="life")
+    envs = {"env_a": gym.make("Pendulum-v1"), "env_b": gym.make("Pendulum-v1", g=5.0)}
+    student = model.distill(gradient_steps=120, eval_env=envs, eval_freq=60, n_eval_episodes=1, **student_kwargs())
+    assert isinstance(student, CRR)
+    assert student.num_timesteps == 120
+    assert student.replay_buffer is model.replay_buffer  # no copy of the lifetime buffer
+    action, _ = student.predict(np.zeros((1, 3), dtype=np.float32), deterministic=True)
+    assert action.shape == (1, 1) and np.all(np.abs(action) <= 2.0)
+    with open(tmp_path / "life_1" / "distill" / "progress.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    logged = [row for row in rows if row.get("eval/env_a/mean_reward")]
+    assert len(logged) == 2 and all(row["eval/env_b/mean_reward"] for row in logged)
+
+
+def test_distill_from_sac_with_bc_and_a_callback():
+    model = SAC("MlpPolicy", "Pendulum-v1", policy_kwargs=net(), batch_size=32, learning_starts=50, seed=0)
+    model.learn(150)
+    callback = MultiEnvEvalCallback({"pendulum": gym.make("Pendulum-v1")}, eval_freq=40, n_eval_episodes=1)
+    student = distill(model, BC, gradient_steps=80, callback=callback, **student_kwargs())
+    assert isinstance(student, BC)
+    assert [row["timesteps"] for row in callback.results] == [40, 80]
+
+
+def test_distill_from_a_buffer_directory(tmp_path):
+    path = tmp_path / "lifetime"
+    model = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        replay_buffer_class=LifelongReplayBuffer,
+        replay_buffer_kwargs=dict(path=str(path), chunk_size=50),
+        policy_kwargs=net(),
+        batch_size=32,
+        learning_starts=50,
+        num_samples=8,
+        seed=0,
+    )
+    model.learn(200)
+    model.replay_buffer.flush()
+    student = distill(str(path), gradient_steps=50, **student_kwargs())
+    assert student.replay_buffer.size() == 200
+    assert student.action_space.high[0] == pytest.approx(2.0)
+
+
+def test_distill_needs_data():
+    model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net())
+    with pytest.raises(ValueError, match="no data"):
+        model.distill(gradient_steps=10)
