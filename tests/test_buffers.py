@@ -450,3 +450,17 @@ def test_d4rl_round_trip(tmp_path):
 def test_minari_export():
     pytest.importorskip("minari")
     pytest.skip("Minari interop is not implemented yet")
+
+
+def test_d4rl_actions_in_environment_units():
+    action_space = gym.spaces.Box(-2.0, 2.0, shape=(2,), dtype=np.float32)
+    buffer = LifelongReplayBuffer(0, OBS, action_space)
+    rng = np.random.default_rng(1)
+    stored = rng.uniform(-1, 1, size=(20, 2)).astype(np.float32)  # SB3 stores normalised actions
+    for t in range(20):
+        buffer.add(rng.normal(size=(1, 3)), rng.normal(size=(1, 3)), stored[t : t + 1], np.zeros(1), np.array([t == 19]), [{}])
+    data = buffer.to_d4rl(by_episode=False)
+    np.testing.assert_allclose(data["actions"], 2.0 * stored, rtol=1e-6)  # environment units
+    np.testing.assert_array_equal(buffer.to_d4rl(by_episode=False, normalized_actions=True)["actions"], stored)
+    back = LifelongReplayBuffer.from_d4rl(data, observation_space=OBS, action_space=action_space)
+    np.testing.assert_allclose(back._get_samples(np.arange(20)).actions.numpy(), stored, rtol=1e-6, atol=1e-7)

@@ -298,13 +298,16 @@ class _LifelongSampler(ReplayBuffer):
         )
 
     # ------------------------------------------------------------------ export
-    def to_d4rl(self, by_episode: bool = True) -> dict[str, np.ndarray]:
+    def to_d4rl(self, by_episode: bool = True, normalized_actions: bool = False) -> dict[str, np.ndarray]:
         """
         Materialise the whole buffer as a d4rl-style dict (in memory).
 
         :param by_episode: Order the rows stream by stream (each env's trajectory contiguous, as d4rl expects)
             and mark the last row of a stream that did not end an episode as a timeout. Otherwise keep the
             stored order (transitions of parallel envs interleaved).
+        :param normalized_actions: Export the actions as stored (SB3 stores Box actions normalised to
+            ``[-1, 1]``). By default they are rescaled to the action space's bounds (environment units, the d4rl
+            convention), when the space is a bounded Box.
         :return: ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals`` (done and not a
             timeout), ``timeouts`` (time-limit truncations) and ``sources`` (source id of each transition)
         """
@@ -321,9 +324,12 @@ class _LifelongSampler(ReplayBuffer):
             last_of_stream = np.append(sorted_streams[1:] != sorted_streams[:-1], True)
             timeouts = timeouts[order] | (last_of_stream & ~terminals[order])
             terminals = terminals[order]
+        actions = data["actions"][order]
+        if not normalized_actions:
+            actions = _rescale_actions(actions, self.action_space, to_env_units=True)
         return {
             "observations": data["observations"][order],
-            "actions": data["actions"][order],
+            "actions": actions,
             "rewards": data["rewards"][order],
             "next_observations": data["next_observations"][order],
             "terminals": terminals,
@@ -464,6 +470,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         observation_space: Optional[spaces.Space] = None,
         action_space: Optional[spaces.Space] = None,
         source: int = 0,
+        normalized_actions: bool = False,
         **kwargs: Any,
     ) -> LifelongReplayBuffer:
         """
@@ -475,6 +482,9 @@ class LifelongReplayBuffer(_LifelongSampler):
         :param observation_space: Defaults to an unbounded Box of the observations' shape and dtype
         :param action_space: Defaults to an unbounded Box of the actions' shape and dtype
         :param source: Source id of every row when the data has no ``sources``
+        :param normalized_actions: Whether the actions are already normalised to ``[-1, 1]`` (as SB3 stores
+            them). By default they are in environment units (the d4rl convention) and are normalised with the
+            bounds of ``action_space`` (left as they are when the space is unbounded).
         :param kwargs: Constructor arguments (``path``, ``device``, ``n_steps``, ...)
         :return: The buffer
         """
@@ -511,6 +521,8 @@ class LifelongReplayBuffer(_LifelongSampler):
             chained[1:] = same & ~ended[:-1]
         streams = buffer.store.next_stream_id + np.cumsum(~chained) - 1
         buffer.store.next_stream_id = int(streams[-1]) + 1 if total else buffer.store.next_stream_id
+        if not normalized_actions:
+            actions = _rescale_actions(actions, action_space, to_env_units=False)
         rows = {
             "observations": obs,
             "next_observations": next_obs,
@@ -796,6 +808,24 @@ class LifelongBufferView(_LifelongSampler):
                 piece = buffer.store.read_range(name, int(lo - offsets[k]), int(hi - offsets[k]))
                 pieces.append(piece.astype(np.int64) + (k << 32) if name == "streams" else piece)
         return np.concatenate(pieces) if pieces else buffer.store.read_range(name, 0, 0)
+
+
+def _rescale_actions(actions: np.ndarray, action_space: spaces.Space, to_env_units: bool) -> np.ndarray:
+    """
+    Map actions between the normalised ``[-1, 1]`` range SB3 stores and the action space's bounds. Unbounded
+    spaces, and spaces that already are ``[-1, 1]``, leave the actions untouched (bit for bit).
+    """
+    if not isinstance(action_space, spaces.Box) or not action_space.is_bounded():
+        return actions
+    low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
+    if np.all(low == -1.0) and np.all(high == 1.0):
+        return actions
+    values = actions.astype(np.float64)
+    if to_env_units:
+        values = low + 0.5 * (values + 1.0) * (high - low)
+    else:
+        values = 2.0 * (values - low) / (high - low) - 1.0
+    return values.astype(actions.dtype)
 
 
 def merge_buffers(
