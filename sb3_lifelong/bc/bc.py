@@ -159,30 +159,6 @@ class BC(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             progress_bar=progress_bar,
         )
 
-    def learn_offline(  # type: ignore[override]
-        self: SelfBC,
-        gradient_steps: int,
-        callback: MaybeCallback = None,
-        eval_env: Any = None,
-        eval_freq: int = 10_000,
-        n_eval_episodes: int = 5,
-        log_interval: int = 1_000,
-        tb_log_name: str = "BC",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfBC:
-        return super().learn_offline(
-            gradient_steps,
-            callback=callback,
-            eval_env=eval_env,
-            eval_freq=eval_freq,
-            n_eval_episodes=n_eval_episodes,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
-
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "actor"]
 

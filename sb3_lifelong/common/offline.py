@@ -246,7 +246,7 @@ class OfflineAlgorithmMixin:
         eval_freq: int = 10_000,
         n_eval_episodes: int = 5,
         log_interval: int = 1_000,
-        tb_log_name: str = "offline",
+        tb_log_name: Optional[str] = None,
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfOffline:
@@ -264,7 +264,7 @@ class OfflineAlgorithmMixin:
         :param eval_freq: evaluation period, in updates
         :param n_eval_episodes: episodes per environment and evaluation
         :param log_interval: dump the logs (``train/*``, ``time/*``) every this many updates
-        :param tb_log_name: name of the tensorboard run
+        :param tb_log_name: name of the tensorboard run (default: the algorithm's class name)
         :param reset_num_timesteps: whether to reset the update counter (False: continue a run, e.g. after ``load``;
             the tensorboard run is continued too)
         :param progress_bar: display a progress bar (needs tqdm and rich)
@@ -290,7 +290,9 @@ class OfflineAlgorithmMixin:
         algo._total_timesteps = total_timesteps
         algo._num_timesteps_at_start = algo.num_timesteps
         if not algo._custom_logger:
-            algo._logger = utils.configure_logger(algo.verbose, algo.tensorboard_log, tb_log_name, reset_num_timesteps)
+            algo._logger = utils.configure_logger(
+                algo.verbose, algo.tensorboard_log, tb_log_name or type(self).__name__, reset_num_timesteps
+            )
 
         placeholder = algo.env is None
         if placeholder:

@@ -72,7 +72,7 @@ def _run_mlp_no_grad(critic: nn.Module, index: int, mlp: nn.Module, inputs: th.T
     return x
 
 
-def score_actions(critic: ContinuousCritic, obs: PyTorchObs, actions: th.Tensor, tiled_obs: bool = False) -> th.Tensor:
+def score_actions(critic: ContinuousCritic, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
     """
     Q-values of several actions per state, in a single critic call over ``num_samples * batch`` rows.
     Actions are clipped to the normalised bounds ``[-1, 1]`` first, as the environment would clip them.
@@ -81,17 +81,14 @@ def score_actions(critic: ContinuousCritic, obs: PyTorchObs, actions: th.Tensor,
     sample, and the critic's MLPs run on reused buffers (see ``_run_mlp_no_grad``).
 
     :param critic: the critic (minimum over its Q-networks is taken)
-    :param obs: observations ``[batch, ...]`` (or already tiled to ``[num_samples * batch, ...]`` if ``tiled_obs``)
+    :param obs: observations ``[batch, ...]``
     :param actions: ``[num_samples, batch, action_dim]``
-    :param tiled_obs: whether ``obs`` is already tiled
     :return: Q-values ``[num_samples, batch]``
     """
     num_samples, batch_size, action_dim = actions.shape
     flat_actions = actions.reshape(num_samples * batch_size, action_dim).clamp(-1.0, 1.0)
-    if th.is_grad_enabled() or tiled_obs or not isinstance(critic, ContinuousCritic):
-        if not tiled_obs:
-            obs = tile_obs(obs, num_samples)
-        return q_min(critic(obs, flat_actions)).reshape(num_samples, batch_size)
+    if th.is_grad_enabled() or not isinstance(critic, ContinuousCritic):
+        return q_min(critic(tile_obs(obs, num_samples), flat_actions)).reshape(num_samples, batch_size)
     features = critic.extract_features(obs, critic.features_extractor)
     q_input = th.cat([features.repeat(num_samples, 1), flat_actions], dim=1)
     q_values = [_run_mlp_no_grad(critic, index, q_net, q_input) for index, q_net in enumerate(critic.q_networks)]

@@ -272,11 +272,11 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
                 next_actions = self._target_actions(replay_data)  # [T, B, A]
                 num_target = next_actions.shape[0]
                 next_obs = replay_data.next_observations
-                if num_target > 1:
-                    next_obs = tile_obs(next_obs, num_target)
-                flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
                 if categorical:
                     assert isinstance(self.critic_target, CategoricalCritic)
+                    if num_target > 1:
+                        next_obs = tile_obs(next_obs, num_target)
+                    flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
                     target_logits = th.stack(self.critic_target.logits(next_obs, flat_next_actions))  # [C, T*B, K]
                     target_probs = th.softmax(target_logits, dim=-1)
                     # per transition, the distribution of the critic with the lowest expected value
@@ -285,7 +285,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
                     target_probs = target_probs.view(num_target, -1, target_probs.shape[-1]).mean(dim=0)
                     target = categorical_projection(target_probs, replay_data.rewards, bootstrap, self.critic_target.support)
                 else:
-                    next_q = score_actions(self.critic_target, next_obs, next_actions, True).mean(0)  # type: ignore[arg-type]
+                    next_q = score_actions(self.critic_target, next_obs, next_actions).mean(0)  # type: ignore[arg-type]
                     target = replay_data.rewards + bootstrap * next_q.unsqueeze(1)
 
             # Critic loss, and the Q-values of the data's actions for the advantage (same critic)
@@ -353,30 +353,6 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
-
-    def learn_offline(  # type: ignore[override]
-        self: SelfCRR,
-        gradient_steps: int,
-        callback: MaybeCallback = None,
-        eval_env: Any = None,
-        eval_freq: int = 10_000,
-        n_eval_episodes: int = 5,
-        log_interval: int = 1_000,
-        tb_log_name: str = "CRR",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfCRR:
-        return super().learn_offline(
-            gradient_steps,
-            callback=callback,
-            eval_env=eval_env,
-            eval_freq=eval_freq,
-            n_eval_episodes=n_eval_episodes,
             log_interval=log_interval,
             tb_log_name=tb_log_name,
             reset_num_timesteps=reset_num_timesteps,
