@@ -11,7 +11,9 @@ Layout of an experiment's output directory::
 
 Methods: ``MPO`` (the collector across all stages), ``CRR_indicator`` / ``CRR_beta1`` (the conservative
 online baselines, continuing from the same Stage-1 agent), ``distilled`` (CRR, exp transform, beta=1, on the
-collector's whole buffer) and ``distilled_indicator`` (same, indicator transform: the imbalance baseline).
+collector's whole buffer) and ``distilled_indicator`` (same, indicator transform: the imbalance baseline); with
+``--per-source-actors`` also ``distilled_per_source`` (the diagnostic of one actor per stage with a shared critic,
+each environment evaluated with its own stage's actor).
 """
 
 import argparse
@@ -91,6 +93,15 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distill-steps", type=int, default=None)
     parser.add_argument("--eval-freq", type=int, default=None)
     parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
+
+
+def add_per_source_argument(parser: argparse.ArgumentParser) -> None:
+    """The option of the sequential experiments (their sources are the stages)."""
+    parser.add_argument(
+        "--per-source-actors",
+        action="store_true",
+        help="also distil with one actor per source and a shared critic (the diagnostic 'distilled_per_source')",
+    )
     parser.add_argument("--no-plots", action="store_true")
 
 
@@ -104,6 +115,7 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
         eval_freq=args.eval_freq,
     )
     config.update({key: value for key, value in overrides.items() if value is not None})
+    config["per_source_actors"] = bool(getattr(args, "per_source_actors", False))
     config["preset"] = args.preset
     return config
 
@@ -144,12 +156,20 @@ def algo_kwargs(config: dict[str, Any], seed: int) -> dict[str, Any]:
 
 
 def eval_callbacks(
-    directory: pathlib.Path, eval_envs: dict[str, Any], config: dict[str, Any], source_q: bool = True
+    directory: pathlib.Path,
+    eval_envs: dict[str, Any],
+    config: dict[str, Any],
+    source_q: bool = True,
+    sources: Optional[dict[str, int]] = None,
 ) -> list[Any]:
     directory.mkdir(parents=True, exist_ok=True)
     callbacks: list[Any] = [
         MultiEnvEvalCallback(
-            eval_envs, eval_freq=config["eval_freq"], n_eval_episodes=config["eval_episodes"], log_path=directory / "eval.csv"
+            eval_envs,
+            eval_freq=config["eval_freq"],
+            n_eval_episodes=config["eval_episodes"],
+            log_path=directory / "eval.csv",
+            sources=sources,
         )
     ]
     if source_q:
@@ -303,11 +323,16 @@ def run_sequential(
                 rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
 
         # Offline: distil the whole lifetime buffer, no task boundaries
-        for method, distill_kwargs in (
+        students: list[tuple[str, dict[str, Any]]] = [
             ("distilled", dict(advantage_transform="exp", beta=1.0)),
             ("distilled_indicator", dict(advantage_transform="indicator")),
-        ):
-            callbacks = eval_callbacks(run_dir / method, eval_envs, config)
+        ]
+        if config.get("per_source_actors"):
+            # diagnostic: one actor per stage (source ids are the stage indices), one shared critic
+            students.append(("distilled_per_source", dict(advantage_transform="exp", beta=1.0, actor_per_source=True)))
+        for method, distill_kwargs in students:
+            sources = {name: index for index, name in enumerate(env_names)} if "actor_per_source" in distill_kwargs else None
+            callbacks = eval_callbacks(run_dir / method, eval_envs, config, sources=sources)
             mpo.distill(
                 CRR,
                 gradient_steps=config["distill_steps"],

@@ -13,7 +13,15 @@ import sys
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 
-from lifelong_common import add_common_arguments, finish, now, resolve_config, run_sequential, set_threads
+from lifelong_common import (
+    add_common_arguments,
+    add_per_source_argument,
+    finish,
+    now,
+    resolve_config,
+    run_sequential,
+    set_threads,
+)
 
 STAGES = {
     "quick": [{}, {"hip_deformation": 0.3}, {"hip_deformation": 0.3, "friction": 0.1}],
@@ -26,6 +34,7 @@ STAGE_STEPS = {"quick": [10_000, 10_000, 10_000], "tiny": [200, 200, 200], "pape
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_arguments(parser)
+    add_per_source_argument(parser)
     args = parser.parse_args()
     set_threads()
     if args.stage_steps is None:

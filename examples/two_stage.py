@@ -19,7 +19,15 @@ import sys
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 
-from lifelong_common import add_common_arguments, finish, now, resolve_config, run_sequential, set_threads
+from lifelong_common import (
+    add_common_arguments,
+    add_per_source_argument,
+    finish,
+    now,
+    resolve_config,
+    run_sequential,
+    set_threads,
+)
 
 STAGES = {
     "quick": [{}, {"hip_deformation": 0.3}],
@@ -31,6 +39,7 @@ STAGES = {
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_arguments(parser)
+    add_per_source_argument(parser)
     args = parser.parse_args()
     set_threads()
     config = resolve_config(args)

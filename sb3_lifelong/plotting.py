@@ -32,6 +32,7 @@ COLORS = {
     "CRR_beta1": "tab:green",
     "distilled": "tab:red",
     "distilled_indicator": "tab:purple",
+    "distilled_per_source": "tab:brown",
 }
 
 

@@ -41,7 +41,7 @@ def test_two_stage_with_baselines_and_plots(tmp_path):
 @pytest.mark.parametrize(
     "script, extra, envs",
     [
-        ("three_stage.py", ["--no-baselines", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
+        ("three_stage.py", ["--no-baselines", "--no-plots", "--per-source-actors"], {"Env-A", "Env-B", "Env-C"}),
         ("parallel_sharing.py", ["--setup", "copy", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
         ("parallel_sharing.py", ["--setup", "independent", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
         ("continuous_drift.py", ["--no-plots"], {"hip_0.00", "hip_0.15", "hip_0.30"}),
@@ -52,6 +52,8 @@ def test_other_examples(tmp_path, script, extra, envs):
     rows = summary_rows(tmp_path)
     assert {row["env"] for row in rows} == envs
     assert any(row["method"] == "distilled" for row in rows)
+    if "--per-source-actors" in extra:
+        assert {row["env"] for row in rows if row["method"] == "distilled_per_source"} == envs
     if script == "parallel_sharing.py":
         # the merged data holds every environment once: Env-A's part of the copied buffer is not duplicated
         assert "distilling 900 transitions" in stdout  # 300 (Env-A) + 300 (Env-B) + 300 (Env-C)

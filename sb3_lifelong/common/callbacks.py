@@ -78,6 +78,9 @@ class MultiEnvEvalCallback(BaseCallback):
     :param log_path: CSV file to append the results to (columns: timesteps, env, mean_reward, std_reward,
         n_episodes), or None
     :param eval_at_start: also evaluate before the first step
+    :param sources: for models with one actor per source (CRR's ``actor_per_source=True`` diagnostic): the source
+        id whose actor acts in each environment, by environment name (``{"Env-A": 0, "Env-B": 1}``); the model's
+        ``select_source`` is called before each of these environments and the first source is selected again after
     :param verbose: 1 prints each evaluation
     """
 
@@ -89,6 +92,7 @@ class MultiEnvEvalCallback(BaseCallback):
         deterministic: bool = True,
         log_path: Optional[Union[str, os.PathLike]] = None,
         eval_at_start: bool = False,
+        sources: Optional[Mapping[str, int]] = None,
         verbose: int = 0,
     ):
         super().__init__(verbose)
@@ -106,10 +110,19 @@ class MultiEnvEvalCallback(BaseCallback):
         self.deterministic = deterministic
         self.log_path = pathlib.Path(log_path) if log_path is not None else None
         self.eval_at_start = eval_at_start
+        self.sources = dict(sources) if sources is not None else None
+        if self.sources is not None:
+            unknown = sorted(set(self.sources) - set(self.eval_envs))
+            if unknown:
+                raise ValueError(f"sources names environments {unknown} that are not evaluated ({list(self.eval_envs)})")
         self.results: list[dict[str, Any]] = []
         self._next_eval = 0
 
     def _init_callback(self) -> None:
+        if self.sources is not None and not hasattr(self.model, "select_source"):
+            raise TypeError(
+                f"MultiEnvEvalCallback(sources=...) needs a model with one actor per source, got {type(self.model).__name__}"
+            )
         # first evaluation at the next multiple of eval_freq (learn may resume at any timestep)
         self._next_eval = (self.model.num_timesteps // self.eval_freq + 1) * self.eval_freq
         if self.log_path is not None:
@@ -137,7 +150,10 @@ class MultiEnvEvalCallback(BaseCallback):
         """
         means: dict[str, float] = {}
         rows = []
+        model: Any = self.model
         for name, env in self.eval_envs.items():
+            if self.sources is not None and name in self.sources:
+                model.select_source(self.sources[name])
             episode_rewards, episode_lengths = evaluate_policy(
                 self.model,
                 env,
@@ -157,6 +173,8 @@ class MultiEnvEvalCallback(BaseCallback):
             rows.append(row)
             if self.verbose >= 1:
                 print(f"Eval at {self.num_timesteps}: {name} mean reward {mean:.2f} +/- {std:.2f}")
+        if self.sources is not None and getattr(model, "source_ids", None):
+            model.select_source(model.source_ids[0])
         self.logger.record("eval/mean_over_envs", float(np.mean(list(means.values()))))
         self.results.extend(rows)
         if self.log_path is not None:

@@ -34,6 +34,7 @@ def distill(
     log_interval: int = 1_000,
     tb_log_name: str = "distill",
     progress_bar: bool = False,
+    eval_sources: Optional[dict[str, int]] = None,
     **student_kwargs: Any,
 ) -> Any:
     """
@@ -55,6 +56,8 @@ def distill(
     :param tb_log_name: the name of the student's log folder; when ``source`` is a model that logs to
         tensorboard, the student logs into ``<the model's run>/<tb_log_name>``, beside the collection curves
     :param progress_bar: show a progress bar
+    :param eval_sources: with ``actor_per_source=True`` (a CRR diagnostic): the source whose actor is evaluated in
+        each environment of ``eval_env``, by name
     :param student_kwargs: the student's hyperparameters (``advantage_transform="exp"``, ``beta=1.0``,
         ``batch_size``, ``seed``, ``tensorboard_log``, ``verbose``, ...)
     :return: the trained student, ready for ``predict`` and ``save``
@@ -94,5 +97,6 @@ def distill(
         log_interval=log_interval,
         tb_log_name=tb_log_name,
         progress_bar=progress_bar,
+        eval_sources=eval_sources,
     )
     return student

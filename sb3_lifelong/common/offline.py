@@ -249,6 +249,7 @@ class OfflineAlgorithmMixin:
         tb_log_name: Optional[str] = None,
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
+        eval_sources: Optional[Mapping[str, int]] = None,
     ) -> SelfOffline:
         """
         Train on the replay buffer's data for ``gradient_steps`` gradient updates, with no environment interaction.
@@ -268,6 +269,8 @@ class OfflineAlgorithmMixin:
         :param reset_num_timesteps: whether to reset the update counter (False: continue a run, e.g. after ``load``;
             the tensorboard run is continued too)
         :param progress_bar: display a progress bar (needs tqdm and rich)
+        :param eval_sources: with one actor per source (CRR's ``actor_per_source=True``): the source whose actor acts
+            in each evaluation environment, by name (see :class:`MultiEnvEvalCallback`)
         :return: the trained model
         """
         algo: Any = self
@@ -298,7 +301,9 @@ class OfflineAlgorithmMixin:
         if placeholder:
             algo.env = DummyVecEnv([lambda: NoEnvironment(algo.observation_space, algo.action_space)])
         try:
-            self._run_offline(total_timesteps, callback, eval_env, eval_freq, n_eval_episodes, log_interval, progress_bar)
+            self._run_offline(
+                total_timesteps, callback, eval_env, eval_freq, n_eval_episodes, log_interval, progress_bar, eval_sources
+            )
         finally:
             if placeholder:
                 algo.env = None
@@ -313,6 +318,7 @@ class OfflineAlgorithmMixin:
         n_eval_episodes: int,
         log_interval: int,
         progress_bar: bool,
+        eval_sources: Optional[Mapping[str, int]] = None,
     ) -> None:
         algo: Any = self
         callbacks: list[BaseCallback] = []
@@ -323,7 +329,9 @@ class OfflineAlgorithmMixin:
         elif callback is not None:
             raise TypeError(f"callback must be a BaseCallback or a list of them, got {type(callback).__name__}")
         if eval_env is not None:
-            callbacks.append(MultiEnvEvalCallback(eval_env, eval_freq, n_eval_episodes, verbose=algo.verbose))
+            callbacks.append(
+                MultiEnvEvalCallback(eval_env, eval_freq, n_eval_episodes, sources=eval_sources, verbose=algo.verbose)
+            )
         if progress_bar:
             callbacks.append(OfflineProgressBarCallback())
         callback_list = CallbackList(callbacks)

@@ -3,6 +3,7 @@
 import math
 from typing import Any, ClassVar, Optional, TypeVar, Union
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
@@ -17,7 +18,7 @@ from sb3_lifelong.common.distributional import CategoricalCritic, categorical_pr
 from sb3_lifelong.common.offline import OfflineAlgorithmMixin, with_next_actions
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
 from sb3_lifelong.common.utils import sample_gaussian, score_actions, tile_obs
-from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy
+from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor
 
 SelfCRR = TypeVar("SelfCRR", bound="CRR")
 
@@ -107,6 +108,11 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         (with the data's next action; offline only, falls back to a policy sample where the data does not show it)
     :param n_target_samples: number of target-policy actions averaged in the TD target
     :param target_update_interval: number of gradient updates between two target network updates
+    :param actor_per_source: a diagnostic that needs source tags: one independent actor per source of the data
+        (its transitions alone train it, its own samples give its advantage baseline and TD targets) with one critic
+        shared by all. Offline only, on a ``LifelongReplayBuffer`` (or view / merge); the sources present when the
+        model is set up fix the actors (``source_ids``). ``select_source(s)`` chooses the actor that ``predict``
+        uses (default: the first source).
     :param max_grad_norm: maximum norm of the actor's and the critic's gradients (None: no clipping)
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
@@ -123,8 +129,8 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         "MultiInputPolicy": MultiInputPolicy,
     }
     policy: CRRPolicy
-    actor: GaussianActor
-    actor_target: GaussianActor
+    actor: Union[GaussianActor, PerSourceActor]
+    actor_target: Union[GaussianActor, PerSourceActor]
 
     def __init__(
         self,
@@ -151,6 +157,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         critic_target: str = "policy",
         n_target_samples: int = 1,
         target_update_interval: int = 100,
+        actor_per_source: bool = False,
         max_grad_norm: Optional[float] = None,
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
@@ -194,6 +201,10 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         self.critic_target_type = critic_target
         self.n_target_samples = n_target_samples
         self.target_update_interval = target_update_interval
+        self.actor_per_source = actor_per_source
+        #: the sources with an actor each (actor_per_source=True), in the order of the actors
+        self.source_ids: Optional[list[int]] = None
+        self._head_of_source: Optional[np.ndarray] = None
         self.max_grad_norm = max_grad_norm
         self._check_hyperparameters()
         if _init_setup_model:
@@ -212,6 +223,8 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             "tau": 0.0 < self.tau <= 1.0,
             "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
         }
+        if self.actor_per_source and self.critic_target_type == "sarsa":
+            raise ValueError("actor_per_source=True does not support critic_target='sarsa' (its data carries no sources)")
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
             attributes = {"critic_target": "critic_target_type"}
@@ -223,8 +236,62 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             )
 
     def _setup_model(self) -> None:
+        if self.actor_per_source:
+            if self.source_ids is None:
+                self.source_ids = self._sources_of_data()
+            self.policy_kwargs["n_actors"] = len(self.source_ids)
         super()._setup_model()
         self._create_aliases()
+        if self.actor_per_source:
+            assert self.source_ids is not None
+            self._head_of_source = np.full(max(self.source_ids) + 1, -1, dtype=np.int64)
+            self._head_of_source[self.source_ids] = np.arange(len(self.source_ids))
+
+    def _sources_of_data(self) -> list[int]:
+        counts = getattr(self.replay_buffer, "source_counts", None)
+        if counts is None or self.replay_buffer is None or self.replay_buffer.size() == 0:
+            raise ValueError(
+                "actor_per_source=True is an offline diagnostic that needs source-tagged data: build the model with "
+                "CRR.from_offline_data(buffer, actor_per_source=True) on a non-empty LifelongReplayBuffer (or a view / "
+                "merge of them)"
+            )
+        return sorted(int(source) for source, count in counts().items() if count > 0)
+
+    def select_source(self: SelfCRR, source: int) -> SelfCRR:
+        """
+        Choose the actor that ``predict`` (and evaluation) uses, with ``actor_per_source=True``.
+
+        :param source: a source id of the training data (see :attr:`source_ids`)
+        :return: the model
+        """
+        if not isinstance(self.actor, PerSourceActor) or self.source_ids is None:
+            raise ValueError("select_source needs a CRR model trained with actor_per_source=True")
+        if source not in self.source_ids:
+            raise ValueError(f"source {source!r} has no actor; this model has actors for sources {self.source_ids}")
+        self.actor.active_head = self.source_ids.index(source)
+        return self
+
+    def _source_heads(self) -> Optional[th.Tensor]:
+        """:return: the actor index of each row of the last sampled batch (None without actor_per_source)"""
+        if self._head_of_source is None:
+            return None
+        sources = getattr(self.replay_buffer, "last_sampled_sources", None)
+        if sources is None:
+            raise ValueError("actor_per_source=True needs a replay buffer that records sources (a LifelongReplayBuffer)")
+        sources = np.asarray(sources, dtype=np.int64)
+        known = sources < len(self._head_of_source)
+        heads = np.where(known, self._head_of_source[np.minimum(sources, len(self._head_of_source) - 1)], -1)
+        if (heads < 0).any():
+            unknown = sorted(set(sources[heads < 0].tolist()))
+            raise ValueError(f"the data holds sources {unknown} that have no actor (this model's: {self.source_ids})")
+        return th.as_tensor(heads, device=self.device)
+
+    def _actor_params(
+        self, actor: Union[GaussianActor, PerSourceActor], obs: Any, heads: Optional[th.Tensor]
+    ) -> tuple[th.Tensor, th.Tensor]:
+        if isinstance(actor, PerSourceActor):
+            return actor.distribution_params(obs, heads)
+        return actor.distribution_params(obs)
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -237,10 +304,10 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             assert self.replay_buffer is not None
             self.replay_buffer = with_next_actions(self.replay_buffer)
 
-    def _target_actions(self, replay_data: Any) -> th.Tensor:
+    def _target_actions(self, replay_data: Any, heads: Optional[th.Tensor] = None) -> th.Tensor:
         """:return: next actions for the TD target, ``[n_target_samples, batch, action_dim]``"""
         next_obs = replay_data.next_observations
-        mean, std = self.actor_target.distribution_params(next_obs)
+        mean, std = self._actor_params(self.actor_target, next_obs, heads)
         actions = sample_gaussian(mean, std, self.n_target_samples).clamp(-1.0, 1.0)
         if self.critic_target_type == "sarsa":
             next_actions = getattr(replay_data, "next_actions", None)
@@ -267,9 +334,10 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
             obs, actions = replay_data.observations, replay_data.actions
             bootstrap = (1 - replay_data.dones) * discounts  # [B, 1]
+            heads = self._source_heads()
 
             with th.no_grad():
-                next_actions = self._target_actions(replay_data)  # [T, B, A]
+                next_actions = self._target_actions(replay_data, heads)  # [T, B, A]
                 num_target = next_actions.shape[0]
                 next_obs = replay_data.next_observations
                 if categorical:
@@ -302,7 +370,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             assert isinstance(critic_loss, th.Tensor)
 
             # Advantage of the data's actions against the policy's own actions (before the critic step)
-            mean, std = self.actor.distribution_params(obs)
+            mean, std = self._actor_params(self.actor, obs, heads)
             with th.no_grad():
                 sampled_actions = sample_gaussian(mean, std, self.num_samples)  # [N, B, A]
                 sampled_q = score_actions(self.critic, obs, sampled_actions)  # type: ignore[arg-type]
@@ -350,6 +418,8 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
     ) -> SelfCRR:
         if self.critic_target_type == "sarsa":
             raise ValueError("critic_target='sarsa' needs the data's next actions: it is for offline training only")
+        if self.actor_per_source:
+            raise ValueError("actor_per_source=True is an offline diagnostic: train it with learn_offline")
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
@@ -360,7 +430,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "actor", "critic", "actor_target", "critic_target"]
+        return [*super()._excluded_save_params(), "actor", "critic", "actor_target", "critic_target", "_head_of_source"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]

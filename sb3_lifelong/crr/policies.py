@@ -4,13 +4,81 @@ from typing import Any, Optional, Union
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor
-from stable_baselines3.common.type_aliases import Schedule
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_lifelong.common.distributional import CategoricalCritic
-from sb3_lifelong.common.policies import GaussianActorCriticPolicy
+from sb3_lifelong.common.policies import GaussianActor, GaussianActorCriticPolicy
+
+
+def _select_rows(obs: PyTorchObs, rows: th.Tensor) -> PyTorchObs:
+    if isinstance(obs, dict):
+        return {key: value[rows] for key, value in obs.items()}
+    return obs[rows]
+
+
+class PerSourceActor(BasePolicy):
+    """
+    Several independent Gaussian actors ("heads", each with its own networks) behind the interface of one
+    :class:`GaussianActor`: CRR's diagnostic of one actor per data source with a shared critic.
+
+    ``distribution_params(obs, heads)`` evaluates each row with the actor of its head; without ``heads``, and in
+    ``forward`` / ``predict``, the active head (:attr:`active_head`, set with ``CRR.select_source``) acts.
+
+    :param actors: the actors, one per head (same spaces)
+    """
+
+    def __init__(self, actors: list[GaussianActor]):
+        if len(actors) < 1:
+            raise ValueError("PerSourceActor needs at least one actor")
+        super().__init__(
+            actors[0].observation_space,
+            actors[0].action_space,
+            normalize_images=actors[0].normalize_images,
+            squash_output=True,
+        )
+        self.heads = nn.ModuleList(actors)
+        self.active_head = 0
+
+    @property
+    def n_heads(self) -> int:
+        return len(self.heads)
+
+    def distribution_params(self, obs: PyTorchObs, heads: Optional[th.Tensor] = None) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param obs: Observation
+        :param heads: index of the actor of each row (``[batch]``, long); None: the active head for every row
+        :return: mean and standard deviation of each row's action distribution, each ``[batch, action_dim]``
+        """
+        if heads is None:
+            return self.heads[self.active_head].distribution_params(obs)  # type: ignore[operator]
+        used = th.unique(heads).tolist()
+        if len(used) == 1:
+            return self.heads[used[0]].distribution_params(obs)  # type: ignore[operator]
+        mean = std = None
+        for head in used:
+            rows = th.nonzero(heads == head, as_tuple=True)[0]
+            head_mean, head_std = self.heads[head].distribution_params(_select_rows(obs, rows))  # type: ignore[operator]
+            if mean is None or std is None:
+                mean = head_mean.new_empty((heads.shape[0], head_mean.shape[1]))
+                std = head_std.new_empty((heads.shape[0], head_std.shape[1]))
+            mean = mean.index_copy(0, rows, head_mean)
+            std = std.index_copy(0, rows, head_std)
+        assert mean is not None and std is not None
+        return mean, std
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self.heads[self.active_head](obs, deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self(observation, deterministic)
+
+    def set_training_mode(self, mode: bool) -> None:
+        for head in self.heads:
+            head.set_training_mode(mode)  # type: ignore[operator]
+        self.training = mode
 
 
 class CRRPolicy(GaussianActorCriticPolicy):
@@ -24,11 +92,15 @@ class CRRPolicy(GaussianActorCriticPolicy):
     :param v_min: smallest return of the categorical critic's support (choose it from the reward scale:
         about ``min_reward / (1 - gamma)``)
     :param v_max: largest return of the categorical critic's support
+    :param n_actors: number of independent actors (:class:`PerSourceActor` when > 1, sharing the one critic):
+        CRR sets it from its data's sources with ``actor_per_source=True``
     See :class:`sb3_lifelong.common.policies.GaussianActorCriticPolicy` for the other parameters.
     """
 
     critic: Union[ContinuousCritic, CategoricalCritic]  # type: ignore[assignment]
     critic_target: Union[ContinuousCritic, CategoricalCritic]  # type: ignore[assignment]
+    actor: Union[GaussianActor, PerSourceActor]  # type: ignore[assignment]
+    actor_target: Union[GaussianActor, PerSourceActor]  # type: ignore[assignment]
 
     def __init__(
         self,
@@ -51,8 +123,14 @@ class CRRPolicy(GaussianActorCriticPolicy):
         n_atoms: int = 51,
         v_min: float = -150.0,
         v_max: float = 150.0,
+        n_actors: int = 1,
     ):
-        # read by make_critic, which the parent's constructor calls
+        if n_actors < 1:
+            raise ValueError(f"n_actors must be >= 1, got {n_actors}")
+        if n_actors > 1 and share_features_extractor:
+            raise ValueError("n_actors > 1 (one actor per source) cannot share a features extractor with the critic")
+        # read by make_actor and make_critic, which the parent's constructor calls
+        self.n_actors = n_actors
         self.distributional_critic = distributional_critic
         self.n_atoms = n_atoms
         self.v_min = v_min
@@ -78,9 +156,23 @@ class CRRPolicy(GaussianActorCriticPolicy):
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         data.update(
-            dict(distributional_critic=self.distributional_critic, n_atoms=self.n_atoms, v_min=self.v_min, v_max=self.v_max)
+            dict(
+                distributional_critic=self.distributional_critic,
+                n_atoms=self.n_atoms,
+                v_min=self.v_min,
+                v_max=self.v_max,
+                n_actors=self.n_actors,
+            )
         )
         return data
+
+    def make_actor(  # type: ignore[override]
+        self, features_extractor: Optional[BaseFeaturesExtractor] = None
+    ) -> Union[GaussianActor, PerSourceActor]:
+        if self.n_actors == 1:
+            return super().make_actor(features_extractor)
+        actors = [super(CRRPolicy, self).make_actor(features_extractor) for _ in range(self.n_actors)]
+        return PerSourceActor(actors).to(self.device)
 
     def make_critic(  # type: ignore[override]
         self, features_extractor: Optional[BaseFeaturesExtractor] = None
