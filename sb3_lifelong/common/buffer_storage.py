@@ -4,11 +4,14 @@ On-disk / in-memory row store behind :class:`sb3_lifelong.common.buffers.Lifelon
 This module only depends on numpy and the standard library (it can be loaded without torch), so that
 crash tests and tools can use it in light subprocesses.
 
-Directory format (version 1), see ``docs/modules/buffer.md``::
+Directory format (versions 1 and 2), see ``docs/modules/buffer.md``::
 
     <path>/manifest.json     committed state (JSON, rewritten atomically after each flushed chunk)
     <path>/<field>.bin       one append-only file per field: raw little-endian C-order rows, no header
     <path>/writer.lock       advisory lock held by the (single) writer process
+
+Dict observations store one field per key, ``observations.<key>`` and ``next_observations.<key>`` (version 2;
+plain buffers are still written as version 1).
 
 A row ``i`` of field ``f`` lives at byte offset ``i * row_bytes(f)`` of ``f.bin``. Only the first
 ``num_transitions`` rows (sum of the chunk sizes listed in the manifest) are committed; bytes after
@@ -21,9 +24,11 @@ import json
 import math
 import mmap
 import os
+import re
 import warnings
 import weakref
 import zlib
+from collections.abc import Sequence
 from typing import Any, Optional
 
 import numpy as np
@@ -34,7 +39,14 @@ except ImportError:  # pragma: no cover
     fcntl = None  # type: ignore[assignment]
 
 FORMAT_NAME = "sb3-lifelong-buffer"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # the newest version written (version 1 is still written when it can describe the buffer)
+READABLE_VERSIONS = (1, 2)
+# manifest keys added by version 2 (version 1 means layout "single", capacity null, first_row 0)
+V2_KEYS = ("layout", "capacity", "first_row")
+# "single": one append-only file per field, "<field>.bin", rows from 0 (every row kept);
+# "chunked": one file per flushed chunk, "chunk.<start>.bin", holding each field's rows one field after the other
+LAYOUTS = ("single", "chunked")
+CHUNK_FILE_PATTERN = re.compile(r"chunk\.([0-9]{12,19})\.bin")
 MANIFEST_NAME = "manifest.json"
 LOCK_NAME = "writer.lock"
 MAX_MANIFEST_BYTES = 256 * 1024 * 1024
@@ -45,6 +57,9 @@ MAX_SOURCE_ID = 65534
 ALLOWED_DTYPES = frozenset(["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"])
 # fields every buffer stores, with the dtypes that are fixed by the format (None: chosen by the spaces)
 FIELD_NAMES = ("observations", "next_observations", "actions", "rewards", "flags", "sources", "streams", "widths")
+OBS_FIELDS = ("observations", "next_observations")
+# keys of Dict observations name files (``observations.<key>.bin``): a conservative portable file-name pattern
+OBS_KEY_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,63}")
 FIXED_FIELDS = {
     "rewards": ("<f4", ()),
     "flags": ("|u1", ()),
@@ -73,6 +88,14 @@ def _fsync_dir(path: str) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def _delete_file(path: str) -> None:
+    """Delete a chunk file (a missing one is fine). A separate function so that tests can simulate a crash here."""
+    try:
+        os.remove(path)
+    except FileNotFoundError:  # pragma: no cover (removed by hand)
+        pass
 
 
 def write_json_atomic(path: str, data: dict[str, Any]) -> None:
@@ -115,19 +138,64 @@ def _check_json_value(value: Any, where: str, depth: int = 0) -> None:
     raise BufferFormatError(f"{where}: unsupported metadata value of type {type(value).__name__}")
 
 
+def check_obs_key(key: Any) -> str:
+    """
+    Check that a Dict observation key can name a field file (``observations.<key>.bin``).
+
+    :param key: The key
+    :return: The key
+    :raises BufferFormatError: when it is not a string of 1-64 letters, digits, ``_`` or ``-`` (not starting with ``-``)
+    """
+    if not isinstance(key, str) or OBS_KEY_PATTERN.fullmatch(key) is None or key.lower() in ("con", "prn", "aux", "nul"):
+        raise BufferFormatError(
+            f"Dict observation key {key!r} cannot name a field file: keys must be 1 to 64 ASCII letters, digits, '_' "
+            "or '-' (not starting with '-')"
+        )
+    return key
+
+
+def obs_keys_of(names: Any) -> Optional[tuple[str, ...]]:
+    """
+    :param names: Field names
+    :return: The sorted keys of Dict observations, or None when the observations are one field
+    """
+    keys = sorted(name.split(".", 1)[1] for name in names if isinstance(name, str) and name.startswith("observations."))
+    return tuple(keys) if keys else None
+
+
+def field_names(obs_keys: Optional[Sequence[str]] = None) -> tuple[str, ...]:
+    """
+    :param obs_keys: Keys of Dict observations (None: one observation field)
+    :return: The fields of a buffer, in their canonical order
+    """
+    if obs_keys is None:
+        return FIELD_NAMES
+    keys = sorted(obs_keys)
+    obs = tuple(f"{base}.{key}" for base in OBS_FIELDS for key in keys)
+    return obs + FIELD_NAMES[2:]
+
+
 def validate_fields(fields: Any) -> dict[str, tuple[str, tuple[int, ...]]]:
     """
     Validate the ``fields`` entry of a manifest.
 
     :param fields: The decoded JSON value
-    :return: field name -> (dtype string, row shape)
+    :return: field name -> (dtype string, row shape), in the canonical order
     """
     if not isinstance(fields, dict):
         raise BufferFormatError("manifest 'fields' must be an object")
-    if set(fields) != set(FIELD_NAMES):
-        raise BufferFormatError(f"manifest 'fields' must name exactly {sorted(FIELD_NAMES)}, got {sorted(map(str, fields))}")
+    obs_keys = obs_keys_of(fields)
+    if obs_keys is not None:
+        lowered = [key.lower() for key in obs_keys]
+        if len(set(lowered)) != len(lowered):
+            raise BufferFormatError(f"Dict observation keys {list(obs_keys)} differ only by case (they name files)")
+        for key in obs_keys:
+            check_obs_key(key)
+    names = field_names(obs_keys)
+    if set(fields) != set(names):
+        raise BufferFormatError(f"manifest 'fields' must name exactly {sorted(names)}, got {sorted(map(str, fields))}")
     result: dict[str, tuple[str, tuple[int, ...]]] = {}
-    for name in FIELD_NAMES:
+    for name in names:
         spec = fields[name]
         if not isinstance(spec, dict) or set(spec) != {"dtype", "shape"}:
             raise BufferFormatError(f"manifest field {name!r} must be an object with exactly 'dtype' and 'shape'")
@@ -141,19 +209,29 @@ def validate_fields(fields: Any) -> dict[str, tuple[str, tuple[int, ...]]]:
         if name in FIXED_FIELDS and (dtype, tuple(shape)) != FIXED_FIELDS[name]:
             raise BufferFormatError(f"manifest field {name!r} must have dtype/shape {FIXED_FIELDS[name]}, got {dtype, shape}")
         result[name] = (dtype, tuple(shape))
-    if result["observations"] != result["next_observations"]:
-        raise BufferFormatError("manifest: observations and next_observations must have the same dtype and shape")
+    for suffix in [""] if obs_keys is None else [f".{key}" for key in obs_keys]:
+        if result["observations" + suffix] != result["next_observations" + suffix]:
+            raise BufferFormatError(
+                f"manifest: observations{suffix} and next_observations{suffix} must have the same dtype and shape"
+            )
     return result
 
 
-def _validate_chunks(chunks: Any) -> int:
+def _validate_chunks(chunks: Any, names: Sequence[str], start: Optional[int] = 0) -> int:
     """
     :param chunks: The ``chunks`` entry of a manifest
-    :return: The number of rows they hold
+    :param names: The buffer's fields
+    :param start: Row where the first chunk must start (None: anywhere, for chunk files whose oldest were evicted)
+    :return: The row after the last chunk (``start`` when there is none)
     """
     if not isinstance(chunks, list):
         raise BufferFormatError("manifest 'chunks' must be a list")
-    start = 0
+    first: Any = start
+    if first is None:
+        first = chunks[0].get("start") if chunks and isinstance(chunks[0], dict) else 0
+        if not _is_int(first) or not 0 <= first < 2**62:
+            raise BufferFormatError(f"manifest chunk 0: 'start' must be an int in [0, 2**62), got {first!r}")
+    start = int(first)
     for k, chunk in enumerate(chunks):
         if not isinstance(chunk, dict) or set(chunk) != {"start", "rows", "crc32"}:
             raise BufferFormatError(f"manifest chunk {k} must be an object with exactly 'start', 'rows', 'crc32'")
@@ -162,12 +240,42 @@ def _validate_chunks(chunks: Any) -> int:
         if not _is_int(chunk["rows"]) or chunk["rows"] <= 0:
             raise BufferFormatError(f"manifest chunk {k}: 'rows' must be a positive int, got {chunk['rows']!r}")
         crc = chunk["crc32"]
-        if not isinstance(crc, dict) or set(crc) != set(FIELD_NAMES):
+        if not isinstance(crc, dict) or set(crc) != set(names):
             raise BufferFormatError(f"manifest chunk {k}: 'crc32' must give one checksum per field")
         if not all(_is_int(v) and 0 <= v < 2**32 for v in crc.values()):
             raise BufferFormatError(f"manifest chunk {k}: checksums must be ints in [0, 2**32)")
         start += chunk["rows"]
     return start
+
+
+def _validate_layout(manifest: dict[str, Any], names: list[str]) -> None:
+    """Check the chunks of a manifest against its layout, capacity and first retained row."""
+    num = manifest["num_transitions"]
+    layout: Any = manifest.get("layout", "single")
+    capacity: Any = manifest.get("capacity")
+    first_row: Any = manifest.get("first_row", 0)
+    if layout not in LAYOUTS:
+        raise BufferFormatError(f"manifest 'layout' must be one of {list(LAYOUTS)}, got {layout!r}")
+    if layout == "single" and (capacity is not None or first_row != 0):
+        raise BufferFormatError("manifest: layout 'single' keeps every row: 'capacity' must be null and 'first_row' 0")
+    if layout == "chunked" and (not _is_int(capacity) or not 1 <= capacity < 2**62):
+        raise BufferFormatError(f"manifest 'capacity' must be a positive int with layout 'chunked', got {capacity!r}")
+    end = _validate_chunks(manifest["chunks"], names, start=0 if layout == "single" else None)
+    if end != num:
+        raise BufferFormatError(f"manifest chunks hold rows up to {end} but 'num_transitions' is {num}")
+    if not _is_int(first_row) or not 0 <= first_row <= num:
+        raise BufferFormatError(f"manifest 'first_row' must be an int in [0, num_transitions], got {first_row!r}")
+    chunks = manifest["chunks"]
+    if layout == "chunked":
+        if chunks and not chunks[0]["start"] <= first_row < chunks[0]["start"] + chunks[0]["rows"]:
+            raise BufferFormatError(
+                f"manifest 'first_row' {first_row} must lie in the first chunk (rows {chunks[0]['start']} to "
+                f"{chunks[0]['start'] + chunks[0]['rows'] - 1}): chunks with no retained row are not listed"
+            )
+        if not chunks and first_row != num:
+            raise BufferFormatError("manifest: with no chunk, 'first_row' must equal 'num_transitions'")
+        if num - first_row > capacity:
+            raise BufferFormatError(f"manifest: {num - first_row} retained rows exceed the capacity {capacity}")
 
 
 def validate_manifest(manifest: Any) -> dict[str, Any]:
@@ -182,18 +290,21 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
         raise BufferFormatError("manifest must be a JSON object")
     if manifest.get("format") != FORMAT_NAME:
         raise BufferFormatError(f"manifest 'format' must be {FORMAT_NAME!r}, got {manifest.get('format')!r}")
-    if manifest.get("version") != FORMAT_VERSION:
-        raise BufferFormatError(f"unsupported format version {manifest.get('version')!r} (this code reads {FORMAT_VERSION})")
+    version = manifest.get("version")
+    if not _is_int(version) or version not in READABLE_VERSIONS:
+        raise BufferFormatError(f"unsupported format version {version!r} (this code reads versions {list(READABLE_VERSIONS)})")
     expected = {"format", "version", "fields", "num_transitions", "chunks", "sources", "next_stream_id", "spaces"}
+    if version >= 2:
+        expected |= set(V2_KEYS)
     if set(manifest) != expected:
         raise BufferFormatError(f"manifest keys must be {sorted(expected)}, got {sorted(map(str, manifest))}")
-    validate_fields(manifest["fields"])
+    fields = validate_fields(manifest["fields"])
+    if version == 1 and obs_keys_of(fields) is not None:
+        raise BufferFormatError("manifest: Dict observation fields need format version 2")
     num = manifest["num_transitions"]
-    if not _is_int(num) or num < 0:
+    if not _is_int(num) or not 0 <= num < 2**62:
         raise BufferFormatError(f"manifest 'num_transitions' must be a non-negative int, got {num!r}")
-    start = _validate_chunks(manifest["chunks"])
-    if start != num:
-        raise BufferFormatError(f"manifest chunks hold {start} rows but 'num_transitions' is {num}")
+    _validate_layout(manifest, list(fields))
     sources = manifest["sources"]
     if not isinstance(sources, dict):
         raise BufferFormatError("manifest 'sources' must be an object")
@@ -243,13 +354,28 @@ def read_manifest(path: str) -> dict[str, Any]:
         raise BufferFormatError(f"{file_name}: {error}") from None
 
 
+def chunk_file_name(start: int) -> str:
+    """
+    :param start: First row of a chunk
+    :return: The name of its file in the "chunked" layout
+    """
+    return f"chunk.{start:012d}.bin"
+
+
 class RowStore:
     """
-    Append-only table of fixed-size rows (one array per field), in memory or in a buffer directory.
+    Append-only table of fixed-size rows (one array per field), in memory or in a buffer directory, optionally
+    keeping only the most recent ``capacity`` rows.
 
-    In memory (``path=None``) the rows live in preallocated arrays that double when full. With a path,
-    committed rows are memory-mapped from the field files and the unflushed rows wait in a tail of
-    ``chunk_size`` rows, written out (appended, fsync'd, manifest replaced atomically) when full or on ``flush()``.
+    Rows have global numbers (0 for the first row ever appended); indices given to :meth:`gather` and
+    :meth:`read_range` count from the oldest retained row (:attr:`first`).
+
+    In memory (``path=None``) the rows live in preallocated arrays that double when full (with a capacity, the
+    evicted rows at their front are dropped by moving the retained ones down instead). With a path, committed rows
+    are memory-mapped from the files and the unflushed rows wait in a tail of ``chunk_size`` rows, written out
+    (appended, fsync'd, manifest replaced atomically) when full or on ``flush()``. Without a capacity the directory
+    has one append-only file per field (layout "single"); with one, a file per chunk (layout "chunked"), deleted
+    once the committed manifest no longer lists it.
 
     :param fields: field name -> (dtype string, row shape)
     :param path: Buffer directory, or None for an in-memory store
@@ -258,6 +384,8 @@ class RowStore:
     :param verify: Checksums to verify when opening: "all", "last" (the last chunk) or "none"
     :param max_resident_bytes: Remap the files after random reads may have touched about this many bytes of
         pages, which drops them from this process's RSS (they stay in the OS page cache). None: never
+    :param capacity: Keep only the most recent ``capacity`` rows (None: keep everything). For an existing
+        directory, None keeps its stored capacity
     """
 
     def __init__(
@@ -268,69 +396,144 @@ class RowStore:
         chunk_size: int = 10_000,
         verify: str = "last",
         max_resident_bytes: Optional[int] = None,
+        capacity: Optional[int] = None,
     ) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         if verify not in ("all", "last", "none"):
             raise ValueError(f"verify must be 'all', 'last' or 'none', got {verify!r}")
+        if capacity is not None and (
+            not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1
+        ):
+            raise ValueError(
+                f"capacity must be a positive int (the number of most recent transitions kept) or None, got {capacity!r}"
+            )
         self.path = None if path is None else os.path.abspath(os.fspath(path))
         self.read_only = read_only
         self.chunk_size = chunk_size
+        self.capacity = None if capacity is None else int(capacity)
+        self.layout = "memory" if self.path is None else "single" if capacity is None else "chunked"
         self.sources: dict[int, dict[str, Any]] = {}
         self.spaces: dict[str, Any] = {}
         self.next_stream_id = 0
         self.chunks: list[dict[str, Any]] = []
-        self.num_committed = 0
+        self.num_committed = 0  # global row after the last committed row
+        self.committed_first = 0  # global row of the oldest retained committed row (the manifest's first_row)
         self.recovered = 0
         self.discarded_bytes = 0
+        self.removed_files: list[str] = []  # chunk files found unreferenced (and deleted) when opening
+        self._tail_start = 0  # global row of the tail's first row
         self._lock_file: Any = None
-        self._maps: dict[str, np.ndarray] = {}
+        self._maps: dict[str, np.ndarray] = {}  # layout "single": field -> committed rows
+        self._chunk_maps: list[dict[str, np.ndarray]] = []  # layout "chunked": one dict per entry of self.chunks
+        self._chunk_starts = np.zeros(0, dtype=np.int64)
         self._closed = False
         self.max_resident_bytes = max_resident_bytes
         self.remaps = 0  # number of remaps done to bound the RSS
         self._baseline_file_bytes = 0
         if self.path is not None and os.path.isfile(os.path.join(self.path, MANIFEST_NAME)):
-            manifest = read_manifest(self.path)
+            manifest = self._read_consistent_manifest() if read_only else read_manifest(self.path)
             stored = validate_fields(manifest["fields"])
             if fields is not None and dict(fields) != stored:
                 raise ValueError(f"{self.path}: stored fields {stored} do not match the requested {fields}")
             self.fields = stored
-            self.chunks = manifest["chunks"]
-            self.num_committed = manifest["num_transitions"]
-            self.sources = {int(k): v for k, v in manifest["sources"].items()}
-            self.spaces = manifest["spaces"]
-            self.next_stream_id = manifest["next_stream_id"]
+            self.layout = manifest.get("layout", "single")
+            stored_capacity = manifest.get("capacity")
+            if capacity is not None and capacity != stored_capacity:
+                if self.layout == "single":
+                    raise ValueError(
+                        f"{self.path} keeps every transition in one file per field (it was created without a capacity) "
+                        "and cannot evict: copy it into a new directory with a capacity, e.g. "
+                        "merge_buffers([LifelongReplayBuffer.open(old, read_only=True)], path=new, capacity=N)"
+                    )
+                if read_only:
+                    raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
+            self.capacity = stored_capacity if capacity is None else int(capacity)
+            self._load_manifest(manifest)
             self._open_existing(verify)
         else:
             if fields is None:
                 raise FileNotFoundError(f"no buffer at {self.path!r} and no field specification to create one")
             if read_only:
                 raise FileNotFoundError(f"no buffer at {self.path!r} to open read-only")
-            self.fields = {name: (np.dtype(dt).str, tuple(int(d) for d in shape)) for name, (dt, shape) in fields.items()}
-            validate_fields({k: {"dtype": d, "shape": list(s)} for k, (d, s) in self.fields.items()})
+            given = {name: (np.dtype(dt).str, tuple(int(d) for d in shape)) for name, (dt, shape) in fields.items()}
+            self.fields = validate_fields({k: {"dtype": d, "shape": list(s)} for k, (d, s) in given.items()})
             if self.path is not None:
                 os.makedirs(self.path, exist_ok=True)
                 self._take_lock()
-                for name in FIELD_NAMES:
-                    open(self._file(name), "wb").close()
+                if self.layout == "single":
+                    for name in self.fields:
+                        open(self._file(name), "wb").close()
+                else:
+                    self._remove_orphans()  # chunk files of an earlier buffer whose manifest is gone
                 self._write_manifest()
         self.dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
         self.row_bytes = {name: self.dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
-        capacity = self.chunk_size if self.path is not None else 1024
-        self._tail = {name: np.empty((capacity, *shape), dtype=self.dtypes[name]) for name, (_, shape) in self.fields.items()}
+        self._tail_start = self.num_committed
+        tail_rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
+        self._tail = {name: np.empty((tail_rows, *shape), dtype=self.dtypes[name]) for name, (_, shape) in self.fields.items()}
         self.num_tail = 0
+        if self.path is not None and self.layout == "chunked" and not read_only:
+            self._commit_eviction()  # a smaller capacity than the stored one evicts now
         self._remap()
+        self.recovered = len(self)
         if self.max_resident_bytes is not None and self.path is not None:
             try:  # file-backed pages mapped before this store (python, numpy, torch libraries)
                 with open("/proc/self/statm", "rb") as file:
                     self._baseline_file_bytes = int(file.read().split()[2]) * mmap.PAGESIZE
             except (OSError, ValueError, IndexError):  # pragma: no cover (not Linux)
                 pass
+        if self.discarded_bytes:
+            removed = f" ({len(self.removed_files)} unreferenced chunk files removed)" if self.removed_files else ""
+            warnings.warn(
+                f"{self.path}: recovered {self.recovered} transitions; discarded {self.discarded_bytes} bytes of "
+                f"unflushed rows left by a writer that did not close the buffer{removed}"
+            )
+
+    # ------------------------------------------------------------------ positions
+    @property
+    def end(self) -> int:
+        """Global row after the last stored row (committed or not)."""
+        return self._tail_start + self.num_tail
+
+    @property
+    def first(self) -> int:
+        """Global row of the oldest retained row (index 0 of :meth:`gather` and :meth:`read_range`)."""
+        low = self._tail_start if self.path is None else self.committed_first
+        if self.capacity is None:
+            return low
+        return max(low, self._tail_start + self.num_tail - self.capacity)
+
+    def __len__(self) -> int:
+        return self.end - self.first
 
     # ------------------------------------------------------------------ opening / recovery
     def _file(self, name: str) -> str:
         assert self.path is not None
         return os.path.join(self.path, name + ".bin")
+
+    def _chunk_file(self, chunk: dict[str, Any]) -> str:
+        assert self.path is not None
+        return os.path.join(self.path, chunk_file_name(chunk["start"]))
+
+    def _load_manifest(self, manifest: dict[str, Any]) -> None:
+        self.chunks = manifest["chunks"]
+        self.num_committed = manifest["num_transitions"]
+        self.committed_first = manifest.get("first_row", 0)
+        self.sources = {int(k): v for k, v in manifest["sources"].items()}
+        self.spaces = manifest["spaces"]
+        self.next_stream_id = manifest["next_stream_id"]
+
+    def _read_consistent_manifest(self) -> dict[str, Any]:
+        """Read-only stores: a manifest whose chunk files all exist (a writer deletes evicted chunks after a commit)."""
+        assert self.path is not None
+        for _ in range(20):
+            manifest = read_manifest(self.path)
+            if manifest.get("layout") != "chunked":
+                return manifest
+            if all(os.path.isfile(os.path.join(self.path, chunk_file_name(c["start"]))) for c in manifest["chunks"]):
+                return manifest
+        return manifest  # _open_existing names the missing file
 
     def _take_lock(self) -> None:
         assert self.path is not None
@@ -347,17 +550,29 @@ class RowStore:
             ) from None
         _WRITERS[self.path] = self
 
+    def _field_offsets(self, rows: int) -> dict[str, int]:
+        """Byte offset of each field's block in a chunk file of ``rows`` rows, and ``""`` -> the file size."""
+        offsets, offset = {}, 0
+        for name, (dtype, shape) in self.fields.items():
+            offsets[name] = offset
+            offset += rows * np.dtype(dtype).itemsize * math.prod(shape)
+        offsets[""] = offset
+        return offsets
+
     def _open_existing(self, verify: str) -> None:
         assert self.path is not None
         if not self.read_only:
             self._take_lock()
-        for name in FIELD_NAMES:
+        if self.layout == "chunked":
+            self._open_chunked(verify)
+            return
+        for name in self.fields:
             file_name = self._file(name)
             if not os.path.isfile(file_name) or os.path.islink(file_name):
                 raise BufferFormatError(f"{self.path}: chunk file {name}.bin is missing or not a regular file")
         dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
         sizes = {name: dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
-        for name in FIELD_NAMES:
+        for name in self.fields:
             have = os.path.getsize(self._file(name))
             need = self.num_committed * sizes[name]
             if have < need:
@@ -373,7 +588,7 @@ class RowStore:
                 self.discarded_bytes += have - need
         checked = self.chunks if verify == "all" else self.chunks[-1:] if verify == "last" else []
         for chunk in checked:
-            for name in FIELD_NAMES:
+            for name in self.fields:
                 with open(self._file(name), "rb") as file:
                     file.seek(chunk["start"] * sizes[name])
                     data = file.read(chunk["rows"] * sizes[name])
@@ -381,52 +596,118 @@ class RowStore:
                     raise BufferFormatError(
                         f"{self._file(name)}: checksum mismatch in chunk starting at row {chunk['start']} (corrupted data)"
                     )
-        self.recovered = self.num_committed
-        if self.discarded_bytes:
-            warnings.warn(
-                f"{self.path}: recovered {self.num_committed} transitions; discarded {self.discarded_bytes} bytes of "
-                "unflushed rows left by a writer that did not close the buffer"
-            )
+
+    def _open_chunked(self, verify: str) -> None:
+        assert self.path is not None
+        for chunk in self.chunks:
+            file_name = self._chunk_file(chunk)
+            if not os.path.isfile(file_name) or os.path.islink(file_name):
+                raise BufferFormatError(f"{file_name}: chunk file is missing or not a regular file")
+            need = self._field_offsets(chunk["rows"])[""]
+            have = os.path.getsize(file_name)
+            if have != need:
+                raise BufferFormatError(
+                    f"{file_name}: {have} bytes but the manifest's chunk of {chunk['rows']} rows needs {need} bytes; "
+                    "the file was truncated or replaced"
+                )
+        checked = self.chunks if verify == "all" else self.chunks[-1:] if verify == "last" else []
+        for chunk in checked:
+            offsets = self._field_offsets(chunk["rows"])
+            with open(self._chunk_file(chunk), "rb") as file:
+                data = file.read()
+            for k, name in enumerate(self.fields):
+                stop = offsets[list(self.fields)[k + 1]] if k + 1 < len(self.fields) else offsets[""]
+                if zlib.crc32(data[offsets[name] : stop]) != chunk["crc32"][name]:
+                    raise BufferFormatError(f"{self._chunk_file(chunk)}: checksum mismatch in field {name!r} (corrupted data)")
+        if not self.read_only:
+            self._remove_orphans()
+
+    def _remove_orphans(self) -> None:
+        """Delete the chunk files the manifest does not list: evicted ones left by a crash after a commit, or the
+        unflushed chunk of a crash before it (writer only)."""
+        assert self.path is not None
+        listed = {chunk_file_name(chunk["start"]) for chunk in self.chunks}
+        removed = False
+        for entry in sorted(os.listdir(self.path)):
+            if CHUNK_FILE_PATTERN.fullmatch(entry) and entry not in listed:
+                file_name = os.path.join(self.path, entry)
+                if os.path.islink(file_name) or not os.path.isfile(file_name):
+                    continue
+                self.discarded_bytes += os.path.getsize(file_name)
+                _delete_file(file_name)
+                self.removed_files.append(entry)
+                removed = True
+        if removed:
+            _fsync_dir(self.path)
+
+    def _map_file(self, file_name: str, length: int) -> Optional[mmap.mmap]:
+        if length == 0:
+            return None
+        with open(file_name, "rb") as file:
+            mapped = mmap.mmap(file.fileno(), length, access=mmap.ACCESS_READ)
+        if hasattr(mapped, "madvise") and hasattr(mmap, "MADV_RANDOM"):
+            mapped.madvise(mmap.MADV_RANDOM)
+        return mapped
+
+    def _map_chunk(self, chunk: dict[str, Any]) -> dict[str, np.ndarray]:
+        rows = chunk["rows"]
+        offsets = self._field_offsets(rows)
+        mapped = self._map_file(self._chunk_file(chunk), offsets[""])
+        arrays = {}
+        for name, (_, shape) in self.fields.items():
+            count = rows * math.prod(shape)
+            array = np.frombuffer(mapped, dtype=self.dtypes[name], count=count, offset=offsets[name])  # type: ignore[arg-type]
+            arrays[name] = array.reshape(rows, *shape)
+        return arrays
 
     def _remap(self) -> None:
         """(Re)create the read-only memory maps over the committed rows (drops their resident pages from this process)."""
         self._maps = {}
-        if self.path is None or self.num_committed == 0:
+        self._chunk_maps = []
+        if self.path is None:
+            return
+        if self.layout == "chunked":
+            self._chunk_maps = [self._map_chunk(chunk) for chunk in self.chunks]
+            self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
+            return
+        if self.num_committed == 0:
             return
         for name, (_, shape) in self.fields.items():
-            length = self.num_committed * self.row_bytes[name]
-            with open(self._file(name), "rb") as file:
-                mapped = mmap.mmap(file.fileno(), length, access=mmap.ACCESS_READ)
-            if hasattr(mapped, "madvise") and hasattr(mmap, "MADV_RANDOM"):
-                mapped.madvise(mmap.MADV_RANDOM)
-            array = np.frombuffer(mapped, dtype=self.dtypes[name], count=self.num_committed * math.prod(shape))
+            mapped = self._map_file(self._file(name), self.num_committed * self.row_bytes[name])
+            array = np.frombuffer(mapped, dtype=self.dtypes[name], count=self.num_committed * math.prod(shape))  # type: ignore[arg-type]
             self._maps[name] = array.reshape(self.num_committed, *shape)
+
+    def _update_chunk_maps(self) -> None:
+        """Layout "chunked": map the chunks listed since the last call, unmap those no longer listed."""
+        known = {int(start): maps for start, maps in zip(self._chunk_starts.tolist(), self._chunk_maps)}
+        self._chunk_maps = [known.get(chunk["start"]) or self._map_chunk(chunk) for chunk in self.chunks]
+        self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
 
     def refresh(self) -> int:
         """
-        Read-only stores: re-read the manifest to see the rows a writer committed since.
+        Read-only stores: re-read the manifest to see the rows a writer committed (and evicted) since.
 
-        :return: The number of committed rows
+        :return: The number of retained committed rows
         """
         if not self.read_only or self.path is None:
-            return self.num_committed
-        manifest = read_manifest(self.path)
-        if validate_fields(manifest["fields"]) != self.fields:
-            raise BufferFormatError(f"{self.path}: fields changed while open")
-        if manifest["num_transitions"] < self.num_committed:
+            return len(self)
+        manifest = self._read_consistent_manifest()
+        if validate_fields(manifest["fields"]) != self.fields or manifest.get("layout", "single") != self.layout:
+            raise BufferFormatError(f"{self.path}: fields or layout changed while open")
+        if manifest["num_transitions"] < self.num_committed or manifest.get("first_row", 0) < self.committed_first:
             raise BufferFormatError(f"{self.path}: committed rows went down from {self.num_committed}")
-        self.chunks = manifest["chunks"]
-        self.sources = {int(k): v for k, v in manifest["sources"].items()}
-        self.next_stream_id = manifest["next_stream_id"]
-        if manifest["num_transitions"] != self.num_committed:
-            self.num_committed = manifest["num_transitions"]
-            self._remap()
-        return self.num_committed
+        changed = manifest["num_transitions"] != self.num_committed or manifest.get("first_row", 0) != self.committed_first
+        self.capacity = manifest.get("capacity")
+        self._load_manifest(manifest)
+        self._tail_start = self.num_committed
+        if changed:
+            if self.layout == "chunked":
+                self._update_chunk_maps()
+            else:
+                self._remap()
+        return len(self)
 
     # ------------------------------------------------------------------ writing
-    def __len__(self) -> int:
-        return self.num_committed + self.num_tail
-
     def append(self, rows: dict[str, np.ndarray]) -> None:
         """
         Append rows (every field, same leading length). Flushes a chunk each time ``chunk_size`` rows are pending.
@@ -442,56 +723,107 @@ class RowStore:
         if self.num_tail + count <= len(tail["rewards"]) and (self.path is None or self.num_tail + count < self.chunk_size):
             # fast path of add(): no growth, no flush
             start, stop = self.num_tail, self.num_tail + count
-            for name in FIELD_NAMES:
+            for name in self.fields:
                 tail[name][start:stop] = rows[name]
             self.num_tail = stop
             return
         done = 0
         while done < count:
             if self.path is None and self.num_tail == len(self._tail["rewards"]):
-                self._grow(max(2 * self.num_tail, self.num_tail + count - done))
+                self._make_room(count - done)
             free = len(self._tail["rewards"]) - self.num_tail
             take = min(free, count - done)
-            for name in FIELD_NAMES:
+            for name in self.fields:
                 self._tail[name][self.num_tail : self.num_tail + take] = rows[name][done : done + take]
             self.num_tail += take
             done += take
             if self.path is not None and self.num_tail == self.chunk_size:
                 self.flush()
 
-    def _grow(self, capacity: int) -> None:
-        for name in FIELD_NAMES:
-            new = np.empty((capacity, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype)
+    def _make_room(self, need: int) -> None:
+        """In memory, the arrays are full: drop the evicted rows at their front (if that frees enough), else grow."""
+        evicted = self.first - self._tail_start
+        if evicted > 0 and evicted >= len(self._tail["rewards"]) // 4:
+            for name in self.fields:
+                self._tail[name][: self.num_tail - evicted] = self._tail[name][evicted : self.num_tail]
+            self._tail_start += evicted
+            self.num_tail -= evicted
+            return
+        target = max(2 * self.num_tail, self.num_tail + need)
+        if self.capacity is not None:  # twice the capacity is enough to compact rarely
+            target = max(min(target, 2 * self.capacity), self.num_tail + min(need, self.capacity), self.num_tail + 1)
+        self._grow(target)
+
+    def _grow(self, rows: int) -> None:
+        for name in self.fields:
+            new = np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype)
             new[: self.num_tail] = self._tail[name][: self.num_tail]
             self._tail[name] = new
 
+    def clear(self) -> None:
+        """Forget every row of an in-memory store."""
+        if self.path is not None:
+            raise RuntimeError("a directory store cannot be cleared")
+        self.num_tail = 0
+        self._tail_start = 0
+
     def flush(self) -> None:
-        """Write the pending rows as one chunk (append + fsync each field file, then replace the manifest atomically)."""
+        """Write the pending rows as one chunk (fsync'd files, then the manifest replaced atomically, then the
+        files of evicted chunks deleted)."""
         if self.path is None or self.read_only or self._closed:
             return
         if self.num_tail == 0:
             self._write_manifest()  # source names may have changed
             return
         count = self.num_tail
-        crcs = {}
-        for name in FIELD_NAMES:
-            data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
-            crcs[name] = zlib.crc32(data)
-            with open(self._file(name), "ab") as file:
-                file.write(data)
+        crcs: dict[str, int] = {}
+        if self.layout == "chunked":
+            chunk = {"start": self.num_committed, "rows": count, "crc32": crcs}
+            with open(self._chunk_file(chunk), "wb") as file:
+                for name in self.fields:
+                    data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
+                    crcs[name] = zlib.crc32(data)
+                    file.write(data)
                 file.flush()
                 os.fsync(file.fileno())
+        else:
+            for name in self.fields:
+                data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
+                crcs[name] = zlib.crc32(data)
+                with open(self._file(name), "ab") as file:
+                    file.write(data)
+                    file.flush()
+                    os.fsync(file.fileno())
         self.chunks.append({"start": self.num_committed, "rows": count, "crc32": crcs})
         self.num_committed += count
         self.num_tail = 0
-        self._write_manifest()
-        self._remap()
+        self._tail_start = self.num_committed
+        if self.layout == "chunked":
+            self._commit_eviction()
+            self._update_chunk_maps()
+        else:
+            self._write_manifest()
+            self._remap()
+
+    def _commit_eviction(self) -> None:
+        """Layout "chunked": commit the retained range, then delete the files of the chunks it no longer reaches."""
+        assert self.layout == "chunked"
+        self.committed_first = max(self.committed_first, min(self.first, self.num_committed))
+        dropped = [chunk for chunk in self.chunks if chunk["start"] + chunk["rows"] <= self.committed_first]
+        self.chunks = self.chunks[len(dropped) :]
+        self._write_manifest()  # from here on, no committed state refers to the dropped chunks
+        if dropped:
+            for chunk in dropped:
+                _delete_file(self._chunk_file(chunk))
+            assert self.path is not None
+            _fsync_dir(self.path)
 
     def _write_manifest(self) -> None:
         assert self.path is not None
-        manifest = {
+        plain = self.layout == "single" and obs_keys_of(self.fields) is None
+        manifest: dict[str, Any] = {
             "format": FORMAT_NAME,
-            "version": FORMAT_VERSION,
+            "version": 1 if plain else 2,
             "fields": {name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in self.fields.items()},
             "num_transitions": self.num_committed,
             "chunks": self.chunks,
@@ -499,12 +831,17 @@ class RowStore:
             "next_stream_id": self.next_stream_id,
             "spaces": self.spaces,
         }
+        if not plain:
+            manifest.update(layout=self.layout, capacity=self.capacity, first_row=self.committed_first)
         write_json_atomic(os.path.join(self.path, MANIFEST_NAME), manifest)
 
     def __getstate__(self) -> dict[str, Any]:
         if self.path is None:
             state = dict(self.__dict__)
-            state["_tail"] = {name: array[: self.num_tail].copy() for name, array in self._tail.items()}
+            skip = self.first - self._tail_start  # evicted rows are not pickled
+            state["_tail"] = {name: array[skip : self.num_tail].copy() for name, array in self._tail.items()}
+            state["_tail_start"] = self._tail_start + skip
+            state["num_tail"] = self.num_tail - skip
             return state
         # a directory store pickles as a reference to its directory: flush, then reopen on unpickling
         self.flush()
@@ -559,44 +896,95 @@ class RowStore:
             self._remap()
             self.remaps += 1
 
+    def _gather_committed(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Committed rows by global number."""
+        if self.layout != "chunked":
+            return {name: self._maps[name][rows] for name in names}
+        owner = np.searchsorted(self._chunk_starts, rows, side="right") - 1
+        if len(rows) == 0:
+            return self._empty(names)
+        if owner[0] == owner[-1] and (owner == owner[0]).all():  # one chunk (e.g. a single row)
+            k = int(owner[0])
+            local = rows - self._chunk_starts[k]
+            return {name: self._chunk_maps[k][name][local] for name in names}
+        order = np.argsort(owner, kind="stable")
+        sorted_owner = owner[order]
+        bounds = np.concatenate([[0], np.flatnonzero(sorted_owner[1:] != sorted_owner[:-1]) + 1, [len(rows)]]).tolist()
+        result = self._empty(names, len(rows))
+        if 4 * (len(bounds) - 1) > len(rows):
+            # rows spread over many chunks (random sampling): copying row by row is the fastest in numpy
+            pairs = list(zip(owner.tolist(), (rows - self._chunk_starts[owner]).tolist()))
+            for name in names:
+                out, maps = result[name], [chunk[name] for chunk in self._chunk_maps]
+                for i, (k, j) in enumerate(pairs):
+                    out[i] = maps[k][j]
+            return result
+        local = rows[order] - self._chunk_starts[sorted_owner]
+        for name in names:  # one read per chunk touched
+            ordered = np.empty_like(result[name])
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                ordered[a:b] = self._chunk_maps[int(sorted_owner[a])][name][local[a:b]]
+            result[name][order] = ordered
+        return result
+
+    def _empty(self, names: tuple[str, ...], rows: int = 0) -> dict[str, np.ndarray]:
+        return {name: np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype) for name in names}
+
     def gather(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, np.ndarray]:
         """
-        Copy the rows ``indices`` (ints in [0, len(self))) of several fields.
+        Copy the rows ``indices`` (ints in [0, len(self)), counted from the oldest retained row) of several fields.
 
         :param names: Fields to read
         :param indices: Row indices
         :return: field name -> array of shape (len(indices), *row_shape)
         """
-        committed = self.num_committed
-        if committed == 0:
-            return {name: self._tail[name][indices] for name in names}
+        first = self.first
+        rows = indices + first if first else indices
+        committed = self._tail_start
+        if self.path is None or self.num_committed == 0 or (len(rows) and rows.min() >= committed):
+            local = rows - committed if committed else rows
+            return {name: self._tail[name][local] for name in names}
         if self.max_resident_bytes is not None:
             self._limit_resident()
-        if len(indices) == 0 or indices.max() < committed:
-            return {name: self._maps[name][indices] for name in names}
-        in_tail = indices >= committed
-        tail_idx = indices[in_tail] - committed
-        map_idx = indices[~in_tail]
+        if len(rows) == 0 or rows.max() < committed:
+            return self._gather_committed(names, rows)
+        in_tail = rows >= committed
+        from_maps = self._gather_committed(names, rows[~in_tail])
+        tail_idx = rows[in_tail] - committed
         result = {}
         for name in names:
-            out = np.empty((len(indices), *self._tail[name].shape[1:]), dtype=self._tail[name].dtype)
+            out = np.empty((len(rows), *self._tail[name].shape[1:]), dtype=self._tail[name].dtype)
             out[in_tail] = self._tail[name][tail_idx]
-            out[~in_tail] = self._maps[name][map_idx]
+            out[~in_tail] = from_maps[name]
             result[name] = out
         return result
 
     def read_range(self, name: str, start: int, stop: int) -> np.ndarray:
         """
-        Rows ``start:stop`` of a field (a view of the map or of the tail where possible, a copy when it straddles both).
+        Rows ``start:stop`` of a field, counted from the oldest retained row (a view of a map or of the tail where
+        possible, a copy when the range spans several).
 
         :param name: Field
         :param start: First row
         :param stop: One past the last row
         :return: Array of shape (stop - start, *row_shape)
         """
-        committed = self.num_committed
-        if stop <= committed and committed > 0:
-            return self._maps[name][start:stop]
-        if start >= committed:
-            return self._tail[name][start - committed : stop - committed]
-        return np.concatenate([self._maps[name][start:], self._tail[name][: stop - committed]])
+        first = self.first
+        lo, hi = start + first, max(start, stop) + first
+        committed = self._tail_start
+        pieces = []
+        if lo < committed and self.path is not None:
+            if self.layout == "chunked":
+                for k, chunk in enumerate(self.chunks):
+                    a, b = max(lo, chunk["start"]), min(hi, committed, chunk["start"] + chunk["rows"])
+                    if a < b:
+                        pieces.append(self._chunk_maps[k][name][a - chunk["start"] : b - chunk["start"]])
+            else:
+                pieces.append(self._maps[name][lo : min(hi, committed)])
+        if hi > committed:
+            pieces.append(self._tail[name][max(lo, committed) - committed : hi - committed])
+        if len(pieces) == 1:
+            return pieces[0]
+        if not pieces:
+            return self._tail[name][:0]
+        return np.concatenate(pieces)

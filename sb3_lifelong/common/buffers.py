@@ -6,6 +6,7 @@ See ``docs/modules/buffer.md`` for the directory format, the crash guarantees an
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Sequence
 from typing import Any, Optional, Union
@@ -15,25 +16,34 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
-from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 from stable_baselines3.common.utils import get_device
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_lifelong.common.buffer_storage import (
-    FIELD_NAMES,
     FLAG_DONE,
     FLAG_TIMEOUT,
     MAX_SOURCE_ID,
+    OBS_FIELDS,
     BufferFormatError,
     RowStore,
+    check_obs_key,
+    obs_keys_of,
 )
+from sb3_lifelong.common.datasets import import_minari, minari_columns
 
 __all__ = ["BufferFormatError", "LifelongBufferView", "LifelongReplayBuffer", "merge_buffers"]
 
 _COPY_BLOCK = 1 << 16
+_Samples = Union[ReplayBufferSamples, DictReplayBufferSamples]
+# Minari interop: per-step source ids (in the episodes' infos) and source names / metadata (in the dataset metadata)
+MINARI_SOURCE_INFO = "sb3_lifelong_source"
+MINARI_SOURCES_METADATA = "sb3_lifelong_sources"
 
 
 def _space_to_json(space: spaces.Space) -> dict[str, Any]:
+    if isinstance(space, spaces.Dict):
+        return {"type": "Dict", "spaces": {key: _space_to_json(sub) for key, sub in space.spaces.items()}}
     if isinstance(space, spaces.Discrete):
         return {"type": "Discrete", "n": int(space.n), "start": int(space.start)}
     if isinstance(space, spaces.Box):
@@ -60,19 +70,67 @@ def _space_from_json(data: dict[str, Any], dtype: str, shape: tuple[int, ...]) -
     if np.issubdtype(np_dtype, np.integer):
         info = np.iinfo(np_dtype)
         low, high = np.clip(low, info.min, info.max), np.clip(high, info.min, info.max)
+    elif np.issubdtype(np_dtype, np.floating):  # the bounds were written from values of this dtype: exact
+        low, high = low.astype(np_dtype), high.astype(np_dtype)
     return spaces.Box(low.reshape(shape), high.reshape(shape), shape=shape, dtype=np_dtype)  # type: ignore[arg-type]
 
 
-class _RunIndex:
-    """Run-length index of the source ids (start row and source of each run), for per-source sampling."""
+def _observation_space_from_store(store: RowStore) -> spaces.Space:
+    """The observation space described by a store's manifest (a Dict space when the observations have keys)."""
+    data = store.spaces.get("observation", {})
+    data = data if isinstance(data, dict) else {}
+    keys = obs_keys_of(store.fields)
+    if keys is None:
+        return _space_from_json(data, *store.fields["observations"])
+    described = data["spaces"] if isinstance(data.get("spaces"), dict) else {}
+    subspaces = {}
+    for key in keys:
+        sub = described.get(key)
+        subspaces[key] = _space_from_json(sub if isinstance(sub, dict) else {}, *store.fields[f"observations.{key}"])
+    return spaces.Dict(subspaces)
 
-    def __init__(self) -> None:
+
+def _observation_fields(observation_space: spaces.Space) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """The observation and next-observation fields of a store for an observation space (one pair per Dict key)."""
+
+    def spec(space: spaces.Space) -> tuple[str, tuple[int, ...]]:
+        shape: tuple[int, ...] = tuple(get_obs_shape(space))  # type: ignore[arg-type]
+        return np.dtype(space.dtype).str, shape
+
+    if not isinstance(observation_space, spaces.Dict):
+        return {"observations": spec(observation_space), "next_observations": spec(observation_space)}
+    fields = {}
+    for base in OBS_FIELDS:
+        for key, sub in observation_space.spaces.items():
+            if isinstance(sub, (spaces.Dict, spaces.Tuple)):
+                raise NotImplementedError(
+                    f"Dict observation key {key!r}: nested {type(sub).__name__} spaces are not supported"
+                )
+            check_obs_key(key)
+            fields[f"{base}.{key}"] = spec(sub)
+    return fields
+
+
+class _RunIndex:
+    """
+    Run-length index of the source ids (start row and source of each run), for per-source sampling. Rows are the
+    store's global row numbers, so that evicting the oldest rows only moves the point from which runs count.
+    """
+
+    def __init__(self, start: int = 0) -> None:
         self.starts = np.zeros(64, dtype=np.int64)
         self.sources = np.zeros(64, dtype=np.int64)
         self.count = 0
-        self.total = 0
+        self.total = start  # global row after the last indexed row
 
-    def extend(self, sources: np.ndarray) -> None:
+    def extend(self, sources: np.ndarray, at: Optional[int] = None) -> None:
+        """
+        :param sources: Source ids of the rows from ``at``
+        :param at: Global row of ``sources[0]`` (default: right after the indexed rows). Rows skipped before it
+            (evicted before they were indexed) are counted in the previous run, which only matters for evicted rows
+        """
+        if at is not None and at > self.total:
+            self.total = at
         if len(sources) == 0:
             return
         if self.count and len(sources) == 1 and sources[0] == self.sources[self.count - 1]:
@@ -89,10 +147,20 @@ class _RunIndex:
         self.count += len(new)
         self.total += len(sources)
 
-    def runs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        starts = self.starts[: self.count]
+    def runs(self, first: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        :param first: Global row of the oldest retained row: runs are cut there
+        :return: Start (counted from ``first``), length and source of each run of retained rows
+        """
+        skip = max(int(np.searchsorted(self.starts[: self.count], first, side="right")) - 1, 0) if first else 0
+        if skip > 64 and skip > self.count // 2:  # forget runs of evicted rows for good
+            self.starts[: self.count - skip] = self.starts[skip : self.count]
+            self.sources[: self.count - skip] = self.sources[skip : self.count]
+            self.count -= skip
+            skip = 0
+        starts = np.maximum(self.starts[skip : self.count], first)
         lengths = np.diff(np.append(starts, self.total))
-        return starts, lengths, self.sources[: self.count]
+        return starts - first, lengths, self.sources[skip : self.count]
 
 
 class _LifelongSampler(ReplayBuffer):
@@ -104,6 +172,8 @@ class _LifelongSampler(ReplayBuffer):
     n_steps: int
     gamma: float
     last_sampled_sources: Optional[np.ndarray]
+    # keys of Dict observations (fields ``observations.<key>``), None for Box / Discrete observations
+    _obs_keys: Optional[tuple[str, ...]]
 
     def _init_sampler(self, n_steps: int, gamma: float) -> None:
         if n_steps < 1:
@@ -132,6 +202,30 @@ class _LifelongSampler(ReplayBuffer):
         """Source id -> ``{"name": str, "metadata": dict}`` (e.g. the dynamics parameters of a stage)."""
         raise NotImplementedError
 
+    def _field_names(self, names: tuple[str, ...]) -> tuple[str, ...]:
+        """Stored fields of ``names``: ``observations`` / ``next_observations`` stand for one field per Dict key."""
+        if self._obs_keys is None:
+            return names
+        result: list[str] = []
+        for name in names:
+            result.extend([f"{name}.{key}" for key in self._obs_keys] if name in OBS_FIELDS else [name])
+        return tuple(result)
+
+    def _gather_rows(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, Any]:
+        """Like ``_gather``, with Dict observations regrouped as ``{key: array}`` under their base name."""
+        rows: dict[str, Any] = self._gather(self._field_names(names), indices)
+        if self._obs_keys is not None:
+            for base in OBS_FIELDS:
+                if base in names:
+                    rows[base] = {key: rows.pop(f"{base}.{key}") for key in self._obs_keys}
+        return rows
+
+    def _check_exportable(self, what: str) -> None:
+        if self._obs_keys is not None:
+            raise NotImplementedError(
+                f"{what} of Dict observations is not supported (d4rl and Minari exports need one observation array)"
+            )
+
     # ------------------------------------------------------------------ SB3 attributes
     @property  # type: ignore[override]
     def pos(self) -> int:
@@ -142,15 +236,21 @@ class _LifelongSampler(ReplayBuffer):
     def pos(self, value: int) -> None:
         raise AttributeError("the position of a lifelong buffer is its size and cannot be set")
 
+    @property
+    def capacity(self) -> Optional[int]:
+        """The number of most recent transitions kept, or None when every transition is kept."""
+        return None
+
     @property  # type: ignore[override]
     def full(self) -> bool:
-        """Always False: the buffer never wraps around and never overwrites."""
-        return False
+        """Whether the buffer holds ``capacity`` transitions (new ones evict the oldest); always False without one."""
+        capacity = self.capacity
+        return capacity is not None and self.size() >= capacity
 
     @full.setter
     def full(self, value: bool) -> None:
-        if value:
-            raise AttributeError("a lifelong buffer is never full")
+        if value != self.full:
+            raise AttributeError("whether a lifelong buffer is full follows from its size and capacity and cannot be set")
 
     # ------------------------------------------------------------------ per-source options
     def source_counts(self) -> dict[int, int]:
@@ -213,15 +313,16 @@ class _LifelongSampler(ReplayBuffer):
 
     def sample(  # type: ignore[override]
         self, batch_size: int, env: Optional[VecNormalize] = None, return_sources: bool = False
-    ) -> Union[ReplayBufferSamples, tuple[ReplayBufferSamples, th.Tensor]]:
+    ) -> Union[_Samples, tuple[_Samples, th.Tensor]]:
         """
         Sample transitions uniformly (or with the per-source weights) over everything stored.
 
         :param batch_size: Number of transitions
         :param env: VecNormalize to normalise observations and rewards with
         :param return_sources: Also return the source ids of the batch (a long tensor)
-        :return: The samples (``discounts`` is set when ``n_steps > 1``, like SB3's ``NStepReplayBuffer``),
-            and the source ids if asked. The source ids of the last batch are also in ``last_sampled_sources``.
+        :return: The samples (``discounts`` is set when ``n_steps > 1``, like SB3's ``NStepReplayBuffer``;
+            ``DictReplayBufferSamples`` for Dict observations), and the source ids if asked. The source ids of the
+            last batch are also in ``last_sampled_sources``.
         """
         samples = self._get_samples(self._sample_indices(batch_size), env=env)
         if return_sources:
@@ -241,26 +342,36 @@ class _LifelongSampler(ReplayBuffer):
         # the gathered arrays are fresh copies: no second copy needed
         return th.as_tensor(array, device=self.device)
 
-    def _get_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize] = None) -> ReplayBufferSamples:
+    def _obs_tensor(self, obs: Union[np.ndarray, dict[str, np.ndarray]], env: Optional[VecNormalize]) -> Any:
+        obs = self._normalize_obs(obs, env)
+        if isinstance(obs, dict):
+            return {key: self._tensor(value) for key, value in obs.items()}
+        return self._tensor(obs)
+
+    def _samples(self, **kwargs: Any) -> Any:
+        """``ReplayBufferSamples``, or ``DictReplayBufferSamples`` for Dict observations (as SB3's ``DictReplayBuffer``)."""
+        return (ReplayBufferSamples if self._obs_keys is None else DictReplayBufferSamples)(**kwargs)
+
+    def _get_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize] = None) -> _Samples:  # type: ignore[override]
         batch_inds = np.asarray(batch_inds, dtype=np.int64)
         if self.n_steps > 1:
             return self._get_n_step_samples(batch_inds, env)
-        rows = self._gather(("observations", "actions", "next_observations", "rewards", "flags", "sources"), batch_inds)
+        rows = self._gather_rows(("observations", "actions", "next_observations", "rewards", "flags", "sources"), batch_inds)
         self.last_sampled_sources = rows["sources"]
         flags = rows["flags"]
         dones = ((flags & FLAG_DONE) != 0) & ((flags & FLAG_TIMEOUT) == 0)
         rewards = self._scaled(rows["rewards"], rows["sources"])
-        return ReplayBufferSamples(
-            observations=self._tensor(self._normalize_obs(rows["observations"], env)),  # type: ignore[arg-type]
+        return self._samples(
+            observations=self._obs_tensor(rows["observations"], env),
             actions=self._tensor(rows["actions"]),
-            next_observations=self._tensor(self._normalize_obs(rows["next_observations"], env)),  # type: ignore[arg-type]
+            next_observations=self._obs_tensor(rows["next_observations"], env),
             dones=self._tensor(dones.astype(np.float32).reshape(-1, 1)),
             rewards=self._tensor(self._normalize_reward(rewards.reshape(-1, 1), env).astype(np.float32, copy=False)),
         )
 
-    def _get_n_step_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize]) -> ReplayBufferSamples:
+    def _get_n_step_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize]) -> _Samples:
         total = self.size()
-        first = self._gather(("observations", "actions", "rewards", "flags", "sources", "streams", "widths"), batch_inds)
+        first = self._gather_rows(("observations", "actions", "rewards", "flags", "sources", "streams", "widths"), batch_inds)
         self.last_sampled_sources = first["sources"]
         steps = np.arange(1, self.n_steps)
         # the next transition of the same env stream is `widths` rows further (the n_envs of the add() that wrote it)
@@ -287,17 +398,54 @@ class _LifelongSampler(ReplayBuffer):
         last = indices[rows, count - 1]
         last_flags = flags[rows, count - 1]
         final_dones = ((last_flags & FLAG_DONE) != 0) & ((last_flags & FLAG_TIMEOUT) == 0)
-        next_obs = self._gather(("next_observations",), last)["next_observations"]
-        return ReplayBufferSamples(
-            observations=self._tensor(self._normalize_obs(first["observations"], env)),  # type: ignore[arg-type]
+        next_obs = self._gather_rows(("next_observations",), last)["next_observations"]
+        return self._samples(
+            observations=self._obs_tensor(first["observations"], env),
             actions=self._tensor(first["actions"]),
-            next_observations=self._tensor(self._normalize_obs(next_obs, env)),  # type: ignore[arg-type]
+            next_observations=self._obs_tensor(next_obs, env),
             dones=self._tensor(final_dones.astype(np.float32).reshape(-1, 1)),
             rewards=self._tensor(returns),
             discounts=self._tensor(discounts),
         )
 
     # ------------------------------------------------------------------ export
+    def _export_columns(self, by_episode: bool, normalized_actions: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """
+        :return: The d4rl columns of :meth:`to_d4rl` plus ``streams``, and a mask of the rows marked as a timeout
+            only because their stream stops there (the write head of an env, a reopen, an ``n_envs`` change)
+        """
+        self._check_exportable("d4rl export")
+        total = self.size()
+        names = ("observations", "next_observations", "actions", "rewards", "flags", "sources", "streams")
+        data = {name: np.asarray(self._read_range(name, 0, total)) for name in names}
+        flags = data["flags"]
+        timeouts = (flags & FLAG_TIMEOUT) != 0
+        terminals = ((flags & FLAG_DONE) != 0) & ~timeouts
+        order = np.arange(total)
+        open_end = np.zeros(total, dtype=bool)
+        if by_episode and total:
+            streams = data["streams"].astype(np.int64)
+            order = np.argsort(streams, kind="stable")
+            sorted_streams = streams[order]
+            last_of_stream = np.append(sorted_streams[1:] != sorted_streams[:-1], True)
+            terminals, timeouts = terminals[order], timeouts[order]
+            open_end = last_of_stream & ~terminals & ~timeouts
+            timeouts = timeouts | open_end
+        actions = data["actions"][order]
+        if not normalized_actions:
+            actions = _rescale_actions(actions, self.action_space, to_env_units=True)
+        columns = {
+            "observations": data["observations"][order],
+            "actions": actions,
+            "rewards": data["rewards"][order],
+            "next_observations": data["next_observations"][order],
+            "terminals": terminals,
+            "timeouts": timeouts,
+            "sources": data["sources"][order].astype(np.int64),
+            "streams": data["streams"][order].astype(np.int64),
+        }
+        return columns, open_end
+
     def to_d4rl(self, by_episode: bool = True, normalized_actions: bool = False) -> dict[str, np.ndarray]:
         """
         Materialise the whole buffer as a d4rl-style dict (in memory).
@@ -311,31 +459,100 @@ class _LifelongSampler(ReplayBuffer):
         :return: ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals`` (done and not a
             timeout), ``timeouts`` (time-limit truncations) and ``sources`` (source id of each transition)
         """
-        total = self.size()
-        data = {name: np.asarray(self._read_range(name, 0, total)) for name in FIELD_NAMES}
-        flags = data["flags"]
-        timeouts = (flags & FLAG_TIMEOUT) != 0
-        terminals = ((flags & FLAG_DONE) != 0) & ~timeouts
-        order = np.arange(total)
-        if by_episode and total:
-            streams = data["streams"].astype(np.int64)
-            order = np.argsort(streams, kind="stable")
-            sorted_streams = streams[order]
-            last_of_stream = np.append(sorted_streams[1:] != sorted_streams[:-1], True)
-            timeouts = timeouts[order] | (last_of_stream & ~terminals[order])
-            terminals = terminals[order]
-        actions = data["actions"][order]
-        if not normalized_actions:
-            actions = _rescale_actions(actions, self.action_space, to_env_units=True)
-        return {
-            "observations": data["observations"][order],
-            "actions": actions,
-            "rewards": data["rewards"][order],
-            "next_observations": data["next_observations"][order],
-            "terminals": terminals,
-            "timeouts": timeouts,
-            "sources": data["sources"][order].astype(np.int64),
-        }
+        columns, _ = self._export_columns(by_episode, normalized_actions)
+        del columns["streams"]
+        return columns
+
+    def to_minari(
+        self,
+        dataset_id: str,
+        normalized_actions: bool = False,
+        unfinished: str = "truncate",
+        description: Optional[str] = None,
+        **minari_kwargs: Any,
+    ) -> Any:
+        """
+        Write the buffer as a new local Minari dataset (under ``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``).
+        Needs the optional package ``minari`` (``pip install minari[hdf5]``). The data is materialised in memory.
+
+        Episodes: the rows of each env stream (see :meth:`to_d4rl`), split after every episode end (done or
+        time-limit truncation), and also where ``next_observations[t] != observations[t + 1]`` inside a stream
+        (a Minari episode is one chain of observations: the cut is written as a truncation). The source id of step
+        ``t`` is written to ``infos["sb3_lifelong_source"][t + 1]`` (``[0]`` repeats it for the reset), and the
+        sources' names and metadata to the dataset metadata ``sb3_lifelong_sources``, so that :meth:`from_minari`
+        restores them.
+
+        :param dataset_id: Minari dataset id, ``(namespace/)(env_name/)dataset_name(-v<version>)``; must not exist
+        :param normalized_actions: Write the actions as stored (normalised to ``[-1, 1]``, with a ``Box(-1, 1)``
+            action space). By default they are in environment units (as :meth:`to_d4rl`) with the buffer's space
+        :param unfinished: The last episode of a stream that has not ended yet (the write head of an env, or a stream
+            cut by a reopen, an ``n_envs`` change or ``end_streams()``): ``"truncate"`` writes it with its last step
+            marked as a truncation (as :meth:`to_d4rl` does), ``"drop"`` leaves it out
+        :param description: Dataset description (default: says where it comes from)
+        :param minari_kwargs: Further arguments of ``minari.create_dataset_from_buffers`` (``author``,
+            ``author_email``, ``algorithm_name``, ``code_permalink``, ``env``, ``eval_env``, ``data_format``, ...).
+            Image observations are stored losslessly (``jpeg_encoding=False``) unless asked otherwise
+        :return: The ``minari.MinariDataset``
+        """
+        if unfinished not in ("truncate", "drop"):
+            raise ValueError(f"unfinished must be 'truncate' or 'drop', got {unfinished!r}")
+        self._check_exportable("Minari export")
+        minari = import_minari("LifelongReplayBuffer.to_minari")
+        from minari.data_collector import EpisodeBuffer
+
+        if self.size() == 0:
+            raise ValueError("cannot export an empty buffer to Minari")
+        data, open_end = self._export_columns(by_episode=True, normalized_actions=normalized_actions)
+        obs, next_obs = data["observations"], data["next_observations"]
+        terminals, timeouts = data["terminals"], data["timeouts"]
+        total = len(obs)
+        ends = terminals | timeouts
+        if total > 1:  # a stream whose observations do not chain is cut into episodes there
+            chained = (next_obs[:-1] == obs[1:]).reshape(total - 1, -1).all(axis=1)
+            cut = np.append(~ends[:-1] & ~chained, False)
+            timeouts = timeouts | cut
+            ends = ends | cut
+        stops = np.flatnonzero(ends) + 1
+        starts = np.concatenate([[0], stops[:-1]])
+        if unfinished == "drop":
+            keep = ~open_end[stops - 1]
+            starts, stops = starts[keep], stops[keep]
+        if len(starts) == 0:
+            raise ValueError("the buffer holds no finished episode to export (unfinished='drop')")
+        obs_shape = tuple(self.observation_space.shape or ())
+        action_space = self.action_space
+        if normalized_actions and isinstance(action_space, spaces.Box):
+            action_space = spaces.Box(-1.0, 1.0, shape=action_space.shape, dtype=action_space.dtype)  # type: ignore[arg-type]
+        action_shape = tuple(action_space.shape or ())
+        sources = data["sources"].astype(np.int64)
+        episodes = []
+        for episode_id, (start, stop) in enumerate(zip(starts.tolist(), stops.tolist())):
+            episode_obs = np.concatenate([obs[start:stop], next_obs[stop - 1 : stop]])
+            episodes.append(
+                EpisodeBuffer(
+                    id=episode_id,
+                    observations=episode_obs.reshape(stop - start + 1, *obs_shape),
+                    actions=data["actions"][start:stop].reshape(stop - start, *action_shape),
+                    rewards=data["rewards"][start:stop],
+                    terminations=terminals[start:stop],
+                    truncations=timeouts[start:stop],
+                    infos={MINARI_SOURCE_INFO: np.concatenate([sources[start : start + 1], sources[start:stop]])},
+                )
+            )
+        if description is None:
+            description = f"Exported from an sb3_lifelong LifelongReplayBuffer ({len(episodes)} episodes)"
+        if "jpeg_encoding" in inspect.signature(minari.create_dataset_from_buffers).parameters:
+            minari_kwargs.setdefault("jpeg_encoding", False)
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id,
+            episodes,
+            observation_space=self.observation_space,
+            action_space=action_space,
+            description=description,
+            **minari_kwargs,
+        )
+        dataset.storage.update_metadata({MINARI_SOURCES_METADATA: {str(k): v for k, v in sorted(self.sources.items())}})
+        return dataset
 
     def save_npz(self, file: Union[str, os.PathLike]) -> None:
         """
@@ -348,14 +565,15 @@ class _LifelongSampler(ReplayBuffer):
 
 class LifelongReplayBuffer(_LifelongSampler):
     """
-    Replay buffer that keeps every transition, tagged with its source (stage), in memory or in a crash-safe
-    directory of append-only files that is memory-mapped for reading.
+    Replay buffer that keeps every transition (or the most recent ``capacity`` ones), tagged with its source
+    (stage), in memory or in a crash-safe directory of append-only files that is memory-mapped for reading.
 
     Drop-in ``replay_buffer_class`` for SB3 off-policy algorithms: ``buffer_size`` is recorded but never
-    evicts anything, and ``add()`` accepts any number of envs (each env of each ``add`` width is its own stream).
+    evicts anything (``capacity`` does), and ``add()`` accepts any number of envs (each env of each ``add`` width
+    is its own stream).
 
-    :param buffer_size: SB3's buffer size: informational only, nothing is ever overwritten or evicted
-    :param observation_space: Observation space (Box or Discrete; optional when opening an existing ``path``)
+    :param buffer_size: SB3's buffer size: informational only, nothing is evicted because of it (see ``capacity``)
+    :param observation_space: Observation space (Box, Discrete, or Dict of those; optional when opening a ``path``)
     :param action_space: Action space (optional when opening an existing ``path``)
     :param device: PyTorch device of the sampled tensors
     :param n_envs: Number of parallel envs expected first (any number is accepted later)
@@ -371,6 +589,10 @@ class LifelongReplayBuffer(_LifelongSampler):
     :param source: Initial source id of transitions whose ``info`` has no ``"stage"``
     :param max_resident_bytes: With a path: remap the files after random reads may have made about this many
         bytes of them resident, to bound the RSS of sampling a buffer larger than RAM (None: never)
+    :param capacity: Keep only the most recent ``capacity`` transitions (counted over all envs, like SB3's
+        ``buffer_size``): adding to a full buffer evicts the oldest ones (FIFO). None (default): keep everything.
+        A directory stores its chunks in separate files, deleted once every row of the chunk is evicted. When
+        reopening a directory, None keeps its stored capacity; a directory created without one cannot get one
     """
 
     def __init__(
@@ -390,20 +612,21 @@ class LifelongReplayBuffer(_LifelongSampler):
         verify: str = "last",
         source: int = 0,
         max_resident_bytes: Optional[int] = None,
+        capacity: Optional[int] = None,
     ) -> None:
         # BaseBuffer.__init__ is not called: it would allocate and assign attributes that are properties here
         if optimize_memory_usage:
             raise ValueError("LifelongReplayBuffer stores next observations: optimize_memory_usage is not supported")
-        if isinstance(observation_space, spaces.Dict) or isinstance(action_space, spaces.Dict):
-            raise NotImplementedError("LifelongReplayBuffer supports Box and Discrete spaces, not Dict spaces")
+        if isinstance(action_space, (spaces.Dict, spaces.Tuple)):
+            raise NotImplementedError(f"LifelongReplayBuffer supports Box and Discrete action spaces, not {action_space}")
+        if isinstance(observation_space, spaces.Tuple):
+            raise NotImplementedError("LifelongReplayBuffer does not support Tuple observation spaces (Dict ones are)")
         path_str = None if path is None else os.fspath(path)
         fields: Optional[dict[str, tuple[str, tuple[int, ...]]]] = None
         if observation_space is not None and action_space is not None:
-            obs_shape = get_obs_shape(observation_space)
             action_dtype = self._maybe_cast_dtype(action_space.dtype)
             fields = {
-                "observations": (np.dtype(observation_space.dtype).str, tuple(obs_shape)),  # type: ignore[arg-type,misc]
-                "next_observations": (np.dtype(observation_space.dtype).str, tuple(obs_shape)),  # type: ignore[arg-type,misc]
+                **_observation_fields(observation_space),
                 "actions": (np.dtype(action_dtype).str, (get_action_dim(action_space),)),
                 "rewards": ("<f4", ()),
                 "flags": ("|u1", ()),
@@ -420,14 +643,15 @@ class LifelongReplayBuffer(_LifelongSampler):
             chunk_size=chunk_size,
             verify=verify,
             max_resident_bytes=max_resident_bytes,
+            capacity=capacity,
         )
         if not self.store.spaces and observation_space is not None and action_space is not None and not read_only:
             self.store.spaces = {"observation": _space_to_json(observation_space), "action": _space_to_json(action_space)}
         if observation_space is None or action_space is None:
-            obs_dtype, obs_shape_stored = self.store.fields["observations"]
             act_dtype, act_shape = self.store.fields["actions"]
-            observation_space = _space_from_json(self.store.spaces.get("observation", {}), obs_dtype, obs_shape_stored)
+            observation_space = _observation_space_from_store(self.store)
             action_space = _space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
+        self._obs_keys = obs_keys_of(self.store.fields)
         self.observation_space = observation_space
         self.action_space = action_space
         self.obs_shape = get_obs_shape(observation_space)  # type: ignore[assignment]
@@ -441,9 +665,8 @@ class LifelongReplayBuffer(_LifelongSampler):
         self._source = self._check_source(source)
         self._stream_base: Optional[int] = None
         self._width = 0
-        self._runs = _RunIndex()
-        for start in range(0, len(self.store), 1 << 20):
-            self._runs.extend(self.store.read_range("sources", start, min(len(self.store), start + (1 << 20))))
+        self._runs = _RunIndex(self.store.first)
+        self._index_sources(0)
 
     # ------------------------------------------------------------------ construction helpers
     @classmethod
@@ -488,6 +711,10 @@ class LifelongReplayBuffer(_LifelongSampler):
         :param kwargs: Constructor arguments (``path``, ``device``, ``n_steps``, ...)
         :return: The buffer
         """
+        if isinstance(observation_space, spaces.Dict):
+            raise NotImplementedError(
+                "from_d4rl: d4rl data has one observation array: Dict observation spaces are not supported"
+            )
         if not isinstance(data, dict):
             with np.load(os.fspath(data), allow_pickle=False) as npz:
                 data = {key: npz[key] for key in npz.files}
@@ -535,6 +762,94 @@ class LifelongReplayBuffer(_LifelongSampler):
         }
         for source_id in np.unique(sources):
             buffer._ensure_source(int(source_id))
+        buffer._append_rows(rows)
+        buffer.flush()
+        return buffer
+
+    @classmethod
+    def from_minari(
+        cls,
+        dataset: Any,
+        path: Optional[Union[str, os.PathLike]] = None,
+        source: Optional[int] = None,
+        source_name: Optional[str] = None,
+        source_metadata: Optional[dict[str, Any]] = None,
+        normalized_actions: bool = False,
+        observation_space: Optional[spaces.Space] = None,
+        action_space: Optional[spaces.Space] = None,
+        **kwargs: Any,
+    ) -> LifelongReplayBuffer:
+        """
+        Build a buffer from a Minari dataset (each episode becomes one env stream: n-step returns never cross
+        episodes). Needs the optional package ``minari`` to load a dataset by id.
+
+        :param dataset: A Minari dataset id (loaded with ``minari.load_dataset`` from ``MINARI_DATASETS_PATH``) or a
+            dataset object (``minari.MinariDataset``, or anything with ``iterate_episodes()``)
+        :param path: Buffer directory (None: in memory)
+        :param source: Source id of every transition. None: the per-step source ids written by :meth:`to_minari`
+            (with their names and metadata) when the dataset has them, else 0
+        :param source_name: Name of ``source`` (default ``"minari:<dataset id>"``)
+        :param source_metadata: Metadata of ``source``, added to ``minari_dataset_id``, ``minari_total_episodes``
+            and ``minari_total_steps`` (restored sources get ``minari_dataset_id`` added to their metadata)
+        :param normalized_actions: Whether the dataset's actions are already normalised to ``[-1, 1]``. By default
+            they are in environment units (the Minari convention) and are normalised with the action space's bounds
+        :param observation_space: Defaults to the dataset's
+        :param action_space: Defaults to the dataset's
+        :param kwargs: Further constructor arguments (``device``, ``n_steps``, ``chunk_size``, ...)
+        :return: The buffer
+        """
+        if isinstance(dataset, (str, os.PathLike)):
+            dataset = import_minari("LifelongReplayBuffer.from_minari").load_dataset(os.fspath(dataset))
+        observation_space = observation_space if observation_space is not None else dataset.observation_space
+        action_space = action_space if action_space is not None else dataset.action_space
+        if observation_space is None or action_space is None:
+            raise ValueError("the Minari dataset has no observation or action space: pass observation_space and action_space")
+        if isinstance(observation_space, spaces.Dict) or isinstance(action_space, spaces.Dict):
+            raise NotImplementedError("Minari import of Dict observation or action spaces is not supported")
+        dataset_id = getattr(dataset, "id", None)
+        columns = minari_columns(dataset, info_keys=(MINARI_SOURCE_INFO,))
+        lengths = columns["episode_lengths"]
+        total = int(lengths.sum())
+        buffer = cls(total, observation_space, action_space, path=path, **kwargs)
+        common = {
+            "minari_dataset_id": dataset_id if isinstance(dataset_id, str) else None,
+            "minari_total_episodes": len(lengths),
+            "minari_total_steps": total,
+        }
+        tags = columns.get(f"info/{MINARI_SOURCE_INFO}")
+        if source is None and tags is not None:
+            sources = tags.astype(np.int64).reshape(total)
+            if total and (sources.min() < 0 or sources.max() > MAX_SOURCE_ID):
+                raise ValueError(f"the dataset's source ids must be in [0, {MAX_SOURCE_ID}]")
+            storage = getattr(dataset, "storage", None)
+            stored = storage.metadata.get(MINARI_SOURCES_METADATA, {}) if storage is not None else {}
+            for source_id in np.unique(sources).tolist():
+                info = stored.get(str(source_id)) if isinstance(stored, dict) else None
+                info = info if isinstance(info, dict) else {}
+                name = info["name"] if isinstance(info.get("name"), str) else None
+                extra: dict[str, Any] = info["metadata"] if isinstance(info.get("metadata"), dict) else {}
+                buffer._ensure_source(source_id, name, {**extra, "minari_dataset_id": common["minari_dataset_id"]})
+        else:
+            source = buffer._check_source(0 if source is None else source)
+            sources = np.full(total, source, dtype=np.int64)
+            name = source_name or f"minari:{dataset_id if isinstance(dataset_id, str) else 'dataset'}"
+            buffer._ensure_source(source, name, {**common, **dict(source_metadata or {})})
+        actions = columns["actions"].reshape(total, buffer.action_dim)
+        if not normalized_actions:
+            actions = _rescale_actions(actions, action_space, to_env_units=False)
+        terminals, timeouts = columns["terminals"], columns["timeouts"]
+        base = buffer.store.next_stream_id
+        buffer.store.next_stream_id += len(lengths)
+        rows = {
+            "observations": columns["observations"].reshape(total, *buffer.obs_shape),
+            "next_observations": columns["next_observations"].reshape(total, *buffer.obs_shape),
+            "actions": actions,
+            "rewards": np.asarray(columns["rewards"], dtype=np.float32).reshape(total),
+            "flags": ((terminals | timeouts) * FLAG_DONE + timeouts * FLAG_TIMEOUT).astype(np.uint8),
+            "sources": sources.astype(np.uint16),
+            "streams": np.repeat(np.arange(base, base + len(lengths), dtype=np.int64), lengths).astype(np.uint32),
+            "widths": np.ones(total, dtype=np.uint16),
+        }
         buffer._append_rows(rows)
         buffer.flush()
         return buffer
@@ -629,8 +944,8 @@ class LifelongReplayBuffer(_LifelongSampler):
             if self.handle_timeout_termination and info.get("TimeLimit.truncated", False):
                 timeouts[i] = FLAG_TIMEOUT
         rows = {
-            "observations": np.asarray(obs).reshape(width, *self.obs_shape),
-            "next_observations": np.asarray(next_obs).reshape(width, *self.obs_shape),
+            **self._observation_rows("observations", obs, width),
+            **self._observation_rows("next_observations", next_obs, width),
             "actions": np.asarray(action).reshape(width, self.action_dim),
             "rewards": reward,
             "flags": np.asarray(done).reshape(width).astype(np.uint8) | timeouts,
@@ -639,6 +954,15 @@ class LifelongReplayBuffer(_LifelongSampler):
             "widths": self._widths,
         }
         self._append_rows(rows)
+
+    def _observation_rows(self, base: str, obs: Union[np.ndarray, dict[str, np.ndarray]], width: int) -> dict[str, np.ndarray]:
+        if self._obs_keys is None:
+            return {base: np.asarray(obs).reshape(width, *self.obs_shape)}  # type: ignore[misc]
+        if not isinstance(obs, dict) or set(obs) != set(self._obs_keys):
+            got = sorted(obs) if isinstance(obs, dict) else type(obs).__name__
+            raise ValueError(f"{base}: expected a dict with the keys {list(self._obs_keys)}, got {got}")
+        shapes: dict[str, tuple[int, ...]] = self.obs_shape  # type: ignore[assignment]
+        return {f"{base}.{key}": np.asarray(obs[key]).reshape(width, *shapes[key]) for key in self._obs_keys}
 
     def _append_rows(self, rows: dict[str, np.ndarray]) -> None:
         self.store.append(rows)
@@ -652,23 +976,29 @@ class LifelongReplayBuffer(_LifelongSampler):
         """Flush and release the directory (its data stays readable from this object)."""
         self.store.close()
 
+    def _index_sources(self, start: int) -> None:
+        """Add the source ids of the retained rows from index ``start`` on to the run index."""
+        first = self.store.first
+        for block in range(start, len(self.store), 1 << 20):
+            sources = self.store.read_range("sources", block, min(len(self.store), block + (1 << 20)))
+            self._runs.extend(sources, at=first + block)
+
     def refresh(self) -> int:
         """
-        Read-only buffers: see the transitions another process committed since opening.
+        Read-only buffers: see the transitions another process committed (and evicted) since opening.
 
         :return: The number of transitions
         """
-        before = len(self.store)
+        indexed = self._runs.total
         self.store.refresh()
-        for start in range(before, len(self.store), 1 << 20):
-            self._runs.extend(self.store.read_range("sources", start, min(len(self.store), start + (1 << 20))))
+        self._index_sources(max(indexed - self.store.first, 0))
         return len(self.store)
 
     def reset(self) -> None:
         """Erase an in-memory buffer (a directory buffer refuses: its data is meant to be kept)."""
         if self.store.path is not None:
             raise RuntimeError("refusing to erase a persistent lifelong buffer; delete its directory instead")
-        self.store.num_tail = 0
+        self.store.clear()
         self._runs = _RunIndex()
         self._stream_base = None
 
@@ -689,9 +1019,17 @@ class LifelongReplayBuffer(_LifelongSampler):
         """Transitions found committed when the directory was opened."""
         return self.store.recovered
 
+    @property
+    def capacity(self) -> Optional[int]:
+        """The number of most recent transitions kept (older ones are evicted), or None when every one is kept."""
+        return self.store.capacity
+
     @property  # type: ignore[override]
     def buffer_size(self) -> int:
-        """The size SB3 asked for, or the number of stored transitions if larger (never a limit)."""
+        """``capacity`` when set; otherwise the size SB3 asked for, or the number of stored transitions if larger
+        (then never a limit)."""
+        if self.store.capacity is not None:
+            return self.store.capacity
         return max(self.requested_buffer_size, self.size())
 
     @buffer_size.setter
@@ -700,7 +1038,7 @@ class LifelongReplayBuffer(_LifelongSampler):
 
     def size(self) -> int:
         """
-        :return: The total number of stored transitions
+        :return: The number of stored (retained) transitions
         """
         return len(self.store)
 
@@ -708,7 +1046,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         return self.store.gather(names, indices)
 
     def _source_runs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self._runs.runs()
+        return self._runs.runs(self.store.first)
 
     def _read_range(self, name: str, start: int, stop: int) -> np.ndarray:
         return self.store.read_range(name, start, stop)
@@ -742,10 +1080,11 @@ class LifelongBufferView(_LifelongSampler):
             raise ValueError("a view needs at least one buffer")
         first = buffers[0]
         for buffer in buffers[1:]:
-            for name in ("observations", "actions"):
-                if buffer.store.fields[name] != first.store.fields[name]:
-                    raise ValueError(f"cannot combine buffers with different {name}: {buffer.store.fields[name]}")
+            if buffer.store.fields != first.store.fields:
+                differ = sorted(set(buffer.store.fields.items()) ^ set(first.store.fields.items()))
+                raise ValueError(f"cannot combine buffers with different observation or action fields: {differ}")
         self.buffers = list(buffers)
+        self._obs_keys = first._obs_keys
         self.observation_space = first.observation_space
         self.action_space = first.action_space
         self.obs_shape = first.obs_shape
@@ -863,7 +1202,7 @@ def merge_buffers(
         total = buffer.size()
         for start in range(int(first_row), total, _COPY_BLOCK):
             stop = min(total, start + _COPY_BLOCK)
-            rows = {name: np.asarray(buffer.store.read_range(name, start, stop)) for name in FIELD_NAMES}
+            rows = {name: np.asarray(buffer.store.read_range(name, start, stop)) for name in merged.store.fields}
             rows["streams"] = (rows["streams"].astype(np.int64) + base).astype(np.uint32)
             merged._append_rows(rows)
         merged.store.next_stream_id = base + buffer.store.next_stream_id

@@ -32,8 +32,10 @@ __all__ = [
     "OfflineReplayBuffer",
     "OfflineSamples",
     "d4rl_to_replay_buffer",
+    "import_minari",
     "infer_spaces",
     "load_d4rl",
+    "minari_columns",
     "minari_to_d4rl",
     "next_actions_of",
     "replay_buffer_to_d4rl",
@@ -182,26 +184,38 @@ def load_d4rl(data: Union[Mapping[str, Any], str, os.PathLike]) -> dict[str, np.
     return validate_d4rl(data)  # type: ignore[arg-type]
 
 
-def minari_to_d4rl(dataset: Any) -> tuple[dict[str, np.ndarray], Optional[spaces.Space], Optional[spaces.Space]]:
+def import_minari(purpose: str) -> Any:
     """
-    Flatten a Minari dataset into a d4rl dict (``observations[t]``, ``observations[t + 1]`` of each episode become a
-    transition; ``terminations`` and ``truncations`` become ``terminals`` and ``timeouts``).
+    Import the optional package ``minari``.
 
-    :param dataset: a Minari dataset id (loaded with ``minari.load_dataset``; needs ``minari`` installed) or a
-        dataset object with ``iterate_episodes()``
-    :return: the validated dict, and the dataset's observation and action spaces (None when it has none)
+    :param purpose: What needs it (for the error message)
+    :return: The ``minari`` module
+    :raises ImportError: telling how to install it
     """
-    if isinstance(dataset, str):
-        try:
-            import minari
-        except ImportError as error:
-            raise ImportError(
-                f"{dataset!r} is not a file, so it was taken as a Minari dataset id; loading it needs the optional "
-                "package minari (`pip install minari`)"
-            ) from error
-        dataset = minari.load_dataset(dataset)
+    try:
+        import minari
+    except ImportError as error:
+        raise ImportError(
+            f"{purpose} needs the optional package minari (`pip install minari[hdf5]`, or `pip install sb3_lifelong[extra]`)"
+        ) from error
+    return minari
+
+
+def minari_columns(dataset: Any, info_keys: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """
+    Flatten the episodes of a Minari dataset into columns of transitions, as they are stored (no dtype conversion,
+    no validation): ``observations[t]`` and ``observations[t + 1]`` of each episode become a transition.
+
+    :param dataset: A dataset object with ``iterate_episodes()`` (a ``minari.MinariDataset`` or a duck-typed one)
+    :param info_keys: Keys of the episodes' ``infos`` to return too, as ``info/<key>``: step ``t`` gets
+        ``infos[key][t + 1]`` (Minari's ``infos`` start with the one of ``reset``). Returned only when every episode
+        has the key with one entry per observation
+    :return: ``observations``, ``next_observations``, ``actions``, ``rewards``, ``terminals``, ``timeouts`` (boolean),
+        ``episode_lengths`` (one entry per episode) and the ``info/<key>`` columns found
+    """
     columns: dict[str, list[np.ndarray]] = {key: [] for key in ("observations", "next_observations", "actions")}
-    columns.update(rewards=[], terminals=[], timeouts=[])
+    columns.update(rewards=[], terminals=[], timeouts=[], episode_lengths=[])
+    infos: dict[str, list[np.ndarray]] = {key: [] for key in info_keys}
     for episode in dataset.iterate_episodes():
         observations = episode.observations
         if isinstance(observations, dict):
@@ -219,9 +233,35 @@ def minari_to_d4rl(dataset: Any) -> tuple[dict[str, np.ndarray], Optional[spaces
         columns["rewards"].append(np.asarray(episode.rewards))
         columns["terminals"].append(np.asarray(episode.terminations, dtype=bool))
         columns["timeouts"].append(np.asarray(episode.truncations, dtype=bool))
+        columns["episode_lengths"].append(np.array([steps], dtype=np.int64))
+        episode_infos = getattr(episode, "infos", None) or {}
+        for key in list(infos):
+            value = episode_infos.get(key) if isinstance(episode_infos, Mapping) else None
+            if value is None or isinstance(value, Mapping) or len(value) != steps + 1:
+                del infos[key]  # not usable: dropped for the whole dataset
+            else:
+                infos[key].append(np.asarray(value)[1:])
     if not columns["observations"]:
         raise OfflineDataError("the Minari dataset has no episodes")
-    data = validate_d4rl({key: np.concatenate(values) for key, values in columns.items()})
+    result = {key: np.concatenate(values) for key, values in columns.items()}
+    result.update({f"info/{key}": np.concatenate(values) for key, values in infos.items()})
+    return result
+
+
+def minari_to_d4rl(dataset: Any) -> tuple[dict[str, np.ndarray], Optional[spaces.Space], Optional[spaces.Space]]:
+    """
+    Flatten a Minari dataset into a d4rl dict (``observations[t]``, ``observations[t + 1]`` of each episode become a
+    transition; ``terminations`` and ``truncations`` become ``terminals`` and ``timeouts``).
+
+    :param dataset: a Minari dataset id (loaded with ``minari.load_dataset``; needs ``minari`` installed) or a
+        dataset object with ``iterate_episodes()``
+    :return: the validated dict, and the dataset's observation and action spaces (None when it has none)
+    """
+    if isinstance(dataset, str):
+        minari = import_minari(f"{dataset!r} is not a file, so it was taken as a Minari dataset id; loading it")
+        dataset = minari.load_dataset(dataset)
+    columns = minari_columns(dataset)
+    data = validate_d4rl({key: columns[key] for key in REQUIRED_KEYS + OPTIONAL_KEYS})
     return data, getattr(dataset, "observation_space", None), getattr(dataset, "action_space", None)
 
 
