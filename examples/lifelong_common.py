@@ -252,14 +252,36 @@ def write_summary(output: pathlib.Path, rows: list[dict[str, Any]], config: dict
     (output / "summary.md").write_text(
         f"# {output.name}\n\nFinal evaluation return (mean +- std over seeds {seeds}; deterministic policy, "
         f"{config['eval_episodes']} episodes per env).\n\n{table}\n\nConfig: `{json.dumps(config)}`\n\n"
-        f"Wall clock: {elapsed:.0f} s\n"
+        f"Wall clock (of the last invocation): {elapsed:.0f} s\n"
     )
     return table
 
 
+def merge_previous_seeds(output: pathlib.Path, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """
+    Seeds run by separate invocations into the same output directory are summarised together: the rows of
+    ``summary.csv`` from earlier runs are kept for the seeds that this run did not redo.
+
+    :return: all rows, sorted by seed
+    """
+    previous = output / "summary.csv"
+    if not previous.exists():
+        return rows
+    redone = {row["seed"] for row in rows}
+    with open(previous, newline="") as handle:
+        kept = [
+            dict(seed=int(row["seed"]), method=row["method"], env=row["env"], final_return=float(row["final_return"]))
+            for row in csv.DictReader(handle)
+            if int(row["seed"]) not in redone
+        ]
+    if kept:
+        print(f"summary: keeping the results of seeds {sorted({row['seed'] for row in kept})} from {previous}")
+    return sorted(kept + rows, key=lambda row: row["seed"])
+
+
 def finish(output: pathlib.Path, rows: list[dict[str, Any]], config: dict[str, Any], elapsed: float, plots: bool) -> None:
-    """Write and print the summary table, then the figures."""
-    print(write_summary(output, rows, config, elapsed))
+    """Write and print the summary table (with earlier seeds of the same directory), then the figures."""
+    print(write_summary(output, merge_previous_seeds(output, rows), config, elapsed))
     if plots:
         from sb3_lifelong.plotting import plot_experiment
 

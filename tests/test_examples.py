@@ -57,3 +57,23 @@ def test_other_examples(tmp_path, script, extra, envs):
     if script == "parallel_sharing.py":
         # the merged data holds every environment once: Env-A's part of the copied buffer is not duplicated
         assert "distilling 900 transitions" in stdout  # 300 (Env-A) + 300 (Env-B) + 300 (Env-C)
+
+
+def test_seeds_of_separate_runs_are_summarised_together(tmp_path):
+    sys.path.insert(0, str(EXAMPLES))
+    try:
+        from lifelong_common import finish
+    finally:
+        sys.path.remove(str(EXAMPLES))
+    config = dict(eval_episodes=1)
+    first = [
+        dict(seed=0, method="MPO", env="Env-A", final_return=1.0),
+        dict(seed=1, method="MPO", env="Env-A", final_return=5.0),
+    ]
+    finish(tmp_path, first, config, 1.0, plots=False)
+    # a later run redoes seed 1 and adds seed 2: seed 0 is kept, seed 1 replaced
+    finish(tmp_path, [dict(seed=s, method="MPO", env="Env-A", final_return=3.0) for s in (1, 2)], config, 1.0, plots=False)
+    rows = summary_rows(tmp_path)
+    assert [(row["seed"], float(row["final_return"])) for row in rows] == [("0", 1.0), ("1", 3.0), ("2", 3.0)]
+    assert "seeds [0, 1, 2]" in (tmp_path / "summary.md").read_text()
+    assert "| MPO | 2 +- 1 |" in (tmp_path / "summary.md").read_text()
