@@ -1,9 +1,11 @@
 """
 Benchmark of LifelongReplayBuffer against SB3's ReplayBuffer.
 
-1. sample(256) throughput on 1M transitions (in memory and in a directory), vs SB3 ``ReplayBuffer``;
+1. sample(256) throughput on 1M transitions (in memory and in a directory, ``read_mode="mmap"`` and ``"pread"``),
+   vs SB3 ``ReplayBuffer``;
 2. add() cost per transition (one env, SB3-style calls);
-3. RSS and disk of 10M transitions of OP3-sized observations (60 floats) written to a directory and sampled.
+3. RSS and disk of 10M transitions of OP3-sized observations (60 floats) written to a directory and sampled
+   (memory maps, memory maps with ``max_resident_bytes``, positioned reads).
 
 Usage (one BLAS/torch thread, the directory goes to a temporary folder that is deleted afterwards)::
 
@@ -13,6 +15,7 @@ Usage (one BLAS/torch thread, the directory goes to a temporary folder that is d
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import platform
 import shutil
@@ -86,11 +89,14 @@ def bench_sampling(size: int, n_batches: int, tmp: str) -> list[tuple[str, float
     disk._append_rows(data)
     disk.flush()
     del data
+    pread = LifelongReplayBuffer.open(os.path.join(tmp, "sample1m"), read_only=True, device="cpu", read_mode="pread")
     results = [
         ("SB3 ReplayBuffer", time_sampling(sb3, n_batches)),
         ("LifelongReplayBuffer (memory)", time_sampling(memory, n_batches)),
         ("LifelongReplayBuffer (directory, mmap)", time_sampling(disk, n_batches)),
+        ("LifelongReplayBuffer (directory, pread)", time_sampling(pread, n_batches)),
     ]
+    pread.close()
     memory3 = LifelongReplayBuffer(size, OBS, ACT, device="cpu", n_steps=3)
     memory3.store, memory3._runs = memory.store, memory._runs
     results.append(("LifelongReplayBuffer (memory, n_steps=3)", time_sampling(memory3, n_batches)))
@@ -134,9 +140,15 @@ def bench_big(total: int, n_batches: int, tmp: str) -> dict[str, float]:
     after_write = rss()
     buffer.close()
     result: dict[str, float] = {}
-    for label, limit in (("max_resident_bytes=None (default)", None), ("max_resident_bytes=256MiB", 256 << 20)):
+    readers: list[tuple[str, dict]] = [
+        ("max_resident_bytes=None (default)", {}),
+        ("max_resident_bytes=256MiB", {"max_resident_bytes": 256 << 20}),
+        ("read_mode=pread", {"read_mode": "pread"}),
+    ]
+    for label, kwargs in readers:
+        gc.collect()  # the previous reader's maps are gone: RssFile is back to the libraries'
         start = time.perf_counter()
-        reader = LifelongReplayBuffer.open(path, read_only=True, device="cpu", max_resident_bytes=limit)
+        reader = LifelongReplayBuffer.open(path, read_only=True, device="cpu", **kwargs)
         result[f"open s ({label})"] = time.perf_counter() - start
         peak = {"VmRSS": 0.0, "RssAnon": 0.0, "RssFile": 0.0}
         start = time.perf_counter()
@@ -149,7 +161,9 @@ def bench_big(total: int, n_batches: int, tmp: str) -> dict[str, float]:
         result[f"peak VmRSS MiB while sampling ({label})"] = peak["VmRSS"]
         result[f"peak RssAnon MiB while sampling ({label})"] = peak["RssAnon"]
         result[f"peak RssFile MiB while sampling ({label})"] = peak["RssFile"]
-        result[f"remaps ({label})"] = reader.store.remaps
+        if reader.read_mode == "mmap":
+            result[f"remaps ({label})"] = reader.store.remaps
+        reader.close()
         del reader
     disk = sum(os.path.getsize(os.path.join(path, f)) for f in os.listdir(path))
     return {

@@ -566,7 +566,8 @@ class _LifelongSampler(ReplayBuffer):
 class LifelongReplayBuffer(_LifelongSampler):
     """
     Replay buffer that keeps every transition (or the most recent ``capacity`` ones), tagged with its source
-    (stage), in memory or in a crash-safe directory of append-only files that is memory-mapped for reading.
+    (stage), in memory or in a crash-safe directory of append-only files, read with memory maps or positioned reads
+    (``read_mode``).
 
     Drop-in ``replay_buffer_class`` for SB3 off-policy algorithms: ``buffer_size`` is recorded but never
     evicts anything (``capacity`` does), and ``add()`` accepts any number of envs (each env of each ``add`` width
@@ -587,12 +588,16 @@ class LifelongReplayBuffer(_LifelongSampler):
     :param chunk_size: Transitions per flushed chunk (at most this many are lost by a crash)
     :param verify: Checksums verified when opening a path: "last" chunk (default), "all" or "none"
     :param source: Initial source id of transitions whose ``info`` has no ``"stage"``
-    :param max_resident_bytes: With a path: remap the files after random reads may have made about this many
-        bytes of them resident, to bound the RSS of sampling a buffer larger than RAM (None: never)
+    :param max_resident_bytes: With a path and ``read_mode="mmap"``: remap the files after random reads may have
+        made about this many bytes of them resident, to bound the RSS of sampling a buffer larger than RAM (None: never)
     :param capacity: Keep only the most recent ``capacity`` transitions (counted over all envs, like SB3's
         ``buffer_size``): adding to a full buffer evicts the oldest ones (FIFO). None (default): keep everything.
         A directory stores its chunks in separate files, deleted once every row of the chunk is evicted. When
         reopening a directory, None keeps its stored capacity; a directory created without one cannot get one
+    :param read_mode: With a path, how stored transitions are read: ``"mmap"`` (default: memory maps; fastest, but
+        every file page a read touches counts in the process's RSS) or ``"pread"`` (positioned reads into new arrays,
+        about one system call per row and field: several times slower, but no file page is mapped, so the RSS stays
+        at the process's own memory). Both give bit-identical samples. No effect in memory
     """
 
     def __init__(
@@ -613,6 +618,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         source: int = 0,
         max_resident_bytes: Optional[int] = None,
         capacity: Optional[int] = None,
+        read_mode: str = "mmap",
     ) -> None:
         # BaseBuffer.__init__ is not called: it would allocate and assign attributes that are properties here
         if optimize_memory_usage:
@@ -644,6 +650,7 @@ class LifelongReplayBuffer(_LifelongSampler):
             verify=verify,
             max_resident_bytes=max_resident_bytes,
             capacity=capacity,
+            read_mode=read_mode,
         )
         if not self.store.spaces and observation_space is not None and action_space is not None and not read_only:
             self.store.spaces = {"observation": _space_to_json(observation_space), "action": _space_to_json(action_space)}
@@ -671,7 +678,12 @@ class LifelongReplayBuffer(_LifelongSampler):
     # ------------------------------------------------------------------ construction helpers
     @classmethod
     def open(
-        cls, path: Union[str, os.PathLike], read_only: bool = False, device: Union[th.device, str] = "auto", **kwargs: Any
+        cls,
+        path: Union[str, os.PathLike],
+        read_only: bool = False,
+        device: Union[th.device, str] = "auto",
+        read_mode: str = "mmap",
+        **kwargs: Any,
     ) -> LifelongReplayBuffer:
         """
         Open an existing buffer directory (the spaces are read from its manifest).
@@ -679,12 +691,14 @@ class LifelongReplayBuffer(_LifelongSampler):
         :param path: Buffer directory
         :param read_only: Do not write (another process may be writing; call :meth:`refresh` to see its new data)
         :param device: PyTorch device of the sampled tensors
+        :param read_mode: ``"mmap"`` (memory maps) or ``"pread"`` (positioned reads, no file page mapped into the
+            process), see the constructor
         :param kwargs: Further constructor arguments (``n_steps``, ``gamma``, ``verify``, ...)
         :return: The buffer
         """
         if not os.path.isdir(os.fspath(path)):
             raise FileNotFoundError(f"no buffer directory at {os.fspath(path)!r}")
-        return cls(path=path, read_only=read_only, device=device, **kwargs)
+        return cls(path=path, read_only=read_only, device=device, read_mode=read_mode, **kwargs)
 
     @classmethod
     def from_d4rl(
@@ -973,7 +987,8 @@ class LifelongReplayBuffer(_LifelongSampler):
         self.store.flush()
 
     def close(self) -> None:
-        """Flush and release the directory (its data stays readable from this object)."""
+        """Flush and release the directory, and close the files opened by ``read_mode="pread"`` (its data stays
+        readable from this object)."""
         self.store.close()
 
     def _index_sources(self, start: int) -> None:
@@ -1013,6 +1028,11 @@ class LifelongReplayBuffer(_LifelongSampler):
     def path(self) -> Optional[str]:
         """The buffer directory, or None in memory."""
         return self.store.path
+
+    @property
+    def read_mode(self) -> str:
+        """How stored transitions are read from the directory: ``"mmap"`` or ``"pread"``."""
+        return self.store.read_mode
 
     @property
     def recovered(self) -> int:
@@ -1182,7 +1202,7 @@ def merge_buffers(
     :param starts: For each buffer, the index of its first transition to copy (default 0: all of it). For
         agents copied from a common ancestor (buffer included), pass the ancestor's size for the copies so that
         the shared transitions are kept once.
-    :param kwargs: Further constructor arguments of the new buffer (``chunk_size``, ``n_steps``, ...)
+    :param kwargs: Further constructor arguments of the new buffer (``chunk_size``, ``n_steps``, ``read_mode``, ...)
     :return: The merged buffer
     """
     if starts is None:
