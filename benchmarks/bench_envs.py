@@ -1,12 +1,12 @@
 """
 Benchmarks of sb3_lifelong.envs: DynamicsSchedule overhead per step, cost of a parameter change, OP3 env speed,
-and (``--train-seconds > 0``) how much the paper's presets hurt an OP3 policy trained on the default robot
-(PPO for a few minutes).
+and how much the paper's presets hurt a fixed open-loop OP3 gait (for a policy *trained* on the default robot see
+``op3_trained_presets.py``).
 
 Usage (one core, as the results were made)::
 
     OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 MENAGERIE_ROOT=../shared/menagerie \
-        python benchmarks/bench_envs.py --steps 20000 --repeats 3 --train-seconds 170 --out benchmarks/results/envs.md
+        python benchmarks/bench_envs.py --steps 20000 --repeats 3 --out benchmarks/results/envs.md
 """
 
 import argparse
@@ -19,7 +19,6 @@ from typing import Callable, Dict, List, Optional, Tuple
 import gymnasium as gym
 import numpy as np
 
-import sb3_lifelong.envs  # registers the envs
 from sb3_lifelong.envs import OP3_WALK_ID, PAPER_PRESETS, DynamicsSchedule, LinearRamp
 
 
@@ -92,30 +91,11 @@ def recompile_cost(make: Callable[[], gym.Env], value: float, repeats: int = 3) 
     return float(np.median(times))
 
 
-def evaluate(model, stage: Dict[str, float], episodes: int) -> Tuple[float, float]:
-    env = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=[stage])
-    returns, lengths = [], []
-    for ep in range(episodes):
-        obs, _ = env.reset(seed=1000 + ep)
-        done, total, length = False, 0.0, 0
-        while not done:
-            action, _ = model.predict(obs, deterministic=True)
-            obs, reward, terminated, truncated, _ = env.step(action)
-            total += float(reward)
-            length += 1
-            done = terminated or truncated
-        returns.append(total)
-        lengths.append(length)
-    return float(np.mean(returns)), float(np.mean(lengths))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=20_000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--pairs", type=int, default=50, help="raw/wrapped block pairs for the overhead")
-    parser.add_argument("--train-seconds", type=float, default=0.0, help="PPO wall-clock budget on default OP3 (0: skip)")
-    parser.add_argument("--eval-episodes", type=int, default=3)
     parser.add_argument("--out", type=str, default=None)
     parser.add_argument("--gait-only", action="store_true", help="only the fixed open-loop gait table of the OP3 presets")
     parser.add_argument("--skip-speed", action="store_true", help="skip the overhead, change-cost and speed tables")
@@ -129,8 +109,6 @@ def main() -> None:
 
     if not args.skip_speed:
         speed_tables(args, lines)
-    if args.train_seconds > 0:
-        trained_policy_table(args, lines)
     write(lines, args.out)
 
 
@@ -186,34 +164,6 @@ def speed_tables(args: argparse.Namespace, lines: List[str]) -> None:
     makers = [partial(gym.make, OP3_WALK_ID), partial(make_wrapped, OP3_WALK_ID, dict(stages=["hip_0.3"], append_params=True))]
     for name, rates in zip(names, interleaved(makers, 200, args.pairs)):
         lines.append(f"| {name} | {np.median(rates):.0f} |")
-        print(lines[-1], flush=True)
-
-
-def trained_policy_table(args: argparse.Namespace, lines: List[str]) -> None:
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    class Budget(BaseCallback):
-        def _on_training_start(self) -> None:
-            self.start = time.perf_counter()
-
-        def _on_step(self) -> bool:
-            return time.perf_counter() - self.start < args.train_seconds
-
-    # PPO: the cheapest updates per env step, so the most experience in a few minutes of one core
-    model = PPO("MlpPolicy", gym.make(OP3_WALK_ID), n_steps=2048, batch_size=256, n_epochs=5, seed=0)
-    model.learn(10**8, callback=Budget())
-    lines.append(
-        f"\n## OP3 presets vs a policy trained on the default robot\n\nPPO (SB3 defaults but batch 256, 5 epochs), "
-        f"{args.train_seconds:.0f} s wall clock on one core = {model.num_timesteps} env steps on the default robot; "
-        f"deterministic returns and episode lengths, mean of {args.eval_episodes} episodes (seeds 1000+).\n\n"
-        "| robot | return | return - default | episode length |\n| --- | --- | --- | --- |"
-    )
-    base = None
-    for preset in ["default", *PAPER_PRESETS]:
-        r, length = evaluate(model, sb3_lifelong.envs.PRESETS[preset], args.eval_episodes)
-        base = r if base is None else base
-        lines.append(f"| {preset} | {r:.1f} | {r - base:+.1f} | {length:.0f} |")
         print(lines[-1], flush=True)
 
 

@@ -14,7 +14,7 @@ rewards are normalised (``VecNormalize``, frozen at evaluation).
 Usage::
 
     OMP_NUM_THREADS=1 MENAGERIE_ROOT=../shared/menagerie python benchmarks/op3_trained_presets.py \\
-        --train-seconds 6000 --out benchmarks/results/envs_op3_trained.md
+        --train-seconds 6000 --out benchmarks/results/envs_op3_trained_ppo.md
     # evaluate an existing checkpoint only
     python benchmarks/op3_trained_presets.py --eval-only --workdir benchmarks/results/op3_ppo
 """
