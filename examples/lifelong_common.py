@@ -93,6 +93,7 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distill-steps", type=int, default=None)
     parser.add_argument("--eval-freq", type=int, default=None)
     parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
+    parser.add_argument("--no-plots", action="store_true")
 
 
 def add_per_source_argument(parser: argparse.ArgumentParser) -> None:
@@ -102,7 +103,6 @@ def add_per_source_argument(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also distil with one actor per source and a shared critic (the diagnostic 'distilled_per_source')",
     )
-    parser.add_argument("--no-plots", action="store_true")
 
 
 def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
