@@ -121,6 +121,9 @@ def test_eval_callback_evaluates_each_env_with_its_source_actor():
     final = {row["env"]: row["mean_reward"] for row in callback.results}
     assert final == {"A": 1.0, "B": -1.0}
     assert model.actor.active_head == 0  # back to the first source after the evaluation
+    model.select_source(2)
+    callback.evaluate()
+    assert model.active_source == 2  # the evaluation restores the model's own selection
     with pytest.raises(ValueError, match="not evaluated"):
         MultiEnvEvalCallback({"A": ConstantObsEnv()}, sources={"C": 0})
 

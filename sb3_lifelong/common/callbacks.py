@@ -80,7 +80,7 @@ class MultiEnvEvalCallback(BaseCallback):
     :param eval_at_start: also evaluate before the first step
     :param sources: for models with one actor per source (CRR's ``actor_per_source=True`` diagnostic): the source
         id whose actor acts in each environment, by environment name (``{"Env-A": 0, "Env-B": 1}``); the model's
-        ``select_source`` is called before each of these environments and the first source is selected again after
+        ``select_source`` is called before each of these environments and the model's own selection is restored after
     :param verbose: 1 prints each evaluation
     """
 
@@ -119,7 +119,7 @@ class MultiEnvEvalCallback(BaseCallback):
         self._next_eval = 0
 
     def _init_callback(self) -> None:
-        if self.sources is not None and not hasattr(self.model, "select_source"):
+        if self.sources is not None and not hasattr(self.model, "active_source"):
             raise TypeError(
                 f"MultiEnvEvalCallback(sources=...) needs a model with one actor per source, got {type(self.model).__name__}"
             )
@@ -151,6 +151,7 @@ class MultiEnvEvalCallback(BaseCallback):
         means: dict[str, float] = {}
         rows = []
         model: Any = self.model
+        selected = model.active_source if self.sources is not None else None
         for name, env in self.eval_envs.items():
             if self.sources is not None and name in self.sources:
                 model.select_source(self.sources[name])
@@ -173,8 +174,8 @@ class MultiEnvEvalCallback(BaseCallback):
             rows.append(row)
             if self.verbose >= 1:
                 print(f"Eval at {self.num_timesteps}: {name} mean reward {mean:.2f} +/- {std:.2f}")
-        if self.sources is not None and getattr(model, "source_ids", None):
-            model.select_source(model.source_ids[0])
+        if selected is not None:
+            model.select_source(selected)
         self.logger.record("eval/mean_over_envs", float(np.mean(list(means.values()))))
         self.results.extend(rows)
         if self.log_path is not None:

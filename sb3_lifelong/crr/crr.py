@@ -271,6 +271,13 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         self.actor.active_head = self.source_ids.index(source)
         return self
 
+    @property
+    def active_source(self) -> Optional[int]:
+        """The source whose actor ``predict`` uses (None without ``actor_per_source``)."""
+        if not isinstance(self.actor, PerSourceActor) or self.source_ids is None:
+            return None
+        return self.source_ids[self.actor.active_head]
+
     def _source_heads(self) -> Optional[th.Tensor]:
         """:return: the actor index of each row of the last sampled batch (None without actor_per_source)"""
         if self._head_of_source is None:
