@@ -3,11 +3,12 @@ Throughput of MPO vs SB3's SAC: environment steps per second with one gradient u
 
 Both use the same networks (256x256 actor and critic), batch size 256 and the same environment. Runs are
 interleaved (SAC, MPO, SAC, MPO, ...) in one process so that both see the same machine load; the table reports
-medians over rounds and the MPO/SAC ratio. A torch profile of MPO's update says where the time goes.
+medians over rounds and the MPO/SAC ratio. MPO is timed with each scoring precision asked for (float32: exact;
+auto: bfloat16 where the CPU has it). A torch profile of each MPO variant's update says where the time goes.
 
 Usage::
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_mpo_throughput.py --env Hopper-v5 --rounds 5 --steps 1000
+    OMP_NUM_THREADS=1 python benchmarks/bench_mpo_throughput.py --envs Walker2d-v5 Hopper-v5 --rounds 5 --steps 1000
 """
 
 import argparse
@@ -28,11 +29,18 @@ from sb3_lifelong import MPO
 RESULTS = pathlib.Path(__file__).parent / "results"
 
 
-def make(algo: str, env_id: str, num_samples: int) -> Any:
+def make(algo: str, env_id: str, num_samples: int, scoring_dtype: str = "auto") -> Any:
     common = dict(batch_size=256, learning_starts=1000, train_freq=1, gradient_steps=1, seed=0, verbose=0)
     if algo == "SAC":
         return SAC("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[256, 256]), **common)
-    return MPO("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[256, 256]), num_samples=num_samples, **common)
+    return MPO(
+        "MlpPolicy",
+        env_id,
+        policy_kwargs=dict(net_arch=[256, 256]),
+        num_samples=num_samples,
+        scoring_dtype=scoring_dtype,
+        **common,
+    )
 
 
 def timed_learn(model: Any, steps: int) -> float:
@@ -54,30 +62,23 @@ def profile_mpo(model: MPO, updates: int) -> list[tuple[str, float]]:
     return rows
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="Hopper-v5")
-    parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--steps", type=int, default=1000, help="environment steps per timed round")
-    parser.add_argument("--num-samples", type=int, nargs="+", default=[20], help="MPO num_samples values to time")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a 2-core machine)")
-    parser.add_argument("--output", default=str(RESULTS / "mpo_throughput"))
-    args = parser.parse_args()
-    th.set_num_threads(args.threads)
-
-    models = {"SAC": make("SAC", args.env, 0)}
+def run_env(env_id: str, args: argparse.Namespace) -> tuple[list[str], dict[str, Any]]:
+    models = {"SAC": make("SAC", env_id, 0)}
     for n in args.num_samples:
-        models[f"MPO (N={n})"] = make("MPO", args.env, n)
+        for dtype in args.scoring_dtypes:
+            models[f"MPO (N={n}, {dtype})"] = make("MPO", env_id, n, dtype)
     for model in models.values():  # warm-up: fill learning_starts and run some updates
         model.learn(1200)
     speeds: dict[str, list[float]] = {name: [] for name in models}
     for round_idx in range(args.rounds):
         for name, model in models.items():
             speeds[name].append(timed_learn(model, args.steps))
-        print(f"round {round_idx + 1}/{args.rounds}: " + ", ".join(f"{k} {v[-1]:.1f}" for k, v in speeds.items()))
+        print(f"{env_id} round {round_idx + 1}/{args.rounds}: " + ", ".join(f"{k} {v[-1]:.1f}" for k, v in speeds.items()))
 
     sac = float(np.median(speeds["SAC"]))
     lines = [
+        f"## {env_id}",
+        "",
         f"| algorithm | env steps/s (median of {args.rounds}) | ratio to SAC |",
         "| --- | --- | --- |",
     ]
@@ -86,10 +87,32 @@ def main() -> None:
         median = float(np.median(values))
         lines.append(f"| {name} | {median:.1f} | {median / sac:.2f}x |")
         results[name] = {"steps_per_s": values, "median": median, "ratio_to_sac": median / sac}
-    first_mpo = next(m for name, m in models.items() if name.startswith("MPO"))
-    breakdown = profile_mpo(first_mpo, 100)
+    profiles = {name: dict(profile_mpo(model, 100)) for name, model in models.items() if name.startswith("MPO")}
+    sections = sorted({key for profile in profiles.values() for key in profile})
     lines += ["", "MPO update, time per section (ms per update, torch profiler, 100 updates):", ""]
-    lines += ["| section | ms |", "| --- | --- |"] + [f"| {key} | {ms:.2f} |" for key, ms in breakdown]
+    lines += ["| section | " + " | ".join(profiles) + " |", "| --- |" + " --- |" * len(profiles)]
+    lines += [f"| {key} | " + " | ".join(f"{p.get(key, 0.0):.2f}" for p in profiles.values()) + " |" for key in sections]
+    lines += ["| sum | " + " | ".join(f"{sum(p.values()):.2f}" for p in profiles.values()) + " |", ""]
+    return lines, {"results": results, "profile_ms": profiles}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", nargs="+", default=["Walker2d-v5", "Hopper-v5"])
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=1000, help="environment steps per timed round")
+    parser.add_argument("--num-samples", type=int, nargs="+", default=[20], help="MPO num_samples values to time")
+    parser.add_argument("--scoring-dtypes", nargs="+", default=["float32", "auto"], help="MPO scoring precisions to time")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a 2-core machine)")
+    parser.add_argument("--output", default=str(RESULTS / "mpo_throughput"))
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+
+    lines: list[str] = []
+    per_env: dict[str, Any] = {}
+    for env_id in args.envs:
+        env_lines, per_env[env_id] = run_env(env_id, args)
+        lines += env_lines
     table = "\n".join(lines)
     print(table)
 
@@ -98,17 +121,18 @@ def main() -> None:
     meta = {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
         "command": "OMP_NUM_THREADS=1 python benchmarks/bench_mpo_throughput.py "
-        + f"--env {args.env} --rounds {args.rounds} --steps {args.steps} --num-samples "
+        + f"--envs {' '.join(args.envs)} --rounds {args.rounds} --steps {args.steps} --num-samples "
         + " ".join(map(str, args.num_samples))
-        + f" --threads {args.threads}",
+        + f" --scoring-dtypes {' '.join(args.scoring_dtypes)} --threads {args.threads}",
         "machine": f"{platform.processor() or platform.machine()}, torch {th.__version__}, {th.get_num_threads()} thread(s)",
     }
-    out.with_suffix(".json").write_text(json.dumps({**meta, "results": results, "profile_ms": breakdown}, indent=2))
-    out.with_suffix(".md").write_text(
-        f"# MPO vs SAC throughput on {args.env}\n\nCommand: `{meta['command']}`\n\nDate: {meta['date']}; {meta['machine']}\n\n"
+    out.with_suffix(".json").write_text(json.dumps({**meta, "envs": per_env}, indent=2))
+    out.with_suffix(".raw.md").write_text(
+        f"# MPO vs SAC throughput\n\nCommand: `{meta['command']}`\n\nDate: {meta['date']}; {meta['machine']}\n\n"
         + table
         + "\n"
     )
+    print("wrote", out.with_suffix(".raw.md"), "(the commented profile lives in", out.with_suffix(".md"), ")")
 
 
 if __name__ == "__main__":

@@ -188,17 +188,18 @@ def test_save_load_round_trip(tmp_path):
     assert not th.equal(before, loaded.log_temperature)
 
 
-def _line_model(seed: int) -> MPO:
-    return MPO("MlpPolicy", LineEnv(episode_length=50), seed=seed, **SMALL)
+def _line_model(seed: int, **kwargs) -> MPO:
+    return MPO("MlpPolicy", LineEnv(episode_length=50), seed=seed, **{**SMALL, **kwargs})
 
 
-def test_resume_is_exact(tmp_path):
+@pytest.mark.parametrize("scoring_dtype", ["float32", "bfloat16"])
+def test_resume_is_exact(tmp_path, scoring_dtype):
     """save + load + load_replay_buffer + learn continues exactly like an uninterrupted run."""
-    uninterrupted = _line_model(seed=3)
+    uninterrupted = _line_model(seed=3, scoring_dtype=scoring_dtype, target_update_interval=30)
     uninterrupted.learn(200)
     uninterrupted.learn(200, reset_num_timesteps=False)
 
-    first_half = _line_model(seed=3)
+    first_half = _line_model(seed=3, scoring_dtype=scoring_dtype, target_update_interval=30)
     first_half.learn(200)  # 4 whole episodes: the environment is at an episode boundary
     first_half.save(tmp_path / "model.zip")
     first_half.save_replay_buffer(tmp_path / "buffer.pkl")

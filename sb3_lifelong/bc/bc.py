@@ -130,7 +130,7 @@ class BC(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             self.actor.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if self.max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
+                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
             self.actor.optimizer.step()
             losses.append(loss.detach())
             nlls.append(nll.detach())

@@ -9,7 +9,8 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, Combine
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_lifelong.common.policies import GaussianActor
+from sb3_lifelong.common.policies import GaussianActor, set_training_flags
+from sb3_lifelong.common.utils import with_fast_optimizer
 
 
 class BCPolicy(BasePolicy):
@@ -56,7 +57,7 @@ class BCPolicy(BasePolicy):
             features_extractor_class,
             features_extractor_kwargs,
             optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
+            optimizer_kwargs=with_fast_optimizer(optimizer_class, optimizer_kwargs),
             squash_output=True,
             normalize_images=normalize_images,
         )
@@ -109,8 +110,7 @@ class BCPolicy(BasePolicy):
         return self.actor(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
-        self.actor.set_training_mode(mode)
-        self.training = mode
+        set_training_flags(self, mode, self.actor)
 
 
 class MultiInputPolicy(BCPolicy):

@@ -14,6 +14,8 @@ from gymnasium import spaces
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv
 
+from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype
+
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
 
 
@@ -76,6 +78,32 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
             if forwarded:
                 warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom")
             super()._setup_model()
+
+    def _make_scoring_copy(self, critic: th.nn.Module, scoring_dtype: str) -> Optional[LowPrecisionCopy]:
+        """
+        A low-precision copy of ``critic`` for the no-grad scoring passes, when ``scoring_dtype`` asks for one
+        (see :func:`sb3_lifelong.common.utils.resolve_scoring_dtype`); it is synchronised by
+        :meth:`_sync_scoring_copies` after loads and by the algorithm after its updates.
+
+        :return: the copy, or None to score in the critic's own precision
+        """
+        dtype = resolve_scoring_dtype(scoring_dtype, critic, self.device)
+        if dtype == th.float32:
+            return None
+        copy = LowPrecisionCopy(critic, dtype)  # type: ignore[arg-type]
+        self.__dict__.setdefault("_scoring_copies", []).append(copy)
+        return copy
+
+    def _sync_scoring_copies(self) -> None:
+        for copy in self.__dict__.get("_scoring_copies", []):
+            copy.sync()
+
+    def set_parameters(self, *args: Any, **kwargs: Any) -> None:
+        super().set_parameters(*args, **kwargs)
+        self._sync_scoring_copies()
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "_scoring_copies"]
 
     def distill(self, student_class: Optional[type] = None, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
         """

@@ -19,6 +19,8 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
+from sb3_lifelong.common.utils import with_fast_optimizer
+
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
@@ -36,6 +38,25 @@ def gaussian_log_prob(actions: th.Tensor, mean: th.Tensor, std: th.Tensor) -> th
     """
     z = (actions - mean) / std
     return (-0.5 * z.pow(2) - th.log(std) - LOG_SQRT_2PI).sum(dim=-1)
+
+
+def set_training_flags(owner: nn.Module, mode: bool, *roots: nn.Module) -> None:
+    """
+    ``root.train(mode)`` for every root, through a flat list of their modules cached on ``owner``: SB3 switches
+    modes twice per environment step (``predict`` then ``train``), and ``nn.Module.train``'s recursion costs
+    about as much as a whole small-network update step's optimizer.
+
+    :param owner: the module that keeps the list (its own ``training`` flag is set too)
+    :param mode: training (True) or evaluation (False)
+    :param roots: the modules to switch with all their submodules
+    """
+    cached = owner.__dict__.get("_mode_modules")
+    if cached is None or len(cached[0]) != len(roots) or any(a is not b for a, b in zip(cached[0], roots)):
+        # the roots are kept with the list: a policy whose networks were replaced builds a new one
+        cached = owner.__dict__["_mode_modules"] = (roots, [m for root in roots for m in root.modules()])
+    for module in cached[1]:
+        module.training = mode
+    owner.training = mode
 
 
 def gaussian_kl_per_dim(mean_p: th.Tensor, std_p: th.Tensor, mean_q: th.Tensor, std_q: th.Tensor) -> th.Tensor:
@@ -200,7 +221,7 @@ class GaussianActorCriticPolicy(BasePolicy):
             features_extractor_class,
             features_extractor_kwargs,
             optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
+            optimizer_kwargs=with_fast_optimizer(optimizer_class, optimizer_kwargs),
             squash_output=True,
             normalize_images=normalize_images,
         )
@@ -293,9 +314,7 @@ class GaussianActorCriticPolicy(BasePolicy):
 
         :param mode: if true, set to training mode, else set to evaluation mode
         """
-        self.actor.set_training_mode(mode)
-        self.critic.set_training_mode(mode)
-        self.training = mode
+        set_training_flags(self, mode, self.actor, self.critic)
 
 
 class GaussianActorCriticMultiInputPolicy(GaussianActorCriticPolicy):

@@ -17,7 +17,7 @@ from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.distributional import CategoricalCritic, categorical_projection
 from sb3_lifelong.common.offline import OfflineAlgorithmMixin, with_next_actions
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
-from sb3_lifelong.common.utils import sample_gaussian, score_actions, tile_obs
+from sb3_lifelong.common.utils import SCORING_DTYPES, sample_gaussian, score_actions, tile_obs
 from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor
 
 SelfCRR = TypeVar("SelfCRR", bound="CRR")
@@ -114,6 +114,9 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         model is set up fix the actors (``source_ids``). ``select_source(s)`` chooses the actor that ``predict``
         uses (default: the first source).
     :param max_grad_norm: maximum norm of the actor's and the critic's gradients (None: no clipping)
+    :param scoring_dtype: precision of the no-grad critic passes over sampled actions (advantage baseline, TD
+        target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; categorical critics
+        always score in float32)
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (e.g. ``net_arch``,
@@ -159,6 +162,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         target_update_interval: int = 100,
         actor_per_source: bool = False,
         max_grad_norm: Optional[float] = None,
+        scoring_dtype: str = "auto",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[dict[str, Any]] = None,
@@ -206,6 +210,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         self.source_ids: Optional[list[int]] = None
         self._head_of_source: Optional[np.ndarray] = None
         self.max_grad_norm = max_grad_norm
+        self.scoring_dtype = scoring_dtype
         self._check_hyperparameters()
         if _init_setup_model:
             self._setup_model()
@@ -222,6 +227,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             "target_update_interval": self.target_update_interval >= 1,
             "tau": 0.0 < self.tau <= 1.0,
             "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
+            "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
         }
         if self.actor_per_source and self.critic_target_type == "sarsa":
             raise ValueError("actor_per_source=True does not support critic_target='sarsa' (its data carries no sources)")
@@ -232,7 +238,8 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             raise ValueError(
                 f"Invalid CRR hyperparameters: {values} (num_samples, n_target_samples and target_update_interval must "
                 f"be >= 1, beta > 0, max_weight >= 1, tau in (0, 1], advantage_baseline in {ADVANTAGE_BASELINES}, "
-                f"advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS})"
+                f"advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS}, "
+                f"scoring_dtype in {SCORING_DTYPES})"
             )
 
     def _setup_model(self) -> None:
@@ -242,6 +249,9 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             self.policy_kwargs["n_actors"] = len(self.source_ids)
         super()._setup_model()
         self._create_aliases()
+        # low-precision copies of the target critic (TD targets) and the online critic (advantage baselines)
+        self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
+        self._online_scoring_copy = self._make_scoring_copy(self.critic, self.scoring_dtype)
         if self.actor_per_source:
             assert self.source_ids is not None
             self._head_of_source = np.full(max(self.source_ids) + 1, -1, dtype=np.int64)
@@ -360,7 +370,9 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
                     target_probs = target_probs.view(num_target, -1, target_probs.shape[-1]).mean(dim=0)
                     target = categorical_projection(target_probs, replay_data.rewards, bootstrap, self.critic_target.support)
                 else:
-                    next_q = score_actions(self.critic_target, next_obs, next_actions).mean(0)  # type: ignore[arg-type]
+                    next_q = score_actions(
+                        self.critic_target, next_obs, next_actions, self._target_scoring_copy  # type: ignore[arg-type]
+                    ).mean(0)
                     target = replay_data.rewards + bootstrap * next_q.unsqueeze(1)
 
             # Critic loss, and the Q-values of the data's actions for the advantage (same critic)
@@ -380,14 +392,16 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             mean, std = self._actor_params(self.actor, obs, heads)
             with th.no_grad():
                 sampled_actions = sample_gaussian(mean, std, self.num_samples)  # [N, B, A]
-                sampled_q = score_actions(self.critic, obs, sampled_actions)  # type: ignore[arg-type]
+                if self._online_scoring_copy is not None:
+                    self._online_scoring_copy.sync()
+                sampled_q = score_actions(self.critic, obs, sampled_actions, self._online_scoring_copy)  # type: ignore[arg-type]
                 advantages = data_q - advantage_baseline(sampled_q, self.advantage_baseline)
                 weights, clipped = crr_weights(advantages, self.advantage_transform, self.beta, self.max_weight)
 
             self.critic.optimizer.zero_grad(set_to_none=True)
             critic_loss.backward()
             if self.max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+                th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm, foreach=True)
             self.critic.optimizer.step()
 
             # Weighted regression of the data's actions
@@ -395,12 +409,14 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             self.actor.optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             if self.max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
+                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
             self.actor.optimizer.step()
 
             if self._n_updates % self.target_update_interval == 0:
                 polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
                 polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+                if self._target_scoring_copy is not None:
+                    self._target_scoring_copy.sync()
 
             stats["critic_loss"].append(critic_loss.detach())
             stats["actor_loss"].append(actor_loss.detach())
@@ -437,7 +453,16 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "actor", "critic", "actor_target", "critic_target", "_head_of_source"]
+        return [
+            *super()._excluded_save_params(),
+            "actor",
+            "critic",
+            "actor_target",
+            "critic_target",
+            "_head_of_source",
+            "_target_scoring_copy",
+            "_online_scoring_copy",
+        ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]

@@ -1,0 +1,162 @@
+"""The low-precision (bfloat16) scoring pass: accuracy against float32, synchronisation, the "auto" rule, resume."""
+
+import gymnasium as gym
+import pytest
+import torch as th
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
+
+from sb3_lifelong import CRR, MPO
+from sb3_lifelong.common import utils
+from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype, sample_gaussian, score_actions
+from sb3_lifelong.mpo.mpo import dual_value, temperature_loss_and_weights
+
+# Stated tolerances of the bf16 pass, on a critic trained on Pendulum (256x256, 20 samples per state; measured:
+# mean error 6 % of the spread, max error 0.3 % of |Q|, max weight change 0.0034):
+#: mean Q error, as a fraction of the spread (std) of Q over a state's sampled actions, averaged over states
+Q_MEAN_ERROR_OF_SPREAD = 0.1
+#: largest Q error, as a fraction of the mean |Q|
+Q_MAX_ERROR_OF_SCALE = 0.01
+#: largest change of an E-step weight at the model's temperature (the weights of a state sum to 1)
+WEIGHT_ERROR = 0.01
+
+
+@pytest.fixture(scope="module")
+def trained_mpo():
+    model = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        policy_kwargs=dict(net_arch=[256, 256]),
+        learning_starts=200,
+        scoring_dtype="float32",
+        seed=0,
+    )
+    model.learn(700)
+    return model
+
+
+def test_bf16_scores_within_stated_tolerance(trained_mpo):
+    model = trained_mpo
+    th.manual_seed(0)
+    batch = model.replay_buffer.sample(256)
+    with th.no_grad():
+        mean, std = model.actor_target.distribution_params(batch.next_observations)
+        actions = sample_gaussian(mean, std, 20)
+        q32 = score_actions(model.critic_target, batch.next_observations, actions)
+        copy = LowPrecisionCopy(model.critic_target, th.bfloat16)
+        q16 = score_actions(model.critic_target, batch.next_observations, actions, copy)
+    assert q16.dtype == th.float32 and q16.shape == q32.shape == (20, 256)
+    spread, scale, error = q32.std(dim=0).mean(), q32.abs().mean(), (q16 - q32).abs()
+    assert spread > 0 and error.max() > 0  # the two passes differ: the bf16 pass ran
+    assert error.mean() <= Q_MEAN_ERROR_OF_SPREAD * spread, (float(error.mean()), float(spread))
+    assert error.max() <= Q_MAX_ERROR_OF_SCALE * scale, (float(error.max()), float(scale))
+    temperature = dual_value(model.log_temperature)
+    _, w32 = temperature_loss_and_weights(q32, temperature, model.epsilon)
+    _, w16 = temperature_loss_and_weights(q16, temperature, model.epsilon)
+    assert (w16 - w32).abs().max() <= WEIGHT_ERROR
+
+
+def test_copy_follows_the_critic_only_on_sync(trained_mpo):
+    critic = trained_mpo.critic_target
+    copy = LowPrecisionCopy(critic, th.bfloat16)
+    first = critic.q_networks[0][0]
+    weight_t, _ = copy.weights[id(first)]
+    assert id(critic.q_networks[0][-1]) not in copy.weights  # the output layer stays float32
+    th.testing.assert_close(weight_t, first.weight.detach().t().to(th.bfloat16), rtol=0, atol=0)
+    with th.no_grad():
+        first.weight.add_(1.0)
+    try:
+        assert not th.equal(weight_t, first.weight.detach().t().to(th.bfloat16))
+        copy.sync()
+        th.testing.assert_close(weight_t, first.weight.detach().t().to(th.bfloat16), rtol=0, atol=0)
+    finally:
+        with th.no_grad():
+            first.weight.sub_(1.0)
+
+
+def _copy_matches(copy: LowPrecisionCopy) -> bool:
+    for q_net in copy.critic.q_networks:
+        for module in q_net:
+            if id(module) in copy.weights:
+                weight_t, bias = copy.weights[id(module)]
+                if not th.equal(weight_t, module.weight.detach().t().to(copy.dtype)):
+                    return False
+                if not th.equal(bias, module.bias.detach().to(copy.dtype)):
+                    return False
+    return True
+
+
+def test_mpo_keeps_its_copy_in_sync_through_target_updates_and_loads(tmp_path):
+    model = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        policy_kwargs=dict(net_arch=[32, 32]),
+        batch_size=32,
+        learning_starts=50,
+        target_update_interval=10,
+        scoring_dtype="bfloat16",
+        seed=0,
+    )
+    assert model._target_scoring_copy is not None and _copy_matches(model._target_scoring_copy)
+    model.learn(125)  # 75 updates: 7 target updates, the last 5 updates before the next one
+    assert _copy_matches(model._target_scoring_copy)
+    model.save(tmp_path / "model.zip")
+    loaded = MPO.load(tmp_path / "model.zip")
+    assert loaded.scoring_dtype == "bfloat16"
+    assert _copy_matches(loaded._target_scoring_copy)
+    th.testing.assert_close(
+        loaded._target_scoring_copy.weights[id(loaded.critic_target.q_networks[0][0])][0],
+        model._target_scoring_copy.weights[id(model.critic_target.q_networks[0][0])][0],
+        rtol=0,
+        atol=0,
+    )
+
+
+def test_crr_scores_in_bf16_and_trains():
+    model = CRR("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50)
+    assert model._online_scoring_copy is None  # auto: too narrow for bf16 to pay
+    model = CRR(
+        "MlpPolicy",
+        "Pendulum-v1",
+        policy_kwargs=dict(net_arch=[32, 32]),
+        batch_size=32,
+        learning_starts=50,
+        scoring_dtype="bfloat16",
+        target_update_interval=5,
+    )
+    model.learn(100)
+    assert _copy_matches(model._target_scoring_copy)
+    assert th.isfinite(th.cat([p.flatten() for p in model.policy.parameters()])).all()
+
+
+def test_auto_rule(monkeypatch):
+    narrow = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[64, 64]), scoring_dtype="float32")
+    wide = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[256, 256]), scoring_dtype="float32")
+    cpu = th.device("cpu")
+    monkeypatch.setattr(utils, "cpu_has_fast_bf16", lambda: True)
+    assert resolve_scoring_dtype("auto", wide.critic, cpu) == th.bfloat16
+    assert resolve_scoring_dtype("auto", narrow.critic, cpu) == th.float32
+    assert resolve_scoring_dtype("float32", wide.critic, cpu) == th.float32
+    assert resolve_scoring_dtype("bfloat16", narrow.critic, cpu) == th.bfloat16
+    monkeypatch.setattr(utils, "cpu_has_fast_bf16", lambda: False)
+    assert resolve_scoring_dtype("auto", wide.critic, cpu) == th.float32
+    with pytest.raises(ValueError, match="scoring_dtype"):
+        resolve_scoring_dtype("float16", wide.critic, cpu)
+    with pytest.raises(ValueError, match="scoring_dtype"):
+        MPO("MlpPolicy", "Pendulum-v1", scoring_dtype="half")
+
+
+def test_mpo_solves_pendulum_with_bf16_scoring():
+    model = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        learning_starts=1000,
+        batch_size=128,
+        learning_rate=1e-3,
+        policy_kwargs=dict(net_arch=[64, 64]),
+        scoring_dtype="bfloat16",
+        seed=0,
+    )
+    model.learn(7000)
+    mean_reward, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
+    assert mean_reward >= -250, mean_reward
