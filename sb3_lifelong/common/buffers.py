@@ -907,13 +907,12 @@ class LifelongReplayBuffer(_LifelongSampler):
             return self._source
         source = int(stage)
         known = self.store.sources.get(source)
-        if known is not None and known["name"] == f"stage_{source}":
-            return source
+        if known is not None and known["name"] != f"source_{source}":
+            return source  # named already: by an earlier transition of this stage, or by set_source(name=...)
         source = self._check_source(source)
-        if known is None or known["name"] != f"stage_{source}":
-            params = info.get("dynamics_params")
-            metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
-            self.store.sources[source] = {"name": f"stage_{source}", "metadata": metadata}
+        params = info.get("dynamics_params")
+        metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
+        self.store.sources[source] = {"name": f"stage_{source}", "metadata": metadata}
         return source
 
     # ------------------------------------------------------------------ writing

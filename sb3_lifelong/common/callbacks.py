@@ -199,20 +199,33 @@ class SourceQCallback(BaseCallback):
     :param log_freq: period, in timesteps (updates when training offline)
     :param batch_size: transitions sampled for each measurement
     :param log_path: optional CSV file (columns: timesteps, source, name, q_mean, n)
+    :param data: the transitions to measure on (a ``LifelongReplayBuffer`` or view); default: the model's replay
+        buffer. Give the whole lifetime here when the model samples its own buffer with per-source weights (a
+        student trained on one source's data still gets its Q-values on the others)
     """
 
-    def __init__(self, log_freq: int = 10_000, batch_size: int = 4096, log_path: Optional[Union[str, os.PathLike]] = None):
+    def __init__(
+        self,
+        log_freq: int = 10_000,
+        batch_size: int = 4096,
+        log_path: Optional[Union[str, os.PathLike]] = None,
+        data: Optional[Any] = None,
+    ):
         super().__init__()
         if log_freq < 1 or batch_size < 1:
             raise ValueError(f"log_freq and batch_size must be >= 1, got {log_freq} and {batch_size}")
         self.log_freq = log_freq
         self.batch_size = batch_size
         self.log_path = pathlib.Path(log_path) if log_path is not None else None
+        self.data = data
         self.results: list[dict[str, Any]] = []
         self._next = 0
 
+    def _buffer(self) -> Any:
+        return self.data if self.data is not None else getattr(self.model, "replay_buffer", None)
+
     def _init_callback(self) -> None:
-        buffer = getattr(self.model, "replay_buffer", None)
+        buffer = self._buffer()
         if buffer is None or "return_sources" not in inspect.signature(buffer.sample).parameters:
             raise TypeError(
                 "SourceQCallback is a diagnostic that needs source tags: use a LifelongReplayBuffer "
@@ -237,7 +250,7 @@ class SourceQCallback(BaseCallback):
         """:return: the average Q-value per source name, now"""
         import torch as th
 
-        buffer: Any = self.model.replay_buffer  # type: ignore[attr-defined]
+        buffer: Any = self._buffer()
         if buffer.size() == 0:
             return {}
         samples, sources = buffer.sample(self.batch_size, return_sources=True)

@@ -1,0 +1,106 @@
+"""
+Command line of the paper's two-stage protocol.
+
+Run one seed (every job of it that has not finished yet)::
+
+    python -m sb3_lifelong.experiments run --preset cpu --seed 0 --output runs/paper_cpu
+
+Gather the finished seeds into the tables, the pre-registered claims and the figures::
+
+    python -m sb3_lifelong.experiments report runs/paper_cpu
+
+List the jobs of a preset and what a seed costs::
+
+    python -m sb3_lifelong.experiments list --preset cpu
+"""
+
+import argparse
+import pathlib
+import sys
+import time
+from typing import Optional
+
+import torch as th
+
+from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, copy_preset, job_names, run_seed
+from sb3_lifelong.experiments.report import write_report
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_lifelong.experiments", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    run = commands.add_parser("run", help="run one seed of the two-stage protocol")
+    run.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="the protocol's settings (default: cpu)")
+    run.add_argument("--seed", type=int, required=True, help="the seed: one seed is one self-contained command")
+    run.add_argument("--output", required=True, help="the study's directory (seeds go into seed_<k>/ inside it)")
+    run.add_argument(
+        "--jobs",
+        nargs="+",
+        default=None,
+        help="only these jobs (collect always runs first if it has not finished); see the 'list' command",
+    )
+    run.add_argument("--no-online", action="store_true", help="skip the online CRR baselines")
+    run.add_argument("--stage-steps", type=int, nargs="+", default=None, help="override the environment steps of each stage")
+    run.add_argument("--distill-steps", type=int, default=None, help="override the updates of every student")
+    run.add_argument("--progress-bar", action="store_true", help="a progress bar for every job (needs tqdm and rich)")
+    run.add_argument("--threads", type=int, default=1, help="torch threads (default 1: more only slows small networks down)")
+
+    report = commands.add_parser("report", help="tables, claims and figures of every finished seed in a study")
+    report.add_argument("output", help="the study's directory")
+    report.add_argument("--no-plots", action="store_true", help="tables only")
+
+    listing = commands.add_parser("list", help="the jobs of one seed, and the measured cost of a seed")
+    listing.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
+    return parser
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.command == "list":
+        preset = PRESETS[args.preset]
+        print(f"preset {args.preset}: {preset.env_id}, stages {list(preset.stages)}, steps {list(preset.stage_steps)}")
+        for job in job_names():
+            name = job.split("_", 1)[-1]
+            about = STUDENTS[name].about if job.startswith("distill_") else ONLINE.get(name, "MPO through every stage")
+            print(f"  {job:<34} {about}")
+        if preset.minutes_per_seed is not None:
+            print(f"one seed took {preset.minutes_per_seed:.0f} min on one core of the reference machine")
+        return 0
+    if args.command == "report":
+        print(write_report(pathlib.Path(args.output), plots=not args.no_plots))
+        print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
+        return 0
+
+    th.set_num_threads(args.threads)
+    preset = PRESETS[args.preset]
+    changes = {}
+    if args.stage_steps is not None:
+        changes["stage_steps"] = tuple(args.stage_steps)
+    if args.distill_steps is not None:
+        changes["distill_steps"] = args.distill_steps
+    if changes:
+        preset = copy_preset(preset, **changes)
+    jobs = args.jobs if args.jobs is not None else job_names(online=not args.no_online)
+    output = pathlib.Path(args.output)
+    steps = sum(preset.stage_steps) + (0 if args.no_online else len(ONLINE) * sum(preset.stage_steps[1:]))
+    print(
+        f"Two-stage protocol, preset {args.preset}: {preset.env_id}, {' -> '.join(preset.env_names)}, "
+        f"steps {list(preset.stage_steps)}, {len(jobs)} jobs for seed {args.seed} "
+        f"({steps:,} environment steps online, {preset.distill_steps:,} updates per student)"
+    )
+    if preset.minutes_per_seed is not None and not changes:
+        print(f"expect about {preset.minutes_per_seed:.0f} min on one core (measured on a 2-core AMD EPYC machine)")
+    start = time.perf_counter()
+    ran = run_seed(preset, args.seed, output, jobs=jobs, progress_bar=args.progress_bar, log=lambda m: print(m, flush=True))
+    print(
+        f"Seed {args.seed}: {len(ran)} job(s) finished in {(time.perf_counter() - start) / 60:.1f} min; results in "
+        f"{output / f'seed_{args.seed}'}. Tables and figures: python -m sb3_lifelong.experiments report {output}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

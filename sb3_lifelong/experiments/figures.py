@@ -1,0 +1,195 @@
+"""The paper's figures from a two-stage study (matplotlib, no display needed)."""
+
+import pathlib
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+COLORS = {
+    "MPO": "tab:blue",
+    "online CRR_indicator": "tab:orange",
+    "online CRR_exp_beta1": "tab:green",
+    "CRR_exp_beta1": "tab:red",
+    "CRR_indicator": "tab:purple",
+    "BC": "tab:brown",
+}
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only: no display, no GL
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _curves(study: Any, job: str) -> pd.DataFrame:
+    frames = []
+    for seed in study.seeds:
+        path = study.output / f"seed_{seed}" / job / "eval.csv"
+        if (study.output / f"seed_{seed}" / job / "done.json").exists() and path.exists():
+            frames.append(pd.read_csv(path).assign(seed=seed))
+    return pd.concat(frames) if frames else pd.DataFrame()
+
+
+def _band(ax: Any, frame: pd.DataFrame, env: str, label: str, color: str, y: str = "mean_reward") -> None:
+    rows = frame[frame["env"] == env].groupby("timesteps")[y]
+    mean, std, count = rows.mean(), rows.std().fillna(0.0), rows.count()
+    ax.plot(mean.index, mean.values, color=color, label=f"{label} (n={int(count.max())})", linewidth=1.8)
+    ax.fill_between(mean.index, (mean - std).values, (mean + std).values, color=color, alpha=0.15, linewidth=0)
+
+
+def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+    """Paper Fig. 2: online curves per environment, the switch labelled, the distilled students dotted."""
+    plt = _pyplot()
+    envs = study.preset["env_names"]
+    switch = int(study.preset["stage_steps"][0])
+    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.2), squeeze=False)
+    jobs = {"MPO": "collect", "online CRR_indicator": "online_CRR_indicator", "online CRR_exp_beta1": "online_CRR_exp_beta1"}
+    for ax, env in zip(axes[0], envs):
+        for label, job in jobs.items():
+            frame = _curves(study, job)
+            if len(frame):
+                _band(ax, frame, env, label, COLORS[label])
+        for method in ("CRR_exp_beta1", "CRR_indicator"):
+            values = list(study.score(method, env).values())
+            if values:
+                ax.axhline(np.mean(values), color=COLORS[method], linestyle=":", linewidth=2, label=f"distilled {method}")
+        ax.axvline(switch, color="black", linestyle="--", linewidth=1)
+        ax.annotate(
+            f"{envs[0]} -> {envs[1]}",
+            xy=(switch, 0.97),
+            xycoords=("data", "axes fraction"),
+            ha="left",
+            va="top",
+            fontsize=9,
+            xytext=(4, 0),
+            textcoords="offset points",
+        )
+        ax.set_title(f"Evaluated in {env}")
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("return (deterministic policy)")
+        ax.margins(y=0.08)
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=8, loc="lower right")
+    fig.suptitle(f"{study.preset['env_id']}: online learning through the change (mean +- std over seeds)")
+    fig.tight_layout()
+    path = directory / "fig_online.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
+def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+    """Paper Fig. 4: final return of every offline student per environment, error bars over seeds."""
+    plt = _pyplot()
+    envs = study.preset["env_names"]
+    from sb3_lifelong.experiments.protocol import STUDENTS
+
+    present = set(study.finals[study.finals["kind"] == "student"]["method"])
+    students = [name for name in STUDENTS if name in present]
+    if not students:
+        return []
+    fig, ax = plt.subplots(figsize=(max(8, 0.8 * len(students) * len(envs)), 4.8))
+    width = 0.8 / len(envs)
+    x = np.arange(len(students))
+    for k, env in enumerate(envs):
+        means, stds = [], []
+        for method in students:
+            values = list(study.score(method, env).values())
+            means.append(np.mean(values) if values else np.nan)
+            stds.append(np.std(values) if values else 0.0)
+        ax.bar(x + (k - (len(envs) - 1) / 2) * width, means, width, yerr=stds, capsize=3, label=env)
+    ax.set_xticks(x)
+    ax.set_xticklabels(students, rotation=35, ha="right", fontsize=8)
+    ax.set_xlabel("offline student (same number of updates)")
+    ax.set_ylabel("final return")
+    ax.set_title(
+        f"Distillation variants, {study.preset['distill_steps']:,} updates (mean +- std over {len(study.seeds)} seeds)"
+    )
+    ax.legend()
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    path = directory / "fig_students.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
+def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+    """Paper Fig. 5: average Q per source during distillation, sources named by environment."""
+    plt = _pyplot()
+    methods = ["CRR_indicator", "CRR_indicator_A_only", "CRR_indicator_B_only", "CRR_exp_beta1"]
+    envs = study.preset["env_names"]
+    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.2), squeeze=False)
+    drawn = False
+    for ax, env in zip(axes[0], envs):
+        for index, method in enumerate(methods):
+            frames = []
+            for seed in study.seeds:
+                path = study.output / f"seed_{seed}" / f"distill_{method}" / "q_sources.csv"
+                if path.exists():
+                    frames.append(pd.read_csv(path).assign(seed=seed))
+            if not frames:
+                continue
+            frame = pd.concat(frames).rename(columns={"name": "env"})
+            if len(frame[frame["env"] == env]):
+                _band(ax, frame, env, method, f"C{index}", y="q_mean")
+                drawn = True
+        ax.set_title(f"Average Q over {env} data")
+        ax.set_xlabel("distillation updates")
+        ax.set_ylabel("Q")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    if not drawn:
+        plt.close(fig)
+        return []
+    fig.tight_layout()
+    path = directory / "fig_q_sources.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
+def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+    """Paper Fig. 6: Env-A return against the Env-A : Env-B sampling ratio."""
+    plt = _pyplot()
+    env = study.preset["env_names"][0]
+    ratios = [("1:1", "_ratio_1to1"), ("1:5 (raw)", ""), ("1:10", "_ratio_1to10")]
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    drawn = False
+    for base, label in (("CRR_indicator", "indicator"), ("CRR_exp_beta1", "exp, beta=1")):
+        means, stds = [], []
+        for _, suffix in ratios:
+            values = list(study.score(base + suffix, env).values())
+            means.append(np.mean(values) if values else np.nan)
+            stds.append(np.std(values) if values else 0.0)
+        if np.isfinite(means).any():
+            ax.errorbar(range(len(ratios)), means, yerr=stds, marker="o", capsize=4, label=label)
+            drawn = True
+    if not drawn:
+        plt.close(fig)
+        return []
+    ax.set_xticks(range(len(ratios)))
+    ax.set_xticklabels([r for r, _ in ratios])
+    ax.set_xlabel("Env-A : Env-B sampling ratio")
+    ax.set_ylabel(f"final return in {env}")
+    ax.set_title(f"{env} return vs sampling ratio (mean +- std over seeds)")
+    ax.margins(x=0.15)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = directory / "fig_sampling_ratio.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
+def plot_study(study: Any) -> list[pathlib.Path]:
+    """:return: the paths of every figure written into the study's directory"""
+    paths = []
+    for plot in (plot_online, plot_students, plot_q, plot_ratios):
+        paths += plot(study, study.output)
+    return paths

@@ -1,0 +1,418 @@
+"""
+The paper's two-stage protocol as a set of jobs: one seed is one self-contained command.
+
+A seed's jobs, in the order they depend on each other:
+
+* ``collect``: MPO learns Env-A for ``stage_steps[0]`` steps, then the robot changes and MPO goes on in Env-B for
+  ``stage_steps[1]`` steps, keeping every transition in one :class:`~sb3_lifelong.LifelongReplayBuffer` on disk
+  (the sources are named after the environments). The Stage-1 agent and buffer are kept for the online baselines.
+* ``distill_<variant>``: offline students on the lifetime buffer, all with the same number of updates: the
+  pipeline (CRR exp beta=1), the imbalance baseline (CRR indicator), students of one source only, BC, and the
+  paper's diagnostics (reward scale on Env-B, one actor per source, sampling ratios).
+* ``online_CRR_indicator``, ``online_CRR_exp_beta1``: the conservative online baselines, continuing from the same
+  Stage-1 agent (weights and buffer) through Stage 2 (last: they cost as much as the collection each).
+
+Every job evaluates its policy on every environment periodically (``eval.csv``) and, when it has a critic, the
+average Q-value per source (``q_sources.csv``); a finished job writes ``done.json`` and is skipped when the command
+is run again, so a crashed or stopped seed continues where it was.
+
+Layout of ``<output>/seed_<k>/``::
+
+    buffer/, buffer_stage1/     the lifetime buffer and its Stage-1 part (large: never commit them)
+    collect/stage1.zip          the Stage-1 MPO agent
+    <job>/eval.csv              timesteps, env, mean_reward, std_reward, n_episodes
+    <job>/q_sources.csv         timesteps, source, name, q_mean, n
+    <job>/done.json             wall time and the job's settings
+"""
+
+import copy
+import dataclasses
+import json
+import pathlib
+import shutil
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional, Union
+
+import gymnasium as gym
+import numpy as np
+
+from sb3_lifelong.bc import BC
+from sb3_lifelong.common.buffers import LifelongReplayBuffer, merge_buffers
+from sb3_lifelong.common.callbacks import MultiEnvEvalCallback, SourceQCallback
+from sb3_lifelong.common.distill import distill
+from sb3_lifelong.crr import CRR
+from sb3_lifelong.envs import DynamicsSchedule
+from sb3_lifelong.mpo import MPO
+
+Stage = Union[str, Mapping[str, float]]
+
+
+@dataclass(frozen=True)
+class Preset:
+    """
+    Settings of the two-stage protocol.
+
+    :param env_id: the robot (gymnasium id)
+    :param stages: the physical setting of each environment (Env-A first), a dict of perturbations or a preset name
+    :param stage_steps: environment steps of each stage (the paper: Env-B five times Env-A)
+    :param distill_steps: gradient updates of every offline student
+    :param eval_freq: evaluation period of the online methods, in environment steps
+    :param distill_eval_freq: evaluation period of the students, in updates
+    :param eval_episodes: episodes per environment and evaluation
+    :param net_arch: hidden layers of every actor and critic
+    :param batch_size: minibatch of the online methods
+    :param student_batch_size: minibatch of the students
+    :param num_samples: MPO's actions sampled per state
+    :param learning_rate: learning rate of the online methods
+    :param student_learning_rate: learning rate of the students
+    :param learning_starts: MPO's random steps before learning
+    :param env_names: names of the environments, in the order of ``stages``
+    :param max_episode_steps: episode length limit (None: the environment's own)
+    :param minutes_per_seed: measured wall time of one seed of ``run`` on one core of the reference machine (None:
+        not measured), for the estimate printed before a run
+    """
+
+    env_id: str
+    stages: tuple[Stage, ...]
+    stage_steps: tuple[int, ...]
+    distill_steps: int
+    eval_freq: int
+    distill_eval_freq: int
+    eval_episodes: int
+    net_arch: tuple[int, ...] = (256, 256)
+    batch_size: int = 256
+    student_batch_size: int = 256
+    num_samples: int = 20
+    learning_rate: float = 3e-4
+    student_learning_rate: float = 3e-4
+    learning_starts: int = 10_000
+    env_names: tuple[str, ...] = ("Env-A", "Env-B")
+    max_episode_steps: Optional[int] = None
+    minutes_per_seed: Optional[float] = None
+
+    def describe(self) -> dict[str, Any]:
+        """:return: the settings as JSON-friendly values"""
+        data = dataclasses.asdict(self)
+        data["stages"] = [_describe(stage) for stage in self.stages]
+        return data
+
+
+PRESETS: dict[str, Preset] = {
+    # one core of a CPU machine: Hopper with the hip deformed, Env-B five times Env-A
+    "cpu": Preset(
+        env_id="Hopper-v5",
+        stages=({}, {"hip_deformation": 0.3}),
+        stage_steps=(40_000, 200_000),
+        distill_steps=30_000,
+        eval_freq=10_000,
+        distill_eval_freq=5_000,
+        eval_episodes=5,
+        net_arch=(128, 128),
+        batch_size=128,
+        student_batch_size=256,
+        num_samples=10,
+        learning_rate=1e-3,
+        learning_starts=2_000,
+    ),
+    # the paper's scale: OP3 walking, 0.2M steps in Env-A then 1M in Env-B (a GPU machine, or days of CPU)
+    "paper": Preset(
+        env_id="sb3_lifelong/OP3Walk-v0",
+        stages=("default", "hip_0.3"),
+        stage_steps=(200_000, 1_000_000),
+        distill_steps=500_000,
+        eval_freq=20_000,
+        distill_eval_freq=25_000,
+        eval_episodes=5,
+    ),
+    # seconds: for the tests
+    "tiny": Preset(
+        env_id="Hopper-v5",
+        stages=({}, {"hip_deformation": 0.3}),
+        stage_steps=(200, 400),
+        distill_steps=100,
+        eval_freq=100,
+        distill_eval_freq=50,
+        eval_episodes=1,
+        net_arch=(16, 16),
+        batch_size=32,
+        student_batch_size=32,
+        num_samples=4,
+        learning_rate=1e-3,
+        learning_starts=100,
+        max_episode_steps=50,
+    ),
+}
+
+
+@dataclass(frozen=True)
+class Student:
+    """
+    One offline student of the lifetime buffer.
+
+    :param algorithm: "CRR" or "BC"
+    :param kwargs: the student's hyperparameters (``advantage_transform``, ``beta``, ``actor_per_source``)
+    :param ratio: sampling ratio Env-A : Env-B as ``(a, b)`` (None: the raw sizes); ``(1, 0)``: Env-A only
+    :param reward_scale: per-source reward scale, by environment index
+    :param uses_boundaries: whether the variant needs to know which environment each transition came from
+        (a diagnostic, not a lifelong method)
+    :param about: one line for the reports
+    """
+
+    algorithm: str
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    ratio: Optional[tuple[float, float]] = None
+    reward_scale: Optional[dict[int, float]] = None
+    uses_boundaries: bool = False
+    about: str = ""
+
+
+EXP = dict(advantage_transform="exp", beta=1.0)
+INDICATOR = dict(advantage_transform="indicator")
+
+#: the offline students of a seed, by name (the job is ``distill_<name>``)
+STUDENTS: dict[str, Student] = {
+    "CRR_exp_beta1": Student("CRR", EXP, about="the pipeline: CRR, exp transform, beta=1, on Env-A + Env-B"),
+    "CRR_indicator": Student("CRR", INDICATOR, about="the imbalance baseline: CRR, indicator transform, Env-A + Env-B"),
+    "CRR_indicator_A_only": Student("CRR", INDICATOR, ratio=(1, 0), uses_boundaries=True, about="Env-A data only"),
+    "CRR_indicator_B_only": Student("CRR", INDICATOR, ratio=(0, 1), uses_boundaries=True, about="Env-B data only"),
+    "CRR_exp_beta1_A_only": Student("CRR", EXP, ratio=(1, 0), uses_boundaries=True, about="Env-A data only, exp beta=1"),
+    "BC": Student("BC", about="behaviour cloning on Env-A + Env-B"),
+    "CRR_indicator_scale_rwd_B": Student(
+        "CRR", INDICATOR, reward_scale={1: 0.5}, uses_boundaries=True, about="Env-B rewards scaled by 0.5"
+    ),
+    "CRR_indicator_two_actors": Student(
+        "CRR", {**INDICATOR, "actor_per_source": True}, uses_boundaries=True, about="one actor per environment"
+    ),
+    "CRR_indicator_ratio_1to1": Student("CRR", INDICATOR, ratio=(1, 1), uses_boundaries=True, about="sampled 1:1"),
+    "CRR_indicator_ratio_1to10": Student("CRR", INDICATOR, ratio=(1, 10), uses_boundaries=True, about="sampled 1:10"),
+    "CRR_exp_beta1_ratio_1to1": Student("CRR", EXP, ratio=(1, 1), uses_boundaries=True, about="sampled 1:1"),
+    "CRR_exp_beta1_ratio_1to10": Student("CRR", EXP, ratio=(1, 10), uses_boundaries=True, about="sampled 1:10"),
+}
+
+#: the online methods continuing from the Stage-1 agent (MPO itself continues in the ``collect`` job)
+ONLINE: dict[str, dict[str, Any]] = {"CRR_indicator": INDICATOR, "CRR_exp_beta1": EXP}
+
+
+def job_names(students: Optional[Sequence[str]] = None, online: bool = True) -> list[str]:
+    """:return: the jobs of one seed, in the order they run"""
+    jobs = ["collect"]
+    jobs += [f"distill_{name}" for name in (students if students is not None else STUDENTS)]
+    jobs += [f"online_{name}" for name in ONLINE] if online else []
+    return jobs
+
+
+# ------------------------------------------------------------------------------------------------- environments
+def make_env(preset: Preset, switch_at: Optional[Sequence[int]] = None, start_timestep: int = 0) -> DynamicsSchedule:
+    """The robot through its stages, with the true physical parameters appended to the observation (as the paper)."""
+    kwargs: dict[str, Any] = {} if preset.max_episode_steps is None else dict(max_episode_steps=preset.max_episode_steps)
+    return DynamicsSchedule(
+        gym.make(preset.env_id, **kwargs),
+        stages=list(preset.stages),
+        switch_at=switch_at,
+        append_params=True,
+        start_timestep=start_timestep,
+    )
+
+
+def make_eval_envs(preset: Preset) -> dict[str, DynamicsSchedule]:
+    """One environment per stage, pinned to it, named after it."""
+    envs = {}
+    for index, name in enumerate(preset.env_names):
+        env = make_env(preset)
+        env.set_stage(index, immediate=True)
+        envs[name] = env
+    return envs
+
+
+def _describe(stage: Stage) -> Any:
+    return stage if isinstance(stage, str) else dict(stage)
+
+
+def switch_points(preset: Preset) -> list[int]:
+    return [int(t) for t in np.cumsum(preset.stage_steps)[:-1]]
+
+
+# ------------------------------------------------------------------------------------------------- the jobs
+def _common(preset: Preset, seed: int) -> dict[str, Any]:
+    return dict(policy_kwargs=dict(net_arch=list(preset.net_arch)), seed=seed)
+
+
+def _callbacks(
+    preset: Preset, directory: pathlib.Path, eval_freq: int, data: Optional[Any] = None, q: bool = True, **eval_kwargs: Any
+) -> list[Any]:
+    callbacks: list[Any] = [
+        MultiEnvEvalCallback(
+            make_eval_envs(preset), eval_freq, preset.eval_episodes, log_path=directory / "eval.csv", **eval_kwargs
+        )
+    ]
+    if q:
+        callbacks.append(SourceQCallback(log_freq=eval_freq, log_path=directory / "q_sources.csv", data=data))
+    return callbacks
+
+
+def collect(preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False, log: Callable = print) -> None:
+    """MPO through both stages into one lifetime buffer on disk; keeps the Stage-1 agent and buffer."""
+    directory = run_dir / "collect"
+    for stale in (directory, run_dir / "buffer", run_dir / "buffer_stage1"):
+        shutil.rmtree(stale, ignore_errors=True)  # an unfinished earlier attempt: start this job again
+    directory.mkdir(parents=True)
+    model = MPO(
+        "MlpPolicy",
+        make_env(preset, switch_at=switch_points(preset)),
+        replay_buffer_class=LifelongReplayBuffer,
+        replay_buffer_kwargs=dict(path=run_dir / "buffer"),
+        learning_starts=preset.learning_starts,
+        num_samples=preset.num_samples,
+        batch_size=preset.batch_size,
+        learning_rate=preset.learning_rate,
+        **_common(preset, seed),
+    )
+    buffer: Any = model.replay_buffer
+    for index in reversed(range(len(preset.env_names))):  # names in the manifest; transitions carry their stage
+        buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=_describe(preset.stages[index])))
+    callbacks = _callbacks(preset, directory, preset.eval_freq)
+    for stage, steps in enumerate(preset.stage_steps):
+        log(f"  stage {stage + 1}/{len(preset.stage_steps)}: {preset.env_names[stage]}, {steps:,} steps of MPO")
+        model.learn(steps, callback=callbacks, reset_num_timesteps=stage == 0, progress_bar=progress_bar)
+        if stage == 0:
+            model.save(directory / "stage1.zip")
+            merge_buffers([buffer], path=run_dir / "buffer_stage1").close()
+    model.save(directory / "final.zip")
+    buffer.close()
+
+
+def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False) -> None:
+    """A conservative online baseline continuing from the Stage-1 agent (its weights and its buffer) through Stage 2."""
+    directory = run_dir / f"online_{name}"
+    shutil.rmtree(directory, ignore_errors=True)
+    directory.mkdir(parents=True)
+    stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device="cpu")
+    start = int(stage1.num_timesteps)
+    env = make_env(preset, switch_at=switch_points(preset), start_timestep=start)
+    model = CRR(
+        "MlpPolicy",
+        env,
+        replay_buffer_class=LifelongReplayBuffer,
+        learning_starts=0,
+        batch_size=preset.batch_size,
+        learning_rate=preset.learning_rate,
+        **ONLINE[name],
+        **_common(preset, seed),
+    )
+    model.policy.load_state_dict(stage1.policy.state_dict())
+    with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1_buffer:
+        model.replay_buffer = merge_buffers([stage1_buffer])  # a private copy in memory, which this agent extends
+    model.num_timesteps = start
+    model.learn(sum(preset.stage_steps[1:]), callback=_callbacks(preset, directory, preset.eval_freq),
+                reset_num_timesteps=False, progress_bar=progress_bar)  # fmt: skip
+
+
+def sampling_weights(ratio: tuple[float, float], counts: Mapping[int, int]) -> dict[int, float]:
+    """
+    Per-source sampling weights that make batches hold Env-A and Env-B transitions in the proportion ``ratio``.
+
+    :param ratio: ``(a, b)``: Env-A : Env-B
+    :param counts: transitions per source (0: Env-A, 1: Env-B)
+    :return: source id -> weight
+    """
+    a, b = ratio
+    if a < 0 or b < 0 or a + b == 0:
+        raise ValueError(f"a sampling ratio needs two non-negative parts, not both zero, got {ratio}")
+    n_a, n_b = counts.get(0, 0), counts.get(1, 0)
+    if (a > 0 and n_a == 0) or (b > 0 and n_b == 0):
+        raise ValueError(f"ratio {ratio} asks for a source with no data (transitions per source: {dict(counts)})")
+    return {0: a / n_a if n_a else 0.0, 1: b / n_b if n_b else 0.0}
+
+
+def distill_student(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False) -> None:
+    """Train one offline student on the lifetime buffer (opened read-only) and save it."""
+    student = STUDENTS[name]
+    directory = run_dir / f"distill_{name}"
+    shutil.rmtree(directory, ignore_errors=True)
+    directory.mkdir(parents=True)
+    data = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)
+    everything = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)  # unweighted, for Q per source
+    if student.ratio is not None:
+        data.set_sampling_weights(sampling_weights(student.ratio, data.source_counts()))
+    if student.reward_scale is not None:
+        data.set_reward_scale(student.reward_scale)
+    kwargs = dict(student.kwargs)
+    sources = None
+    if kwargs.get("actor_per_source"):
+        sources = {env_name: index for index, env_name in enumerate(preset.env_names)}
+    algorithm = BC if student.algorithm == "BC" else CRR
+    callbacks = _callbacks(preset, directory, preset.distill_eval_freq, data=everything, q=algorithm is CRR, sources=sources)
+    model = distill(
+        data,
+        student_class=algorithm,
+        gradient_steps=preset.distill_steps,
+        callback=callbacks,
+        progress_bar=progress_bar,
+        batch_size=preset.student_batch_size,
+        learning_rate=preset.student_learning_rate,
+        **kwargs,
+        **_common(preset, seed),
+    )
+    model.save(directory / "student.zip")
+    data.close()
+    everything.close()
+
+
+# ------------------------------------------------------------------------------------------------- one seed
+def run_seed(
+    preset: Preset,
+    seed: int,
+    output: pathlib.Path,
+    jobs: Optional[Sequence[str]] = None,
+    progress_bar: bool = False,
+    log: Callable = print,
+) -> list[str]:
+    """
+    Run the jobs of one seed that have not finished yet (each writes ``done.json`` when it finishes).
+
+    :param preset: the protocol's settings
+    :param seed: the seed
+    :param output: the experiment directory (``seed_<k>`` is created inside)
+    :param jobs: the jobs to run (default: all of :func:`job_names`), always after ``collect``
+    :param progress_bar: show a progress bar per job
+    :param log: where the one-line messages go
+    :return: the jobs that ran
+    """
+    run_dir = output / f"seed_{seed}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    wanted = list(jobs) if jobs is not None else job_names()
+    unknown = sorted(set(wanted) - set(job_names()))
+    if unknown:
+        raise ValueError(f"unknown jobs {unknown}; the jobs are {job_names()}")
+    if "collect" not in wanted and not (run_dir / "collect" / "done.json").exists():
+        wanted.insert(0, "collect")
+    ran = []
+    todo = [job for job in job_names() if job in wanted and not (run_dir / job / "done.json").exists()]
+    skipped = [job for job in wanted if job not in todo]
+    if skipped:
+        log(f"seed {seed}: {len(skipped)} job(s) already done, skipped: {', '.join(skipped)}")
+    for position, job in enumerate(todo):
+        log(f"seed {seed}: job {position + 1}/{len(todo)} {job} ...")
+        start = time.perf_counter()
+        if job == "collect":
+            collect(preset, seed, run_dir, progress_bar, log)
+        elif job.startswith("online_"):
+            online(job[len("online_") :], preset, seed, run_dir, progress_bar)
+        else:
+            distill_student(job[len("distill_") :], preset, seed, run_dir, progress_bar)
+        seconds = time.perf_counter() - start
+        done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
+        if job.startswith("distill_"):
+            done["student"] = dataclasses.asdict(STUDENTS[job[len("distill_") :]])
+        (run_dir / job / "done.json").write_text(json.dumps(done, indent=1))
+        log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
+        ran.append(job)
+    (output / "preset.json").write_text(json.dumps(preset.describe(), indent=1))
+    return ran
+
+
+def copy_preset(preset: Preset, **changes: Any) -> Preset:
+    """:return: the preset with some settings changed (``stage_steps=(...)``, ``distill_steps=...``)"""
+    return dataclasses.replace(copy.deepcopy(preset), **changes)

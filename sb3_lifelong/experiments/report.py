@@ -1,0 +1,334 @@
+"""
+Gather the seeds of a two-stage study into tables, the pre-registered claims and the paper's figures.
+
+Scores (each seed's, then mean +- std over seeds and a 95 % percentile-bootstrap interval of the mean):
+
+* an online method's final return in an environment: the mean of its last ``ONLINE_LAST`` evaluations;
+* MPO's Env-A return *at the switch*: the mean of its last ``ONLINE_LAST_STAGE1`` evaluations of Stage 1;
+* Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
+* a student's final return: the mean of its last ``STUDENT_LAST`` evaluations;
+* Q per source: the student's last average Q-value over each environment's data.
+"""
+
+import json
+import pathlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
+
+import numpy as np
+import pandas as pd
+
+ONLINE_LAST = 3
+ONLINE_LAST_STAGE1 = 2
+STUDENT_LAST = 2
+BOOTSTRAP_RESAMPLES = 10_000
+
+
+def bootstrap_ci(values: Sequence[float], level: float = 0.95, seed: int = 0) -> tuple[float, float]:
+    """
+    Percentile bootstrap interval of the mean (resampling seeds with replacement).
+
+    :param values: one value per seed
+    :param level: coverage
+    :param seed: seed of the resampling
+    :return: the interval's bounds (NaN without values; the single value for one seed)
+    """
+    data = np.asarray([v for v in values if np.isfinite(v)], dtype=float)
+    if len(data) == 0:
+        return float("nan"), float("nan")
+    rng = np.random.default_rng(seed)
+    means = data[rng.integers(0, len(data), size=(BOOTSTRAP_RESAMPLES, len(data)))].mean(axis=1)
+    return float(np.quantile(means, (1 - level) / 2)), float(np.quantile(means, (1 + level) / 2))
+
+
+def describe(values: Sequence[float]) -> str:
+    """:return: ``mean +- std [low, high]`` over seeds"""
+    data = np.asarray(values, dtype=float)
+    if len(data) == 0:
+        return "-"
+    low, high = bootstrap_ci(list(data))
+    return f"{data.mean():.0f} +- {data.std():.0f} [{low:.0f}, {high:.0f}]"
+
+
+# ------------------------------------------------------------------------------------------------- reading
+def seeds_of(output: pathlib.Path) -> list[int]:
+    return sorted(int(path.name.split("_")[1]) for path in output.glob("seed_*") if (path / "collect" / "done.json").exists())
+
+
+def read_eval(output: pathlib.Path, seed: int, job: str) -> Optional[pd.DataFrame]:
+    path = output / f"seed_{seed}" / job / "eval.csv"
+    if not (output / f"seed_{seed}" / job / "done.json").exists() or not path.exists():
+        return None
+    return pd.read_csv(path)
+
+
+def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = None, after: Optional[int] = None) -> float:
+    rows = frame[frame["env"] == env]
+    if until is not None:
+        rows = rows[rows["timesteps"] <= until]
+    if after is not None:
+        rows = rows[rows["timesteps"] > after]
+    rows = rows.sort_values("timesteps")
+    return float(rows["mean_reward"].tail(count).mean()) if len(rows) else float("nan")
+
+
+@dataclass
+class Study:
+    """The scores of every seed of a study, as long tables."""
+
+    output: pathlib.Path
+    preset: dict[str, Any]
+    seeds: list[int]
+    finals: pd.DataFrame  # seed, method, kind (online / student), env, score
+    extras: pd.DataFrame  # seed, metric, value (switch scores, Stage-2 areas, Q per source)
+
+    def score(self, method: str, env: str) -> dict[int, float]:
+        rows = self.finals[(self.finals["method"] == method) & (self.finals["env"] == env)]
+        return {int(r.seed): float(r.score) for r in rows.itertuples()}
+
+    def extra(self, metric: str) -> dict[int, float]:
+        rows = self.extras[self.extras["metric"] == metric]
+        return {int(r.seed): float(r.value) for r in rows.itertuples()}
+
+
+def load_study(output: pathlib.Path) -> Study:
+    """Read every finished job of every seed of ``output``."""
+    preset = json.loads((output / "preset.json").read_text())
+    envs = preset["env_names"]
+    switch = int(preset["stage_steps"][0])
+    seeds = seeds_of(output)
+    finals, extras = [], []
+    for seed in seeds:
+        run_dir = output / f"seed_{seed}"
+        for job_dir in sorted(p for p in run_dir.iterdir() if (p / "done.json").exists()):
+            job = job_dir.name
+            frame = read_eval(output, seed, job)
+            if frame is None:
+                continue
+            if job == "collect" or job.startswith("online_"):
+                method = "MPO" if job == "collect" else f"online {job[len('online_'):]}"
+                for env in envs:
+                    finals.append(
+                        dict(seed=seed, method=method, kind="online", env=env, score=last_mean(frame, env, ONLINE_LAST))
+                    )
+                    extras.append(
+                        dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=last_mean(frame, env, 10**9, after=switch))
+                    )
+                if job == "collect":
+                    extras.append(
+                        dict(
+                            seed=seed,
+                            metric="MPO|switch|Env-A",
+                            value=last_mean(frame, envs[0], ONLINE_LAST_STAGE1, until=switch),
+                        )
+                    )
+            elif job.startswith("distill_"):
+                method = job[len("distill_") :]
+                for env in envs:
+                    finals.append(
+                        dict(seed=seed, method=method, kind="student", env=env, score=last_mean(frame, env, STUDENT_LAST))
+                    )
+                q_path = job_dir / "q_sources.csv"
+                if q_path.exists():
+                    q = pd.read_csv(q_path)
+                    if len(q):
+                        last = q[q["timesteps"] == q["timesteps"].max()]
+                        for row in last.itertuples():
+                            extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
+    return Study(output, preset, seeds, pd.DataFrame(finals), pd.DataFrame(extras))
+
+
+# ------------------------------------------------------------------------------------------------- claims
+@dataclass
+class Claim:
+    """A pre-registered claim: per-seed values, and a test on their means."""
+
+    name: str
+    statement: str
+    values: Callable[[Study], dict[str, dict[int, float]]]  # named per-seed series
+    test: Callable[[dict[str, float]], bool]  # on the means of the series
+
+
+def _mean(series: dict[int, float]) -> float:
+    values = [v for v in series.values() if np.isfinite(v)]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def _ratio(numerator: dict[int, float], denominator: dict[int, float]) -> dict[int, float]:
+    return {s: numerator[s] / denominator[s] for s in numerator if s in denominator and denominator[s] != 0}
+
+
+def _mean_over_envs(study: Study, method: str) -> dict[int, float]:
+    per_env = [study.score(method, env) for env in study.preset["env_names"]]
+    seeds = set.intersection(*(set(s) for s in per_env)) if per_env else set()
+    return {s: float(np.mean([series[s] for series in per_env])) for s in seeds}
+
+
+#: the methods that need no task boundaries, compared by claim C3
+LIFELONG_METHODS = ("MPO", "online CRR_indicator", "online CRR_exp_beta1", "CRR_exp_beta1", "CRR_indicator", "BC")
+
+CLAIMS: list[Claim] = [
+    Claim(
+        "C1 forgetting",
+        "MPO's Env-A return at the end of Stage 2 is <= 70 % of its Env-A return at the switch",
+        lambda s: {"end / switch": _ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
+        lambda m: m["end / switch"] <= 0.7,
+    ),
+    Claim(
+        "C2a conservative online CRR remembers",
+        "online CRR (exp, beta=1) ends with a higher Env-A return than MPO",
+        lambda s: {"CRR beta=1": s.score("online CRR_exp_beta1", "Env-A"), "MPO": s.score("MPO", "Env-A")},
+        lambda m: m["CRR beta=1"] > m["MPO"],
+    ),
+    Claim(
+        "C2b conservative online CRR learns Env-B slower",
+        "online CRR (exp, beta=1)'s mean Env-B return over Stage 2 is below MPO's",
+        lambda s: {
+            "CRR beta=1": s.extra("online CRR_exp_beta1|stage2_area|Env-B"),
+            "MPO": s.extra("MPO|stage2_area|Env-B"),
+        },
+        lambda m: m["CRR beta=1"] < m["MPO"],
+    ),
+    Claim(
+        "C3 the pipeline is best",
+        "the CRR exp beta=1 student has the best mean over Env-A and Env-B of the lifelong methods "
+        + "("
+        + ", ".join(LIFELONG_METHODS)
+        + ")",
+        lambda s: {m: _mean_over_envs(s, m) for m in LIFELONG_METHODS},
+        lambda m: all(m["CRR_exp_beta1"] >= v for k, v in m.items() if np.isfinite(v)),
+    ),
+    Claim(
+        "C4a the imbalance drop",
+        "the indicator student on Env-A + Env-B reaches <= 80 % of the Env-A-only indicator student in Env-A",
+        lambda s: {"indicator / A-only": _ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
+        lambda m: m["indicator / A-only"] <= 0.8,
+    ),
+    Claim(
+        "C4b beta=1 fixes it",
+        "the exp beta=1 student on Env-A + Env-B reaches >= 90 % of the Env-A-only indicator student in Env-A",
+        lambda s: {"exp beta=1 / A-only": _ratio(s.score("CRR_exp_beta1", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
+        lambda m: m["exp beta=1 / A-only"] >= 0.9,
+    ),
+    Claim(
+        "C5a reward scale",
+        "scaling Env-B's rewards by 0.5 raises the indicator student's Env-A return",
+        lambda s: {"scaled": s.score("CRR_indicator_scale_rwd_B", "Env-A"), "baseline": s.score("CRR_indicator", "Env-A")},
+        lambda m: m["scaled"] > m["baseline"],
+    ),
+    Claim(
+        "C5b two actors",
+        "one actor per environment (shared critic) raises the indicator student's Env-A return",
+        lambda s: {"two actors": s.score("CRR_indicator_two_actors", "Env-A"), "baseline": s.score("CRR_indicator", "Env-A")},
+        lambda m: m["two actors"] > m["baseline"],
+    ),
+    Claim(
+        "C5c BC beats the indicator in Env-A",
+        "behaviour cloning on Env-A + Env-B has a higher Env-A return than the indicator student",
+        lambda s: {"BC": s.score("BC", "Env-A"), "indicator": s.score("CRR_indicator", "Env-A")},
+        lambda m: m["BC"] > m["indicator"],
+    ),
+    Claim(
+        "C5d sampling ratio hurts the indicator",
+        "the indicator student's Env-A return falls as Env-B's share grows: 1:1 > raw 1:5 > 1:10",
+        lambda s: {
+            "1:1": s.score("CRR_indicator_ratio_1to1", "Env-A"),
+            "1:5": s.score("CRR_indicator", "Env-A"),
+            "1:10": s.score("CRR_indicator_ratio_1to10", "Env-A"),
+        },
+        lambda m: m["1:1"] > m["1:5"] > m["1:10"],
+    ),
+    Claim(
+        "C5e beta=1 is robust to the ratio",
+        "the exp beta=1 student's Env-A return at 1:10 is >= 90 % of its return at 1:1",
+        lambda s: {
+            "1:10 / 1:1": _ratio(s.score("CRR_exp_beta1_ratio_1to10", "Env-A"), s.score("CRR_exp_beta1_ratio_1to1", "Env-A"))
+        },
+        lambda m: m["1:10 / 1:1"] >= 0.9,
+    ),
+    Claim(
+        "C6 overestimation on Env-A data",
+        "the indicator student's average Q over Env-A data exceeds the Env-A-only student's",
+        lambda s: {"indicator": s.extra("CRR_indicator|q|Env-A"), "A-only": s.extra("CRR_indicator_A_only|q|Env-A")},
+        lambda m: m["indicator"] > m["A-only"],
+    ),
+]
+
+
+def evaluate_claims(study: Study) -> list[dict[str, Any]]:
+    """:return: one row per claim: the series (per seed, mean, CI), and reproduced / not reproduced / no data"""
+    rows = []
+    for claim in CLAIMS:
+        series = claim.values(study)
+        means = {name: _mean(values) for name, values in series.items()}
+        complete = all(np.isfinite(v) for v in means.values()) and all(series.values())
+        verdict = ("reproduced" if claim.test(means) else "not reproduced") if complete else "no data"
+        details = []
+        for name, values in series.items():
+            per_seed = ", ".join(f"s{s}: {v:.2f}" if abs(v) < 10 else f"s{s}: {v:.0f}" for s, v in sorted(values.items()))
+            low, high = bootstrap_ci(list(values.values()))
+            fmt = "{:.2f}" if abs(means[name]) < 10 else "{:.0f}"
+            details.append(
+                f"{name}: {fmt.format(means[name])} [{fmt.format(low)}, {fmt.format(high)}] ({per_seed})"
+                if values
+                else f"{name}: no data"
+            )
+        rows.append(dict(claim=claim.name, statement=claim.statement, verdict=verdict, values="; ".join(details)))
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------- tables
+def score_table(study: Study) -> str:
+    envs = study.preset["env_names"]
+    header = "| method | kind | " + " | ".join(envs) + " | mean over envs | seeds |"
+    lines = [header, "|" + " --- |" * (len(envs) + 4)]
+    order = list(dict.fromkeys(study.finals["method"])) if len(study.finals) else []
+    order.sort(key=lambda m: (0 if m == "MPO" else 1 if m.startswith("online") else 2))
+    for method in order:
+        kind = study.finals[study.finals["method"] == method]["kind"].iloc[0]
+        cells = [describe(list(study.score(method, env).values())) for env in envs]
+        overall = _mean_over_envs(study, method)
+        lines.append(
+            f"| {method} | {kind} | " + " | ".join(cells) + f" | {describe(list(overall.values()))} | {len(overall)} |"
+        )
+    return "\n".join(lines)
+
+
+def claims_table(rows: list[dict[str, Any]]) -> str:
+    lines = ["| claim | pre-registered criterion | verdict | values: mean [95 % CI] (per seed) |", "| --- | --- | --- | --- |"]
+    lines += [f"| {r['claim']} | {r['statement']} | **{r['verdict']}** | {r['values']} |" for r in rows]
+    return "\n".join(lines)
+
+
+def write_report(output: pathlib.Path, plots: bool = True) -> str:
+    """
+    Write ``scores.csv``, ``claims.csv``, ``report.md`` and the figures into ``output``.
+
+    :return: the markdown report
+    """
+    study = load_study(output)
+    if not study.seeds:
+        raise FileNotFoundError(f"no finished seed in {output} (a seed counts once its collect job is done)")
+    study.finals.to_csv(output / "scores.csv", index=False)
+    study.extras.to_csv(output / "extras.csv", index=False)
+    claims = evaluate_claims(study)
+    pd.DataFrame(claims).to_csv(output / "claims.csv", index=False)
+    text = (
+        f"# Two-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
+        f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
+        f"{study.preset['distill_steps']:,} updates per student.\n\n"
+        "## Final returns\n\nmean +- std over seeds [95 % bootstrap CI of the mean]; online methods: mean of the last "
+        f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
+        + score_table(study)
+        + "\n\n## Claims\n\n"
+        + claims_table(claims)
+        + "\n"
+    )
+    if plots:
+        from sb3_lifelong.experiments.figures import plot_study
+
+        paths = plot_study(study)
+        text += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in paths) + "\n"
+    (output / "report.md").write_text(text)
+    return text

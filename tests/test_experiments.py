@@ -1,0 +1,136 @@
+"""The paper's protocol as jobs: one seed end to end at a tiny budget, skip-finished, re-run, report, claims."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from sb3_lifelong import LifelongReplayBuffer
+from sb3_lifelong.experiments import CLAIMS, PRESETS, STUDENTS, job_names, load_study, run_seed, write_report
+from sb3_lifelong.experiments.__main__ import main
+from sb3_lifelong.experiments.protocol import sampling_weights
+from sb3_lifelong.experiments.report import bootstrap_ci, evaluate_claims
+
+JOBS = [
+    "collect",
+    "distill_CRR_exp_beta1",
+    "distill_CRR_indicator",
+    "distill_CRR_indicator_A_only",
+    "distill_BC",
+    "distill_CRR_indicator_two_actors",
+    "distill_CRR_indicator_ratio_1to10",
+    "online_CRR_exp_beta1",
+]
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    output = tmp_path_factory.mktemp("study")
+    messages: list[str] = []
+    for seed in (0, 1):
+        ran = run_seed(PRESETS["tiny"], seed, output, jobs=JOBS, log=messages.append)
+        assert ran == JOBS
+    return output, messages
+
+
+def test_a_seed_writes_every_job(study):
+    output, messages = study
+    run_dir = output / "seed_0"
+    for job in JOBS:
+        done = json.loads((run_dir / job / "done.json").read_text())
+        assert done["job"] == job and done["seconds"] > 0
+        evals = pd.read_csv(run_dir / job / "eval.csv")
+        assert set(evals["env"]) == {"Env-A", "Env-B"}
+    collect = pd.read_csv(run_dir / "collect" / "eval.csv")
+    assert collect["timesteps"].max() == sum(PRESETS["tiny"].stage_steps)  # evaluated at the very end
+    # one lifetime buffer with both stages, sources named after the environments
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        assert buffer.size() == sum(PRESETS["tiny"].stage_steps)
+        assert {v["name"] for v in buffer.sources.values()} == {"Env-A", "Env-B"}
+        counts = buffer.source_counts()  # the change takes effect at the first episode start of Stage 2
+        assert counts[0] + counts[1] == 600 and 200 <= counts[0] < 250
+    with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1:
+        assert stage1.size() == 200 and set(stage1.source_counts()) == {0}
+    # the online baseline starts where Stage 1 ended and runs through Stage 2
+    online = pd.read_csv(run_dir / "online_CRR_exp_beta1" / "eval.csv")
+    assert online["timesteps"].min() > 200 and online["timesteps"].max() == 600
+    # students log Q per source on the whole lifetime, even the one that samples Env-A only
+    q = pd.read_csv(run_dir / "distill_CRR_indicator_A_only" / "q_sources.csv")
+    assert set(q["name"]) == {"Env-A", "Env-B"}
+    assert any("job 1/" in m and "collect" in m for m in messages)
+
+
+def test_finished_jobs_are_skipped_and_a_lost_job_reruns(study):
+    output, _ = study
+    messages: list[str] = []
+    assert run_seed(PRESETS["tiny"], 0, output, jobs=JOBS, log=messages.append) == []
+    assert any("already done" in m for m in messages)
+    (output / "seed_0" / "distill_BC" / "done.json").unlink()  # as if the job had crashed
+    assert run_seed(PRESETS["tiny"], 0, output, jobs=JOBS, log=messages.append) == ["distill_BC"]
+
+
+def test_report_claims_and_figures(study):
+    output, _ = study
+    text = write_report(output)
+    assert "## Claims" in text
+    for name in ("fig_online.png", "fig_students.png", "fig_q_sources.png", "fig_sampling_ratio.png", "report.md"):
+        assert (output / name).stat().st_size > 0
+    scores = pd.read_csv(output / "scores.csv")
+    assert set(scores["seed"]) == {0, 1}
+    claims = pd.read_csv(output / "claims.csv")
+    assert list(claims["claim"]) == [claim.name for claim in CLAIMS]
+    assert set(claims["verdict"]) <= {"reproduced", "not reproduced", "no data"}
+    verdicts = dict(zip(claims["claim"], claims["verdict"]))
+    assert verdicts["C5a reward scale"] == "no data"  # its student did not run
+    assert verdicts["C1 forgetting"] != "no data"
+
+
+def test_claims_follow_the_numbers(study):
+    output, _ = study
+    study_data = load_study(output)
+    finals = study_data.finals
+    # make the indicator student exactly half of the A-only student in Env-A: C4a must hold, then must fail
+    for factor, expected in ((0.5, "reproduced"), (1.0, "not reproduced")):
+        edited = finals.copy()
+        a_only = edited[(edited["method"] == "CRR_indicator_A_only") & (edited["env"] == "Env-A")].set_index("seed")["score"]
+        mask = (edited["method"] == "CRR_indicator") & (edited["env"] == "Env-A")
+        edited.loc[mask, "score"] = edited.loc[mask, "seed"].map(a_only).abs() * factor + (0 if factor < 1 else 1)
+        edited.loc[edited["method"] == "CRR_indicator_A_only", "score"] = edited.loc[
+            edited["method"] == "CRR_indicator_A_only", "score"
+        ].abs()
+        study_data.finals = edited
+        rows = {r["claim"]: r["verdict"] for r in evaluate_claims(study_data)}
+        assert rows["C4a the imbalance drop"] == expected
+
+
+def test_sampling_weights_give_the_ratio():
+    counts = {0: 1000, 1: 5000}
+    for ratio in ((1, 1), (1, 10), (1, 0), (0, 1)):
+        weights = sampling_weights(ratio, counts)
+        mass = {s: weights[s] * counts[s] for s in counts}
+        total = sum(mass.values())
+        assert mass[0] / total == pytest.approx(ratio[0] / sum(ratio))
+    with pytest.raises(ValueError, match="no data"):
+        sampling_weights((1, 1), {0: 10})
+    with pytest.raises(ValueError, match="non-negative"):
+        sampling_weights((0, 0), counts)
+
+
+def test_bootstrap_interval():
+    low, high = bootstrap_ci([1.0, 2.0, 3.0])
+    assert 1.0 <= low < 2.0 < high <= 3.0
+    assert bootstrap_ci([5.0]) == (5.0, 5.0)
+    assert all(np.isnan(bootstrap_ci([])))
+
+
+def test_cli_list_and_errors(capsys, tmp_path):
+    assert main(["list", "--preset", "cpu"]) == 0
+    out = capsys.readouterr().out
+    for job in job_names():
+        assert job in out
+    assert len(STUDENTS) >= 10
+    with pytest.raises(ValueError, match="unknown jobs"):
+        run_seed(PRESETS["tiny"], 0, tmp_path, jobs=["distill_nothing"])
+    with pytest.raises(SystemExit):
+        main(["run", "--preset", "tiny", "--output", str(tmp_path)])  # --seed is required
