@@ -7,8 +7,6 @@ export MENAGERIE_ROOT
 # one torch / BLAS thread per process: on 2 shared cores more threads slow training down (see docs)
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
-export MUJOCO_GL ?= osmesa
-export PYOPENGL_PLATFORM ?= osmesa
 DEMO_DIR ?= demo_output
 
 .PHONY: install test test-all demo demo-mpo lint format check-codestyle type doc clean

@@ -33,6 +33,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sb3_lifelong.envs.perturbations import RobotDescription
+from sb3_lifelong.envs.rendering import make_renderer
 
 #: right/left foot contact boxes (named by this env; the menagerie model leaves them unnamed)
 OP3_FOOT_GEOMS = ("r_foot_sole", "r_foot_front", "l_foot_sole", "l_foot_front")
@@ -109,7 +110,8 @@ class OP3WalkEnv(gym.Env):
     """
     Robotis OP3 walking forward, 20 joint position targets at 50 Hz.
 
-    :param render_mode: ``None`` or ``"rgb_array"`` (needs an OpenGL backend, e.g. ``MUJOCO_GL=egl`` or ``osmesa``)
+    :param render_mode: ``None`` or ``"rgb_array"`` (needs OpenGL: chosen when the first frame is rendered, see
+        :func:`sb3_lifelong.envs.rendering.make_renderer`)
     :param frame_skip: physics steps (2 ms) per control step
     :param action_scale: joint target offset (rad) for an action of 1
     :param forward_weight: reward per m/s of forward speed
@@ -250,13 +252,7 @@ class OP3WalkEnv(gym.Env):
             gym.logger.warn('render() called without render_mode; create the env with render_mode="rgb_array"')
             return None
         if self._renderer is None:
-            try:
-                self._renderer = mujoco.Renderer(self.model, self.height, self.width)
-            except Exception as e:
-                raise RuntimeError(
-                    "No OpenGL backend for MuJoCo rendering: set MUJOCO_GL=egl or MUJOCO_GL=osmesa "
-                    f"(PYOPENGL_PLATFORM=osmesa, Debian package libosmesa6): {e}"
-                ) from e
+            self._renderer = make_renderer(self.model, self.height, self.width)
         self._renderer.update_scene(self.data, camera="track")
         return self._renderer.render()
 

@@ -14,6 +14,7 @@ geom: MuJoCo then takes the contact parameters from the floor alone instead of m
 floor could have no effect at all).
 """
 
+import os
 import warnings
 import zlib
 from dataclasses import dataclass, field
@@ -25,6 +26,12 @@ try:  # MuJoCo is an optional dependency: ``pip install "sb3_lifelong[mujoco]"``
     import mujoco
 except ImportError:  # pragma: no cover - exercised only without the extra
     mujoco = None
+except Exception as error:  # MuJoCo loads the OpenGL backend named by MUJOCO_GL at import, and fails without it
+    raise ImportError(
+        f"importing mujoco failed with MUJOCO_GL={os.environ.get('MUJOCO_GL')!r} "
+        f"({type(error).__name__}: {error}): that backend's library is missing. Unset MUJOCO_GL: nothing here needs "
+        "OpenGL except rendering, which picks a working backend itself (sb3_lifelong.envs.rendering)"
+    ) from error
 
 
 @dataclass(frozen=True)
