@@ -104,7 +104,7 @@ PRESETS: dict[str, Preset] = {
     "cpu": Preset(
         env_id="Hopper-v5",
         stages=({}, {"hip_deformation": 0.3}),
-        stage_steps=(40_000, 200_000),
+        stage_steps=(50_000, 250_000),
         distill_steps=30_000,
         eval_freq=10_000,
         distill_eval_freq=5_000,
