@@ -22,10 +22,11 @@ test: install
 test-all: install
 	$(PYTHON) -m pytest -n 2 -m "" tests/
 
-# the quick two-stage pipeline (Env-A then Env-B, baselines, distillation): plots, tensorboard logs, summary table
-# (the quick preset, a little shorter: about 7 minutes on an idle 2-core machine)
+# a short run of the paper's two-stage protocol (Env-A then Env-B, distillation of the lifetime buffer), then its
+# report: tables, the pre-registered claims, figures (the "demo" preset: minutes; the study itself is "--preset cpu")
 demo: install
-	$(PYTHON) examples/two_stage.py --output $(DEMO_DIR) --stage-steps 8000 16000 --distill-steps 6000
+	$(PYTHON) -m sb3_lifelong.experiments run --preset demo --seed 0 --output $(DEMO_DIR) --progress-bar
+	$(PYTHON) -m sb3_lifelong.experiments report $(DEMO_DIR)
 
 # MPO alone on a small MuJoCo task, with a learning curve
 demo-mpo: install

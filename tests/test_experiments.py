@@ -124,11 +124,26 @@ def test_bootstrap_interval():
     assert all(np.isnan(bootstrap_ci([])))
 
 
+def test_a_study_keeps_one_set_of_settings(study):
+    output, _ = study
+    other = PRESETS["tiny"].__class__(**{**PRESETS["tiny"].__dict__, "distill_steps": 7})
+    with pytest.raises(ValueError, match="other settings"):
+        run_seed(other, 0, output)
+
+
+def test_demo_preset_jobs():
+    demo = PRESETS["demo"]
+    assert demo.jobs()[0] == "collect" and not any(job.startswith("online_") for job in demo.jobs())
+    assert all(job[len("distill_") :] in STUDENTS for job in demo.jobs()[1:])
+    assert demo.note and sum(demo.stage_steps) % demo.eval_freq == 0
+
+
 def test_cli_list_and_errors(capsys, tmp_path):
     assert main(["list", "--preset", "cpu"]) == 0
     out = capsys.readouterr().out
     for job in job_names():
         assert job in out
+    assert PRESETS["cpu"].jobs() == job_names()
     assert len(STUDENTS) >= 10
     with pytest.raises(ValueError, match="unknown jobs"):
         run_seed(PRESETS["tiny"], 0, tmp_path, jobs=["distill_nothing"])

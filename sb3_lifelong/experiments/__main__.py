@@ -22,7 +22,7 @@ from typing import Optional
 
 import torch as th
 
-from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, copy_preset, job_names, run_seed
+from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, copy_preset, run_seed
 from sb3_lifelong.experiments.report import write_report
 
 
@@ -62,7 +62,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.command == "list":
         preset = PRESETS[args.preset]
         print(f"preset {args.preset}: {preset.env_id}, stages {list(preset.stages)}, steps {list(preset.stage_steps)}")
-        for job in job_names():
+        for job in preset.jobs():
             name = job.split("_", 1)[-1]
             about = STUDENTS[name].about if job.startswith("distill_") else ONLINE.get(name, "MPO through every stage")
             print(f"  {job:<34} {about}")
@@ -83,22 +83,29 @@ def main(argv: Optional[list[str]] = None) -> int:
         changes["distill_steps"] = args.distill_steps
     if changes:
         preset = copy_preset(preset, **changes)
-    jobs = args.jobs if args.jobs is not None else job_names(online=not args.no_online)
+    jobs = (
+        args.jobs if args.jobs is not None else [j for j in preset.jobs() if not (args.no_online and j.startswith("online_"))]
+    )
     output = pathlib.Path(args.output)
-    steps = sum(preset.stage_steps) + (0 if args.no_online else len(ONLINE) * sum(preset.stage_steps[1:]))
+    online = sum(job.startswith("online_") for job in jobs)
+    steps = sum(preset.stage_steps) + online * sum(preset.stage_steps[1:])
     print(
         f"Two-stage protocol, preset {args.preset}: {preset.env_id}, {' -> '.join(preset.env_names)}, "
         f"steps {list(preset.stage_steps)}, {len(jobs)} jobs for seed {args.seed} "
         f"({steps:,} environment steps online, {preset.distill_steps:,} updates per student)"
     )
+    if preset.note:
+        print(preset.note)
     if preset.minutes_per_seed is not None and not changes:
         print(f"expect about {preset.minutes_per_seed:.0f} min on one core (measured on a 2-core AMD EPYC machine)")
     start = time.perf_counter()
     ran = run_seed(preset, args.seed, output, jobs=jobs, progress_bar=args.progress_bar, log=lambda m: print(m, flush=True))
-    print(
-        f"Seed {args.seed}: {len(ran)} job(s) finished in {(time.perf_counter() - start) / 60:.1f} min; results in "
-        f"{output / f'seed_{args.seed}'}. Tables and figures: python -m sb3_lifelong.experiments report {output}"
-    )
+    run_dir = output / f"seed_{args.seed}"
+    print(f"Seed {args.seed}: {len(ran)} job(s) finished in {(time.perf_counter() - start) / 60:.1f} min; results in {run_dir}")
+    student = run_dir / "distill_CRR_exp_beta1" / "student.zip"
+    if student.exists():
+        print(f"The distilled policy (CRR exp beta=1): sb3_lifelong.CRR.load('{student}')")
+    print(f"Tables, claims and figures: python -m sb3_lifelong.experiments report {output}")
     return 0
 
 

@@ -72,6 +72,9 @@ class Preset:
     :param max_episode_steps: episode length limit (None: the environment's own)
     :param minutes_per_seed: measured wall time of one seed of ``run`` on one core of the reference machine (None:
         not measured), for the estimate printed before a run
+    :param students: the students a seed trains (None: every one of :data:`STUDENTS`)
+    :param online: whether a seed runs the online CRR baselines
+    :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
     env_id: str
@@ -91,6 +94,13 @@ class Preset:
     env_names: tuple[str, ...] = ("Env-A", "Env-B")
     max_episode_steps: Optional[int] = None
     minutes_per_seed: Optional[float] = None
+    students: Optional[tuple[str, ...]] = None
+    online: bool = True
+    note: str = ""
+
+    def jobs(self) -> list[str]:
+        """:return: the jobs of one seed of this preset, in the order they run"""
+        return job_names(self.students, self.online)
 
     def describe(self) -> dict[str, Any]:
         """:return: the settings as JSON-friendly values"""
@@ -125,6 +135,30 @@ PRESETS: dict[str, Preset] = {
         eval_freq=20_000,
         distill_eval_freq=25_000,
         eval_episodes=5,
+    ),
+    # `make demo`: the story in minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
+    "demo": Preset(
+        env_id="Hopper-v5",
+        stages=({}, {"hip_deformation": 0.3}),
+        stage_steps=(8_000, 24_000),
+        distill_steps=5_000,
+        eval_freq=4_000,
+        distill_eval_freq=1_000,
+        eval_episodes=3,
+        net_arch=(128, 128),
+        batch_size=128,
+        student_batch_size=256,
+        num_samples=10,
+        learning_rate=1e-3,
+        learning_starts=2_000,
+        students=("CRR_exp_beta1", "CRR_indicator", "CRR_indicator_A_only", "BC"),
+        online=False,
+        note=(
+            "This is the demo preset: 8k + 24k steps and 5k updates per student, a few minutes on a laptop CPU. At this "
+            "budget MPO has not learnt Env-A yet, so there is little to forget and the students copy weak data: the "
+            "claims are evaluated for the record, not expected to hold. The study that tests them is the 'cpu' preset "
+            "(about two hours per seed on one core): see benchmarks/results/paper_cpu/report.md."
+        ),
     ),
     # seconds: for the tests
     "tiny": Preset(
@@ -375,14 +409,21 @@ def run_seed(
     :param preset: the protocol's settings
     :param seed: the seed
     :param output: the experiment directory (``seed_<k>`` is created inside)
-    :param jobs: the jobs to run (default: all of :func:`job_names`), always after ``collect``
+    :param jobs: the jobs to run (default: the preset's, :meth:`Preset.jobs`), always after ``collect``
     :param progress_bar: show a progress bar per job
     :param log: where the one-line messages go
     :return: the jobs that ran
     """
+    settings = output / "preset.json"
+    if settings.exists() and json.loads(settings.read_text()) != json.loads(json.dumps(preset.describe())):
+        raise ValueError(
+            f"{output} holds a study run with other settings ({settings}); its seeds cannot be mixed with these. "
+            "Choose another --output, or delete that directory to start again."
+        )
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
-    wanted = list(jobs) if jobs is not None else job_names()
+    settings.write_text(json.dumps(preset.describe(), indent=1))
+    wanted = list(jobs) if jobs is not None else preset.jobs()
     unknown = sorted(set(wanted) - set(job_names()))
     if unknown:
         raise ValueError(f"unknown jobs {unknown}; the jobs are {job_names()}")
@@ -409,7 +450,6 @@ def run_seed(
         (run_dir / job / "done.json").write_text(json.dumps(done, indent=1))
         log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
         ran.append(job)
-    (output / "preset.json").write_text(json.dumps(preset.describe(), indent=1))
     return ran
 
 

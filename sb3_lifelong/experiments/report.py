@@ -318,8 +318,9 @@ def write_report(output: pathlib.Path, plots: bool = True) -> str:
         f"# Two-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
         f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
         f"{study.preset['distill_steps']:,} updates per student.\n\n"
-        "## Final returns\n\nmean +- std over seeds [95 % bootstrap CI of the mean]; online methods: mean of the last "
-        f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
+        + (f"{study.preset['note']}\n\n" if study.preset.get("note") else "")
+        + "## Final returns\n\nmean +- std over seeds [95 % bootstrap CI of the mean]; online methods: mean of the last "
+        + f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
         + score_table(study)
         + "\n\n## Claims\n\n"
         + claims_table(claims)
