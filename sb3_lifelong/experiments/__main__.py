@@ -101,7 +101,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     start = time.perf_counter()
     ran = run_seed(preset, args.seed, output, jobs=jobs, progress_bar=args.progress_bar, log=lambda m: print(m, flush=True))
     run_dir = output / f"seed_{args.seed}"
-    print(f"Seed {args.seed}: {len(ran)} job(s) finished in {(time.perf_counter() - start) / 60:.1f} min; results in {run_dir}")
+    minutes = (time.perf_counter() - start) / 60
+    print(f"Seed {args.seed}: {len(ran)} job(s) finished in {minutes:.1f} min; results in {run_dir}")
     student = run_dir / "distill_CRR_exp_beta1" / "student.zip"
     if student.exists():
         print(f"The distilled policy (CRR exp beta=1): sb3_lifelong.CRR.load('{student}')")
