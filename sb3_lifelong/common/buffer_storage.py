@@ -24,6 +24,7 @@ them are an unflushed tail of a crashed writer and are ignored by readers and cu
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import mmap
@@ -107,9 +108,37 @@ def _delete_file(path: str) -> None:
         pass
 
 
+def _write_all(fd: int, data: Any) -> None:
+    """
+    Write every byte of ``data`` at the file offset of ``fd`` (``os.write`` may write fewer bytes than asked).
+
+    :raises OSError: as ``os.write`` does, e.g. ENOSPC when the disk is full (after a short write)
+    """
+    view = memoryview(data).cast("B")
+    while len(view):
+        written = os.write(fd, view)
+        if written <= 0:  # pragma: no cover (regular files do not do this)
+            raise OSError(errno.EIO, "write() wrote nothing")
+        view = view[written:]
+
+
+def _open_for_writing(file_name: str, flags: int = 0) -> int:
+    return os.open(file_name, os.O_WRONLY | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0) | flags, 0o666)
+
+
+def _remove_quietly(file_name: str) -> None:
+    """Delete a file that a failed write left behind (nothing refers to it); never raises."""
+    try:
+        os.remove(file_name)
+    except OSError:
+        pass
+
+
 def write_json_atomic(path: str, data: dict[str, Any]) -> None:
     """
     Write a JSON document atomically: temporary file, fsync, rename over the target, fsync of the directory.
+    When this raises (e.g. disk full), the target is either unchanged or, if only the final directory fsync failed,
+    replaced by the new document; the temporary file is removed.
 
     :param path: Target file
     :param data: JSON-serialisable document
@@ -117,11 +146,17 @@ def write_json_atomic(path: str, data: dict[str, Any]) -> None:
     directory = os.path.dirname(os.path.abspath(path))
     tmp = path + ".tmp"
     payload = json.dumps(data, indent=1, sort_keys=True, allow_nan=False).encode("utf-8")
-    with open(tmp, "wb") as file:
-        file.write(payload)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(tmp, path)
+    try:
+        fd = _open_for_writing(tmp, os.O_CREAT | os.O_TRUNC)
+        try:
+            _write_all(fd, payload)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
     _fsync_dir(directory)
 
 
@@ -541,9 +576,11 @@ class RowStore:
         tail_rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
         self._tail = {name: np.empty((tail_rows, *shape), dtype=self.dtypes[name]) for name, (_, shape) in self.fields.items()}
         self.num_tail = 0
+        self._maps_stale = False  # True while the maps (or read files) may not cover every committed row
         if self.path is not None and self.layout == "chunked" and not read_only:
-            self._commit_eviction()  # a smaller capacity than the stored one evicts now
-        self._remap()
+            self._commit(self.chunks, self.num_committed)  # a smaller capacity than the stored one evicts now; maps
+        else:
+            self._remap()
         self.recovered = len(self)
         if self.max_resident_bytes is not None and self.path is not None:
             try:  # file-backed pages mapped before this store (python, numpy, torch libraries)
@@ -776,16 +813,17 @@ class RowStore:
         self._load_manifest(manifest)
         self._tail_start = self.num_committed
         if changed:
-            if self.layout == "chunked":
-                self._update_chunk_maps()
-            else:
-                self._remap()
+            self._sync_maps()
         return len(self)
 
     # ------------------------------------------------------------------ writing
     def append(self, rows: dict[str, np.ndarray]) -> None:
         """
         Append rows (every field, same leading length). Flushes a chunk each time ``chunk_size`` rows are pending.
+
+        If a flush fails (e.g. ``OSError``, disk full), this raises having stored only the rows of this call that an
+        earlier flush of the same call committed (none when fewer than ``chunk_size`` rows are appended): the
+        rows pending from earlier calls stay pending, and :attr:`end` says how many rows were stored.
 
         :param rows: field name -> array of shape (n, *row_shape)
         """
@@ -803,6 +841,7 @@ class RowStore:
             self.num_tail = stop
             return
         done = 0
+        mark = self.num_tail  # the rows of this call in the tail start here (0 after a flush of this call)
         while done < count:
             if self.path is None and self.num_tail == len(self._tail["rewards"]):
                 self._make_room(count - done)
@@ -813,7 +852,12 @@ class RowStore:
             self.num_tail += take
             done += take
             if self.path is not None and self.num_tail == self.chunk_size:
-                self.flush()
+                try:
+                    self.flush()
+                except BaseException:
+                    self.num_tail = mark  # the rows of this call that are not committed are not stored
+                    raise
+                mark = 0
 
     def _make_room(self, need: int) -> None:
         """In memory, the arrays are full: drop the evicted rows at their front (if that frees enough), else grow."""
@@ -843,8 +887,16 @@ class RowStore:
         self._tail_start = 0
 
     def flush(self) -> None:
-        """Write the pending rows as one chunk (fsync'd files, then the manifest replaced atomically, then the
-        files of evicted chunks deleted)."""
+        """
+        Write the pending rows as one chunk: the field files (layout "single": each cut back to its committed length
+        first, then appended to) or the chunk file (layout "chunked") are written and fsync'd, then the manifest is
+        replaced atomically, then the files of evicted chunks are deleted.
+
+        Only once the new manifest is in place does this object count the rows as committed. If anything fails
+        before (e.g. ``OSError`` ENOSPC, disk full), it raises with the committed state (on disk and in memory)
+        unchanged and the rows still pending in memory, readable and sampled as before: calling ``flush()`` again
+        (e.g. after freeing space) writes the same bytes to the same places and commits them.
+        """
         if self.path is None or self.read_only or self._closed:
             return
         if self.num_tail == 0:
@@ -852,62 +904,109 @@ class RowStore:
             return
         count = self.num_tail
         crcs: dict[str, int] = {}
+        chunk: dict[str, Any] = {"start": self.num_committed, "rows": count, "crc32": crcs}
         if self.layout == "chunked":
-            chunk = {"start": self.num_committed, "rows": count, "crc32": crcs}
-            with open(self._chunk_file(chunk), "wb") as file:
-                for name in self.fields:
-                    data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
-                    crcs[name] = zlib.crc32(data)
-                    file.write(data)
-                file.flush()
-                os.fsync(file.fileno())
-        else:
+            file_name = self._chunk_file(chunk)
+            try:
+                fd = _open_for_writing(file_name, os.O_CREAT | os.O_TRUNC)
+                try:
+                    for name in self.fields:
+                        data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
+                        crcs[name] = zlib.crc32(data)
+                        _write_all(fd, data)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                self._commit([*self.chunks, chunk], self.num_committed + count)
+            except BaseException:
+                if self.num_committed < chunk["start"] + count:  # not committed: nothing refers to this file
+                    _remove_quietly(file_name)
+                raise
+            return
+        written = []
+        try:
             for name in self.fields:
                 data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
                 crcs[name] = zlib.crc32(data)
-                with open(self._file(name), "ab") as file:
-                    file.write(data)
-                    file.flush()
-                    os.fsync(file.fileno())
-        self.chunks.append({"start": self.num_committed, "rows": count, "crc32": crcs})
-        self.num_committed += count
-        self.num_tail = 0
-        self._tail_start = self.num_committed
-        if self.layout == "chunked":
-            self._commit_eviction()
-            self._update_chunk_maps()
-        else:
-            self._write_manifest()
-            self._remap()
+                committed_bytes = self.num_committed * self.row_bytes[name]
+                fd = _open_for_writing(self._file(name))
+                written.append(name)
+                try:
+                    # bytes after the committed rows are left by a failed flush: cut them off so that this one
+                    # writes the same rows to the same place (the manifest's offsets)
+                    os.ftruncate(fd, committed_bytes)
+                    os.lseek(fd, committed_bytes, os.SEEK_SET)
+                    _write_all(fd, data)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            self._commit([*self.chunks, chunk], self.num_committed + count)
+        except BaseException:
+            if self.num_committed < chunk["start"] + count:  # not committed: give the space back (best effort)
+                for name in written:
+                    try:
+                        os.truncate(self._file(name), self.num_committed * self.row_bytes[name])
+                    except OSError:
+                        pass
+            raise
 
-    def _commit_eviction(self) -> None:
-        """Layout "chunked": commit the retained range, then delete the files of the chunks it no longer reaches."""
-        assert self.layout == "chunked"
-        self.committed_first = max(self.committed_first, min(self.first, self.num_committed))
-        dropped = [chunk for chunk in self.chunks if chunk["start"] + chunk["rows"] <= self.committed_first]
-        self.chunks = self.chunks[len(dropped) :]
-        self._write_manifest()  # from here on, no committed state refers to the dropped chunks
+    def _commit(self, chunks: list[dict[str, Any]], num_committed: int) -> None:
+        """
+        Commit the rows before global row ``num_committed`` (listed by ``chunks``; with a capacity, the chunks with
+        no retained row are dropped): replace the manifest atomically, then, and only then, move this object's
+        committed state (pending rows before ``num_committed`` leave the tail), delete the files of the dropped
+        chunks and map the committed rows. If the manifest cannot be written, this raises and nothing changed.
+        """
+        committed_first = self.committed_first
+        dropped: list[dict[str, Any]] = []
+        if self.layout == "chunked":
+            committed_first = max(committed_first, min(self.first, num_committed))
+            dropped = [chunk for chunk in chunks if chunk["start"] + chunk["rows"] <= committed_first]
+            chunks = chunks[len(dropped) :]
+        self._write_manifest(chunks, num_committed, committed_first)
+        # committed: from here on, no committed state refers to the dropped chunks
+        self.chunks, self.committed_first = chunks, committed_first
+        self.num_tail -= num_committed - self._tail_start
+        self.num_committed = self._tail_start = num_committed
+        self._maps_stale = True  # until the maps (or read files) follow: reads map again first
         if dropped:
             for chunk in dropped:
                 _delete_file(self._chunk_file(chunk))
             assert self.path is not None
             _fsync_dir(self.path)
+        self._sync_maps()
 
-    def _write_manifest(self) -> None:
+    def _sync_maps(self) -> None:
+        """Map the committed rows (or, with ``read_mode="pread"``, open their files) after a commit or a refresh."""
+        self._maps_stale = True
+        if self.layout == "chunked":
+            self._update_chunk_maps()
+        else:
+            self._remap()
+        self._maps_stale = False
+
+    def _write_manifest(
+        self,
+        chunks: Optional[list[dict[str, Any]]] = None,
+        num_committed: Optional[int] = None,
+        committed_first: Optional[int] = None,
+    ) -> None:
+        """Atomically replace the manifest: the committed state of this object, or the one given."""
         assert self.path is not None
         plain = self.layout == "single" and obs_keys_of(self.fields) is None
         manifest: dict[str, Any] = {
             "format": FORMAT_NAME,
             "version": 1 if plain else 2,
             "fields": {name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in self.fields.items()},
-            "num_transitions": self.num_committed,
-            "chunks": self.chunks,
+            "num_transitions": self.num_committed if num_committed is None else num_committed,
+            "chunks": self.chunks if chunks is None else chunks,
             "sources": {str(k): v for k, v in sorted(self.sources.items())},
             "next_stream_id": self.next_stream_id,
             "spaces": self.spaces,
         }
         if not plain:
-            manifest.update(layout=self.layout, capacity=self.capacity, first_row=self.committed_first)
+            first = self.committed_first if committed_first is None else committed_first
+            manifest.update(layout=self.layout, capacity=self.capacity, first_row=first)
         write_json_atomic(os.path.join(self.path, MANIFEST_NAME), manifest)
 
     def __getstate__(self) -> dict[str, Any]:
@@ -931,7 +1030,9 @@ class RowStore:
     def __setstate__(self, state: dict[str, Any]) -> None:
         if "fields" in state:
             # in memory; pickles of earlier versions have no read mode
-            self.__dict__.update(read_mode="mmap", _read_fds={}, _pread_table=None, _segment_starts=np.zeros(1, np.int64))
+            self.__dict__.update(
+                read_mode="mmap", _read_fds={}, _pread_table=None, _segment_starts=np.zeros(1, np.int64), _maps_stale=False
+            )
             self.__dict__.update(state)
             return
         previous = _WRITERS.get(state["path"])
@@ -1129,6 +1230,8 @@ class RowStore:
         :param indices: Row indices
         :return: field name -> array of shape (len(indices), *row_shape)
         """
+        if self._maps_stale:
+            self._sync_maps()
         first = self.first
         rows = indices + first if first else indices
         committed = self._tail_start
@@ -1160,6 +1263,8 @@ class RowStore:
         :param stop: One past the last row
         :return: Array of shape (stop - start, *row_shape)
         """
+        if self._maps_stale:
+            self._sync_maps()
         first = self.first
         lo, hi = start + first, max(start, stop) + first
         committed = self._tail_start

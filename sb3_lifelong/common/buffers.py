@@ -978,8 +978,13 @@ class LifelongReplayBuffer(_LifelongSampler):
         return {f"{base}.{key}": np.asarray(obs[key]).reshape(width, *shapes[key]) for key in self._obs_keys}
 
     def _append_rows(self, rows: dict[str, np.ndarray]) -> None:
-        self.store.append(rows)
-        self._runs.extend(rows["sources"])
+        end = self.store.end
+        try:
+            self.store.append(rows)
+        finally:  # a failed flush (e.g. disk full) stores only the rows it committed before (usually none)
+            stored = self.store.end - end
+            if stored:
+                self._runs.extend(rows["sources"] if stored == len(rows["sources"]) else rows["sources"][:stored])
 
     def flush(self) -> None:
         """Write the pending transitions to disk now (no-op in memory)."""

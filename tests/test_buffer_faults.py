@@ -1,0 +1,277 @@
+"""Fault safety of the on-disk buffer: disk full during a flush or a manifest write, then a retry; a lost manifest."""
+
+import contextlib
+import errno
+import os
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from sb3_lifelong import LifelongReplayBuffer
+from sb3_lifelong.common import buffer_storage
+from sb3_lifelong.common.buffer_storage import FIELD_NAMES, RowStore
+
+OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
+STORAGE_FILE = buffer_storage.__file__
+needs_proc = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self/fd (Linux)")
+
+
+def transition(k, n_envs=1):
+    """Row k (and the next n_envs - 1 rows) of a deterministic sequence, as add() arguments."""
+    index = np.arange(k, k + n_envs)
+    obs = np.stack([index, -index, index * 0.25], axis=1).astype(np.float32)
+    actions = np.stack([np.sin(index), np.cos(index)], axis=1).astype(np.float32)
+    infos = [{"TimeLimit.truncated": bool(i % 11 == 10)} for i in index]
+    return obs, obs + 0.5, actions, (index * 0.001).astype(np.float32), index % 5 == 4, infos
+
+
+def rewards(start, stop):
+    return (np.arange(start, stop) * 0.001).astype(np.float32)
+
+
+def add_rows(buffer, start, stop, n_envs=1):
+    for k in range(start, stop, n_envs):
+        buffer.add(*transition(k, n_envs))
+    return stop
+
+
+def check_rows(buffer, count):
+    """The buffer holds exactly rows 0..count-1 of the sequence (read_range and sample)."""
+    assert buffer.size() == count
+    obs, next_obs, actions, rewards, _, _ = transition(0, count)
+    got = {name: np.array(buffer.store.read_range(name, 0, count)) for name in FIELD_NAMES}
+    np.testing.assert_array_equal(got["observations"], obs)
+    np.testing.assert_array_equal(got["next_observations"], next_obs)
+    np.testing.assert_array_equal(got["actions"], actions)
+    np.testing.assert_array_equal(got["rewards"], rewards)
+    samples = buffer.sample(256)
+    if buffer.n_steps > 1:
+        assert samples.observations.shape == (256, 3)
+        return
+    rows = samples.rewards.numpy().reshape(-1) / np.float32(0.001)
+    index = np.rint(rows).astype(np.int64)
+    assert index.min() >= 0 and index.max() < count
+    np.testing.assert_array_equal(samples.observations.numpy(), obs[index])
+    np.testing.assert_array_equal(samples.actions.numpy(), actions[index])
+
+
+@contextlib.contextmanager
+def disk_full(monkeypatch, directory, budget=0, names=None):
+    """
+    ``os.write`` to files under ``directory`` (only those whose base name is in ``names``, if given) writes
+    ``budget`` more bytes in all, then fails with ENOSPC, as a filling disk does (a short write, then an error).
+    """
+    real_write = os.write
+    root = os.path.realpath(directory) + os.sep
+    state = {"left": budget, "failures": 0}
+
+    def write(fd, data):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            target = ""
+        if not target.startswith(root) or (names is not None and os.path.basename(target) not in names):
+            return real_write(fd, data)
+        if state["left"] <= 0:
+            state["failures"] += 1
+            raise OSError(errno.ENOSPC, "No space left on device (injected)")
+        written = real_write(fd, memoryview(data)[: state["left"]])
+        state["left"] -= written
+        return written
+
+    monkeypatch.setattr(os, "write", write)
+    try:
+        yield state
+    finally:
+        monkeypatch.setattr(os, "write", real_write)
+
+
+def make_buffer(path, layout, chunk_size=50, **kwargs):
+    capacity = None if layout == "single" else 10_000
+    return LifelongReplayBuffer(0, OBS, ACT, device="cpu", path=path, chunk_size=chunk_size, capacity=capacity, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------- disk full in a flush
+@needs_proc
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+@pytest.mark.parametrize("budget", [0, 7, 130, 1500])
+def test_disk_full_during_flush_then_retry(tmp_path, monkeypatch, layout, budget):
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)  # two chunks committed, 20 rows pending
+    with disk_full(monkeypatch, path, budget=budget) as fault:
+        with pytest.raises(OSError) as error:
+            buffer.flush()
+        assert error.value.errno == errno.ENOSPC and fault["failures"] == 1
+        check_rows(buffer, 120)  # committed rows intact, the pending ones still served from memory
+        assert buffer.store.num_committed == 100 and buffer.store.num_tail == 20
+        with pytest.raises(OSError):  # still full: a retry fails the same way and changes nothing
+            buffer.flush()
+        check_rows(buffer, 120)
+    buffer.flush()  # space freed: the retry writes the same bytes to the same place
+    assert buffer.store.num_committed == 120
+    check_rows(buffer, 120)
+    add_rows(buffer, 120, 170)
+    check_rows(buffer, 170)
+    buffer.close()
+    reopened = LifelongReplayBuffer.open(path, device="cpu", verify="all")
+    check_rows(reopened, 170)
+    if layout == "single":
+        for name in FIELD_NAMES:  # no stray bytes after the committed rows
+            assert os.path.getsize(path / f"{name}.bin") == 170 * reopened.store.row_bytes[name]
+
+
+@needs_proc
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+@pytest.mark.parametrize("n_envs", [1, 3])
+def test_disk_full_in_add_then_retry(tmp_path, monkeypatch, layout, n_envs):
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout, chunk_size=31)
+    row = add_rows(buffer, 0, 30, n_envs)  # the next add() fills the tail (after its first row) and flushes
+    counts = buffer.source_counts()
+    with disk_full(monkeypatch, path, budget=200):
+        for _ in range(2):
+            with pytest.raises(OSError):
+                buffer.add(*transition(row, n_envs))
+            assert buffer.size() == row and buffer.source_counts() == counts  # the failed add() stored nothing
+            check_rows(buffer, row)
+    row = add_rows(buffer, row, row + 30 * n_envs, n_envs)  # the same add() again, then more
+    check_rows(buffer, row)
+    assert buffer.source_counts() == {0: row}
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), row)
+
+
+RLIMIT_CHILD = r"""
+import importlib.util, resource, signal, sys
+import numpy as np
+spec = importlib.util.spec_from_file_location("storage", sys.argv[1])
+storage = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(storage)
+path, capacity = sys.argv[2], None if sys.argv[3] == "none" else int(sys.argv[3])
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past RLIMIT_FSIZE then fails with EFBIG
+fields = {"observations": ("<f4", (4,)), "next_observations": ("<f4", (4,)), "actions": ("<f4", (2,)),
+          "rewards": ("<f4", ()), "flags": ("|u1", ()), "sources": ("<u2", ()), "streams": ("<u4", ()),
+          "widths": ("<u2", ())}
+def rows(a, b):
+    idx = np.arange(a, b)
+    return {"observations": (idx[:, None] * 4 + np.arange(4)).astype(np.float32),
+            "next_observations": (idx[:, None] * 4 + np.arange(4) + 0.5).astype(np.float32),
+            "actions": np.stack([np.sin(idx), np.cos(idx)], 1).astype(np.float32),
+            "rewards": (idx * 0.001).astype(np.float32), "flags": (idx % 3).astype(np.uint8),
+            "sources": (idx // 1000).astype(np.uint16), "streams": (idx // 77).astype(np.uint32),
+            "widths": np.ones(b - a, np.uint16)}
+store = storage.RowStore(fields, path=path, chunk_size=1000, capacity=capacity)
+store.append(rows(0, 30))
+store.flush()
+store.append(rows(30, 60))
+soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+resource.setrlimit(resource.RLIMIT_FSIZE, (30 * 16 + 100, hard))  # room for 100 more bytes per file
+try:
+    store.flush()
+    print("flushed", flush=True)
+except OSError as error:
+    print("error", error.errno, flush=True)
+resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+store.flush()
+expected = rows(0, 60)
+live = all(np.array_equal(store.read_range(name, 0, 60), expected[name]) for name in fields)
+print("live", live, store.num_committed, flush=True)
+store.close()
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid") or sys.platform != "linux", reason="RLIMIT_FSIZE test (Linux)")
+@pytest.mark.parametrize("capacity", ["none", "100000"])
+def test_file_size_limit_during_flush_then_retry(tmp_path, capacity):
+    """A real short write (RLIMIT_FSIZE, EFBIG) in the middle of a flush, then a retry, in a subprocess."""
+    path = tmp_path / "b"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    out = subprocess.run(
+        [sys.executable, "-c", RLIMIT_CHILD, STORAGE_FILE, str(path), capacity],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+        check=True,
+    ).stdout.split("\n")
+    assert out[0] == f"error {errno.EFBIG}"
+    assert out[1] == "live True 60"
+    store = RowStore(path=str(path), verify="all")
+    assert store.num_committed == 60
+    idx = np.arange(60)
+    expected = (idx[:, None] * 4 + np.arange(4)).astype(np.float32)
+    np.testing.assert_array_equal(store.read_range("observations", 0, 60), expected)
+    np.testing.assert_array_equal(store.read_range("rewards", 0, 60), (idx * 0.001).astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------- disk full in the manifest
+@needs_proc
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+@pytest.mark.parametrize("fault", ["write", "short write", "fsync", "replace"])
+def test_manifest_write_fails_then_retry(tmp_path, monkeypatch, layout, fault):
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout, n_steps=3)
+    add_rows(buffer, 0, 120)
+    before = (path / "manifest.json").read_bytes()
+    with contextlib.ExitStack() as stack:
+        if fault in ("write", "short write"):
+            budget = 0 if fault == "write" else 40
+            stack.enter_context(disk_full(monkeypatch, path, budget=budget, names={"manifest.json.tmp"}))
+        else:
+            name = "fsync" if fault == "fsync" else "replace"
+            real = getattr(os, name)
+
+            def failing(*args):
+                raise OSError(errno.EIO if name == "fsync" else errno.ENOSPC, f"{name} failed (injected)")
+
+            def selective(*args):  # only the manifest's temporary file fails
+                if name == "replace" or os.readlink(f"/proc/self/fd/{args[0]}").endswith("manifest.json.tmp"):
+                    return failing(*args)
+                return real(*args)
+
+            stack.enter_context(monkeypatch.context()).setattr(os, name, selective)
+        with pytest.raises(OSError):
+            buffer.flush()
+        # nothing committed in memory either: the 20 rows are still pending and served; the manifest is unchanged
+        assert buffer.store.num_committed == 100 and buffer.store.num_tail == 20
+        assert (path / "manifest.json").read_bytes() == before
+        check_rows(buffer, 120)
+        for _ in range(20):
+            buffer.sample(64)
+    assert not (path / "manifest.json.tmp").exists()
+    buffer.flush()  # the retry writes the chunk and the manifest again, and maps the new rows
+    assert buffer.store.num_committed == 120
+    check_rows(buffer, 120)
+    reader = LifelongReplayBuffer.open(path, read_only=True, device="cpu", verify="all")
+    check_rows(reader, 120)
+    add_rows(buffer, 120, 160)
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 160)
+
+
+@needs_proc
+def test_manifest_write_fails_while_evicting(tmp_path, monkeypatch):
+    """With a capacity, a failed commit deletes no chunk file: the retained rows stay readable, and the retry evicts."""
+    path = tmp_path / "b"
+    buffer = LifelongReplayBuffer(0, OBS, ACT, device="cpu", path=path, chunk_size=20, capacity=50)
+    add_rows(buffer, 0, 100)  # rows 50..99 retained (chunks from row 40 on listed)
+    files = sorted(os.listdir(path))
+    add_rows(buffer, 100, 119)
+    with disk_full(monkeypatch, path, names={"manifest.json.tmp"}):
+        with pytest.raises(OSError):
+            add_rows(buffer, 119, 120)  # fills the chunk: flush, evict rows up to 69 (chunk 40 dropped)
+        assert sorted(os.listdir(path)) == files  # the new chunk file was not kept, no evicted file deleted
+        assert buffer.size() == 50 and buffer.store.num_committed == 100
+        np.testing.assert_array_equal(buffer.store.read_range("rewards", 0, 50), rewards(69, 119))
+    add_rows(buffer, 119, 120)
+    assert buffer.store.committed_first == 70 and buffer.store.num_committed == 120
+    assert "chunk.000000000040.bin" not in os.listdir(path) and "chunk.000000000060.bin" in os.listdir(path)
+    np.testing.assert_array_equal(buffer.store.read_range("rewards", 0, 50), rewards(70, 120))
+    buffer.close()
+    reopened = LifelongReplayBuffer.open(path, device="cpu", verify="all")
+    np.testing.assert_array_equal(reopened.store.read_range("rewards", 0, 50), rewards(70, 120))
