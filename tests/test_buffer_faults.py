@@ -12,7 +12,7 @@ import pytest
 
 from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.common import buffer_storage
-from sb3_lifelong.common.buffer_storage import FIELD_NAMES, RowStore
+from sb3_lifelong.common.buffer_storage import FIELD_NAMES, BufferFormatError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
@@ -275,3 +275,50 @@ def test_manifest_write_fails_while_evicting(tmp_path, monkeypatch):
     buffer.close()
     reopened = LifelongReplayBuffer.open(path, device="cpu", verify="all")
     np.testing.assert_array_equal(reopened.store.read_range("rewards", 0, 50), rewards(70, 120))
+
+
+# ---------------------------------------------------------------------------------------------- lost manifest
+def snapshot(path):
+    return {name: (path / name).read_bytes() for name in sorted(os.listdir(path)) if name != "writer.lock"}
+
+
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+def test_lost_manifest_is_not_overwritten(tmp_path, layout):
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)
+    buffer.close()
+    os.remove(path / "manifest.json")
+    files = snapshot(path)
+    data_file = "observations.bin" if layout == "single" else "chunk.000000000000.bin"
+    attempts = [
+        lambda: make_buffer(path, layout),  # the same constructor call that created it
+        lambda: make_buffer(path, "chunked" if layout == "single" else "single"),
+        lambda: LifelongReplayBuffer.open(path),
+        lambda: LifelongReplayBuffer.open(path, read_only=True),
+        lambda: RowStore({name: ("<f4", ()) for name in FIELD_NAMES}, path=str(path)),
+    ]
+    for attempt in attempts:
+        with pytest.raises(BufferFormatError) as error:
+            attempt()
+        message = str(error.value)
+        assert str(path) in message and "manifest.json" in message and data_file in message
+        assert "move" in message.lower()
+        assert snapshot(path) == files  # nothing truncated, deleted or created
+    # the way out the message gives: move the files away
+    moved = tmp_path / "lost"
+    os.rename(path, moved)
+    make_buffer(path, layout).close()
+    assert snapshot(moved) == files
+
+
+def test_empty_files_of_an_interrupted_creation_are_reused(tmp_path):
+    """A writer killed while creating a directory leaves empty field files and no manifest: nothing to lose."""
+    path = tmp_path / "b"
+    path.mkdir()
+    for name in FIELD_NAMES:
+        (path / f"{name}.bin").write_bytes(b"")
+    buffer = make_buffer(path, "single")
+    add_rows(buffer, 0, 60)
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 60)

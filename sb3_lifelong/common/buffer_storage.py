@@ -52,6 +52,11 @@ V2_KEYS = ("layout", "capacity", "first_row")
 # "chunked": one file per flushed chunk, "chunk.<start>.bin", holding each field's rows one field after the other
 LAYOUTS = ("single", "chunked")
 CHUNK_FILE_PATTERN = re.compile(r"chunk\.([0-9]{12,19})\.bin")
+# the data files any buffer directory may hold (field files of layout "single", chunk files of layout "chunked")
+DATA_FILE_PATTERN = re.compile(
+    r"(?:(?:observations|next_observations)(?:\.[A-Za-z0-9_][A-Za-z0-9_-]{0,63})?|actions|rewards|flags|sources|streams"
+    r"|widths)\.bin|chunk\.[0-9]{12,19}\.bin"
+)
 MANIFEST_NAME = "manifest.json"
 LOCK_NAME = "writer.lock"
 MAX_MANIFEST_BYTES = 256 * 1024 * 1024
@@ -443,6 +448,26 @@ def _read_into(fd: int, target: memoryview, offset: int) -> None:
         done += count
 
 
+def orphaned_data_files(path: str) -> list[str]:
+    """
+    :param path: A directory with no manifest
+    :return: The names of the buffer data files in it (field or chunk files) that are not empty or not regular files
+        (a directory whose manifest was lost). Empty field files are what a writer killed while creating the
+        directory leaves: nothing to lose
+    """
+    try:
+        entries = sorted(os.listdir(path))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    found = []
+    for entry in entries:
+        if DATA_FILE_PATTERN.fullmatch(entry):
+            file_name = os.path.join(path, entry)
+            if os.path.islink(file_name) or not os.path.isfile(file_name) or os.path.getsize(file_name) > 0:
+                found.append(entry)
+    return found
+
+
 def chunk_file_name(start: int) -> str:
     """
     :param start: First row of a chunk
@@ -555,6 +580,22 @@ class RowStore:
             self._load_manifest(manifest)
             self._open_existing(verify)
         else:
+            orphans = [] if self.path is None else orphaned_data_files(self.path)
+            if orphans:
+                assert self.path is not None
+                listed = ", ".join(
+                    f"{name} ({os.path.getsize(os.path.join(self.path, name))} bytes)"
+                    if os.path.isfile(os.path.join(self.path, name))
+                    else name
+                    for name in orphans[:8]
+                )
+                more = f" and {len(orphans) - 8} more" if len(orphans) > 8 else ""
+                raise BufferFormatError(
+                    f"{self.path} has no {MANIFEST_NAME} but holds buffer data files: {listed}{more}. Its manifest was "
+                    "lost (or removed), so these rows cannot be read, and creating a buffer there would overwrite them: "
+                    "refusing. Move these files (or the whole directory) away, to keep them, or delete them if their data "
+                    "is not needed, then create the buffer again; or pass another path"
+                )
             if fields is None:
                 raise FileNotFoundError(f"no buffer at {self.path!r} and no field specification to create one")
             if read_only:
