@@ -584,9 +584,11 @@ class RowStore:
             if orphans:
                 assert self.path is not None
                 listed = ", ".join(
-                    f"{name} ({os.path.getsize(os.path.join(self.path, name))} bytes)"
-                    if os.path.isfile(os.path.join(self.path, name))
-                    else name
+                    (
+                        f"{name} ({os.path.getsize(os.path.join(self.path, name))} bytes)"
+                        if os.path.isfile(os.path.join(self.path, name))
+                        else name
+                    )
                     for name in orphans[:8]
                 )
                 more = f" and {len(orphans) - 8} more" if len(orphans) > 8 else ""
