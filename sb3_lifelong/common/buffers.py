@@ -7,6 +7,7 @@ See ``docs/modules/buffer.md`` for the directory format, the crash guarantees an
 from __future__ import annotations
 
 import inspect
+import math
 import os
 from collections.abc import Sequence
 from typing import Any, Optional, Union
@@ -39,6 +40,72 @@ _Samples = Union[ReplayBufferSamples, DictReplayBufferSamples]
 # Minari interop: per-step source ids (in the episodes' infos) and source names / metadata (in the dataset metadata)
 MINARI_SOURCE_INFO = "sb3_lifelong_source"
 MINARI_SOURCES_METADATA = "sb3_lifelong_sources"
+
+
+_vdot = np.vdot
+_isfinite = math.isfinite
+
+
+def _conform(label: str, value: np.ndarray, target: tuple[int, ...], what: str = "") -> np.ndarray:
+    """
+    ``value`` as an array of shape ``target`` where numpy's assignment rules (as used by SB3's ``ReplayBuffer.add``)
+    accept it: leading dimensions of size 1 dropped, then broadcasting. Otherwise a ValueError naming the field.
+    """
+    shape = value.shape
+    while len(shape) > len(target) and shape[0] == 1:
+        shape = shape[1:]
+    try:
+        return np.broadcast_to(value.reshape(shape), target)
+    except ValueError:
+        where = f"; {what}" if what else ""
+        raise ValueError(
+            f"add(): {label} have shape {value.shape}, expected {target} ({target[0]} envs, the length of rewards{where})"
+        ) from None
+
+
+def _env_vector(label: str, value: np.ndarray) -> np.ndarray:
+    """Rewards given as a scalar (one env) or with leading dimensions of size 1, as a vector (n_envs,)."""
+    shape = value.shape
+    while len(shape) > 1 and shape[0] == 1:
+        shape = shape[1:]
+    if len(shape) > 1:
+        raise ValueError(f"add(): {label} have shape {value.shape}, expected (n_envs,): one value per env")
+    return value.reshape(shape or (1,))
+
+
+def _raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset: int = 0) -> None:
+    """
+    :param values: Array whose first dimension is the env (or row) index
+    :param what: Start of the message, e.g. ``"add(): rewards of env"``, followed by the first bad index
+    :param consequence: End of the message
+    :param offset: Added to the index reported
+    :raises ValueError: if a value is NaN or infinite
+    """
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return
+    rows = np.flatnonzero(bad.reshape(len(values), -1).any(axis=1)) if values.ndim else np.zeros(1, np.int64)
+    first = int(rows[0])
+    value = values.reshape(len(values), -1)[first][bad.reshape(len(values), -1)[first]][0] if values.ndim else values
+    more = f" (and {len(rows) - 1} more)" if len(rows) > 1 else ""
+    raise ValueError(
+        f"{what} {first + offset}{more} is not finite ({value}): NaN and infinite values are refused; {consequence}"
+    )
+
+
+def _check_finite_columns(columns: dict[str, Any], where: str) -> None:
+    """
+    Imports: raise a ValueError naming the column and the first row if a float value of the observations, next
+    observations, actions or rewards is NaN or infinite (checked in blocks of rows, to bound the memory used).
+    """
+    for name in ("observations", "next_observations", "actions", "rewards"):
+        values = np.asarray(columns[name])
+        if values.dtype.kind != "f":
+            continue
+        for start in range(0, len(values), _COPY_BLOCK):
+            block = values[start : start + _COPY_BLOCK]
+            if not np.isfinite(block).all():
+                _raise_if_not_finite(block, f"{where}: {name} of row", "nothing was imported", offset=start)
 
 
 def _space_to_json(space: spaces.Space) -> dict[str, Any]:
@@ -729,7 +796,9 @@ class LifelongReplayBuffer(_LifelongSampler):
             raise NotImplementedError(
                 "from_d4rl: d4rl data has one observation array: Dict observation spaces are not supported"
             )
+        where = "from_d4rl"
         if not isinstance(data, dict):
+            where = f"from_d4rl({os.fspath(data)})"
             with np.load(os.fspath(data), allow_pickle=False) as npz:
                 data = {key: npz[key] for key in npz.files}
         for key in ("observations", "actions", "rewards", "next_observations", "terminals"):
@@ -744,6 +813,9 @@ class LifelongReplayBuffer(_LifelongSampler):
                     raise ValueError(f"d4rl key {key!r} has {len(value)} rows, observations have {total}")
         if actions.ndim == 1:
             actions = actions.reshape(-1, 1)
+        _check_finite_columns(
+            {**data, "rewards": np.asarray(data["rewards"], dtype=np.float32), "actions": actions}, where
+        )  # before anything is created
         if observation_space is None:
             observation_space = spaces.Box(-np.inf, np.inf, shape=obs.shape[1:], dtype=obs.dtype)  # type: ignore[arg-type]
         if action_space is None:
@@ -824,6 +896,10 @@ class LifelongReplayBuffer(_LifelongSampler):
         columns = minari_columns(dataset, info_keys=(MINARI_SOURCE_INFO,))
         lengths = columns["episode_lengths"]
         total = int(lengths.sum())
+        name_of = dataset_id if isinstance(dataset_id, str) else type(dataset).__name__
+        _check_finite_columns(
+            {**columns, "rewards": np.asarray(columns["rewards"], dtype=np.float32)}, f"from_minari({name_of})"
+        )  # before anything is created
         buffer = cls(total, observation_space, action_space, path=path, **kwargs)
         common = {
             "minari_dataset_id": dataset_id if isinstance(dataset_id, str) else None,
@@ -930,7 +1006,17 @@ class LifelongReplayBuffer(_LifelongSampler):
         infos: list[dict[str, Any]],
     ) -> None:
         """
-        Append one transition per env (SB3 semantics). Any number of envs is accepted.
+        Append one transition per env (SB3 semantics). Any number of envs is accepted: ``n_envs`` is the length of
+        ``reward``.
+
+        Every argument is checked before anything is stored, and a ``ValueError`` naming the field, the expected and
+        the received shape is raised for a shape SB3's ``ReplayBuffer.add`` would not accept for ``n_envs`` envs
+        (observations: ``(n_envs, *obs_shape)`` or what numpy broadcasts to it, any array of ``n_envs`` elements for
+        Discrete spaces; actions: ``(n_envs, action_dim)`` or ``(n_envs, *action_shape)``, unbatched for one env;
+        rewards and dones: ``(n_envs,)``; ``len(infos) == n_envs``). Shapes are never reshaped across envs (a
+        transposed array is refused, not scrambled). A NaN or infinite observation, next observation, action or
+        reward (after conversion to the stored dtype) raises a ``ValueError`` naming the field and the env; nothing of
+        that call is stored.
 
         :param obs: Observations, leading dimension n_envs
         :param next_obs: Next observations (the terminal observation where an episode ended)
@@ -939,8 +1025,27 @@ class LifelongReplayBuffer(_LifelongSampler):
         :param done: Episode ends (terminations and time-limit truncations)
         :param infos: One info dict per env (``"TimeLimit.truncated"``, ``"stage"``, ``"dynamics_params"``)
         """
-        reward = np.asarray(reward, dtype=np.float32).reshape(-1)
+        reward = np.asarray(reward, dtype=np.float32)
+        if reward.ndim != 1:
+            reward = _env_vector("rewards", reward)
         width = len(reward)
+        if len(infos) != width:
+            raise ValueError(
+                f"add(): infos has {len(infos)} entries for {width} envs (the length of rewards): expected one info dict "
+                "per env"
+            )
+        if width != self._add_width:
+            self._set_add_shapes(width)
+        flags = np.array(done, dtype=bool)  # a copy: stored as the flags (bit 0: done), timeouts set in place below
+        if flags.shape != self._add_done:
+            flags = np.array(_conform("dones", flags, self._add_done))
+        actions = np.asarray(action)
+        if actions.shape != self._add_actions:
+            actions = self._conform_actions(actions, width)
+        if actions.dtype != self._action_dtype and self._action_dtype.kind == "f":
+            actions = actions.astype(self._action_dtype)  # stored as this: the finiteness check sees the stored values
+        rows = self._checked_rows(obs, next_obs, actions, reward, width)
+        # checked: nothing of this call was stored (or changed) before
         if width != self._width or self._stream_base is None:
             self._stream_base = self.store.next_stream_id
             self.store.next_stream_id += width
@@ -948,43 +1053,147 @@ class LifelongReplayBuffer(_LifelongSampler):
             self.n_envs = width
             self._stream_ids = np.arange(self._stream_base, self._stream_base + width, dtype=np.uint32)
             self._widths = np.full(width, width, dtype=np.uint16)
-        if self._source not in self.store.sources:
-            self._ensure_source(self._source)
-        sources = np.empty(width, dtype=np.uint16)
-        timeouts = np.zeros(width, dtype=np.uint8)
+        source = self._source
+        if source not in self.store.sources:
+            self._ensure_source(source)
+        sources = self._source_rows
+        if self._source_rows_of != source or len(sources) != width:
+            sources = self._source_rows = np.full(width, source, dtype=np.uint16)  # append() copies it
+            self._source_rows_of = source
+        timeouts = self.handle_timeout_termination
         for i, info in enumerate(infos):
-            sources[i] = self._source if "stage" not in info else self._source_of(info)
-            if self.handle_timeout_termination and info.get("TimeLimit.truncated", False):
-                timeouts[i] = FLAG_TIMEOUT
-        rows = {
-            **self._observation_rows("observations", obs, width),
-            **self._observation_rows("next_observations", next_obs, width),
-            "actions": np.asarray(action).reshape(width, self.action_dim),
-            "rewards": reward,
-            "flags": np.asarray(done).reshape(width).astype(np.uint8) | timeouts,
-            "sources": sources,
-            "streams": self._stream_ids,
-            "widths": self._widths,
-        }
+            if "stage" in info:
+                if sources is self._source_rows:
+                    sources = sources.copy()
+                sources[i] = self._source_of(info)
+            if timeouts and info.get("TimeLimit.truncated", False):
+                flags = flags.view(np.uint8)
+                flags[i] |= FLAG_TIMEOUT
+        rows["actions"] = actions
+        rows["rewards"] = reward
+        rows["flags"] = flags
+        rows["sources"] = sources
+        rows["streams"] = self._stream_ids
+        rows["widths"] = self._widths
         self._append_rows(rows)
 
-    def _observation_rows(self, base: str, obs: Union[np.ndarray, dict[str, np.ndarray]], width: int) -> dict[str, np.ndarray]:
+    def _checked_rows(
+        self, obs: Any, next_obs: Any, actions: np.ndarray, reward: np.ndarray, width: int
+    ) -> dict[str, np.ndarray]:
+        """add(): the observation rows, shaped (or a ValueError), and a ValueError if a float value is not finite."""
         if self._obs_keys is None:
-            return {base: np.asarray(obs).reshape(width, *self.obs_shape)}  # type: ignore[misc]
-        if not isinstance(obs, dict) or set(obs) != set(self._obs_keys):
+            target, dtype = self._add_obs, self._obs_dtype
+            observations = np.asarray(obs)
+            if observations.shape != target:
+                observations = self._conform_obs("observations", observations, target)
+            next_observations = np.asarray(next_obs)
+            if next_observations.shape != target:
+                next_observations = self._conform_obs("next_observations", next_observations, target)
+            if observations.dtype != dtype and dtype.kind == "f":
+                observations = observations.astype(dtype)
+            if next_observations.dtype != dtype and dtype.kind == "f":
+                next_observations = next_observations.astype(dtype)
+            # a cheap test of every value: a NaN or an infinity in x or y makes the dot product x.y NaN or infinite
+            # (x * 0 is NaN for x infinite, and an infinite sum never comes back). Large finite values that overflow
+            # do so too: then the exact check finds nothing
+            total = float(reward[0]) if width == 1 else float(_vdot(reward, reward))
+            if actions.dtype.kind == "f":
+                total += float(_vdot(actions, actions))
+            if dtype.kind == "f":  # both of the stored float dtype
+                total += float(_vdot(observations, next_observations))
+            else:
+                if observations.dtype.kind == "f":
+                    total += float(_vdot(observations, observations))
+                if next_observations.dtype.kind == "f":
+                    total += float(_vdot(next_observations, next_observations))
+            if not _isfinite(total):
+                self._check_finite({"observations": observations, "next_observations": next_observations}, actions, reward)
+            rows = {"observations": observations, "next_observations": next_observations}
+        else:
+            rows = {
+                **self._observation_rows("observations", obs, width),
+                **self._observation_rows("next_observations", next_obs, width),
+            }
+            self._check_finite(rows, actions, reward)
+        return rows
+
+    # class defaults, so that buffers pickled by earlier versions compute them at their first add()
+    _add_width = -1
+    _source_rows = np.zeros(0, dtype=np.uint16)
+    _source_rows_of = -1
+
+    def _set_add_shapes(self, width: int) -> None:
+        """The shapes add() expects for ``width`` envs, and the stored dtypes of its float fields."""
+        self._add_width = width
+        self._add_done = (width,)
+        self._add_actions = (width, self.action_dim)
+        action_shape = tuple(self.action_space.shape or ())
+        accepted = {(width, self.action_dim), (width, *action_shape)}
+        if width == 1:  # one env, unbatched: SB3 reshapes it too
+            accepted |= {(self.action_dim,), action_shape}
+        self._accepted_actions = accepted
+        self._action_dtype = np.dtype(self.store.fields["actions"][0])
+        if self._obs_keys is None:
+            self._add_obs = (width, *self.obs_shape)  # type: ignore[misc]
+            self._obs_dtype = np.dtype(self.store.fields["observations"][0])
+
+    def _conform_actions(self, actions: np.ndarray, width: int) -> np.ndarray:
+        if actions.shape not in self._accepted_actions:
+            raise ValueError(
+                f"add(): actions have shape {actions.shape}, expected {self._add_actions} ({width} envs, the length of "
+                f"rewards; action space {self.action_space})"
+            )
+        return actions.reshape(self._add_actions)
+
+    def _conform_obs(
+        self, label: str, obs: np.ndarray, target: tuple[int, ...], space: Optional[spaces.Space] = None
+    ) -> np.ndarray:
+        """Observations of a shape other than ``target``: what SB3's ``ReplayBuffer.add`` accepts (reshaped Discrete
+        observations, numpy broadcasting otherwise), or a ``ValueError``."""
+        space = self.observation_space if space is None else space
+        if isinstance(space, spaces.Discrete):
+            if obs.size == target[0] and obs.ndim <= 2:
+                return obs.reshape(target)
+            raise ValueError(
+                f"add(): {label} have shape {obs.shape}, expected {target} or {target[:1]} ({target[0]} envs, the length "
+                f"of rewards; observation space {space})"
+            )
+        return _conform(label, obs, target, f"observation space {space}")
+
+    def _observation_rows(self, base: str, obs: Union[np.ndarray, dict[str, np.ndarray]], width: int) -> dict[str, np.ndarray]:
+        if not isinstance(obs, dict) or set(obs) != set(self._obs_keys or ()):
             got = sorted(obs) if isinstance(obs, dict) else type(obs).__name__
-            raise ValueError(f"{base}: expected a dict with the keys {list(self._obs_keys)}, got {got}")
+            raise ValueError(f"add(): {base}: expected a dict with the keys {list(self._obs_keys or ())}, got {got}")
         shapes: dict[str, tuple[int, ...]] = self.obs_shape  # type: ignore[assignment]
-        return {f"{base}.{key}": np.asarray(obs[key]).reshape(width, *shapes[key]) for key in self._obs_keys}
+        subspaces = self.observation_space.spaces  # type: ignore[attr-defined]
+        rows = {}
+        for key in self._obs_keys or ():
+            name, target = f"{base}.{key}", (width, *shapes[key])
+            value = np.asarray(obs[key])
+            if value.shape != target:
+                value = self._conform_obs(f"{base}[{key!r}]", value, target, subspaces[key])
+            dtype = self.store.dtypes[name]
+            rows[name] = value.astype(dtype) if value.dtype != dtype and dtype.kind == "f" else value
+        return rows
+
+    def _check_finite(self, obs_rows: dict[str, np.ndarray], actions: np.ndarray, rewards: np.ndarray) -> None:
+        """Raise a ValueError naming the field and the envs if a float value is NaN or infinite."""
+        fields = {**obs_rows, "actions": actions, "rewards": rewards}
+        for name, values in fields.items():
+            if values.dtype.kind == "f":
+                label = name if "." not in name else "{}[{!r}]".format(*name.split(".", 1))
+                _raise_if_not_finite(values, f"add(): {label} of env", "nothing of this add() was stored")
 
     def _append_rows(self, rows: dict[str, np.ndarray]) -> None:
         end = self.store.end
         try:
             self.store.append(rows)
-        finally:  # a failed flush (e.g. disk full) stores only the rows it committed before (usually none)
+        except BaseException:  # a failed flush (e.g. disk full) stores only the rows it committed before (usually none)
             stored = self.store.end - end
             if stored:
-                self._runs.extend(rows["sources"] if stored == len(rows["sources"]) else rows["sources"][:stored])
+                self._runs.extend(rows["sources"][:stored])
+            raise
+        self._runs.extend(rows["sources"])
 
     def flush(self) -> None:
         """Write the pending transitions to disk now (no-op in memory)."""
