@@ -3,6 +3,7 @@
 import contextlib
 import errno
 import os
+import pickle
 import subprocess
 import sys
 
@@ -322,3 +323,53 @@ def test_empty_files_of_an_interrupted_creation_are_reused(tmp_path):
     add_rows(buffer, 0, 60)
     buffer.close()
     check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 60)
+
+
+# ---------------------------------------------------------------------------------------------- file errors
+def test_missing_field_file_is_called_a_field_file(tmp_path):
+    path = tmp_path / "b"
+    buffer = make_buffer(path, "single")
+    add_rows(buffer, 0, 60)
+    buffer.close()
+    os.remove(path / "flags.bin")
+    with pytest.raises(BufferFormatError, match=r"field file flags\.bin is missing") as error:
+        LifelongReplayBuffer.open(path, read_only=True)
+    assert "chunk" not in str(error.value)
+
+
+def test_from_d4rl_names_the_file_it_cannot_read(tmp_path):
+    single = tmp_path / "single.npz"
+    with open(single, "wb") as file:  # np.save into a file named .npz: one array, no names
+        np.save(file, np.zeros((4, 3)))
+    with pytest.raises(ValueError, match=r"single\.npz.*single array.*np\.savez"):
+        LifelongReplayBuffer.from_d4rl(single)
+    objects = tmp_path / "objects.npz"
+    np.savez(objects, observations=np.array([object()], dtype=object), rewards=np.zeros(1))
+    with pytest.raises(ValueError, match=r"objects\.npz.*'observations'.*pickle"):
+        LifelongReplayBuffer.from_d4rl(objects)
+    pickled = tmp_path / "pickled.npz"
+    pickled.write_bytes(pickle.dumps({"observations": np.zeros((2, 3))}))
+    with pytest.raises(ValueError, match=r"pickled\.npz.*pickle"):
+        LifelongReplayBuffer.from_d4rl(pickled)
+    with pytest.raises(FileNotFoundError):
+        LifelongReplayBuffer.from_d4rl(tmp_path / "missing.npz")
+
+
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+def test_default_verify_checks_only_the_last_chunk(tmp_path, layout):
+    """Documented behaviour: verify="last" (default) serves a flipped byte of an earlier chunk; "all" refuses it."""
+    assert "earlier chunk" in " ".join(LifelongReplayBuffer.__doc__.split()) and "NOT detected" in LifelongReplayBuffer.__doc__
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 100)  # two chunks of 50 rows
+    buffer.close()
+    data_file = path / ("rewards.bin" if layout == "single" else "chunk.000000000000.bin")
+    data = bytearray(data_file.read_bytes())
+    block = 0 if layout == "single" else 50 * (12 + 12 + 8)  # the rewards of the first chunk
+    data[block + 4 * 3] ^= 0x40  # a byte of the reward of row 3
+    data_file.write_bytes(bytes(data))
+    reopened = LifelongReplayBuffer.open(path, device="cpu")  # default verify="last": not detected
+    assert reopened.store.read_range("rewards", 3, 4)[0] != rewards(3, 4)[0]
+    reopened.close()
+    with pytest.raises(BufferFormatError, match="checksum"):
+        LifelongReplayBuffer.open(path, device="cpu", verify="all")

@@ -353,7 +353,7 @@ def test_corrupted_files(tmp_path):
     (path / "rewards.bin").write_bytes(bytes(data))
     with pytest.raises(BufferFormatError, match="checksum"):
         LifelongReplayBuffer.open(path, read_only=True, verify="all")
-    # truncated chunk file
+    # truncated field file
     (path / "rewards.bin").write_bytes(bytes(data[:40]))
     with pytest.raises(BufferFormatError, match="truncated"):
         LifelongReplayBuffer.open(path, read_only=True, verify="none")

@@ -89,7 +89,7 @@ _WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictiona
 
 
 class BufferFormatError(ValueError):
-    """A manifest or a chunk file is not a valid buffer directory (corrupted, truncated or hostile)."""
+    """A manifest or a data file (field or chunk file) is not a valid buffer directory (corrupted, truncated or hostile)."""
 
 
 def _fsync_dir(path: str) -> None:
@@ -496,7 +496,8 @@ class RowStore:
     :param path: Buffer directory, or None for an in-memory store
     :param read_only: Open an existing directory without writing (another process may be writing)
     :param chunk_size: Rows per flushed chunk
-    :param verify: Checksums to verify when opening: "all", "last" (the last chunk) or "none"
+    :param verify: Checksums to verify when opening: "all", "last" (only the last chunk: corrupted bytes in an
+        earlier chunk are not detected and are served as they are) or "none"
     :param max_resident_bytes: Remap the files after random reads may have touched about this many bytes of
         pages, which drops them from this process's RSS (they stay in the OS page cache). None: never. Only with
         ``read_mode="mmap"``
@@ -611,7 +612,7 @@ class RowStore:
                     for name in self.fields:
                         open(self._file(name), "wb").close()
                 else:
-                    self._remove_orphans()  # chunk files of an earlier buffer whose manifest is gone
+                    self._remove_orphans()  # empty chunk files (non-empty ones without a manifest are refused above)
                 self._write_manifest()
         self.dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
         self.row_bytes = {name: self.dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
@@ -717,7 +718,7 @@ class RowStore:
         for name in self.fields:
             file_name = self._file(name)
             if not os.path.isfile(file_name) or os.path.islink(file_name):
-                raise BufferFormatError(f"{self.path}: chunk file {name}.bin is missing or not a regular file")
+                raise BufferFormatError(f"{self.path}: field file {name}.bin is missing or not a regular file")
         dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
         sizes = {name: dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
         for name in self.fields:

@@ -93,6 +93,35 @@ def _raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset
     )
 
 
+def _load_npz(file: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
+    """
+    The arrays of a ``.npz`` archive, read without pickle; a ValueError naming the file (and the array) for anything
+    else (a single ``np.save`` array, pickled content, object arrays).
+    """
+    name = os.fspath(file)
+    try:
+        loaded = np.load(name, allow_pickle=False)
+    except ValueError as error:  # pickled content, or not a numpy file at all
+        raise ValueError(
+            f"{name}: not a .npz archive of arrays that can be read without pickle (nothing pickled is loaded): {error}"
+        ) from None
+    if not hasattr(loaded, "files"):  # np.save wrote one array (a .npy file): no names
+        raise ValueError(
+            f"{name}: holds a single array (written by np.save), not a .npz archive of named arrays: write the data with "
+            "np.savez(file, observations=..., actions=..., rewards=..., next_observations=..., terminals=...)"
+        )
+    result = {}
+    with loaded as npz:
+        for key in npz.files:
+            try:
+                result[key] = npz[key]
+            except ValueError as error:  # object arrays need pickle
+                raise ValueError(
+                    f"{name}: array {key!r} is stored with pickle (object dtype), which is refused: {error}"
+                ) from None
+    return result
+
+
 def _check_finite_columns(columns: dict[str, Any], where: str) -> None:
     """
     Imports: raise a ValueError naming the column and the first row if a float value of the observations, next
@@ -653,7 +682,11 @@ class LifelongReplayBuffer(_LifelongSampler):
     :param path: Buffer directory (created if missing, continued if it exists); None: in memory
     :param read_only: Open an existing ``path`` without writing (another process may be writing to it)
     :param chunk_size: Transitions per flushed chunk (at most this many are lost by a crash)
-    :param verify: Checksums verified when opening a path: "last" chunk (default), "all" or "none"
+    :param verify: Checksums verified when opening an existing path: "last" (default): only those of the last
+        committed chunk, so opening is fast whatever the size, but a corrupted byte in an earlier chunk (e.g. a bit
+        flipped on disk) is NOT detected and is served as it is by sampling and reads; "all": every chunk (reads the
+        whole buffer once when opening; raises ``BufferFormatError`` on a mismatch); "none": no checksum (file sizes
+        are always checked)
     :param source: Initial source id of transitions whose ``info`` has no ``"stage"``
     :param max_resident_bytes: With a path and ``read_mode="mmap"``: remap the files after random reads may have
         made about this many bytes of them resident, to bound the RSS of sampling a buffer larger than RAM (None: never)
@@ -799,8 +832,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         where = "from_d4rl"
         if not isinstance(data, dict):
             where = f"from_d4rl({os.fspath(data)})"
-            with np.load(os.fspath(data), allow_pickle=False) as npz:
-                data = {key: npz[key] for key in npz.files}
+            data = _load_npz(data)
         for key in ("observations", "actions", "rewards", "next_observations", "terminals"):
             if key not in data:
                 raise KeyError(f"d4rl data has no {key!r}")
