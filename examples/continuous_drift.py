@@ -11,12 +11,12 @@ Usage::
 
 import argparse
 import pathlib
-import sys
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 
 import gymnasium as gym
-from lifelong_common import (
+
+from sb3_lifelong import CRR
+from sb3_lifelong.envs import DynamicsSchedule, LinearRamp
+from sb3_lifelong.experiments.sequential import (
     add_common_arguments,
     algo_kwargs,
     eval_callbacks,
@@ -27,9 +27,6 @@ from lifelong_common import (
     resolve_config,
     set_threads,
 )
-
-from sb3_lifelong import CRR
-from sb3_lifelong.envs import DynamicsSchedule, LinearRamp
 
 END_DEFORMATION = 0.3
 

@@ -48,11 +48,11 @@ class EvalToCSV(BaseCallback):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--output", default="demo_output")
-    parser.add_argument("--env", default="InvertedPendulum-v5")
-    parser.add_argument("--steps", type=int, default=8000)
-    parser.add_argument("--eval-freq", type=int, default=1000)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--output", default="demo_output", help="directory for the logs, the plot and the model")
+    parser.add_argument("--env", default="InvertedPendulum-v5", help="gymnasium id of the task")
+    parser.add_argument("--steps", type=int, default=8000, help="environment steps of training")
+    parser.add_argument("--eval-freq", type=int, default=1000, help="evaluation period, in environment steps")
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
     args = parser.parse_args()
     th.set_num_threads(1)
     out = pathlib.Path(args.output)

@@ -15,11 +15,11 @@ Usage::
 import argparse
 import copy
 import pathlib
-import sys
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-
-from lifelong_common import (
+from sb3_lifelong import CRR
+from sb3_lifelong.common.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.common.distill import distill
+from sb3_lifelong.experiments.sequential import (
     add_common_arguments,
     algo_kwargs,
     eval_callbacks,
@@ -33,10 +33,6 @@ from lifelong_common import (
     set_threads,
 )
 
-from sb3_lifelong import CRR
-from sb3_lifelong.common.buffers import LifelongBufferView, merge_buffers
-from sb3_lifelong.common.distill import distill
-
 STAGES = {
     "quick": [{}, {"hip_deformation": 0.3}, {"friction": 0.1}],
     "tiny": [{}, {"hip_deformation": 0.3}, {"friction": 0.1}],
@@ -48,7 +44,12 @@ NAMES = ["Env-A", "Env-B", "Env-C"]
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_arguments(parser)
-    parser.add_argument("--setup", choices=["copy", "independent"], default="copy")
+    parser.add_argument(
+        "--setup",
+        choices=["copy", "independent"],
+        default="copy",
+        help="copy: one agent learns Env-A, then two copies learn Env-B and Env-C; independent: A -> B, and C from scratch",
+    )
     args = parser.parse_args()
     set_threads()
     config = resolve_config(args)

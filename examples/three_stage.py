@@ -9,11 +9,8 @@ Usage::
 
 import argparse
 import pathlib
-import sys
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-
-from lifelong_common import (
+from sb3_lifelong.experiments.sequential import (
     add_common_arguments,
     add_per_source_argument,
     finish,

@@ -24,24 +24,43 @@ def summary_rows(output: pathlib.Path) -> list[dict[str, str]]:
         return list(csv.DictReader(handle))
 
 
-def test_two_stage_with_baselines_and_plots(tmp_path):
-    stdout = run_example("two_stage.py", tmp_path)
+def test_three_stage_with_baselines_and_plots(tmp_path):
+    stdout = run_example("three_stage.py", tmp_path)
     rows = summary_rows(tmp_path)
     methods = {row["method"] for row in rows}
     assert methods == {"MPO", "CRR_indicator", "CRR_beta1", "distilled", "distilled_indicator"}
-    assert {row["env"] for row in rows} == {"Env-A", "Env-B"}
+    assert {row["env"] for row in rows} == {"Env-A", "Env-B", "Env-C"}
     for name in ("curves_Env-A.png", "curves_Env-B.png", "final_returns.png", "q_sources.png", "distillation.png"):
         assert (tmp_path / name).stat().st_size > 1000, name
     assert "| MPO |" in stdout
-    # the collector's buffer holds both environments' data, tagged by stage
+    # the collector's buffer holds every environment's data, tagged by stage
     with open(tmp_path / "seed_0" / "MPO" / "q_sources.csv") as handle:
-        assert {row["name"] for row in csv.DictReader(handle)} == {"stage_0", "stage_1"}
+        assert {row["name"] for row in csv.DictReader(handle)} == {"stage_0", "stage_1", "stage_2"}
+
+
+def test_examples_are_programs_with_documented_flags():
+    for script in EXAMPLES.glob("*.py"):
+        text = script.read_text()
+        assert "sys.path" not in text, script.name
+        result = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr
+        lines = result.stdout.splitlines()
+        options = [(i, line.strip()) for i, line in enumerate(lines) if line.strip().startswith("--")]
+        assert options, script.name
+        for i, option in options:
+            helped_here = "  " in option  # argparse puts the help after two spaces, or on the next lines
+            helped_below = i + 1 < len(lines) and lines[i + 1].startswith("    ") and not lines[i + 1].strip().startswith("-")
+            assert helped_here or helped_below, f"{script.name}: {option} has no help text"
 
 
 @pytest.mark.parametrize(
     "script, extra, envs",
     [
-        ("three_stage.py", ["--no-baselines", "--no-plots", "--per-source-actors"], {"Env-A", "Env-B", "Env-C"}),
+        (
+            "three_stage.py",
+            ["--no-baselines", "--no-plots", "--per-source-actors", "--seeds", "1"],
+            {"Env-A", "Env-B", "Env-C"},
+        ),
         ("parallel_sharing.py", ["--setup", "copy", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
         ("parallel_sharing.py", ["--setup", "independent", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
         ("continuous_drift.py", ["--no-plots"], {"hip_0.00", "hip_0.15", "hip_0.30"}),
@@ -60,11 +79,8 @@ def test_other_examples(tmp_path, script, extra, envs):
 
 
 def test_seeds_of_separate_runs_are_summarised_together(tmp_path):
-    sys.path.insert(0, str(EXAMPLES))
-    try:
-        from lifelong_common import finish
-    finally:
-        sys.path.remove(str(EXAMPLES))
+    from sb3_lifelong.experiments.sequential import finish
+
     config = dict(eval_episodes=1)
     first = [
         dict(seed=0, method="MPO", env="Env-A", final_return=1.0),

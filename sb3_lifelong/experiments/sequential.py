@@ -1,5 +1,7 @@
 """
-Shared code of the example scripts: presets, environment factories, the online stages and the distillation.
+The sequential and parallel lifelong experiments of ``examples/`` (three stages, parallel sharing, continuous
+drift): presets, environment factories, the online stages and the distillation. The paper's two-stage protocol,
+with its diagnostics and claims, is :mod:`sb3_lifelong.experiments.protocol`.
 
 Layout of an experiment's output directory::
 
@@ -84,16 +86,22 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 
 def add_common_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", choices=sorted(PRESETS), default="quick")
+    parser.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default="quick",
+        help="quick: HalfCheetah, small networks, minutes on a CPU; paper: the OP3 set-up of the paper (GPU-scale); "
+        "tiny: seconds, for the tests",
+    )
     parser.add_argument("--paper", action="store_const", const="paper", dest="preset", help="same as --preset paper")
     parser.add_argument("--output", default=None, help="output directory (default: runs/<script>_<preset>)")
     parser.add_argument("--env", default=None, help="override the preset's environment id")
-    parser.add_argument("--seeds", type=int, nargs="+", default=None)
+    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds to run one after the other")
     parser.add_argument("--stage-steps", type=int, nargs="+", default=None, help="environment steps of each stage")
-    parser.add_argument("--distill-steps", type=int, default=None)
-    parser.add_argument("--eval-freq", type=int, default=None)
+    parser.add_argument("--distill-steps", type=int, default=None, help="offline updates of every distilled student")
+    parser.add_argument("--eval-freq", type=int, default=None, help="evaluation period (steps online, updates offline)")
     parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
-    parser.add_argument("--no-plots", action="store_true")
+    parser.add_argument("--no-plots", action="store_true", help="write the CSV files and the summary, no figures")
 
 
 def add_per_source_argument(parser: argparse.ArgumentParser) -> None:
@@ -128,7 +136,7 @@ def make_schedule(
     **kwargs: Any,
 ) -> Any:
     """The robot with its lifetime of stages; the true physical parameters are appended to the observation."""
-    make_kwargs = {} if max_episode_steps is None else dict(max_episode_steps=max_episode_steps)
+    make_kwargs: dict[str, Any] = {} if max_episode_steps is None else dict(max_episode_steps=max_episode_steps)
     return DynamicsSchedule(
         gym.make(env_id, **make_kwargs), stages=list(stages), switch_at=switch_at, append_params=True, **kwargs
     )
