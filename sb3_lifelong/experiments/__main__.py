@@ -5,6 +5,11 @@ Run one seed (every job of it that has not finished yet)::
 
     python -m sb3_lifelong.experiments run --preset cpu --seed 0 --output runs/paper_cpu
 
+Several seeds at once, as a graph of jobs (Ray when installed, on this machine or a cluster; else a process pool)::
+
+    python -m sb3_lifelong.experiments study --preset cpu --seeds 0 1 2 --workers 2 --output runs/paper_cpu
+    python -m sb3_lifelong.experiments study --preset cpu --seeds 0 1 2 --address HOST:6379 --output /shared/paper_cpu
+
 Gather the finished seeds into the tables, the pre-registered claims and the figures::
 
     python -m sb3_lifelong.experiments report runs/paper_cpu
@@ -24,6 +29,7 @@ import torch as th
 
 from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, copy_preset, run_seed
 from sb3_lifelong.experiments.report import write_report
+from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -47,6 +53,19 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--distill-steps", type=int, default=None, help="override the updates of every student")
     run.add_argument("--progress-bar", action="store_true", help="a progress bar for every job (needs tqdm and rich)")
     run.add_argument("--threads", type=int, default=1, help="torch threads (default 1: more only slows small networks down)")
+
+    study = commands.add_parser("study", help="several seeds as a parallel graph of jobs (Ray or a process pool)")
+    study.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="the protocol's settings (default: cpu)")
+    study.add_argument("--seeds", type=int, nargs="+", required=True, help="the seeds of the study")
+    study.add_argument("--output", required=True, help="the study's directory (on a cluster: a path every node sees)")
+    study.add_argument("--workers", type=int, default=1, help="jobs at a time on this machine (one CPU each)")
+    study.add_argument("--address", default=None, help="a Ray cluster to submit to, HOST:PORT (default: $RAY_ADDRESS)")
+    study.add_argument(
+        "--backend", choices=BACKENDS, default="auto", help="ray, process (a local pool), or auto: Ray when installed"
+    )
+    study.add_argument("--jobs", nargs="+", default=None, help="only these jobs of each seed (collect runs first)")
+    study.add_argument("--no-online", action="store_true", help="skip the online CRR baselines")
+    study.add_argument("--no-report", action="store_true", help="do not write the report at the end")
 
     report = commands.add_parser("report", help="tables, claims and figures of every finished seed in a study")
     report.add_argument("output", help="the study's directory")
@@ -73,6 +92,23 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(write_report(pathlib.Path(args.output), plots=not args.no_plots))
         print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
         return 0
+
+    if args.command == "study":
+        preset = PRESETS[args.preset]
+        jobs = args.jobs or [j for j in preset.jobs() if not (args.no_online and j.startswith("online_"))]
+        start = time.perf_counter()
+        results = run_study(preset, args.seeds, args.output, args.workers, args.address, args.backend, jobs)
+        failed = sorted(key for key, result in results.items() if result["error"])
+        ran = sum(result["ran"] for result in results.values())
+        minutes = (time.perf_counter() - start) / 60
+        print(
+            f"Study: {ran} job(s) ran, {len(results) - ran - len(failed)} were done already, {len(failed)} failed or not run "
+            f"({minutes:.1f} min){': ' + ', '.join(failed) if failed else ''}"
+        )
+        if not args.no_report and any(result["ran"] or not result["error"] for result in results.values()):
+            write_report(pathlib.Path(args.output))
+            print(f"Report: {args.output}/report.md")
+        return 1 if failed else 0
 
     th.set_num_threads(args.threads)
     preset = PRESETS[args.preset]

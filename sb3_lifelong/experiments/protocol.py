@@ -395,6 +395,24 @@ def distill_student(name: str, preset: Preset, seed: int, run_dir: pathlib.Path,
 
 
 # ------------------------------------------------------------------------------------------------- one seed
+def record_settings(preset: Preset, output: pathlib.Path) -> None:
+    """
+    Record the preset of a study in ``output/preset.json``, or check that it is the one recorded.
+
+    :raises ValueError: when ``output`` holds a study with other settings (their seeds cannot be mixed)
+    """
+    settings = output / "preset.json"
+    described = json.loads(json.dumps(preset.describe()))
+    if settings.exists() and json.loads(settings.read_text()) != described:
+        raise ValueError(
+            f"{output} holds a study run with other settings ({settings}); its seeds cannot be mixed with these. "
+            "Choose another --output, or delete that directory to start again."
+        )
+    output.mkdir(parents=True, exist_ok=True)
+    if not settings.exists():
+        settings.write_text(json.dumps(described, indent=1))
+
+
 def run_seed(
     preset: Preset,
     seed: int,
@@ -414,15 +432,9 @@ def run_seed(
     :param log: where the one-line messages go
     :return: the jobs that ran
     """
-    settings = output / "preset.json"
-    if settings.exists() and json.loads(settings.read_text()) != json.loads(json.dumps(preset.describe())):
-        raise ValueError(
-            f"{output} holds a study run with other settings ({settings}); its seeds cannot be mixed with these. "
-            "Choose another --output, or delete that directory to start again."
-        )
+    record_settings(preset, output)
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
-    settings.write_text(json.dumps(preset.describe(), indent=1))
     wanted = list(jobs) if jobs is not None else preset.jobs()
     unknown = sorted(set(wanted) - set(job_names()))
     if unknown:

@@ -1,0 +1,230 @@
+"""
+A study (several seeds of the two-stage protocol) as a graph of jobs, run in parallel.
+
+Every seed's ``collect`` job comes first; its students and online baselines then run in any order, in parallel;
+the report waits for all. Each job is :func:`run_job`: one process-safe call that reads and writes only its seed's
+directory and skips itself when its ``done.json`` exists, so a crashed or cancelled job is re-run alone and
+finished ones are skipped.
+
+Backends: `Ray <https://www.ray.io>`_ (``pip install "sb3_lifelong[cluster]"``), started locally with ``workers``
+CPUs or joined at ``address`` (``HOST:PORT``, or ``RAY_ADDRESS``); without Ray a local process pool runs the same
+graph. A job that fails prints its traceback; the others go on, and the jobs that need it are reported as not run.
+"""
+
+import os
+import time
+import traceback
+from collections.abc import Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
+
+from sb3_lifelong.experiments.protocol import Preset, record_settings, run_seed
+
+BACKENDS = ("auto", "ray", "process")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One job of a study: ``name`` of seed ``seed``, to run after the jobs in ``after``."""
+
+    seed: int
+    name: str
+    after: tuple[str, ...] = ()
+
+    @property
+    def key(self) -> str:
+        return f"seed_{self.seed}/{self.name}"
+
+
+def job_graph(preset: Preset, seeds: Sequence[int], jobs: Optional[Sequence[str]] = None) -> list[Job]:
+    """
+    :param preset: the protocol's settings
+    :param seeds: the seeds of the study
+    :param jobs: the jobs of each seed (default: the preset's)
+    :return: every job, each seed's ``collect`` before the jobs that read its buffer
+    """
+    names = list(jobs) if jobs is not None else preset.jobs()
+    graph = []
+    for seed in seeds:
+        graph.append(Job(seed, "collect"))
+        graph += [Job(seed, name, after=(f"seed_{seed}/collect",)) for name in names if name != "collect"]
+    return graph
+
+
+def run_job(preset: Preset, output: str, seed: int, name: str, threads: int = 1) -> dict[str, Any]:
+    """
+    Run one job in this process (a no-op when it is done already).
+
+    :return: ``{"key", "ran", "seconds", "error"}`` (``error``: the traceback, or None)
+    """
+    import torch as th
+
+    th.set_num_threads(threads)
+    start = time.perf_counter()
+    key = f"seed_{seed}/{name}"
+    try:
+        ran = run_seed(preset, seed, _path(output), jobs=[name], log=lambda message: None)
+        return dict(key=key, ran=name in ran, seconds=time.perf_counter() - start, error=None)
+    except Exception:
+        return dict(key=key, ran=False, seconds=time.perf_counter() - start, error=traceback.format_exc())
+
+
+def _path(output: str) -> Any:
+    import pathlib
+
+    return pathlib.Path(output)
+
+
+def _ray_available() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def run_study(
+    preset: Preset,
+    seeds: Sequence[int],
+    output: str,
+    workers: int = 1,
+    address: Optional[str] = None,
+    backend: str = "auto",
+    jobs: Optional[Sequence[str]] = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, dict[str, Any]]:
+    """
+    Run every job of a study, ``workers`` at a time (one torch thread each).
+
+    :param preset: the protocol's settings
+    :param seeds: the seeds
+    :param output: the study's directory (on a cluster: a path every node sees)
+    :param workers: jobs at a time on the local machine (ignored when joining a cluster at ``address``)
+    :param address: a Ray cluster to submit to (``HOST:PORT``; default ``RAY_ADDRESS`` when set)
+    :param backend: ``"ray"``, ``"process"`` (a local process pool) or ``"auto"`` (Ray when installed)
+    :param jobs: the jobs of each seed (default: the preset's)
+    :param log: where the progress lines go
+    :return: the result of every job by key (``seed_<k>/<job>``): ran, seconds, error
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    use_ray = backend == "ray" or (backend == "auto" and _ray_available())
+    if backend == "ray" and not _ray_available():
+        raise ImportError('the Ray backend needs Ray: pip install "sb3_lifelong[cluster]"')
+    if address and not use_ray:
+        raise ValueError("--address submits to a Ray cluster: install Ray (sb3_lifelong[cluster]) or drop --address")
+    record_settings(preset, _path(output))  # checked and recorded once, before any worker starts
+    graph = job_graph(preset, seeds, jobs)
+    if use_ray:
+        where = f"the Ray cluster at {address}" if address else f"Ray on this machine, {workers} worker(s)"
+        log(f"study: {len(graph)} jobs on {where}")
+        return _run_ray(preset, graph, output, workers, address, log)
+    log(f"study: {len(graph)} jobs in a local process pool of {workers} worker(s) (Ray is not installed)")
+    return _run_pool(preset, graph, output, workers, log)
+
+
+class _Progress:
+    def __init__(self, graph: list[Job], log: Callable[[str], None]) -> None:
+        self.total = len(graph)
+        self.log = log
+        self.results: dict[str, dict[str, Any]] = {}
+
+    def started(self, job: Job) -> None:
+        self.log(f"[start] {job.key}")
+
+    def finished(self, result: dict[str, Any]) -> None:
+        self.results[result["key"]] = result
+        left = self.total - len(self.results)
+        if result["error"]:
+            self.log(f"[FAILED] {result['key']} after {result['seconds'] / 60:.1f} min ({left} left):\n{result['error']}")
+        elif result["ran"]:
+            self.log(f"[done] {result['key']} in {result['seconds'] / 60:.1f} min ({left} left)")
+        else:
+            self.log(f"[skip] {result['key']}: done earlier ({left} left)")
+
+    def blocked(self, job: Job, reason: str) -> None:
+        self.results[job.key] = dict(key=job.key, ran=False, seconds=0.0, error=f"not run: {reason}")
+        self.log(f"[not run] {job.key}: {reason} ({self.total - len(self.results)} left)")
+
+    def failed(self, key: str) -> bool:
+        return bool(self.results.get(key, {}).get("error"))
+
+
+def _run_pool(preset: Preset, graph: list[Job], output: str, workers: int, log: Callable[[str], None]) -> dict[str, Any]:
+    progress = _Progress(graph, log)
+    waiting = list(graph)
+    running: dict[Future, Job] = {}
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        while waiting or running:
+            for job in list(waiting):
+                if any(progress.failed(dep) for dep in job.after):
+                    waiting.remove(job)
+                    progress.blocked(job, f"{' and '.join(job.after)} failed")
+                elif all(dep in progress.results for dep in job.after) and len(running) < workers:
+                    waiting.remove(job)
+                    progress.started(job)
+                    running[pool.submit(run_job, preset, output, job.seed, job.name)] = job
+            if not running:
+                continue
+            done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for future in done:
+                running.pop(future)
+                progress.finished(future.result())
+    return progress.results
+
+
+def _run_ray(
+    preset: Preset, graph: list[Job], output: str, workers: int, address: Optional[str], log: Callable[[str], None]
+) -> dict[str, Any]:
+    import ray
+
+    started_here = not ray.is_initialized()
+    if started_here:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    try:
+        remote_job = ray.remote(num_cpus=1, max_retries=0)(_after(run_job))
+        progress = _Progress(graph, log)
+        refs: dict[str, Any] = {}
+        pending: dict[Any, Job] = {}
+        for job in graph:  # submitted at once: Ray runs a job when the results it is given are ready
+            dependencies = [refs[dep] for dep in job.after]
+            # the dependencies go in as top-level arguments: Ray passes them resolved, once they are ready
+            refs[job.key] = remote_job.remote(preset, output, job.seed, job.name, *dependencies)
+            pending[refs[job.key]] = job
+            if not job.after:
+                progress.started(job)
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            job = pending.pop(done[0])
+            result = ray.get(done[0])
+            if result.get("blocked"):
+                progress.blocked(job, result["blocked"])
+                continue
+            progress.finished(result)
+            if job.name == "collect" and not result["error"]:
+                for other in graph:
+                    if job.key in other.after:
+                        progress.started(other)
+        return progress.results
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def _after(function: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
+    """``function`` run only when the results it depends on have no error (Ray passes them resolved)."""
+
+    def job(preset: Preset, output: str, seed: int, name: str, *dependencies: dict[str, Any]) -> dict[str, Any]:
+        failed = [d["key"] for d in dependencies if d.get("error") or d.get("blocked")]
+        if failed:
+            return dict(blocked=f"{' and '.join(failed)} failed")
+        return function(preset, output, seed, name)
+
+    return job

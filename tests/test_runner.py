@@ -1,0 +1,73 @@
+"""A study as a graph of jobs: order, parallel workers, skip-finished, a failed job re-run alone, Ray and a pool."""
+
+import shutil
+
+import pytest
+
+from sb3_lifelong.experiments import PRESETS
+from sb3_lifelong.experiments.runner import job_graph, run_study
+
+TINY = PRESETS["tiny"]
+JOBS = ["collect", "distill_CRR_exp_beta1", "distill_BC"]
+
+
+def test_job_graph_puts_collection_first():
+    graph = job_graph(TINY, [0, 1], JOBS)
+    assert [job.key for job in graph] == [f"seed_{s}/{j}" for s in (0, 1) for j in JOBS]
+    for job in graph:
+        assert job.after == (() if job.name == "collect" else (f"seed_{job.seed}/collect",))
+    assert len(job_graph(TINY, [3])) == len(TINY.jobs())
+
+
+def test_process_pool_skip_finished_and_rerun_failed(tmp_path):
+    out = str(tmp_path)
+    lines: list[str] = []
+    results = run_study(TINY, [0, 1], out, workers=2, backend="process", jobs=JOBS, log=lines.append)
+    assert all(r["ran"] and r["error"] is None for r in results.values()) and len(results) == 6
+    assert any("process pool of 2" in line for line in lines)
+    # everything done: a second run runs nothing
+    again = run_study(TINY, [0, 1], out, workers=2, backend="process", jobs=JOBS, log=lines.append)
+    assert not any(r["ran"] for r in again.values())
+    # one student lost (crashed) and one seed's buffer unreadable: the lost one re-runs, the broken one fails alone
+    (tmp_path / "seed_1" / "distill_BC" / "done.json").unlink(missing_ok=True)
+    manifest = tmp_path / "seed_0" / "buffer" / "manifest.json"
+    saved = manifest.read_bytes()
+    manifest.write_text("{broken")
+    (tmp_path / "seed_0" / "distill_CRR_exp_beta1" / "done.json").unlink()
+    lines.clear()
+    third = run_study(TINY, [0, 1], out, workers=2, backend="process", jobs=JOBS, log=lines.append)
+    assert third["seed_1/distill_BC"]["ran"] and third["seed_1/distill_BC"]["error"] is None
+    assert "Traceback" in third["seed_0/distill_CRR_exp_beta1"]["error"]
+    assert any(line.startswith("[FAILED] seed_0/distill_CRR_exp_beta1") for line in lines)
+    assert sum(r["ran"] for r in third.values()) == 1
+    manifest.write_bytes(saved)
+    fourth = run_study(TINY, [0, 1], out, workers=2, backend="process", jobs=JOBS, log=lines.append)
+    assert [key for key, r in fourth.items() if r["ran"]] == ["seed_0/distill_CRR_exp_beta1"]
+
+
+def test_a_failed_collection_blocks_its_seed_only(tmp_path):
+    (tmp_path / "seed_0").mkdir()
+    (tmp_path / "seed_0" / "collect").write_text("not a directory")  # collect cannot create its directory
+    lines: list[str] = []
+    results = run_study(TINY, [0, 1], str(tmp_path), workers=2, backend="process", jobs=JOBS[:2], log=lines.append)
+    assert results["seed_0/collect"]["error"]
+    assert results["seed_0/distill_CRR_exp_beta1"]["error"].startswith("not run")
+    assert results["seed_1/distill_CRR_exp_beta1"]["ran"]
+    assert any(line.startswith("[not run] seed_0/distill_CRR_exp_beta1") for line in lines)
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="backend"):
+        run_study(TINY, [0], str(tmp_path), backend="slurm")
+    with pytest.raises(ValueError, match="workers"):
+        run_study(TINY, [0], str(tmp_path), workers=0)
+
+
+@pytest.mark.slow  # measured 412 s on the loaded 2-core machine (Ray's daemons beside two training runs); 13 s for the pool
+def test_ray_local_two_workers(tmp_path):
+    pytest.importorskip("ray", reason='Ray is not installed (pip install "sb3_lifelong[cluster]")')
+    lines: list[str] = []
+    results = run_study(TINY, [0], str(tmp_path), workers=2, backend="ray", jobs=JOBS, log=lines.append)
+    assert all(r["ran"] and r["error"] is None for r in results.values()) and len(results) == 3
+    assert any("Ray on this machine, 2 worker(s)" in line for line in lines)
+    assert (tmp_path / "seed_0" / "distill_BC" / "done.json").exists()
