@@ -86,6 +86,16 @@ def test_report_claims_and_figures(study):
     assert verdicts["C1 forgetting"] != "no data"
 
 
+def test_export_keeps_results_not_data(study, tmp_path):
+    from sb3_lifelong.experiments.report import export_results
+
+    output, _ = study
+    write_report(output, plots=False)
+    copied = export_results(output, tmp_path / "export")
+    assert (tmp_path / "export" / "seed_0" / "collect" / "eval.csv").exists() and (tmp_path / "export" / "report.md").exists()
+    assert not any("buffer" in str(p.relative_to(tmp_path)) or p.suffix == ".zip" for p in copied)
+
+
 def test_claims_follow_the_numbers(study):
     output, _ = study
     study_data = load_study(output)

@@ -28,7 +28,7 @@ from typing import Optional
 import torch as th
 
 from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, copy_preset, run_seed
-from sb3_lifelong.experiments.report import write_report
+from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
 
@@ -70,6 +70,9 @@ def _parser() -> argparse.ArgumentParser:
     report = commands.add_parser("report", help="tables, claims and figures of every finished seed in a study")
     report.add_argument("output", help="the study's directory")
     report.add_argument("--no-plots", action="store_true", help="tables only")
+    report.add_argument(
+        "--export", default=None, help="also copy the small result files (CSV, JSON, MD, PNG; no buffers) into this directory"
+    )
 
     listing = commands.add_parser("list", help="the jobs of one seed, and the measured cost of a seed")
     listing.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
@@ -91,6 +94,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.command == "report":
         print(write_report(pathlib.Path(args.output), plots=not args.no_plots))
         print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
+        if args.export:
+            copied = export_results(pathlib.Path(args.output), pathlib.Path(args.export))
+            print(f"copied {len(copied)} result files into {args.export}")
         return 0
 
     if args.command == "study":

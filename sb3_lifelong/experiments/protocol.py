@@ -157,7 +157,8 @@ PRESETS: dict[str, Preset] = {
             "This is the demo preset: 8k + 24k steps and 5k updates per student, a few minutes on a laptop CPU. At this "
             "budget MPO has not learnt Env-A yet, so there is little to forget and the students copy weak data: the "
             "claims are evaluated for the record, not expected to hold. The study that tests them is the 'cpu' preset "
-            "(about two hours per seed on one core): see benchmarks/results/paper_cpu/report.md."
+            "(collection and students about 80 min per seed on one core, the online baselines about as long again): "
+            "see benchmarks/results/paper_cpu/report.md."
         ),
     ),
     # seconds: for the tests

@@ -333,3 +333,28 @@ def write_report(output: pathlib.Path, plots: bool = True) -> str:
         text += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in paths) + "\n"
     (output / "report.md").write_text(text)
     return text
+
+
+#: the files of a study that are worth keeping (in git, say): no buffers, no models
+SMALL_FILES = ("*.csv", "*.json", "*.md", "*.png")
+
+
+def export_results(output: pathlib.Path, destination: pathlib.Path) -> list[pathlib.Path]:
+    """
+    Copy a study's small result files (CSV, JSON, Markdown, PNG; no buffers, no models) into ``destination``,
+    keeping their layout, so that a study's results can be committed without its data.
+
+    :return: the copied files
+    """
+    import shutil
+
+    copied = []
+    for pattern in SMALL_FILES:
+        for path in output.rglob(pattern):
+            if any(part.startswith("buffer") for part in path.relative_to(output).parts):
+                continue
+            target = destination / path.relative_to(output)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(path, target)
+            copied.append(target)
+    return copied
