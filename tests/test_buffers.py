@@ -463,3 +463,47 @@ def test_d4rl_actions_in_environment_units():
     np.testing.assert_array_equal(buffer.to_d4rl(by_episode=False, normalized_actions=True)["actions"], stored)
     back = LifelongReplayBuffer.from_d4rl(data, observation_space=OBS, action_space=action_space)
     np.testing.assert_allclose(back._get_samples(np.arange(20)).actions.numpy(), stored, rtol=1e-6, atol=1e-7)
+
+
+def test_a_rerun_never_mixes_into_an_earlier_buffer(tmp_path):
+    from sb3_lifelong import MPO
+
+    path = tmp_path / "runs" / "buffer"
+    small = dict(policy_kwargs=dict(net_arch=[8]), learning_starts=10, batch_size=8, num_samples=2, seed=0)
+    first = MPO(
+        "MlpPolicy", "Pendulum-v1", replay_buffer_class=LifelongReplayBuffer, replay_buffer_kwargs=dict(path=path), **small
+    )
+    first.learn(30)
+    first.replay_buffer.close()  # the run ends (its process would release the writer lock)
+    again = MPO(
+        "MlpPolicy", "Pendulum-v1", replay_buffer_class=LifelongReplayBuffer, replay_buffer_kwargs=dict(path=path), **small
+    )
+    assert again.replay_buffer.size() == 30  # opening it is fine (reading, SB3's load)
+    with pytest.raises(FileExistsError, match=r"mode='append'.*mode='overwrite'"):
+        again.learn(5)
+    with LifelongReplayBuffer.open(path, read_only=True) as kept:
+        assert kept.size() == 30  # nothing was added by the refused run
+    again.replay_buffer.close()
+    appended = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        replay_buffer_class=LifelongReplayBuffer,
+        replay_buffer_kwargs=dict(path=path, mode="append"),
+        **small,
+    )
+    appended.learn(20)
+    assert appended.replay_buffer.size() == 50
+    appended.replay_buffer.close()
+    fresh = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        replay_buffer_class=LifelongReplayBuffer,
+        replay_buffer_kwargs=dict(path=path, mode="overwrite"),
+        **small,
+    )
+    assert fresh.replay_buffer.size() == 0
+    fresh.learn(15)
+    assert fresh.replay_buffer.size() == 15
+    with pytest.raises(ValueError, match="mode must be one of"):
+        box = gym.spaces.Box(-1, 1, (2,))
+        LifelongReplayBuffer(10, box, box, path=tmp_path / "other", mode="merge")

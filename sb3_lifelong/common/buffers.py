@@ -7,6 +7,7 @@ See ``docs/modules/buffer.md`` for the directory format, the crash guarantees an
 from __future__ import annotations
 
 import inspect
+import json
 import math
 import os
 from collections.abc import Sequence
@@ -24,6 +25,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_lifelong.common.buffer_storage import (
     FLAG_DONE,
     FLAG_TIMEOUT,
+    MANIFEST_NAME,
     MAX_SOURCE_ID,
     OBS_FIELDS,
     BufferFormatError,
@@ -659,6 +661,32 @@ class _LifelongSampler(ReplayBuffer):
         np.savez(file, **self.to_d4rl())  # type: ignore[arg-type]
 
 
+BUFFER_MODES = ("new", "append", "overwrite")
+
+
+def _prepare_directory(path: str, mode: str) -> int:
+    """
+    Apply the constructor's ``mode`` to a buffer directory about to be opened for writing.
+
+    :return: the transitions it already holds (-1: a manifest that cannot be read; the store reports it)
+    """
+    if mode not in BUFFER_MODES:
+        raise ValueError(f"mode must be one of {BUFFER_MODES}, got {mode!r}")
+    manifest = os.path.join(path, MANIFEST_NAME)
+    if not os.path.isfile(manifest):
+        return 0
+    if mode == "overwrite":
+        import shutil
+
+        shutil.rmtree(path)
+        return 0
+    try:
+        with open(manifest) as handle:
+            return int(json.load(handle).get("num_transitions", 0))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return -1
+
+
 class LifelongReplayBuffer(_LifelongSampler):
     """
     Replay buffer that keeps every transition (or the most recent ``capacity`` ones), tagged with its source
@@ -698,6 +726,12 @@ class LifelongReplayBuffer(_LifelongSampler):
         every file page a read touches counts in the process's RSS) or ``"pread"`` (positioned reads into new arrays,
         about one system call per row and field: several times slower, but no file page is mapped, so the RSS stays
         at the process's own memory). Both give bit-identical samples. No effect in memory
+    :param mode: With a path to write to, what to do when the directory already holds a buffer with transitions:
+        ``"new"`` (default) opens it, but the first ``add`` raises an error that names the two choices, so that a
+        re-run never mixes its data into an earlier run's silently (reading and sampling it, and SB3's ``load`` of a
+        model whose buffer lives there, work as usual); ``"append"`` continues it (what :meth:`open` does: resuming
+        after a crash or a stop); ``"overwrite"`` deletes that buffer's files and starts empty. Ignored with
+        ``read_only=True``
     """
 
     def __init__(
@@ -719,6 +753,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         max_resident_bytes: Optional[int] = None,
         capacity: Optional[int] = None,
         read_mode: str = "mmap",
+        mode: str = "new",
     ) -> None:
         # BaseBuffer.__init__ is not called: it would allocate and assign attributes that are properties here
         if optimize_memory_usage:
@@ -728,6 +763,10 @@ class LifelongReplayBuffer(_LifelongSampler):
         if isinstance(observation_space, spaces.Tuple):
             raise NotImplementedError("LifelongReplayBuffer does not support Tuple observation spaces (Dict ones are)")
         path_str = None if path is None else os.fspath(path)
+        held = _prepare_directory(path_str, mode) if path_str is not None and not read_only else 0
+        #: a re-run must not add to an earlier run's data silently: without mode="append", adding to a directory that
+        #: held transitions when it was opened is refused (reading, sampling and SB3's load of a model still work)
+        self._refused_writes = f"{path_str!r} held {held:,} transitions when it was opened" if held and mode == "new" else ""
         fields: Optional[dict[str, tuple[str, tuple[int, ...]]]] = None
         if observation_space is not None and action_space is not None:
             action_dtype = self._maybe_cast_dtype(action_space.dtype)
@@ -798,6 +837,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         """
         if not os.path.isdir(os.fspath(path)):
             raise FileNotFoundError(f"no buffer directory at {os.fspath(path)!r}")
+        kwargs.setdefault("mode", "append")
         return cls(path=path, read_only=read_only, device=device, read_mode=read_mode, **kwargs)
 
     @classmethod
@@ -1057,6 +1097,12 @@ class LifelongReplayBuffer(_LifelongSampler):
         :param done: Episode ends (terminations and time-limit truncations)
         :param infos: One info dict per env (``"TimeLimit.truncated"``, ``"stage"``, ``"dynamics_params"``)
         """
+        if getattr(self, "_refused_writes", ""):  # (absent from pickles of earlier versions)
+            raise FileExistsError(
+                f"{self._refused_writes}: adding would mix this run's data into it. Pass mode='append' to continue it "
+                "(as LifelongReplayBuffer.open does; in SB3: replay_buffer_kwargs={'path': ..., 'mode': 'append'}), "
+                "mode='overwrite' to delete it and start again, or choose another path."
+            )
         reward = np.asarray(reward, dtype=np.float32)
         if reward.ndim != 1:
             reward = _env_vector("rewards", reward)
