@@ -323,7 +323,8 @@ def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress
     directory = run_dir / f"online_{name}"
     shutil.rmtree(directory, ignore_errors=True)
     directory.mkdir(parents=True)
-    stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device="cpu")
+    # the agent only: its saved buffer settings point at the lifetime buffer, which other jobs may be reading
+    stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
     start = int(stage1.num_timesteps)
     env = make_env(preset, switch_at=switch_points(preset), start_timestep=start)
     model = CRR(
