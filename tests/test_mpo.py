@@ -338,7 +338,8 @@ def test_extreme_rewards_stay_finite(reward_scale):
     assert np.isfinite(model.logger.name_to_value["train/actor_loss"])
 
 
-def test_mpo_solves_pendulum():
+@pytest.mark.parametrize("scoring_dtype", ["float32", "bfloat16"])
+def test_mpo_solves_pendulum(scoring_dtype):
     model = MPO(
         "MlpPolicy",
         "Pendulum-v1",
@@ -346,6 +347,7 @@ def test_mpo_solves_pendulum():
         batch_size=128,
         learning_rate=1e-3,
         policy_kwargs=dict(net_arch=[64, 64]),
+        scoring_dtype=scoring_dtype,
         seed=0,
     )
     model.learn(7000)
