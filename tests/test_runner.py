@@ -1,6 +1,5 @@
 """A study as a graph of jobs: order, parallel workers, skip-finished, a failed job re-run alone, Ray and a pool."""
 
-
 import pytest
 
 from sb3_lifelong.experiments import PRESETS
