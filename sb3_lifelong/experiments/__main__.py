@@ -90,6 +90,8 @@ def main(argv: Optional[list[str]] = None) -> int:
             print(f"  {job:<34} {about}")
         if preset.minutes_per_seed is not None:
             print(f"one seed took {preset.minutes_per_seed:.0f} min on one core of the reference machine")
+        if preset.note:
+            print(preset.note)
         return 0
     if args.command == "report":
         print(write_report(pathlib.Path(args.output), plots=not args.no_plots))

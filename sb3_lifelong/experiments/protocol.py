@@ -135,6 +135,12 @@ PRESETS: dict[str, Preset] = {
         eval_freq=20_000,
         distill_eval_freq=25_000,
         eval_episodes=5,
+        note=(
+            "The paper's scale. Estimated on one core of a 2-core AMD EPYC CPU from measured update rates (MPO and "
+            "CRR at 256x256, about 40 updates per second there): roughly 8 h of collection, 14 h of online baselines and "
+            "17 h for the twelve students, about 40 h per seed; not run end to end here. Use a GPU machine, or "
+            "`study --workers N` / `--address` to spread seeds and students over many cores."
+        ),
     ),
     # `make demo`: the story in minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
     "demo": Preset(
