@@ -2,7 +2,7 @@
 
 import functools
 import pathlib
-from typing import Any, Optional, Union
+from typing import Optional, Union
 
 import torch as th
 from stable_baselines3.common.policies import ContinuousCritic
@@ -43,14 +43,6 @@ def q_min(q_values: Union[tuple[th.Tensor, ...], list[th.Tensor]]) -> th.Tensor:
     if len(q_values) == 1:
         return q_values[0]
     return th.min(th.cat(list(q_values), dim=1), dim=1, keepdim=True)[0]
-
-
-def fast_adam_kwargs(device: Union[th.device, str]) -> dict[str, Any]:
-    """
-    :return: the keyword that selects Adam's fused implementation (one kernel for all parameters) where torch
-        has it, ``{}`` elsewhere; the per-parameter loop costs more than the arithmetic for small networks
-    """
-    return {"fused": True} if th.device(device).type in ("cpu", "cuda") else {}
 
 
 def with_fast_optimizer(optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: Optional[dict]) -> dict:
@@ -120,7 +112,8 @@ class LowPrecisionCopy:
         self.critic = critic
         self.dtype = dtype
         self.weights: dict[int, tuple[th.Tensor, Optional[th.Tensor]]] = {}
-        for module in self._hidden_layers():
+        self.layers = self._hidden_layers()
+        for module in self.layers:
             bias = None if module.bias is None else module.bias.detach().to(dtype)
             # stored transposed and contiguous: the layout addmm reads fastest
             self.weights[id(module)] = (module.weight.detach().t().contiguous().to(dtype), bias)
@@ -139,7 +132,7 @@ class LowPrecisionCopy:
     @th.no_grad()
     def sync(self) -> None:
         """Copy the critic's current weights into the low-precision copy (in place, no allocation)."""
-        for module in self._hidden_layers():
+        for module in self.layers:
             weight, bias = self.weights[id(module)]
             weight.copy_(module.weight.t())
             if bias is not None:

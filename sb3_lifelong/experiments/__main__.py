@@ -20,14 +20,15 @@ List the jobs of a preset and what a seed costs::
 """
 
 import argparse
+import dataclasses
 import pathlib
 import sys
 import time
-from typing import Optional
+from typing import Any, Optional
 
 import torch as th
 
-from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, copy_preset, run_seed
+from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
@@ -120,13 +121,13 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     th.set_num_threads(args.threads)
     preset = PRESETS[args.preset]
-    changes = {}
+    changes: dict[str, Any] = {}
     if args.stage_steps is not None:
         changes["stage_steps"] = tuple(args.stage_steps)
     if args.distill_steps is not None:
         changes["distill_steps"] = args.distill_steps
     if changes:
-        preset = copy_preset(preset, **changes)
+        preset = dataclasses.replace(preset, **changes)
     jobs = (
         args.jobs if args.jobs is not None else [j for j in preset.jobs() if not (args.no_online and j.startswith("online_"))]
     )

@@ -25,6 +25,13 @@ def _pyplot() -> Any:
     return plt
 
 
+def _save(plt: Any, fig: Any, path: pathlib.Path) -> pathlib.Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _curves(study: Any, job: str) -> pd.DataFrame:
     frames = []
     for seed in study.seeds:
@@ -75,11 +82,7 @@ def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
         ax.grid(alpha=0.3)
     axes[0][-1].legend(fontsize=8, loc="lower right")
     fig.suptitle(f"{study.preset['env_id']}: online learning through the change (mean +- std over seeds)")
-    fig.tight_layout()
-    path = directory / "fig_online.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path]
+    return [_save(plt, fig, directory / "fig_online.png")]
 
 
 def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
@@ -111,11 +114,7 @@ def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     )
     ax.legend()
     ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    path = directory / "fig_students.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path]
+    return [_save(plt, fig, directory / "fig_students.png")]
 
 
 def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
@@ -146,11 +145,7 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     if not drawn:
         plt.close(fig)
         return []
-    fig.tight_layout()
-    path = directory / "fig_q_sources.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path]
+    return [_save(plt, fig, directory / "fig_q_sources.png")]
 
 
 def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
@@ -180,11 +175,7 @@ def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     ax.margins(x=0.15)
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    path = directory / "fig_sampling_ratio.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path]
+    return [_save(plt, fig, directory / "fig_sampling_ratio.png")]
 
 
 def plot_study(study: Any) -> list[pathlib.Path]:

@@ -12,6 +12,7 @@ graph. A job that fails prints its traceback; the others go on, and the jobs tha
 """
 
 import os
+import pathlib
 import time
 import traceback
 from collections.abc import Sequence
@@ -64,16 +65,10 @@ def run_job(preset: Preset, output: str, seed: int, name: str, threads: int = 1)
     start = time.perf_counter()
     key = f"seed_{seed}/{name}"
     try:
-        ran = run_seed(preset, seed, _path(output), jobs=[name], log=lambda message: None)
+        ran = run_seed(preset, seed, pathlib.Path(output), jobs=[name], log=lambda message: None)
         return dict(key=key, ran=name in ran, seconds=time.perf_counter() - start, error=None)
     except Exception:
         return dict(key=key, ran=False, seconds=time.perf_counter() - start, error=traceback.format_exc())
-
-
-def _path(output: str) -> Any:
-    import pathlib
-
-    return pathlib.Path(output)
 
 
 def _ray_available() -> bool:
@@ -117,7 +112,7 @@ def run_study(
         raise ImportError('the Ray backend needs Ray: pip install "sb3_lifelong[cluster]"')
     if address and not use_ray:
         raise ValueError("--address submits to a Ray cluster: install Ray (sb3_lifelong[cluster]) or drop --address")
-    record_settings(preset, _path(output))  # checked and recorded once, before any worker starts
+    record_settings(preset, pathlib.Path(output))  # checked and recorded once, before any worker starts
     graph = job_graph(preset, seeds, jobs)
     if use_ray:
         where = f"the Ray cluster at {address}" if address else f"Ray on this machine, {workers} worker(s)"

@@ -15,7 +15,7 @@ from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, gaussian_kl_per_dim, gaussian_log_prob
-from sb3_lifelong.common.utils import SCORING_DTYPES, fast_adam_kwargs, sample_gaussian, score_actions
+from sb3_lifelong.common.utils import SCORING_DTYPES, sample_gaussian, score_actions, with_fast_optimizer
 from sb3_lifelong.mpo.policies import MlpPolicy, MPOPolicy, MultiInputPolicy
 
 SelfMPO = TypeVar("SelfMPO", bound="MPO")
@@ -246,7 +246,9 @@ class MPO(LifelongOffPolicyAlgorithm):
         dual_params = [self.log_temperature, self.log_alpha_mean, self.log_alpha_stddev]
         if self.action_penalty:
             dual_params.append(self.log_penalty_temperature)
-        self.dual_optimizer = th.optim.Adam(dual_params, lr=self.dual_learning_rate, **fast_adam_kwargs(self.device))
+        self.dual_optimizer = th.optim.Adam(
+            dual_params, lr=self.dual_learning_rate, **with_fast_optimizer(th.optim.Adam, None)
+        )
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
 
     def _create_aliases(self) -> None:
