@@ -94,6 +94,12 @@ def test_export_keeps_results_not_data(study, tmp_path):
     copied = export_results(output, tmp_path / "export")
     assert (tmp_path / "export" / "seed_0" / "collect" / "eval.csv").exists() and (tmp_path / "export" / "report.md").exists()
     assert not any("buffer" in str(p.relative_to(tmp_path)) or p.suffix == ".zip" for p in copied)
+    (output / "seed_1" / "distill_BC" / "done.json").rename(output / "seed_1" / "distill_BC" / "done.later")
+    try:  # an unfinished job's files are not results
+        again = export_results(output, tmp_path / "export2")
+        assert not any("distill_BC" in str(p) and "seed_1" in str(p) for p in again)
+    finally:
+        (output / "seed_1" / "distill_BC" / "done.later").rename(output / "seed_1" / "distill_BC" / "done.json")
 
 
 def test_claims_follow_the_numbers(study):

@@ -139,7 +139,9 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
                 drawn = True
         ax.set_title(f"Average Q over {env} data")
         ax.set_xlabel("distillation updates")
-        ax.set_ylabel("Q")
+        # symmetric log: a diverging critic (e.g. a student that never saw this data) would flatten the others
+        ax.set_yscale("symlog", linthresh=100)
+        ax.set_ylabel("Q (symmetric log scale)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     if not drawn:

@@ -341,8 +341,8 @@ SMALL_FILES = ("*.csv", "*.json", "*.md", "*.png")
 
 def export_results(output: pathlib.Path, destination: pathlib.Path) -> list[pathlib.Path]:
     """
-    Copy a study's small result files (CSV, JSON, Markdown, PNG; no buffers, no models) into ``destination``,
-    keeping their layout, so that a study's results can be committed without its data.
+    Copy a study's small result files (CSV, JSON, Markdown, PNG; no buffers, no models, nothing of a job that has
+    not finished) into ``destination``, keeping their layout, so that its results can be committed without its data.
 
     :return: the copied files
     """
@@ -351,8 +351,11 @@ def export_results(output: pathlib.Path, destination: pathlib.Path) -> list[path
     copied = []
     for pattern in SMALL_FILES:
         for path in output.rglob(pattern):
-            if any(part.startswith("buffer") for part in path.relative_to(output).parts):
+            parts = path.relative_to(output).parts
+            if any(part.startswith("buffer") for part in parts):
                 continue
+            if len(parts) > 2 and parts[0].startswith("seed_") and not (output / parts[0] / parts[1] / "done.json").exists():
+                continue  # a job that has not finished: its partial curves would read as results
             target = destination / path.relative_to(output)
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(path, target)
