@@ -160,14 +160,14 @@ PRESETS: dict[str, Preset] = {
     ),
 }
 
-# the cpu protocol with the one Env-B of the env-pair table that hurt in both directions: the foot twice as large
+# the cpu protocol with the one Env-B of the env-pair table that hurt in both directions, the foot twice as long
 # (benchmarks/results/env_pairs); evaluated on 10 episodes, as the 5 of `cpu` left the students' scores noisy
 PRESETS["cpu_foot"] = dataclasses.replace(
     PRESETS["cpu"],
     stages=({}, {"foot_scale": 2.0}),
     eval_episodes=10,
     note=(
-        "Env-B: the foot twice as large, the candidate with a zero-shot drop in both directions (Env-A policy in "
+        "Env-B: the foot twice as long, the candidate with a zero-shot drop in both directions (Env-A policy in "
         "Env-B -87 %, Env-B policy in Env-A -42 %, one seed each at 50k steps). Claims pre-registered in "
         "benchmarks/results/paper_cpu_foot/README.md before any seed ran."
     ),
