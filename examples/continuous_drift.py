@@ -26,6 +26,7 @@ from sb3_lifelong.experiments.sequential import (
     now,
     resolve_config,
     set_threads,
+    write_layout,
 )
 
 END_DEFORMATION = 0.3
@@ -64,9 +65,14 @@ def main() -> None:
         callbacks = eval_callbacks(run_dir / "MPO", eval_envs, config)
         mpo.learn(lifetime, callback=callbacks, tb_log_name=f"MPO_s{seed}")
         rows += [dict(seed=seed, method="MPO", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-        callbacks = eval_callbacks(run_dir / "distilled", eval_envs, config)
+        callbacks = eval_callbacks(run_dir / "distilled", eval_envs, config, offline=True)
         mpo.distill(CRR, gradient_steps=config["distill_steps"], callback=callbacks, beta=1.0, **algo_kwargs(config, seed))
         rows += [dict(seed=seed, method="distilled", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
+        # one source: the whole drifting life
+        lifetime_data = {
+            info["name"]: f"hip 0 -> {END_DEFORMATION} rad (drift)" for info in mpo.replay_buffer.sources.values()
+        }
+        write_layout(run_dir, list(eval_envs), distilled=["distilled"], sources=lifetime_data)
     finish(output, rows, config, now() - start, plots=not args.no_plots)
 
 

@@ -31,6 +31,7 @@ from sb3_lifelong.experiments.sequential import (
     now,
     resolve_config,
     set_threads,
+    write_layout,
 )
 
 STAGES = {
@@ -92,8 +93,9 @@ def main() -> None:
         else:
             data = LifelongBufferView([agent_1.replay_buffer, agent_2.replay_buffer])
         print(f"seed {seed}: distilling {data.size()} transitions, per source {data.source_counts()}")
-        for method, kwargs in (("distilled", dict(beta=1.0)), ("distilled_indicator", dict(advantage_transform="indicator"))):
-            callbacks = eval_callbacks(run_dir / method, eval_envs, config, source_q=True)
+        students = (("distilled", dict(beta=1.0)), ("distilled_indicator", dict(advantage_transform="indicator")))
+        for method, kwargs in students:
+            callbacks = eval_callbacks(run_dir / method, eval_envs, config, source_q=True, offline=True)
             distill(
                 data,
                 CRR,
@@ -107,6 +109,11 @@ def main() -> None:
                 **kwargs,
             )
             rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
+        if args.setup == "copy":
+            switch = f"{NAMES[0]} -> {NAMES[1]} (agent 1), {NAMES[2]} (agent 2)"
+        else:  # agent 2 starts from scratch: its steps count from 0
+            switch = f"agent 1: {NAMES[0]} -> {NAMES[1]}"
+        write_layout(run_dir, NAMES, [method for method, _ in students], [first], [switch], stages=stages)
     finish(output, rows, config, now() - start, plots=not args.no_plots)
 
 

@@ -1,6 +1,7 @@
 """The example scripts run end to end at a tiny budget (same code path as their quick and paper presets)."""
 
 import csv
+import json
 import os
 import pathlib
 import subprocess
@@ -30,8 +31,16 @@ def test_three_stage_with_baselines_and_plots(tmp_path):
     methods = {row["method"] for row in rows}
     assert methods == {"MPO", "CRR_indicator", "CRR_beta1", "distilled", "distilled_indicator"}
     assert {row["env"] for row in rows} == {"Env-A", "Env-B", "Env-C"}
-    for name in ("curves_Env-A.png", "curves_Env-B.png", "final_returns.png", "q_sources.png", "distillation.png"):
+    for name in ("curves_Env-A.png", "curves_Env-B.png", "curves_Env-C.png", "final_returns.png", "q_sources.png"):
         assert (tmp_path / name).stat().st_size > 1000, name
+    assert (tmp_path / "distillation.png").stat().st_size > 1000
+    # what the figures name: the changes of environment and the distilled methods
+    layout = json.loads((tmp_path / "seed_0" / "stages.json").read_text())
+    assert layout["switch_labels"] == ["Env-A -> Env-B", "Env-B -> Env-C"]
+    assert layout["distilled"] == ["distilled", "distilled_indicator"]
+    # the students are evaluated often enough to draw a curve (before the first update, then every tenth)
+    with open(tmp_path / "seed_0" / "distilled" / "eval.csv") as handle:
+        assert len({row["timesteps"] for row in csv.DictReader(handle) if row["env"] == "Env-A"}) >= 5
     assert "| MPO |" in stdout
     # the collector's buffer holds every environment's data, tagged by stage
     with open(tmp_path / "seed_0" / "MPO" / "q_sources.csv") as handle:
@@ -71,6 +80,8 @@ def test_other_examples(tmp_path, script, extra, envs):
     rows = summary_rows(tmp_path)
     assert {row["env"] for row in rows} == envs
     assert any(row["method"] == "distilled" for row in rows)
+    layout = json.loads((tmp_path / ("seed_1" if "--seeds" in extra else "seed_0") / "stages.json").read_text())
+    assert "distilled" in layout["distilled"] and set(layout["names"]) == envs
     if "--per-source-actors" in extra:
         assert {row["env"] for row in rows if row["method"] == "distilled_per_source"} == envs
     if script == "parallel_sharing.py":

@@ -1,7 +1,12 @@
-"""The paper's figures from a two-stage study (matplotlib, no display needed)."""
+"""
+The paper's figures from a two-stage study (matplotlib's Agg backend, chosen when a figure is drawn: no display
+needed). The helpers (a curve with its band over seeds, a labelled change of environment, grouped bars, saving)
+also draw the figures of the sequential examples (:mod:`sb3_lifelong.experiments.plots`).
+"""
 
 import pathlib
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, Optional
 
 import numpy as np
 import pandas as pd
@@ -41,11 +46,86 @@ def _curves(study: Any, job: str) -> pd.DataFrame:
     return pd.concat(frames) if frames else pd.DataFrame()
 
 
-def _band(ax: Any, frame: pd.DataFrame, env: str, label: str, color: str, y: str = "mean_reward") -> None:
-    rows = frame[frame["env"] == env].groupby("timesteps")[y]
+#: curves with at most this many points are drawn with markers (each evaluation visible)
+MARKERS_UP_TO = 12
+
+
+def _band(ax: Any, frame: pd.DataFrame, env: Optional[str], label: str, color: str, y: str = "mean_reward") -> None:
+    """
+    One curve: the mean over seeds of ``y`` against ``timesteps``, shaded +- std where there are >= 2 seeds.
+
+    :param ax: the matplotlib axes
+    :param frame: rows ``timesteps``, ``env``, ``y`` (and ``seed``), one per seed and point
+    :param env: keep only the rows of this ``env`` (None: all rows)
+    :param label: legend entry, the number of seeds appended
+    :param color: matplotlib colour
+    :param y: the column to draw
+    """
+    rows = (frame if env is None else frame[frame["env"] == env]).groupby("timesteps")[y]
     mean, std, count = rows.mean(), rows.std().fillna(0.0), rows.count()
-    ax.plot(mean.index, mean.values, color=color, label=f"{label} (n={int(count.max())})", linewidth=1.8)
+    marker = "o" if len(mean) <= MARKERS_UP_TO else None
+    ax.plot(
+        mean.index,
+        mean.values,
+        color=color,
+        label=f"{label} (n={int(count.max())})",
+        linewidth=1.8,
+        marker=marker,
+        markersize=3,
+    )
     ax.fill_between(mean.index, (mean - std).values, (mean + std).values, color=color, alpha=0.15, linewidth=0)
+
+
+def _switch(ax: Any, timestep: float, label: str) -> None:
+    """
+    A change of environment: a dashed vertical line, labelled (e.g. ``"Env-A -> Env-B"``) at the top of the axes.
+
+    :param ax: the matplotlib axes
+    :param timestep: where the change happens, in the x-axis' units
+    :param label: what changes
+    """
+    ax.axvline(timestep, color="black", linestyle="--", linewidth=1)
+    ax.annotate(
+        label,
+        xy=(timestep, 0.97),
+        xycoords=("data", "axes fraction"),
+        ha="left",
+        va="top",
+        fontsize=9,
+        xytext=(4, 0),
+        textcoords="offset points",
+    )
+
+
+def _bars(
+    ax: Any,
+    methods: Sequence[str],
+    envs: Sequence[str],
+    scores: Callable[[str, str], Sequence[float]],
+    colors: Optional[Sequence[str]] = None,
+) -> None:
+    """
+    Grouped bars: for every method, one bar per environment (mean over seeds, error bar +- std).
+
+    :param ax: the matplotlib axes
+    :param methods: the groups, along the x axis (tick labels)
+    :param envs: the bars of each group (legend entries)
+    :param scores: the per-seed values of a method in an environment (empty: no bar)
+    :param colors: one colour per environment (default: matplotlib's colour cycle)
+    """
+    width = 0.8 / len(envs)
+    x = np.arange(len(methods))
+    for k, env in enumerate(envs):
+        means, stds = [], []
+        for method in methods:
+            values = list(scores(method, env))
+            means.append(np.mean(values) if values else np.nan)
+            stds.append(np.std(values) if values else 0.0)
+        color = colors[k % len(colors)] if colors else None
+        ax.bar(x + (k - (len(envs) - 1) / 2) * width, means, width, yerr=stds, capsize=3, label=env, color=color)
+    ax.set_xticks(x)
+    ax.set_xticklabels(methods, rotation=35, ha="right", fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
 
 
 def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
@@ -64,17 +144,7 @@ def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
             values = list(study.score(method, env).values())
             if values:
                 ax.axhline(np.mean(values), color=COLORS[method], linestyle=":", linewidth=2, label=f"distilled {method}")
-        ax.axvline(switch, color="black", linestyle="--", linewidth=1)
-        ax.annotate(
-            f"{envs[0]} -> {envs[1]}",
-            xy=(switch, 0.97),
-            xycoords=("data", "axes fraction"),
-            ha="left",
-            va="top",
-            fontsize=9,
-            xytext=(4, 0),
-            textcoords="offset points",
-        )
+        _switch(ax, switch, f"{envs[0]} -> {envs[1]}")
         ax.set_title(f"Evaluated in {env}")
         ax.set_xlabel("environment steps")
         ax.set_ylabel("return (deterministic policy)")
@@ -96,24 +166,13 @@ def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     if not students:
         return []
     fig, ax = plt.subplots(figsize=(max(8, 0.8 * len(students) * len(envs)), 4.8))
-    width = 0.8 / len(envs)
-    x = np.arange(len(students))
-    for k, env in enumerate(envs):
-        means, stds = [], []
-        for method in students:
-            values = list(study.score(method, env).values())
-            means.append(np.mean(values) if values else np.nan)
-            stds.append(np.std(values) if values else 0.0)
-        ax.bar(x + (k - (len(envs) - 1) / 2) * width, means, width, yerr=stds, capsize=3, label=env)
-    ax.set_xticks(x)
-    ax.set_xticklabels(students, rotation=35, ha="right", fontsize=8)
+    _bars(ax, students, envs, lambda method, env: list(study.score(method, env).values()))
     ax.set_xlabel("offline student (same number of updates)")
     ax.set_ylabel("final return")
     ax.set_title(
         f"Distillation variants, {study.preset['distill_steps']:,} updates (mean +- std over {len(study.seeds)} seeds)"
     )
     ax.legend()
-    ax.grid(axis="y", alpha=0.3)
     return [_save(plt, fig, directory / "fig_students.png")]
 
 

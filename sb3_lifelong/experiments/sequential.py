@@ -6,10 +6,15 @@ with its diagnostics and claims, is :mod:`sb3_lifelong.experiments.protocol`.
 Layout of an experiment's output directory::
 
     <output>/seed_<k>/<method>/eval.csv      timesteps, env, mean_reward, std_reward, n_episodes
-    <output>/seed_<k>/<method>/q_sources.csv  (collectors) average Q per source of the buffer
+    <output>/seed_<k>/<method>/q_sources.csv  average Q per source of the buffer
+    <output>/seed_<k>/stages.json             the environments' names, the stage switches, the distilled methods
     <output>/tensorboard/                     one run per method and seed (distillation inside the collector's run)
     <output>/summary.csv, summary.md          final return per method, env and seed
     <output>/*.png                            the figures (python -m sb3_lifelong.plotting <output>)
+
+Online methods are evaluated every ``eval_freq`` environment steps; the distilled students every
+``distill_eval_freq`` updates, by default :data:`DISTILL_EVALUATIONS` times per distillation (and before the first
+update), so that every preset draws distillation curves.
 
 Methods: ``MPO`` (the collector across all stages), ``CRR_indicator`` / ``CRR_beta1`` (the conservative
 online baselines, continuing from the same Stage-1 agent), ``distilled`` (CRR, exp transform, beta=1, on the
@@ -37,6 +42,11 @@ from sb3_lifelong.common.callbacks import MultiEnvEvalCallback, SourceQCallback
 from sb3_lifelong.envs import DynamicsSchedule
 
 Stage = Union[str, Mapping[str, float]]
+
+#: evaluations of a distilled student over its distillation, whatever the preset (``--distill-eval-freq`` overrides)
+DISTILL_EVALUATIONS = 10
+#: per seed: what the figures need to know about the experiment (see :func:`write_layout`)
+LAYOUT_FILE = "stages.json"
 
 PRESETS: dict[str, dict[str, Any]] = {
     # minutes on 2 CPU cores: HalfCheetah, small networks
@@ -99,7 +109,15 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds to run one after the other")
     parser.add_argument("--stage-steps", type=int, nargs="+", default=None, help="environment steps of each stage")
     parser.add_argument("--distill-steps", type=int, default=None, help="offline updates of every distilled student")
-    parser.add_argument("--eval-freq", type=int, default=None, help="evaluation period (steps online, updates offline)")
+    parser.add_argument(
+        "--eval-freq", type=int, default=None, help="evaluation period of the online methods (environment steps)"
+    )
+    parser.add_argument(
+        "--distill-eval-freq",
+        type=int,
+        default=None,
+        help=f"evaluation period of the distilled students (updates; default: distill steps / {DISTILL_EVALUATIONS})",
+    )
     parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
     parser.add_argument("--no-plots", action="store_true", help="write the CSV files and the summary, no figures")
 
@@ -123,9 +141,58 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
         eval_freq=args.eval_freq,
     )
     config.update({key: value for key, value in overrides.items() if value is not None})
+    config["distill_eval_freq"] = getattr(args, "distill_eval_freq", None) or distill_eval_freq(config["distill_steps"])
     config["per_source_actors"] = bool(getattr(args, "per_source_actors", False))
     config["preset"] = args.preset
     return config
+
+
+def distill_eval_freq(distill_steps: int) -> int:
+    """
+    :param distill_steps: offline updates of a distillation
+    :return: the evaluation period that evaluates a student :data:`DISTILL_EVALUATIONS` times
+    """
+    return max(1, int(distill_steps) // DISTILL_EVALUATIONS)
+
+
+def write_layout(
+    run_dir: pathlib.Path,
+    names: Sequence[str],
+    distilled: Sequence[str],
+    switch_at: Sequence[int] = (),
+    switch_labels: Optional[Sequence[str]] = None,
+    sources: Optional[Mapping[str, str]] = None,
+    stages: Optional[Sequence[Stage]] = None,
+) -> pathlib.Path:
+    """
+    Write what the figures need to know about one seed's experiment (``<run_dir>/stages.json``).
+
+    :param run_dir: the seed's directory
+    :param names: the evaluation environments' names (the stages', in order, for the sequential experiments)
+    :param distilled: the methods trained offline (their ``eval.csv`` counts updates, not environment steps)
+    :param switch_at: the environment steps at which the environment changes
+    :param switch_labels: what changes at each switch (default ``"<names[i]> -> <names[i + 1]>"``)
+    :param sources: legend label of each source of the buffers, by source name (default: source ``stage_<i>`` is
+        ``names[i]``)
+    :param stages: the stages' dynamics, for the record
+    :return: the file written
+    """
+    labels = list(switch_labels) if switch_labels is not None else [f"{a} -> {b}" for a, b in zip(names, names[1:])]
+    if len(labels) < len(switch_at):
+        raise ValueError(f"{len(switch_at)} switches need {len(switch_at)} labels, got {labels}")
+    layout: dict[str, Any] = dict(
+        names=list(names),
+        switch_at=[int(t) for t in switch_at],
+        switch_labels=labels[: len(switch_at)],
+        distilled=list(distilled),
+        sources=dict(sources) if sources is not None else {f"stage_{i}": name for i, name in enumerate(names)},
+    )
+    if stages is not None:
+        layout["stages"] = [stage if isinstance(stage, str) else dict(stage) for stage in stages]
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / LAYOUT_FILE
+    path.write_text(json.dumps(layout))
+    return path
 
 
 def make_schedule(
@@ -169,19 +236,36 @@ def eval_callbacks(
     config: dict[str, Any],
     source_q: bool = True,
     sources: Optional[dict[str, int]] = None,
+    offline: bool = False,
 ) -> list[Any]:
+    """
+    The evaluation (``eval.csv``) and Q-per-source (``q_sources.csv``) callbacks of one method.
+
+    :param directory: the method's directory
+    :param eval_envs: the evaluation environments, by name
+    :param config: the experiment's configuration (``eval_freq``, ``distill_eval_freq``, ``eval_episodes``)
+    :param source_q: also log the critic's average Q on each source of the buffer
+    :param sources: the source whose actor acts in each environment (one actor per source), or None
+    :param offline: a distillation: evaluate every ``distill_eval_freq`` updates and before the first one
+    :return: the callbacks
+    """
     directory.mkdir(parents=True, exist_ok=True)
+    if offline:
+        freq = config.get("distill_eval_freq") or distill_eval_freq(config["distill_steps"])
+    else:
+        freq = config["eval_freq"]
     callbacks: list[Any] = [
         MultiEnvEvalCallback(
             eval_envs,
-            eval_freq=config["eval_freq"],
+            eval_freq=freq,
             n_eval_episodes=config["eval_episodes"],
             log_path=directory / "eval.csv",
+            eval_at_start=offline,
             sources=sources,
         )
     ]
     if source_q:
-        callbacks.append(SourceQCallback(log_freq=config["eval_freq"], log_path=directory / "q_sources.csv"))
+        callbacks.append(SourceQCallback(log_freq=freq, log_path=directory / "q_sources.csv"))
     return callbacks
 
 
@@ -291,7 +375,7 @@ def finish(output: pathlib.Path, rows: list[dict[str, Any]], config: dict[str, A
     """Write and print the summary table (with earlier seeds of the same directory), then the figures."""
     print(write_summary(output, merge_previous_seeds(output, rows), config, elapsed))
     if plots:
-        from sb3_lifelong.plotting import plot_experiment
+        from sb3_lifelong.experiments.plots import plot_experiment
 
         for path in plot_experiment(output):
             print("wrote", path)
@@ -362,7 +446,7 @@ def run_sequential(
             students.append(("distilled_per_source", dict(advantage_transform="exp", beta=1.0, actor_per_source=True)))
         for method, distill_kwargs in students:
             sources = {name: index for index, name in enumerate(env_names)} if "actor_per_source" in distill_kwargs else None
-            callbacks = eval_callbacks(run_dir / method, eval_envs, config, sources=sources)
+            callbacks = eval_callbacks(run_dir / method, eval_envs, config, sources=sources, offline=True)
             mpo.distill(
                 CRR,
                 gradient_steps=config["distill_steps"],
@@ -372,7 +456,5 @@ def run_sequential(
                 **distill_kwargs,
             )
             rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-        described = [stage if isinstance(stage, str) else dict(stage) for stage in stages]
-        layout = dict(stages=described, names=list(env_names), switch_at=[int(t) for t in switch_at])
-        (run_dir / "stages.json").write_text(json.dumps(layout))
+        write_layout(run_dir, env_names, [method for method, _ in students], switch_at, stages=stages)
     return rows
