@@ -14,7 +14,7 @@ DEMO_DIR ?= demo_output
 # torch first, pinned to the CPU wheel: a bare "torch" requirement would download a CUDA build
 install:
 	$(PYTHON) -m pip install -q torch==2.13.0
-	$(PYTHON) -m pip install -q -e ".[tests,extra,mujoco]"
+	$(PYTHON) -m pip install -q -e ".[tests,extra,mujoco,cluster]"
 
 test: install
 	$(PYTHON) -m pytest -n 2 --timeout 900 tests/
