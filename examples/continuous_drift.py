@@ -24,6 +24,7 @@ from sb3_lifelong.experiments.sequential import (
     finish,
     make_collector,
     now,
+    prepare_output,
     resolve_config,
     set_threads,
     write_layout,
@@ -40,7 +41,7 @@ def main() -> None:
     config = resolve_config(args)
     lifetime = sum(config["stage_steps"])
     output = pathlib.Path(args.output or f"runs/continuous_drift_{args.preset}")
-    output.mkdir(parents=True, exist_ok=True)
+    prepare_output(output, config, args.overwrite)
     make_kwargs = {} if config.get("max_episode_steps") is None else dict(max_episode_steps=config["max_episode_steps"])
     observed = ["hip_deformation"]
 

@@ -29,6 +29,7 @@ from sb3_lifelong.experiments.sequential import (
     make_eval_envs,
     make_schedule,
     now,
+    prepare_output,
     resolve_config,
     set_threads,
     write_layout,
@@ -57,7 +58,7 @@ def main() -> None:
     stages = STAGES[args.preset]
     first, second = config["stage_steps"][0], config["stage_steps"][1]
     output = pathlib.Path(args.output or f"runs/parallel_{args.setup}_{args.preset}")
-    output.mkdir(parents=True, exist_ok=True)
+    prepare_output(output, config, args.overwrite, setup=args.setup)
     tensorboard_log = str(output / "tensorboard")
     episode_steps = config.get("max_episode_steps")
     rows = []

@@ -15,6 +15,7 @@ from sb3_lifelong.experiments.sequential import (
     add_per_source_argument,
     finish,
     now,
+    prepare_output,
     resolve_config,
     run_sequential,
     set_threads,
@@ -38,7 +39,7 @@ def main() -> None:
         args.stage_steps = STAGE_STEPS[args.preset]
     config = resolve_config(args)
     output = pathlib.Path(args.output or f"runs/three_stage_{args.preset}")
-    output.mkdir(parents=True, exist_ok=True)
+    prepare_output(output, config, args.overwrite)
     start = now()
     rows = run_sequential(config, STAGES[args.preset], ["Env-A", "Env-B", "Env-C"], output, baselines=not args.no_baselines)
     finish(output, rows, config, now() - start, plots=not args.no_plots)

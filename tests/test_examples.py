@@ -104,3 +104,20 @@ def test_seeds_of_separate_runs_are_summarised_together(tmp_path):
     assert [(row["seed"], float(row["final_return"])) for row in rows] == [("0", 1.0), ("1", 3.0), ("2", 3.0)]
     assert "seeds [0, 1, 2]" in (tmp_path / "summary.md").read_text()
     assert "| MPO | 2 +- 1 |" in (tmp_path / "summary.md").read_text()
+
+
+def test_a_rerun_never_mixes_runs_silently(tmp_path):
+    from sb3_lifelong.experiments.sequential import PRESETS, prepare_output
+
+    config = dict(PRESETS["tiny"], seeds=[0], preset="tiny")
+    prepare_output(tmp_path, config)
+    (tmp_path / "seed_0").mkdir()
+    with pytest.raises(FileExistsError, match=r"seed\(s\) \[0\] already in .*--overwrite"):
+        prepare_output(tmp_path, config)
+    prepare_output(tmp_path, {**config, "seeds": [1]})  # another seed, same settings: summarised together
+    with pytest.raises(FileExistsError, match="other settings"):
+        prepare_output(tmp_path, {**config, "seeds": [2], "distill_steps": 7})
+    with pytest.raises(FileExistsError, match="other settings"):
+        prepare_output(tmp_path, {**config, "seeds": [2]}, setup="copy")
+    prepare_output(tmp_path, {**config, "distill_steps": 7}, overwrite=True)
+    assert not (tmp_path / "seed_0").exists() and (tmp_path / "config.json").exists()

@@ -28,6 +28,7 @@ import copy
 import csv
 import json
 import pathlib
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any, Optional, Union
@@ -120,6 +121,11 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
     parser.add_argument("--no-plots", action="store_true", help="write the CSV files and the summary, no figures")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="delete the output directory first (without it, a run refuses seeds already there and other settings)",
+    )
 
 
 def add_per_source_argument(parser: argparse.ArgumentParser) -> None:
@@ -145,6 +151,37 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
     config["per_source_actors"] = bool(getattr(args, "per_source_actors", False))
     config["preset"] = args.preset
     return config
+
+
+def prepare_output(output: pathlib.Path, config: dict[str, Any], overwrite: bool = False, **extra: Any) -> None:
+    """
+    Make the output directory of a run, never mixing runs silently: seeds of separate runs may share a directory
+    (they are summarised together) only when their settings are the same, and a seed already there is not redone.
+
+    :param output: the output directory
+    :param config: the run's settings (:func:`resolve_config`); recorded in ``<output>/config.json``
+    :param overwrite: delete the directory first
+    :param extra: further settings of the example (e.g. its set-up), recorded and compared with the others
+    :raises FileExistsError: when a seed of this run is already in ``output``, or ``output`` holds a run with
+        other settings
+    """
+    if overwrite and output.exists():
+        shutil.rmtree(output)
+    settings = json.loads(json.dumps({**{k: v for k, v in config.items() if k != "seeds"}, **extra}, default=str))
+    recorded = output / "config.json"
+    if recorded.exists() and json.loads(recorded.read_text()) != settings:
+        raise FileExistsError(
+            f"{output} holds a run with other settings ({recorded}); their seeds would be summarised together. "
+            "Choose another --output, or pass --overwrite to delete it and start again."
+        )
+    there = [seed for seed in config["seeds"] if (output / f"seed_{seed}").exists()]
+    if there:
+        raise FileExistsError(
+            f"seed(s) {there} already in {output} from an earlier run. Run other --seeds to add them to the summary, "
+            "choose another --output, or pass --overwrite to delete the directory and start again."
+        )
+    output.mkdir(parents=True, exist_ok=True)
+    recorded.write_text(json.dumps(settings, indent=1))
 
 
 def distill_eval_freq(distill_steps: int) -> int:
