@@ -1,5 +1,6 @@
 import math
 import os
+import warnings
 from typing import Optional
 
 import gymnasium as gym
@@ -12,7 +13,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
-from sb3_lifelong import MPO
+from sb3_lifelong import MPO, LifelongReplayBuffer
+from sb3_lifelong.common.base import EpisodeRngRecorder
 from sb3_lifelong.common.policies import gaussian_kl_per_dim, gaussian_log_prob
 from sb3_lifelong.common.utils import q_min, sample_gaussian, score_actions, tile_obs
 from sb3_lifelong.mpo.mpo import dual_value, inverse_softplus, temperature_loss_and_weights
@@ -214,6 +216,129 @@ def test_resume_is_exact(tmp_path, scoring_dtype):
     th.testing.assert_close(flat_params(resumed), flat_params(uninterrupted), rtol=0, atol=0)
 
 
+class RandomStartLineEnv(LineEnv):
+    """LineEnv whose episodes start at a random point drawn from the env's own generator (like most Gymnasium envs)."""
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        super().reset(seed=seed)
+        self.x = float(self.np_random.uniform(-5, 5))
+        return self._obs(), {}
+
+
+RESUMED_FIELDS = ("observations", "next_observations", "actions", "rewards", "flags", "sources")
+
+
+def stored_rows(model: MPO, count: int) -> dict[str, np.ndarray]:
+    buffer = model.replay_buffer
+    assert buffer.size() == count
+    return {name: np.array(buffer.store.read_range(name, 0, count)) for name in RESUMED_FIELDS}
+
+
+def test_resume_continues_the_env_exactly(tmp_path):
+    """
+    Pendulum (random initial states) with a LifelongReplayBuffer directory, saved at an episode boundary, loaded
+    with a new env and continued: the stored transitions and the parameters are those of the uninterrupted run. SB3's
+    own load re-seeds the env, so that the first episode after the resume replayed episode 1's start (row 200 = row 0).
+    """
+    kwargs = dict(SMALL, policy_kwargs=dict(net_arch=[16]), learning_starts=100, train_freq=4)
+
+    def pendulum_model(name: str) -> MPO:
+        buffer_kwargs = dict(path=tmp_path / name, chunk_size=64)
+        return MPO(
+            "MlpPolicy",
+            "Pendulum-v1",
+            seed=4,
+            replay_buffer_class=LifelongReplayBuffer,
+            replay_buffer_kwargs=buffer_kwargs,
+            **kwargs,
+        )
+
+    uninterrupted = pendulum_model("uninterrupted")
+    uninterrupted.learn(200)
+    uninterrupted.learn(200, reset_num_timesteps=False)
+
+    first_half = pendulum_model("resumed")
+    first_half.learn(200)  # Pendulum's episodes last 200 steps: the env is at an episode boundary
+    first_half.save(tmp_path / "model.zip")
+    first_half.replay_buffer.close()
+    del first_half
+    th.manual_seed(12345)  # unrelated random draws between the two lives must not matter
+    np.random.seed(12345)
+    resumed = MPO.load(
+        tmp_path / "model.zip",
+        env=gym.make("Pendulum-v1"),
+        replay_buffer_kwargs=dict(path=tmp_path / "resumed", chunk_size=64, mode="append"),
+    )
+    resumed.learn(200, reset_num_timesteps=False)
+    assert resumed.num_timesteps == 400
+    expected, got = stored_rows(uninterrupted, 400), stored_rows(resumed, 400)
+    assert not np.array_equal(got["observations"][200], got["observations"][0])  # the new episode is not episode 1
+    for name in RESUMED_FIELDS:
+        np.testing.assert_array_equal(got[name], expected[name], err_msg=name)
+    th.testing.assert_close(flat_params(resumed), flat_params(uninterrupted), rtol=0, atol=0)
+
+
+def test_resume_replays_each_env_start_with_vec_envs_and_set_env(tmp_path):
+    """Two envs wrapped in EpisodeRngRecorder by make_vec_env; load without an env then set_env; and the warning when
+    the envs are not recorded."""
+    kwargs = dict(SMALL, policy_kwargs=dict(net_arch=[16]), learning_starts=30, train_freq=4, n_steps=2)
+
+    def vec_env(wrapper_class=EpisodeRngRecorder):
+        return make_vec_env(RandomStartLineEnv, n_envs=2, env_kwargs=dict(episode_length=20), wrapper_class=wrapper_class)
+
+    uninterrupted = MPO("MlpPolicy", vec_env(), seed=2, replay_buffer_class=LifelongReplayBuffer, **kwargs)
+    uninterrupted.learn(80)  # 40 steps of each env: two whole episodes
+    uninterrupted.learn(80, reset_num_timesteps=False)
+
+    first_half = MPO("MlpPolicy", vec_env(), seed=2, replay_buffer_class=LifelongReplayBuffer, **kwargs)
+    first_half.learn(80)
+    first_half.save(tmp_path / "model.zip")
+    first_half.save_replay_buffer(tmp_path / "buffer.pkl")
+    resumed = MPO.load(tmp_path / "model.zip")
+    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
+    resumed.save(tmp_path / "again.zip")  # saved again before an env is set: the records are kept
+    resumed = MPO.load(tmp_path / "again.zip")
+    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
+    resumed.set_env(vec_env())
+    resumed.learn(80, reset_num_timesteps=False)
+    expected, got = stored_rows(uninterrupted, 160), stored_rows(resumed, 160)
+    for name in RESUMED_FIELDS:
+        np.testing.assert_array_equal(got[name], expected[name], err_msg=name)
+    th.testing.assert_close(flat_params(resumed), flat_params(uninterrupted), rtol=0, atol=0)
+
+    with pytest.warns(UserWarning, match="not restored.*EpisodeRngRecorder.*start of training"):
+        MPO.load(tmp_path / "model.zip", env=vec_env(wrapper_class=None))
+
+
+def test_resume_in_an_episode_starts_a_new_episode(tmp_path):
+    """Saved in the middle of an episode: the loaded model starts a new episode, not one that replays episode 1."""
+    model = MPO("MlpPolicy", RandomStartLineEnv(episode_length=20), seed=6, **dict(SMALL, learning_starts=1000))
+    model.learn(30)
+    model.save(tmp_path / "model.zip")
+    starts = []
+    for _ in range(2):
+        loaded = MPO.load(tmp_path / "model.zip", env=RandomStartLineEnv(episode_length=20))
+        loaded.learn(10, reset_num_timesteps=False)
+        starts.append(loaded.replay_buffer.observations[0, 0, 0])  # a new buffer: its first row is the new start
+    assert starts[0] == starts[1]  # deterministic
+    assert starts[0] != model.replay_buffer.observations[0, 0, 0]  # not episode 1's start
+    assert starts[0] != model.replay_buffer.observations[20, 0, 0]  # nor episode 2's (the one being played)
+
+
+def test_loading_with_n_steps_does_not_warn(tmp_path):
+    """n_steps > 1 with a buffer class that computes n-step returns itself: no "n_steps=3 is ignored" from SB3, when
+    creating nor when loading the model (its saved replay_buffer_kwargs hold n_steps); still warned when ignored."""
+    model = MPO("MlpPolicy", LineEnv(), replay_buffer_class=LifelongReplayBuffer, n_steps=3, **SMALL)
+    model.save(tmp_path / "model.zip")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loaded = MPO.load(tmp_path / "model.zip", env=LineEnv())
+        MPO.load(tmp_path / "model.zip")
+    assert loaded.replay_buffer.n_steps == 3 and loaded.replay_buffer.gamma == model.gamma
+    with pytest.warns(UserWarning, match="`n_steps=3` is ignored"):  # the buffer does 2-step returns: true
+        MPO("MlpPolicy", LineEnv(), replay_buffer_class=LifelongReplayBuffer, replay_buffer_kwargs=dict(n_steps=2), n_steps=3)
+
+
 def test_same_seed_same_run():
     runs = []
     for _ in range(2):
@@ -356,8 +481,6 @@ def test_mpo_solves_pendulum(scoring_dtype):
 
 
 def test_n_steps_forwarded_to_buffer_class():
-    import warnings
-
     from stable_baselines3.common.buffers import NStepReplayBuffer
 
     with warnings.catch_warnings():

@@ -1,4 +1,7 @@
-"""Base class of this package's off-policy algorithms: SB3's ``OffPolicyAlgorithm`` plus exact resumption."""
+"""
+Base class of this package's off-policy algorithms: SB3's ``OffPolicyAlgorithm`` plus exact resumption (the random
+streams of training and of the environment's resets are saved with the model and restored by ``load``).
+"""
 
 import inspect
 import io
@@ -8,11 +11,16 @@ import warnings
 from collections.abc import Iterable
 from typing import Any, Optional, TypeVar, Union
 
+import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype
 
@@ -55,29 +63,155 @@ def restore_rng_state(state: dict[str, Any], action_space: Optional[spaces.Space
         action_space.np_random.bit_generator.state = state["action_space"]
 
 
+class EpisodeRngRecorder(gym.Wrapper):
+    """
+    Records where the random draws of each ``reset`` come from (the seed it was given, or else the state of the
+    environment's ``np_random`` just before), so that a saved model can replay the start of an episode exactly:
+    :class:`LifelongOffPolicyAlgorithm` wraps every ``gym.Env`` it is given in it (for a ``VecEnv``, wrap the
+    sub-envs yourself, e.g. ``make_vec_env(env_id, n_envs, wrapper_class=EpisodeRngRecorder)``).
+
+    Only the generator ``env.np_random`` is recorded (the one Gymnasium environments, MuJoCo ones included, draw
+    their initial states from); generators of their own in the environment or its wrappers are not.
+
+    :param env: The environment
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self._start_record: Optional[dict[str, Any]] = None
+        self._replay: Optional[dict[str, Any]] = None
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict[str, Any]] = None) -> tuple[Any, dict[str, Any]]:
+        if self._replay is not None:  # the first reset after a load: replay the saved record, whatever seed is given
+            record, self._replay = self._replay, None
+            seed = record.get("seed")
+            if seed is None:
+                self.env.np_random.bit_generator.state = record["rng"]
+        if seed is not None:
+            self._start_record = {"seed": int(seed)}
+        else:
+            self._start_record = {"rng": self.env.np_random.bit_generator.state}
+        return self.env.reset(seed=seed, options=options)
+
+    def sb3_lifelong_rng_record(self, at_episode_start: Optional[bool]) -> Optional[dict[str, Any]]:
+        """
+        What to save so that a loaded model continues from here: at an episode start (no step since the reset), the
+        record of that reset (replaying it gives the same initial state); in an episode, the generator's current
+        state (the next reset starts a new episode from it); a replay still pending from a load, as it is.
+
+        :param at_episode_start: Whether no step was taken since the last reset; None: the algorithm has not reset
+            the env (only a pending replay is returned)
+        :return: ``{"seed": int}`` or ``{"rng": bit generator state}``, or None
+        """
+        if self._replay is not None:
+            return self._replay
+        if at_episode_start is None:
+            return None
+        if at_episode_start:
+            return self._start_record
+        return {"rng": self.env.np_random.bit_generator.state}
+
+    def sb3_lifelong_replay(self, record: dict[str, Any]) -> None:
+        """
+        Make the next ``reset`` replay ``record`` (from :meth:`sb3_lifelong_rng_record`), ignoring the seed it is
+        given.
+
+        :param record: The saved record
+        """
+        self._replay = record
+
+
 class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     """
-    SB3's ``OffPolicyAlgorithm`` whose ``save``/``load`` also carry the random streams, so that
-    ``load`` + ``load_replay_buffer`` + ``learn(..., reset_num_timesteps=False)`` continues exactly as an
-    uninterrupted run would (given an environment that is in the same state, e.g. at an episode boundary).
+    SB3's ``OffPolicyAlgorithm`` whose ``save``/``load`` also carry the random streams, so that ``load`` (with an
+    environment, or ``set_env`` after it) + the replay buffer (``load_replay_buffer``, or a ``LifelongReplayBuffer``
+    directory reopened with ``mode="append"``) + ``learn(..., reset_num_timesteps=False)`` continues exactly as an
+    uninterrupted run would when the model was saved at an episode start of every env.
 
-    SB3 itself re-seeds every generator from ``seed`` when a model is loaded, which replays the random numbers
-    of the start of training instead of continuing them.
+    Saved: torch's, numpy's and Python's global generators, the action space's, and for each env wrapped in
+    :class:`EpisodeRngRecorder` (every ``gym.Env`` given to the algorithm is), what its pending episode start was
+    drawn from. ``load`` restores them, and the first reset after it replays that episode start instead of
+    re-seeding the env from ``seed`` (SB3's ``load`` re-seeds every generator from ``seed``, which replays the
+    random numbers, and the first episode start, of the start of training). An env that was in the middle of an
+    episode starts a new episode from its generator's saved state. The state of the environment itself (e.g.
+    a dynamics schedule's step counter) is not saved.
     """
 
     def _setup_model(self) -> None:
         # A buffer class that computes n-step returns itself (e.g. LifelongReplayBuffer) gets the algorithm's
-        # n_steps and gamma, instead of SB3's warning that n_steps is ignored for custom buffer classes.
-        forwarded = False
+        # n_steps and gamma. SB3 warns that n_steps "is ignored" whenever a replay_buffer_class is given; that is
+        # false when the buffer computes n-step returns of the same length (forwarded here, or saved with the
+        # model, which SB3's load passes again), so that warning, and only it, is dropped then.
+        honoured = False
         if self.n_steps > 1 and self.replay_buffer_class is not None and self.replay_buffer is None:
             parameters = inspect.signature(self.replay_buffer_class.__init__).parameters
-            if "n_steps" in parameters and "n_steps" not in self.replay_buffer_kwargs:
-                self.replay_buffer_kwargs.update({"n_steps": self.n_steps, "gamma": self.gamma})
-                forwarded = True
+            if "n_steps" in parameters:
+                if "n_steps" not in self.replay_buffer_kwargs:
+                    self.replay_buffer_kwargs.update({"n_steps": self.n_steps, "gamma": self.gamma})
+                honoured = self.replay_buffer_kwargs["n_steps"] == self.n_steps
         with warnings.catch_warnings():
-            if forwarded:
-                warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom")
+            if honoured:
+                warnings.filterwarnings("ignore", message=rf"`n_steps={self.n_steps}` is ignored because a custom")
             super()._setup_model()
+
+    @staticmethod
+    def _wrap_env(env: GymEnv, verbose: int = 0, monitor_wrapper: bool = True) -> VecEnv:
+        if isinstance(env, gym.Env) and not is_wrapped(env, EpisodeRngRecorder):
+            env = EpisodeRngRecorder(env)  # so that save() can record what the pending episode start was drawn from
+        return OffPolicyAlgorithm._wrap_env(env, verbose, monitor_wrapper)
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: Union[np.ndarray, dict[str, np.ndarray]],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        # SB3's off-policy loop does not track it: the envs whose next observation starts an episode (for save())
+        self._last_episode_starts = dones
+
+    def _env_rng_records(self) -> Optional[list[Optional[dict[str, Any]]]]:
+        """What each env's pending (or next) episode start is drawn from, or None (no env, or not all recorded)."""
+        env = self.env
+        if env is None or not all(env.env_is_wrapped(EpisodeRngRecorder)):
+            return None
+        starts: list[Optional[bool]] = [None] * env.num_envs
+        if self._last_obs is not None and self._last_episode_starts is not None:
+            starts = [bool(start) for start in self._last_episode_starts]
+        records = [env.env_method("sb3_lifelong_rng_record", starts[i], indices=[i])[0] for i in range(env.num_envs)]
+        return records if any(record is not None for record in records) else None
+
+    def _replay_env_rng(self) -> None:
+        """After a load: make the env's next reset replay the records saved with the model (once)."""
+        records = self.__dict__.get("_env_rng")
+        if records is None or self.env is None or self._last_obs is not None:
+            return  # nothing saved, no env yet (set_env will do it), or the env is not reset before learning
+        del self._env_rng
+        env = self.env
+        if len(records) != env.num_envs or not all(env.env_is_wrapped(EpisodeRngRecorder)):
+            why = (
+                f"{len(records)} envs were saved, {env.num_envs} given"
+                if len(records) != env.num_envs
+                else "the env is a VecEnv whose sub-envs are not wrapped in sb3_lifelong.common.base.EpisodeRngRecorder"
+            )
+            consequence = (
+                f"the env is re-seeded from seed={self.seed} as by SB3's load, so its first episodes start as those of the "
+                "start of training did"
+                if self.seed is not None
+                else "its episodes do not start as those of an uninterrupted run would"
+            )
+            warnings.warn(f"The environment's random state saved with the model is not restored ({why}): {consequence}")
+            return
+        for i, record in enumerate(records):
+            if record is not None:
+                env.env_method("sb3_lifelong_replay", record, indices=[i])
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        super().set_env(env, force_reset=force_reset)
+        self._replay_env_rng()
 
     def _make_scoring_copy(self, critic: th.nn.Module, scoring_dtype: str) -> Optional[LowPrecisionCopy]:
         """
@@ -103,7 +237,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         self._sync_scoring_copies()
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_scoring_copies"]
+        return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng"]
 
     def distill(self, student_class: Optional[type] = None, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
         """
@@ -120,17 +254,49 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
 
         return distill(self, student_class=student_class, gradient_steps=gradient_steps, **kwargs)
 
+    def _pending_rng_state(self) -> Optional[dict[str, Any]]:
+        """The random state restored by the last ``load``, while no training happened since (else None)."""
+        pending = self.__dict__.get("_resume_rng")
+        if pending is None or (pending[1], pending[2]) != (self.num_timesteps, self._n_updates):
+            return None
+        return pending[0]
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        # the first learn() after a load restores the random streams saved with the model again: random numbers
+        # drawn between the load and now (e.g. by make_vec_env, or predict) do not change the run
+        rng_state = self._pending_rng_state()
+        self.__dict__.pop("_resume_rng", None)
+        if rng_state is not None:
+            restore_rng_state(rng_state, self.action_space)
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
     def save(
         self,
         path: Union[str, pathlib.Path, io.BufferedIOBase],
         exclude: Optional[Iterable[str]] = None,
         include: Optional[Iterable[str]] = None,
     ) -> None:
-        self._rng_state = capture_rng_state(self.action_space)
+        # loaded and not trained since: the streams and records to continue from are those that were loaded
+        self._rng_state = self._pending_rng_state() or capture_rng_state(self.action_space)
+        pending = self.__dict__.get("_env_rng")  # loaded without an env: saved again as it was
+        records = self._env_rng_records()
+        if records is not None:
+            self._env_rng = records
         try:
             super().save(path, exclude=exclude, include=include)
         finally:
             del self._rng_state
+            if pending is None:
+                self.__dict__.pop("_env_rng", None)
+            else:
+                self._env_rng = pending
 
     @classmethod
     def load(  # type: ignore[override]
@@ -155,4 +321,6 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         rng_state = model.__dict__.pop("_rng_state", None)
         if rng_state is not None:
             restore_rng_state(rng_state, model.action_space)
+            model.__dict__["_resume_rng"] = (rng_state, model.num_timesteps, model._n_updates)  # restored again by learn()
+        model._replay_env_rng()
         return model
