@@ -4,8 +4,11 @@ import contextlib
 import errno
 import os
 import pickle
+import shutil
+import stat
 import subprocess
 import sys
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -13,7 +16,7 @@ import pytest
 
 from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.common import buffer_storage
-from sb3_lifelong.common.buffer_storage import FIELD_NAMES, BufferFormatError, RowStore
+from sb3_lifelong.common.buffer_storage import FIELD_NAMES, BufferFormatError, CommitNotDurableError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
@@ -373,3 +376,170 @@ def test_default_verify_checks_only_the_last_chunk(tmp_path, layout):
     reopened.close()
     with pytest.raises(BufferFormatError, match="checksum"):
         LifelongReplayBuffer.open(path, device="cpu", verify="all")
+
+
+# ---------------------------------------------------------------------------------------------- directory fsync fails
+@contextlib.contextmanager
+def directory_fsync_fails(monkeypatch, after_rename=True):
+    """
+    ``os.fsync`` of a directory fails with EIO: only the first one after the manifest's rename (``after_rename``), or
+    the first one before it (layout "chunked": the sync of the new chunk file's directory entry).
+    """
+    real_fsync, real_replace = os.fsync, os.replace
+    state = {"armed": not after_rename, "failures": 0}
+
+    def replace(source, target, *args, **kwargs):
+        result = real_replace(source, target, *args, **kwargs)
+        if after_rename and os.path.basename(os.fspath(target)) == "manifest.json":
+            state["armed"] = True
+        return result
+
+    def fsync(fd):
+        if state["armed"] and stat.S_ISDIR(os.fstat(fd).st_mode):
+            state["armed"] = False
+            state["failures"] += 1
+            raise OSError(errno.EIO, "Input/output error (injected)")
+        return real_fsync(fd)
+
+    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(os, "fsync", fsync)
+    try:
+        yield state
+    finally:
+        monkeypatch.setattr(os, "fsync", real_fsync)
+        monkeypatch.setattr(os, "replace", real_replace)
+
+
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+def test_directory_fsync_fails_after_the_manifest_rename(tmp_path, monkeypatch, layout):
+    """
+    The new manifest is in place but may not be durable: flush() raises CommitNotDurableError (it does not claim a
+    durable commit), the rows are committed and served, no file the previous manifest needs is touched (so a power
+    loss that brings the previous manifest back leaves a consistent buffer), and flush() again syncs it.
+    """
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout, n_steps=3)
+    add_rows(buffer, 0, 120)
+    previous = (path / "manifest.json").read_bytes()
+    previous_files = snapshot(path)
+    with directory_fsync_fails(monkeypatch) as fault:
+        with pytest.raises(CommitNotDurableError) as error:
+            buffer.flush()
+    assert fault["failures"] == 1 and isinstance(error.value, OSError) and error.value.errno == errno.EIO
+    message = " ".join(str(error.value).split())
+    assert "120 transitions are committed" in message and "power loss" in message and "flush()" in message
+    assert buffer.store.num_committed == 120 and buffer.store.num_tail == 0
+    check_rows(buffer, 120)
+    check_rows(LifelongReplayBuffer.open(path, read_only=True, device="cpu", verify="all"), 120)
+    for name, data in previous_files.items():  # committed bytes untouched: the previous manifest still fits them
+        assert (path / name).read_bytes()[: len(data)] == data or name == "manifest.json"
+
+    # a power loss may bring the previous manifest back: a copy of the directory with it is a consistent buffer
+    lost = tmp_path / "after_power_loss"
+    shutil.copytree(path, lost)
+    (lost / "manifest.json").write_bytes(previous)
+    (lost / "writer.lock").unlink()
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        check_rows(LifelongReplayBuffer.open(lost, device="cpu", verify="all"), 100)
+
+    buffer.flush()  # syncs the manifest again
+    add_rows(buffer, 120, 160)
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 160)
+
+
+def test_directory_fsync_fails_while_evicting(tmp_path, monkeypatch):
+    """With a capacity, the chunk files a not-durable commit drops are kept until a later manifest is synced."""
+    path = tmp_path / "b"
+    buffer = LifelongReplayBuffer(0, OBS, ACT, device="cpu", path=path, chunk_size=20, capacity=50)
+    add_rows(buffer, 0, 119)  # rows 69..118 retained, chunks from row 40 on listed; 19 rows pending
+    previous = (path / "manifest.json").read_bytes()
+    with directory_fsync_fails(monkeypatch):
+        with pytest.raises(CommitNotDurableError):
+            add_rows(buffer, 119, 120)  # fills the chunk: commits rows 100..119 and drops chunk 40
+    assert buffer.size() == 50 and buffer.source_counts() == {0: 50}  # the add's row is stored
+    assert buffer.store.committed_first == 70 and buffer.store.num_committed == 120
+    np.testing.assert_array_equal(buffer.store.read_range("rewards", 0, 50), rewards(70, 120))
+    assert "chunk.000000000040.bin" in os.listdir(path)  # kept: the previous manifest lists it
+    lost = tmp_path / "after_power_loss"
+    shutil.copytree(path, lost)
+    (lost / "manifest.json").write_bytes(previous)
+    (lost / "writer.lock").unlink()
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        reopened = LifelongReplayBuffer.open(lost, device="cpu", verify="all")
+    np.testing.assert_array_equal(reopened.store.read_range("rewards", 0, 50), rewards(50, 100))
+    buffer.flush()  # the manifest is synced: the dropped chunk file goes
+    assert "chunk.000000000040.bin" not in os.listdir(path)
+    buffer.close()
+    np.testing.assert_array_equal(
+        LifelongReplayBuffer.open(path, device="cpu", verify="all").store.read_range("rewards", 0, 50), rewards(70, 120)
+    )
+
+
+def test_directory_fsync_fails_before_the_manifest(tmp_path, monkeypatch):
+    """Layout "chunked": the new chunk file's entry is synced before a manifest names it; if that fails, nothing is
+    committed (an ordinary failed flush)."""
+    path = tmp_path / "b"
+    buffer = make_buffer(path, "chunked")
+    add_rows(buffer, 0, 120)
+    files = snapshot(path)
+    with directory_fsync_fails(monkeypatch, after_rename=False) as fault:
+        with pytest.raises(OSError) as error:
+            buffer.flush()
+    assert fault["failures"] == 1 and not isinstance(error.value, CommitNotDurableError)
+    assert snapshot(path) == files and buffer.store.num_committed == 100 and buffer.store.num_tail == 20
+    check_rows(buffer, 120)
+    buffer.flush()
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 120)
+
+
+# ---------------------------------------------------------------------------------------------- a large append fails
+@needs_proc
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+@pytest.mark.parametrize("budget", [0, 2500, 6000])
+def test_large_add_that_fails_midway_stores_nothing(tmp_path, monkeypatch, layout, budget):
+    """
+    One add() of 130 envs (2 chunks and more, after 20 pending rows) whose writing fails after a first chunk (or
+    before): none of its rows is stored, in the object or on disk; the pending rows stay; the error says so.
+    """
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)  # 100 committed, 20 pending
+    manifest, counts = (path / "manifest.json").read_bytes(), buffer.source_counts()
+    files = {name: data for name, data in snapshot(path).items() if name != "manifest.json"}
+    data_files = {f"{name}.bin" for name in FIELD_NAMES} | {f"chunk.{start:012d}.bin" for start in (100, 150, 200)}
+    with disk_full(monkeypatch, path, budget=budget, names=data_files) as fault:  # the manifest can be written
+        with pytest.raises(OSError) as error:
+            buffer.add(*transition(120, 130))
+    assert fault["failures"] == 1 and error.value.errno == errno.ENOSPC
+    assert buffer.size() == 120 and buffer.source_counts() == counts
+    assert buffer.store.num_committed == 100 and buffer.store.num_tail == 20
+    check_rows(buffer, 120)
+    assert (path / "manifest.json").read_bytes() == manifest
+    after = {name: data for name, data in snapshot(path).items() if name != "manifest.json"}
+    assert after == files  # the bytes written were removed: no stray chunk file, field files cut back
+    message = " ".join(str(error.value).split())
+    assert str(path) in message and "none of the 130 transitions of this call was stored" in message
+    assert "20 transitions pending before it stay" in message
+    buffer.add(*transition(120, 130))  # the same add() again, once space is free
+    check_rows(buffer, 250)
+    assert buffer.store.num_committed == 250 and buffer.store.num_tail == 0
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 250)
+
+
+@needs_proc
+def test_large_import_that_fails_midway_creates_no_rows(tmp_path, monkeypatch):
+    """from_d4rl of more rows than a chunk into a directory: a failure midway commits none of them."""
+    data = dict(zip(("observations", "next_observations", "actions", "rewards"), transition(0, 300)[:4]))
+    data["terminals"] = np.zeros(300, bool)
+    np.savez(tmp_path / "data.npz", **data)
+    path = tmp_path / "b"
+    with disk_full(monkeypatch, path, budget=5000, names={"chunk.000000000000.bin", "chunk.000000000064.bin"}):
+        with pytest.raises(OSError, match="none of the 300 transitions"):
+            LifelongReplayBuffer.from_d4rl(tmp_path / "data.npz", path=path, chunk_size=64, capacity=1000)
+    store = RowStore(path=str(path))
+    assert store.num_committed == 0 and not [name for name in os.listdir(path) if name.startswith("chunk.")]

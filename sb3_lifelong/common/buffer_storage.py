@@ -92,15 +92,45 @@ class BufferFormatError(ValueError):
     """A manifest or a data file (field or chunk file) is not a valid buffer directory (corrupted, truncated or hostile)."""
 
 
-def _fsync_dir(path: str) -> None:
+# errno values of an fsync of a directory that mean "this filesystem cannot sync directories" (nothing to wait for)
+_DIR_FSYNC_UNSUPPORTED = frozenset({errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP})
+
+
+class CommitNotDurableError(OSError):
+    """
+    A buffer's new manifest was renamed into place, so its rows are committed and readable (by this object, by
+    readers and by a reopen), but the fsync of the directory that follows the rename failed: the commit may not
+    survive a power loss or an operating-system crash (it survives a crash of the process). Whichever manifest a
+    power loss leaves, the directory stays consistent: no file that the previous manifest needs is deleted until a
+    later manifest is synced. ``flush()`` (or ``close()``) writes and syncs the manifest again.
+    """
+
+
+def _explained(error: OSError, context: str) -> OSError:
+    """An OSError of the same errno (so of the same class) and file name, whose message starts with ``context``."""
+    if error.errno is None:
+        return OSError(f"{context}: {error}")
+    return OSError(error.errno, f"{context} ({error.strerror})", error.filename)
+
+
+def _fsync_dir(path: str, strict: bool = False) -> None:
+    """
+    fsync a directory, so that the entries created, renamed or deleted in it survive a power loss.
+
+    :param path: The directory
+    :param strict: Raise the ``OSError`` of a failed fsync (commits); otherwise it is ignored (deletions, which the
+        next writer redoes). A filesystem that cannot sync directories (EINVAL, ENOTSUP) or a platform that cannot
+        open them is not a failure
+    """
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:  # pragma: no cover (e.g. Windows)
         return
     try:
         os.fsync(fd)
-    except OSError:  # pragma: no cover
-        pass
+    except OSError as error:
+        if strict and error.errno not in _DIR_FSYNC_UNSUPPORTED:
+            raise
     finally:
         os.close(fd)
 
@@ -142,11 +172,12 @@ def _remove_quietly(file_name: str) -> None:
 def write_json_atomic(path: str, data: dict[str, Any]) -> None:
     """
     Write a JSON document atomically: temporary file, fsync, rename over the target, fsync of the directory.
-    When this raises (e.g. disk full), the target is either unchanged or, if only the final directory fsync failed,
-    replaced by the new document; the temporary file is removed.
 
     :param path: Target file
     :param data: JSON-serialisable document
+    :raises OSError: (e.g. disk full) the target is unchanged and the temporary file removed
+    :raises CommitNotDurableError: only the fsync of the directory after the rename failed: the target is replaced
+        by the new document, which may not survive a power loss
     """
     directory = os.path.dirname(os.path.abspath(path))
     tmp = path + ".tmp"
@@ -162,7 +193,14 @@ def write_json_atomic(path: str, data: dict[str, Any]) -> None:
     except BaseException:
         _remove_quietly(tmp)
         raise
-    _fsync_dir(directory)
+    try:
+        _fsync_dir(directory, strict=True)
+    except OSError as error:
+        raise CommitNotDurableError(
+            error.errno,
+            f"{path} was replaced, but the fsync of its directory failed ({error.strerror}): the new version may not "
+            "survive a power loss or an operating-system crash",
+        ) from error
 
 
 def _is_int(value: Any) -> bool:
@@ -551,6 +589,9 @@ class RowStore:
         self._chunk_maps: list[dict[str, np.ndarray]] = []  # layout "chunked": one dict per entry of self.chunks
         self._chunk_starts = np.zeros(0, dtype=np.int64)
         self._closed = False
+        # chunk files dropped by a commit whose directory fsync failed: deleted once a later manifest is synced (the
+        # previous manifest, which lists them, may be the one a power loss leaves)
+        self._undeleted: list[str] = []
         self.read_mode = read_mode
         # read_mode "pread": open read descriptors by file name, and per field the descriptor and byte offset of
         # each segment of rows (layout "single": one segment from row 0; "chunked": one per chunk); None: to open
@@ -863,11 +904,14 @@ class RowStore:
     # ------------------------------------------------------------------ writing
     def append(self, rows: dict[str, np.ndarray]) -> None:
         """
-        Append rows (every field, same leading length). Flushes a chunk each time ``chunk_size`` rows are pending.
+        Append rows (every field, same leading length). In a directory, once ``chunk_size`` rows are pending, the
+        pending rows and the rows of this call that complete chunks of ``chunk_size`` rows are written and committed
+        together, with one manifest; the rest of the call's rows stay pending.
 
-        If a flush fails (e.g. ``OSError``, disk full), this raises having stored only the rows of this call that an
-        earlier flush of the same call committed (none when fewer than ``chunk_size`` rows are appended): the
-        rows pending from earlier calls stay pending, and :attr:`end` says how many rows were stored.
+        All or nothing: if writing fails (e.g. ``OSError``, disk full), this raises having stored none of the rows of
+        this call, in this object or in the directory (its manifest is unchanged), whatever their number; the rows
+        pending from earlier calls stay pending. The one exception is :class:`CommitNotDurableError`: the new
+        manifest is in place and every row of this call is stored, but the commit may not survive a power loss.
 
         :param rows: field name -> array of shape (n, *row_shape)
         """
@@ -884,24 +928,35 @@ class RowStore:
                 tail[name][start:stop] = rows[name]
             self.num_tail = stop
             return
-        done = 0
-        mark = self.num_tail  # the rows of this call in the tail start here (0 after a flush of this call)
-        while done < count:
-            if self.path is None and self.num_tail == len(self._tail["rewards"]):
-                self._make_room(count - done)
-            free = len(self._tail["rewards"]) - self.num_tail
-            take = min(free, count - done)
-            for name in self.fields:
-                self._tail[name][self.num_tail : self.num_tail + take] = rows[name][done : done + take]
-            self.num_tail += take
-            done += take
-            if self.path is not None and self.num_tail == self.chunk_size:
-                try:
-                    self.flush()
-                except BaseException:
-                    self.num_tail = mark  # the rows of this call that are not committed are not stored
-                    raise
-                mark = 0
+        if self.path is None:
+            done = 0
+            while done < count:
+                if self.num_tail == len(self._tail["rewards"]):
+                    self._make_room(count - done)
+                take = min(len(self._tail["rewards"]) - self.num_tail, count - done)
+                for name in self.fields:
+                    self._tail[name][self.num_tail : self.num_tail + take] = rows[name][done : done + take]
+                self.num_tail += take
+                done += take
+            return
+        keep = (self.num_tail + count) % self.chunk_size  # rows of this call left pending
+        not_durable: Optional[CommitNotDurableError] = None
+        try:
+            self._write_chunks(rows, count - keep)
+        except CommitNotDurableError as error:  # committed: the call's rows are stored
+            not_durable = error
+        except OSError as error:
+            raise _explained(
+                error,
+                f"{self.path}: writing failed before the commit, so none of the {count:,} transitions of this call was "
+                f"stored and the manifest is unchanged; the {self.num_tail:,} transitions pending before it stay in memory. "
+                "Repeat the call once the cause is fixed (e.g. space freed)",
+            ) from error
+        for name in self.fields:
+            self._tail[name][:keep] = rows[name][count - keep : count]
+        self.num_tail = keep
+        if not_durable is not None:
+            raise not_durable
 
     def _make_room(self, need: int) -> None:
         """In memory, the arrays are full: drop the evicted rows at their front (if that frees enough), else grow."""
@@ -939,40 +994,87 @@ class RowStore:
         Only once the new manifest is in place does this object count the rows as committed. If anything fails
         before (e.g. ``OSError`` ENOSPC, disk full), it raises with the committed state (on disk and in memory)
         unchanged and the rows still pending in memory, readable and sampled as before: calling ``flush()`` again
-        (e.g. after freeing space) writes the same bytes to the same places and commits them.
+        (e.g. after freeing space) writes the same bytes to the same places and commits them. If only the fsync of
+        the directory after the manifest's rename fails, it raises :class:`CommitNotDurableError` with the rows
+        committed (the manifest is in place); calling ``flush()`` again writes and syncs the manifest again.
         """
         if self.path is None or self.read_only or self._closed:
             return
         if self.num_tail == 0:
-            self._write_manifest()  # source names may have changed
+            self._write_manifest()  # source names may have changed; a commit whose directory sync failed is synced
+            self._delete_undeleted()
             return
-        count = self.num_tail
-        crcs: dict[str, int] = {}
-        chunk: dict[str, Any] = {"start": self.num_committed, "rows": count, "crc32": crcs}
+        try:
+            self._write_chunks()
+        except CommitNotDurableError:
+            raise
+        except OSError as error:
+            raise _explained(
+                error,
+                f"{self.path}: flush() failed before the commit: the {self.num_tail:,} pending transitions stay in memory "
+                "(read and sampled as before) and the manifest is unchanged. flush() again once the cause is fixed "
+                "(e.g. space freed)",
+            ) from error
+
+    def _block(self, name: str, lo: int, hi: int, extra: Optional[dict[str, np.ndarray]]) -> memoryview:
+        """Bytes of the rows ``lo:hi`` of field ``name`` of the pending rows followed by the rows of ``extra``."""
+        pending = self.num_tail
+        if hi <= pending:
+            block = self._tail[name][lo:hi]  # contiguous: no copy
+        else:
+            assert extra is not None
+            block = np.empty((hi - lo, *self._tail[name].shape[1:]), dtype=self.dtypes[name])
+            split = max(pending - lo, 0)
+            block[:split] = self._tail[name][lo:pending]
+            block[split:] = extra[name][max(lo - pending, 0) : hi - pending]  # the tail's conversions (dtype, broadcast)
+        return memoryview(block).cast("B")  # type: ignore[arg-type]
+
+    def _write_chunks(self, extra: Optional[dict[str, np.ndarray]] = None, extra_rows: int = 0) -> None:
+        """
+        Write the pending rows followed by the first ``extra_rows`` rows of ``extra`` as chunks of at most
+        ``chunk_size`` rows (appended to the field files, or one chunk file each, fsync'd), then commit them all with
+        one manifest (:meth:`_commit`, which empties the tail).
+
+        If anything fails before the manifest is in place, this raises with nothing changed: the committed state (in
+        memory and on disk) and the pending rows are as before, and the bytes written are removed (best effort).
+
+        :param extra: Rows to write after the pending ones (field name -> array), or None
+        :param extra_rows: How many rows of ``extra`` to write
+        """
+        assert self.path is not None
+        base, total = self.num_committed, self.num_tail + extra_rows
+        bounds = [*range(0, total, self.chunk_size), total]
+        chunks: list[dict[str, Any]] = [
+            {"start": base + lo, "rows": hi - lo, "crc32": {}} for lo, hi in zip(bounds[:-1], bounds[1:])
+        ]
         if self.layout == "chunked":
-            file_name = self._chunk_file(chunk)
+            created = []
             try:
-                fd = _open_for_writing(file_name, os.O_CREAT | os.O_TRUNC)
-                try:
-                    for name in self.fields:
-                        data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
-                        crcs[name] = zlib.crc32(data)
-                        _write_all(fd, data)
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-                self._commit([*self.chunks, chunk], self.num_committed + count)
+                for chunk in chunks:
+                    lo = chunk["start"] - base
+                    file_name = self._chunk_file(chunk)
+                    fd = _open_for_writing(file_name, os.O_CREAT | os.O_TRUNC)
+                    created.append(file_name)
+                    try:
+                        for name in self.fields:
+                            data = self._block(name, lo, lo + chunk["rows"], extra)
+                            chunk["crc32"][name] = zlib.crc32(data)
+                            _write_all(fd, data)
+                        os.fsync(fd)
+                    finally:
+                        os.close(fd)
+                _fsync_dir(self.path, strict=True)  # the new files' entries are durable before a manifest names them
+                self._commit([*self.chunks, *chunks], base + total)
             except BaseException:
-                if self.num_committed < chunk["start"] + count:  # not committed: nothing refers to this file
-                    _remove_quietly(file_name)
+                if self.num_committed == base:  # not committed: nothing refers to these files
+                    for file_name in created:
+                        _remove_quietly(file_name)
                 raise
             return
         written = []
         try:
             for name in self.fields:
-                data = np.ascontiguousarray(self._tail[name][:count]).tobytes()
-                crcs[name] = zlib.crc32(data)
-                committed_bytes = self.num_committed * self.row_bytes[name]
+                committed_bytes = base * self.row_bytes[name]
                 fd = _open_for_writing(self._file(name))
                 written.append(name)
                 try:
@@ -980,45 +1082,70 @@ class RowStore:
                     # writes the same rows to the same place (the manifest's offsets)
                     os.ftruncate(fd, committed_bytes)
                     os.lseek(fd, committed_bytes, os.SEEK_SET)
-                    _write_all(fd, data)
+                    for chunk in chunks:
+                        lo = chunk["start"] - base
+                        data = self._block(name, lo, lo + chunk["rows"], extra)
+                        chunk["crc32"][name] = zlib.crc32(data)
+                        _write_all(fd, data)
                     os.fsync(fd)
                 finally:
                     os.close(fd)
-            self._commit([*self.chunks, chunk], self.num_committed + count)
+            self._commit([*self.chunks, *chunks], base + total)
         except BaseException:
-            if self.num_committed < chunk["start"] + count:  # not committed: give the space back (best effort)
+            if self.num_committed == base:  # not committed: give the space back (best effort)
                 for name in written:
                     try:
-                        os.truncate(self._file(name), self.num_committed * self.row_bytes[name])
+                        os.truncate(self._file(name), base * self.row_bytes[name])
                     except OSError:
                         pass
             raise
 
     def _commit(self, chunks: list[dict[str, Any]], num_committed: int) -> None:
         """
-        Commit the rows before global row ``num_committed`` (listed by ``chunks``; with a capacity, the chunks with
-        no retained row are dropped): replace the manifest atomically, then, and only then, move this object's
-        committed state (pending rows before ``num_committed`` leave the tail), delete the files of the dropped
-        chunks and map the committed rows. If the manifest cannot be written, this raises and nothing changed.
+        Commit every pending row, up to global row ``num_committed`` (listed by ``chunks``; with a capacity, the
+        chunks with no retained row are dropped): replace the manifest atomically, then, and only then, move this
+        object's committed state (the tail is emptied), delete the files of the dropped chunks and map the committed
+        rows. If the manifest cannot be written, this raises and nothing changed. If it was replaced but the
+        directory's fsync failed, the state moves all the same (the manifest in place is the new one) but the files
+        of the dropped chunks are kept until a later manifest is synced, and :class:`CommitNotDurableError` is raised.
+
+        :param chunks: The chunks of the new manifest
+        :param num_committed: Global row after the last committed row
         """
         committed_first = self.committed_first
         dropped: list[dict[str, Any]] = []
         if self.layout == "chunked":
-            committed_first = max(committed_first, min(self.first, num_committed))
+            # the manifest keeps the last ``capacity`` committed rows (rows still pending do not evict on disk)
+            if self.capacity is not None:
+                committed_first = max(committed_first, num_committed - self.capacity)
             dropped = [chunk for chunk in chunks if chunk["start"] + chunk["rows"] <= committed_first]
             chunks = chunks[len(dropped) :]
-        self._write_manifest(chunks, num_committed, committed_first)
+        not_durable: Optional[CommitNotDurableError] = None
+        try:
+            self._write_manifest(chunks, num_committed, committed_first)
+        except CommitNotDurableError as error:
+            not_durable = error
         # committed: from here on, no committed state refers to the dropped chunks
         self.chunks, self.committed_first = chunks, committed_first
-        self.num_tail -= num_committed - self._tail_start
         self.num_committed = self._tail_start = num_committed
+        self.num_tail = 0
         self._maps_stale = True  # until the maps (or read files) follow: reads map again first
-        if dropped:
-            for chunk in dropped:
-                _delete_file(self._chunk_file(chunk))
+        self._undeleted.extend(self._chunk_file(chunk) for chunk in dropped)
+        if not_durable is None:
+            self._delete_undeleted()
+        self._sync_maps()
+        if not_durable is not None:
+            raise not_durable
+
+    def _delete_undeleted(self) -> None:
+        """Delete the files of chunks dropped by commits, once the manifest in place (which does not list them) is
+        synced."""
+        if self._undeleted:
+            for file_name in self._undeleted:
+                _delete_file(file_name)
+            self._undeleted = []
             assert self.path is not None
             _fsync_dir(self.path)
-        self._sync_maps()
 
     def _sync_maps(self) -> None:
         """Map the committed rows (or, with ``read_mode="pread"``, open their files) after a commit or a refresh."""
@@ -1051,7 +1178,16 @@ class RowStore:
         if not plain:
             first = self.committed_first if committed_first is None else committed_first
             manifest.update(layout=self.layout, capacity=self.capacity, first_row=first)
-        write_json_atomic(os.path.join(self.path, MANIFEST_NAME), manifest)
+        try:
+            write_json_atomic(os.path.join(self.path, MANIFEST_NAME), manifest)
+        except CommitNotDurableError as error:
+            raise CommitNotDurableError(
+                error.errno,
+                f"{self.path}: the new {MANIFEST_NAME} is in place, so its {manifest['num_transitions']:,} transitions are "
+                f"committed and readable, but the fsync of the directory failed ({error.strerror}): this commit may not "
+                "survive a power loss or an operating-system crash (a crash of this process is fine). flush() (or "
+                "close()) writes and syncs the manifest again; until then, files the previous manifest needs are kept",
+            ) from error
 
     def __getstate__(self) -> dict[str, Any]:
         if self.path is None:

@@ -29,13 +29,14 @@ from sb3_lifelong.common.buffer_storage import (
     MAX_SOURCE_ID,
     OBS_FIELDS,
     BufferFormatError,
+    CommitNotDurableError,
     RowStore,
     check_obs_key,
     obs_keys_of,
 )
 from sb3_lifelong.common.datasets import import_minari, minari_columns
 
-__all__ = ["BufferFormatError", "LifelongBufferView", "LifelongReplayBuffer", "merge_buffers"]
+__all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongBufferView", "LifelongReplayBuffer", "merge_buffers"]
 
 _COPY_BLOCK = 1 << 16
 _Samples = Union[ReplayBufferSamples, DictReplayBufferSamples]
@@ -1090,6 +1091,13 @@ class LifelongReplayBuffer(_LifelongSampler):
         reward (after conversion to the stored dtype) raises a ``ValueError`` naming the field and the env; nothing of
         that call is stored.
 
+        In a directory, the add() that completes a chunk writes and commits it. If that fails (``OSError``, e.g. disk
+        full), the error names the directory, none of the call's transitions is stored (in this object or on disk)
+        and the transitions pending before it stay in memory: repeat the call once the cause is fixed. A
+        ``CommitNotDurableError`` (an ``OSError``) means that the chunk was committed, with this call's
+        transitions, but that the fsync of the directory after the manifest's rename failed, so the commit may not
+        survive a power loss; ``flush()`` syncs it again.
+
         :param obs: Observations, leading dimension n_envs
         :param next_obs: Next observations (the terminal observation where an episode ended)
         :param action: Actions
@@ -1274,7 +1282,14 @@ class LifelongReplayBuffer(_LifelongSampler):
         self._runs.extend(rows["sources"])
 
     def flush(self) -> None:
-        """Write the pending transitions to disk now (no-op in memory)."""
+        """
+        Write the pending transitions to disk now and commit them (no-op in memory).
+
+        If it fails (``OSError``, e.g. disk full), nothing is committed: the pending transitions stay in memory, read
+        and sampled as before, and calling ``flush()`` again commits them. ``CommitNotDurableError`` (an ``OSError``):
+        they are committed, but the fsync of the directory after the manifest's rename failed, so the commit may not
+        survive a power loss; calling ``flush()`` again syncs it.
+        """
         self.store.flush()
 
     def close(self) -> None:
