@@ -543,3 +543,47 @@ def test_large_import_that_fails_midway_creates_no_rows(tmp_path, monkeypatch):
             LifelongReplayBuffer.from_d4rl(tmp_path / "data.npz", path=path, chunk_size=64, capacity=1000)
     store = RowStore(path=str(path))
     assert store.num_committed == 0 and not [name for name in os.listdir(path) if name.startswith("chunk.")]
+
+
+@needs_proc
+def test_learning_goes_on_after_a_failed_add_without_a_wrong_transition(tmp_path, monkeypatch):
+    """MPO's add() fails (disk full) during learn(); learn(reset_num_timesteps=False) after space is freed starts a new
+    episode instead of storing the observation before the failed step with the outcome of the next one."""
+    from sb3_lifelong import MPO
+
+    class Line(gym.Env):
+        observation_space = gym.spaces.Box(-10.0, 10.0, (2,), np.float32)
+        action_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            self.x, self.t = 3.0, 0
+            return np.array([self.x, self.t], np.float32), {}
+
+        def step(self, action):
+            self.x, self.t = float(np.clip(self.x + 0.5 * float(action[0]), -10, 10)), self.t + 1
+            return np.array([self.x, self.t], np.float32), -abs(self.x), False, self.t >= 50, {}
+
+    path = tmp_path / "b"
+    model = MPO(
+        "MlpPolicy",
+        Line(),
+        seed=0,
+        learning_starts=1000,
+        replay_buffer_class=LifelongReplayBuffer,
+        n_steps=3,
+        replay_buffer_kwargs=dict(path=path, chunk_size=30),
+    )
+    model.learn(20)
+    with disk_full(monkeypatch, path):
+        with pytest.raises(OSError, match="none of the 1 transitions"):
+            model.learn(20, reset_num_timesteps=False)  # the 30th transition completes a chunk: its flush fails
+    model.learn(20, reset_num_timesteps=False)
+    buffer = model.replay_buffer
+    obs, next_obs = buffer.store.read_range("observations", 0, 49), buffer.store.read_range("next_observations", 0, 49)
+    actions = buffer.store.read_range("actions", 0, 49)
+    np.testing.assert_allclose(next_obs[:, 0], np.clip(obs[:, 0] + 0.5 * 2.0 * actions[:, 0], -10, 10), rtol=1e-6)
+    np.testing.assert_array_equal(next_obs[:, 1], obs[:, 1] + 1)  # one step each: no step skipped
+    assert obs[29, 1] == 0 and obs[29, 0] == 3.0  # the env was reset after the failure
+    streams = buffer.store.read_range("streams", 0, 49)
+    assert streams[29] != streams[28]  # n-step returns do not chain into the new episode

@@ -169,7 +169,17 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         dones: np.ndarray,
         infos: list[dict[str, Any]],
     ) -> None:
-        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        try:
+            super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        except BaseException:
+            # add() failed (e.g. disk full): the env has stepped but SB3 kept the observation before the step, so a
+            # learn() that goes on would store it with the next step's outcome. Reset the env at the next learn()
+            # instead, and start new streams in the buffer (n-step returns must not chain into the new episode)
+            self._last_obs = None
+            end_streams = getattr(replay_buffer, "end_streams", None)
+            if callable(end_streams):
+                end_streams()
+            raise
         # SB3's off-policy loop does not track it: the envs whose next observation starts an episode (for save())
         self._last_episode_starts = dones
 
