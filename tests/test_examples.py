@@ -71,7 +71,7 @@ def test_examples_are_programs_with_documented_flags():
             {"Env-A", "Env-B", "Env-C"},
         ),
         ("parallel_sharing.py", ["--setup", "copy", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
-        ("parallel_sharing.py", ["--setup", "independent", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
+        ("parallel_sharing.py", ["--setup", "independent", "--backend", "process", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
         ("continuous_drift.py", ["--no-plots"], {"hip_0.00", "hip_0.15", "hip_0.30"}),
     ],
 )
@@ -86,7 +86,9 @@ def test_other_examples(tmp_path, script, extra, envs):
         assert {row["env"] for row in rows if row["method"] == "distilled_per_source"} == envs
     if script == "parallel_sharing.py":
         # the merged data holds every environment once: Env-A's part of the copied buffer is not duplicated
-        assert "distilling 900 transitions" in stdout  # 300 (Env-A) + 300 (Env-B) + 300 (Env-C)
+        assert "900 transitions shared, per source {0: 300, 1: 300, 2: 300}" in stdout
+        timing = json.loads((tmp_path / "seed_0" / "collectors.json").read_text())
+        assert timing["workers"] == 2 and len(timing["collector_seconds"]) == 2
 
 
 def test_seeds_of_separate_runs_are_summarised_together(tmp_path):

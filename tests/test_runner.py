@@ -108,3 +108,31 @@ def test_ray_cluster_by_address(tmp_path, monkeypatch):
     finally:
         os.killpg(head.pid, signal.SIGTERM)  # this head's processes only, not other Ray instances on the machine
         head.wait(120)
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+@pytest.mark.parametrize("workers, backend", [(1, "auto"), (2, "process")])
+def test_map_parallel_keeps_the_order(workers, backend):
+    from sb3_lifelong.experiments.runner import map_parallel
+
+    assert map_parallel(_square, [dict(x=x) for x in range(5)], workers=workers, backend=backend) == [0, 1, 4, 9, 16]
+    with pytest.raises(ValueError, match="backend"):
+        map_parallel(_square, [], backend="slurm")
+
+
+def test_a_shared_buffer_that_lost_transitions_is_refused():
+    from sb3_lifelong.experiments.sharing import check_shared
+
+    class Counts:
+        def __init__(self, counts):
+            self.counts = counts
+
+        def source_counts(self):
+            return self.counts
+
+    check_shared(Counts({0: 10, 1: 20, 2: 20}), {0: 10, 1: 20, 2: 20})
+    with pytest.raises(RuntimeError, match="collectors collected"):
+        check_shared(Counts({0: 20, 1: 20, 2: 20}), {0: 10, 1: 20, 2: 20})

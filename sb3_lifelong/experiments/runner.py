@@ -11,11 +11,12 @@ CPUs or joined at ``address`` (``HOST:PORT``, or ``RAY_ADDRESS``); without Ray a
 graph. A job that fails prints its traceback; the others go on, and the jobs that need it are reported as not run.
 """
 
+import contextlib
 import os
 import pathlib
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
@@ -177,18 +178,7 @@ def _run_ray(
 ) -> dict[str, Any]:
     import ray
 
-    started_here = not ray.is_initialized()
-    if started_here:
-        # Ray starts its workers at niceness 15 by default: beside any other work on the machine they then get almost
-        # no CPU (importing torch in a worker took 50 s instead of 2 s beside two training runs on 2 cores). The jobs
-        # are the work here, so they run at normal priority unless the user says otherwise.
-        os.environ.setdefault("RAY_worker_niceness", "0")
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            # "local": a new instance with these CPUs, never a cluster that `ray start` left running on this machine
-            ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
-    try:
+    with ray_session(workers, address):
         remote_job = ray.remote(num_cpus=1, max_retries=0)(_after(run_job))
         progress = _Progress(graph, log)
         refs: dict[str, Any] = {}
@@ -213,9 +203,73 @@ def _run_ray(
                     if job.key in other.after:
                         progress.started(other)
         return progress.results
+
+
+@contextlib.contextmanager
+def ray_session(workers: int, address: Optional[str] = None) -> Iterator[None]:
+    """
+    Ray, started here for the duration of the block unless it is running in this process already: a new local
+    instance with ``workers`` CPUs, or a connection to the cluster at ``address``.
+
+    :param workers: CPUs of a local instance (ignored with ``address``)
+    :param address: a Ray cluster, ``HOST:PORT``
+    """
+    import ray
+
+    started_here = not ray.is_initialized()
+    if started_here:
+        # Ray starts its workers at niceness 15 by default: beside any other work on the machine they then get almost
+        # no CPU (importing torch in a worker took 50 s instead of 2 s beside two training runs on 2 cores). The jobs
+        # are the work here, so they run at normal priority unless the user says otherwise.
+        os.environ.setdefault("RAY_worker_niceness", "0")
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            # "local": a new instance with these CPUs, never a cluster that `ray start` left running on this machine
+            ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    try:
+        yield
     finally:
         if started_here:
             ray.shutdown()
+
+
+def map_parallel(
+    function: Callable[..., Any],
+    calls: Sequence[dict[str, Any]],
+    workers: int = 1,
+    backend: str = "auto",
+    address: Optional[str] = None,
+) -> list[Any]:
+    """
+    ``[function(**kwargs) for kwargs in calls]``, ``workers`` at a time, each call in its own process (one CPU).
+
+    :param function: a module-level function (it is sent to other processes)
+    :param calls: the keyword arguments of each call
+    :param workers: calls at a time on this machine (ignored when joining a cluster at ``address``); 1 without
+        ``address`` and without ``backend="ray"``: one after the other in this process
+    :param backend: ``"ray"``, ``"process"`` (a local process pool) or ``"auto"`` (Ray when installed)
+    :param address: a Ray cluster (``HOST:PORT``)
+    :return: the results, in the order of ``calls``; the first exception of a call is raised
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers == 1 and address is None and backend != "ray":
+        return [function(**kwargs) for kwargs in calls]
+    if backend == "ray" or (backend == "auto" and _ray_available()):
+        import ray
+
+        with ray_session(workers, address):
+            remote = ray.remote(num_cpus=1, max_retries=0)(function)
+            return ray.get([remote.remote(**kwargs) for kwargs in calls])
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(_call, [function] * len(calls), calls))
+
+
+def _call(function: Callable[..., Any], kwargs: dict[str, Any]) -> Any:
+    return function(**kwargs)
 
 
 def _after(function: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:

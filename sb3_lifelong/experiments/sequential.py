@@ -306,11 +306,15 @@ def eval_callbacks(
     return callbacks
 
 
-def make_collector(env: Any, config: dict[str, Any], seed: int, tensorboard_log: str) -> MPO:
+def make_collector(
+    env: Any, config: dict[str, Any], seed: int, tensorboard_log: Optional[str], buffer_path: Optional[str] = None
+) -> MPO:
+    """MPO with a lifetime buffer (in memory, or on disk at ``buffer_path``)."""
     return MPO(
         "MlpPolicy",
         env,
         replay_buffer_class=LifelongReplayBuffer,
+        replay_buffer_kwargs=dict(path=buffer_path) if buffer_path is not None else None,
         learning_starts=config["learning_starts"],
         num_samples=config["num_samples"],
         tensorboard_log=tensorboard_log,
