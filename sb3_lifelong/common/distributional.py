@@ -1,6 +1,7 @@
-"""Categorical (distributional) Q-function critic, as in the CRR paper, and the projection of its TD target."""
+"""Categorical (distributional) Q-function critic, as in the CRR paper, with its TD target and loss."""
 
-from typing import Optional
+from collections.abc import Iterable
+from typing import NamedTuple, Optional
 
 import torch as th
 from gymnasium import spaces
@@ -9,8 +10,30 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
+from torch.nn import functional as F
 
-__all__ = ["CategoricalCritic", "categorical_projection"]
+from sb3_lifelong.common.utils import tile_obs
+
+__all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection", "sum_of"]
+
+
+class CriticLoss(NamedTuple):
+    """A critic's loss on a batch, and the Q-values of the batch's actions it saw on the way."""
+
+    #: the loss (scalar, differentiable in the critic's parameters)
+    loss: th.Tensor
+    #: the lowest (expected) Q-value over the Q-networks of each of the batch's actions, ``[batch]`` (detached)
+    q_values: th.Tensor
+
+
+def sum_of(losses: Iterable[th.Tensor]) -> th.Tensor:
+    """:return: the sum of one loss per Q-network (a typed ``sum``: the same additions, in the same order)"""
+    total: Optional[th.Tensor] = None
+    for loss in losses:
+        total = loss if total is None else total + loss
+    if total is None:
+        raise ValueError("no losses to sum")
+    return total
 
 
 def categorical_projection(next_probs: th.Tensor, rewards: th.Tensor, discounts: th.Tensor, support: th.Tensor) -> th.Tensor:
@@ -109,6 +132,44 @@ class CategoricalCritic(BaseModel):
                 features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
         qvalue_input = th.cat([features, actions], dim=1)
         return tuple(q_net(qvalue_input) for q_net in self.q_networks)
+
+    def td_target(self, next_obs: PyTorchObs, next_actions: th.Tensor, rewards: th.Tensor, discounts: th.Tensor) -> th.Tensor:
+        """
+        The distributional TD target: per transition and next action, the distribution of the Q-network with the
+        lowest expected value, averaged over the next actions, shifted by ``rewards + discounts * Z`` and projected
+        back onto the support. Call it on the target critic, without autograd.
+
+        :param next_obs: next observations ``[batch, ...]``
+        :param next_actions: normalised next actions ``[n_next_actions, batch, action_dim]``
+        :param rewards: ``[batch, 1]``
+        :param discounts: ``gamma * (1 - done)`` (or the n-step discount), ``[batch, 1]``
+        :return: target probabilities ``[batch, n_atoms]``
+        """
+        n_next_actions = next_actions.shape[0]
+        if n_next_actions > 1:
+            next_obs = tile_obs(next_obs, n_next_actions)
+        flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
+        next_probs = th.softmax(th.stack(self.logits(next_obs, flat_next_actions)), dim=-1)  # [C, T*B, K]
+        lowest = (next_probs * self.support).sum(-1).argmin(dim=0)  # [T*B]
+        next_probs = next_probs.gather(0, lowest.view(1, -1, 1).expand(1, *next_probs.shape[1:]))[0]
+        next_probs = next_probs.view(n_next_actions, -1, next_probs.shape[-1]).mean(dim=0)
+        return categorical_projection(next_probs, rewards, discounts, self.support)
+
+    def loss(self, obs: PyTorchObs, actions: th.Tensor, target_probs: th.Tensor) -> CriticLoss:
+        """
+        Cross-entropy of each Q-network's distribution of the data's actions with the target distribution, summed
+        over the Q-networks.
+
+        :param obs: observations ``[batch, ...]``
+        :param actions: the data's normalised actions ``[batch, action_dim]``
+        :param target_probs: the target distribution (:meth:`td_target`), ``[batch, n_atoms]``
+        :return: the loss and the lowest expected Q-value of each action over the Q-networks
+        """
+        logits = self.logits(obs, actions)
+        loss = sum_of(-(target_probs * F.log_softmax(lg, dim=-1)).sum(dim=-1).mean() for lg in logits)
+        with th.no_grad():
+            q_values = th.cat([self.expected(lg) for lg in logits], dim=1).min(dim=1).values
+        return CriticLoss(loss, q_values)
 
     def expected(self, logits: th.Tensor) -> th.Tensor:
         """

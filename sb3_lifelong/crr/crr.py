@@ -1,23 +1,23 @@
 """Critic Regularized Regression (CRR), online and offline."""
 
 import math
-from typing import Any, ClassVar, Optional, TypeVar, Union
+from typing import Any, ClassVar, NamedTuple, Optional, TypeVar, Union
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
-from sb3_lifelong.common.distributional import CategoricalCritic, categorical_projection
+from sb3_lifelong.common.distributional import CategoricalCritic, CriticLoss, sum_of
 from sb3_lifelong.common.offline import OfflineAlgorithmMixin, with_next_actions
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
-from sb3_lifelong.common.utils import SCORING_DTYPES, sample_gaussian, score_actions, tile_obs
+from sb3_lifelong.common.utils import SCORING_DTYPES, LowPrecisionCopy, sample_gaussian, score_actions
 from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor
 
 SelfCRR = TypeVar("SelfCRR", bound="CRR")
@@ -65,6 +65,152 @@ def crr_weights(
     if transform == "indicator":
         return (advantages > 0).to(advantages.dtype), th.zeros_like(advantages, dtype=th.bool)
     raise ValueError(f"advantage transform must be one of {ADVANTAGE_TRANSFORMS}, got {transform!r}")
+
+
+class AdvantageWeights(NamedTuple):
+    """The advantages of the data's actions and their weights in the policy's regression, ``[batch]`` each."""
+
+    advantages: th.Tensor
+    weights: th.Tensor
+    #: the weights clipped at ``max_weight`` (bool)
+    clipped: th.Tensor
+
+
+class CRRStepStats(NamedTuple):
+    """What one gradient step logs, under ``train/<field>`` (the mean over the steps of a ``train`` call)."""
+
+    critic_loss: th.Tensor
+    actor_loss: th.Tensor
+    advantage_mean: th.Tensor
+    weight_mean: th.Tensor
+    weight_clip_frac: th.Tensor
+    q_mean: th.Tensor
+
+    @classmethod
+    def of(cls, fit: CriticLoss, actor_loss: th.Tensor, advantage: AdvantageWeights) -> "CRRStepStats":
+        return cls(
+            critic_loss=fit.loss.detach(),
+            actor_loss=actor_loss.detach(),
+            advantage_mean=advantage.advantages.mean(),
+            weight_mean=advantage.weights.mean(),
+            weight_clip_frac=advantage.clipped.float().mean(),
+            q_mean=fit.q_values.mean(),
+        )
+
+
+def actor_distribution(
+    actor: Union[GaussianActor, PerSourceActor], obs: Any, heads: Optional[th.Tensor] = None
+) -> tuple[th.Tensor, th.Tensor]:
+    """
+    :param actor: the actor (one per source: ``heads`` picks each row's)
+    :param obs: observations ``[batch, ...]``
+    :param heads: with one actor per source, the actor of each row ``[batch]``
+    :return: the mean and std of the policy's Gaussian, ``[batch, action_dim]`` each
+    """
+    if isinstance(actor, PerSourceActor):
+        return actor.distribution_params(obs, heads)
+    return actor.distribution_params(obs)
+
+
+def target_actions(
+    actor_target: Union[GaussianActor, PerSourceActor],
+    replay_data: Any,
+    heads: Optional[th.Tensor],
+    n_target_samples: int,
+    data_next_actions: bool = False,
+) -> th.Tensor:
+    """
+    The next actions of the TD target: samples of the target policy, or (``data_next_actions``, SARSA) the data's
+    next action where the data shows it.
+
+    :param actor_target: the target actor
+    :param replay_data: the batch (with ``next_actions`` and ``next_action_mask`` for ``data_next_actions``)
+    :param heads: with one actor per source, the actor of each row ``[batch]``
+    :param n_target_samples: number of target-policy actions per transition
+    :param data_next_actions: use the data's next actions (``critic_target="sarsa"``)
+    :return: ``[n_target_samples, batch, action_dim]``, in ``[-1, 1]``
+    """
+    mean, std = actor_distribution(actor_target, replay_data.next_observations, heads)
+    actions = sample_gaussian(mean, std, n_target_samples).clamp(-1.0, 1.0)
+    if data_next_actions:
+        next_actions = getattr(replay_data, "next_actions", None)
+        if next_actions is None:
+            raise ValueError(
+                "critic_target='sarsa' needs the data's next actions: train offline (learn_offline) on offline data"
+            )
+        mask = replay_data.next_action_mask.unsqueeze(0)  # [1, B, 1]
+        actions = mask * next_actions.unsqueeze(0) + (1.0 - mask) * actions
+    return actions
+
+
+def critic_td_target(
+    critic_target: Union[ContinuousCritic, CategoricalCritic],
+    next_obs: Any,
+    next_actions: th.Tensor,
+    rewards: th.Tensor,
+    bootstrap: th.Tensor,
+    scoring_copy: Optional[LowPrecisionCopy] = None,
+) -> th.Tensor:
+    """
+    The critic's TD target, averaged over the next actions: ``rewards + bootstrap * Q'(s', a')`` (the lowest over
+    the Q-networks) for a regression critic, the projected distribution (:meth:`CategoricalCritic.td_target`) for
+    a categorical one. Without autograd.
+
+    :param critic_target: the target critic
+    :param next_obs: next observations ``[batch, ...]``
+    :param next_actions: ``[n_next_actions, batch, action_dim]``
+    :param rewards: ``[batch, 1]``
+    :param bootstrap: ``(1 - done) * discount``, ``[batch, 1]``
+    :param scoring_copy: a low-precision copy of a regression ``critic_target`` to score the actions with
+    :return: ``[batch, 1]`` (regression) or ``[batch, n_atoms]`` (categorical)
+    """
+    if isinstance(critic_target, CategoricalCritic):
+        return critic_target.td_target(next_obs, next_actions, rewards, bootstrap)
+    next_q = score_actions(critic_target, next_obs, next_actions, scoring_copy).mean(0)
+    return rewards + bootstrap * next_q.unsqueeze(1)
+
+
+def critic_loss(
+    critic: Union[ContinuousCritic, CategoricalCritic], obs: Any, actions: th.Tensor, target: th.Tensor
+) -> CriticLoss:
+    """
+    :param critic: the online critic
+    :param obs: observations ``[batch, ...]``
+    :param actions: the data's normalised actions ``[batch, action_dim]``
+    :param target: :func:`critic_td_target`'s target
+    :return: the loss (half the squared error of each Q-network, summed; a categorical critic's cross-entropy, see
+        :meth:`CategoricalCritic.loss`) and the lowest Q-value of each action over the Q-networks
+    """
+    if isinstance(critic, CategoricalCritic):
+        return critic.loss(obs, actions, target)
+    current_q_values = critic(obs, actions)
+    loss = 0.5 * sum_of(F.mse_loss(current_q, target) for current_q in current_q_values)
+    return CriticLoss(loss, th.cat(current_q_values, dim=1).detach().min(dim=1).values)
+
+
+def advantage_weights(
+    data_q: th.Tensor, sampled_q: th.Tensor, baseline: str, transform: str, beta: float, max_weight: float
+) -> AdvantageWeights:
+    """
+    :param data_q: Q-values of the data's actions ``[batch]``
+    :param sampled_q: Q-values of actions sampled from the policy ``[num_samples, batch]``
+    :param baseline: ``"mean"`` or ``"max"`` (:func:`advantage_baseline`)
+    :param transform: ``"exp"`` or ``"indicator"`` (:func:`crr_weights`)
+    :param beta: temperature of ``exp``
+    :param max_weight: upper bound of ``exp``'s weights
+    :return: the advantages of the data's actions and their weights
+    """
+    advantages = data_q - advantage_baseline(sampled_q, baseline)
+    weights, clipped = crr_weights(advantages, transform, beta, max_weight)
+    return AdvantageWeights(advantages, weights, clipped)
+
+
+def actor_loss(actions: th.Tensor, mean: th.Tensor, std: th.Tensor, weights: th.Tensor) -> th.Tensor:
+    """
+    :return: CRR's policy loss, the weighted negative log-likelihood of the data's ``actions`` ``[batch, action_dim]``
+        under the policy's Gaussian (``mean``, ``std``), averaged over the batch
+    """
+    return -(weights * gaussian_log_prob(actions, mean, std)).mean()
 
 
 class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
@@ -197,6 +343,10 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             supported_action_spaces=(spaces.Box,),
             support_multi_env=True,
         )
+        # The names below are saved with the model (its ``data``), so they stay as they are:
+        # ``num_samples`` counts the policy's actions per state of the advantage's baseline (not the TD target's,
+        # which are ``n_target_samples``), and the ``critic_target`` argument is stored as ``critic_target_type``
+        # because ``critic_target`` is the target critic network (as in SB3's algorithms).
         self.num_samples = num_samples
         self.advantage_baseline = advantage_baseline
         self.advantage_transform = advantage_transform
@@ -303,13 +453,6 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             raise ValueError(f"the data holds sources {unknown} that have no actor (this model's: {self.source_ids})")
         return th.as_tensor(heads, device=self.device)
 
-    def _actor_params(
-        self, actor: Union[GaussianActor, PerSourceActor], obs: Any, heads: Optional[th.Tensor]
-    ) -> tuple[th.Tensor, th.Tensor]:
-        if isinstance(actor, PerSourceActor):
-            return actor.distribution_params(obs, heads)
-        return actor.distribution_params(obs)
-
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
         self.actor_target = self.policy.actor_target
@@ -321,114 +464,86 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             assert self.replay_buffer is not None
             self.replay_buffer = with_next_actions(self.replay_buffer)
 
-    def _target_actions(self, replay_data: Any, heads: Optional[th.Tensor] = None) -> th.Tensor:
-        """:return: next actions for the TD target, ``[n_target_samples, batch, action_dim]``"""
-        next_obs = replay_data.next_observations
-        mean, std = self._actor_params(self.actor_target, next_obs, heads)
-        actions = sample_gaussian(mean, std, self.n_target_samples).clamp(-1.0, 1.0)
-        if self.critic_target_type == "sarsa":
-            next_actions = getattr(replay_data, "next_actions", None)
-            if next_actions is None:
-                raise ValueError(
-                    "critic_target='sarsa' needs the data's next actions: train offline (learn_offline) on offline data"
-                )
-            mask = replay_data.next_action_mask.unsqueeze(0)  # [1, B, 1]
-            actions = mask * next_actions.unsqueeze(0) + (1.0 - mask) * actions
-        return actions
-
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
-        categorical = isinstance(self.critic, CategoricalCritic)
-        stats: dict[str, list[th.Tensor]] = {
-            key: [] for key in ("critic_loss", "actor_loss", "advantage_mean", "weight_mean", "weight_clip_frac", "q_mean")
-        }
+        steps: list[CRRStepStats] = []
 
         for _ in range(gradient_steps):
             self._n_updates += 1
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-            obs, actions = replay_data.observations, replay_data.actions
-            bootstrap = (1 - replay_data.dones) * discounts  # [B, 1]
             heads = self._source_heads()
-
+            obs, actions = replay_data.observations, replay_data.actions
             with th.no_grad():
-                next_actions = self._target_actions(replay_data, heads)  # [T, B, A]
-                num_target = next_actions.shape[0]
-                next_obs = replay_data.next_observations
-                if categorical:
-                    assert isinstance(self.critic_target, CategoricalCritic)
-                    if num_target > 1:
-                        next_obs = tile_obs(next_obs, num_target)
-                    flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
-                    target_logits = th.stack(self.critic_target.logits(next_obs, flat_next_actions))  # [C, T*B, K]
-                    target_probs = th.softmax(target_logits, dim=-1)
-                    # per transition, the distribution of the critic with the lowest expected value
-                    pick = (target_probs * self.critic_target.support).sum(-1).argmin(dim=0)  # [T*B]
-                    target_probs = target_probs.gather(0, pick.view(1, -1, 1).expand(1, *target_probs.shape[1:]))[0]
-                    target_probs = target_probs.view(num_target, -1, target_probs.shape[-1]).mean(dim=0)
-                    target = categorical_projection(target_probs, replay_data.rewards, bootstrap, self.critic_target.support)
-                else:
-                    next_q = score_actions(
-                        self.critic_target, next_obs, next_actions, self._target_scoring_copy  # type: ignore[arg-type]
-                    ).mean(0)
-                    target = replay_data.rewards + bootstrap * next_q.unsqueeze(1)
-
-            # Critic loss, and the Q-values of the data's actions for the advantage (same critic)
-            if categorical:
-                assert isinstance(self.critic, CategoricalCritic)
-                logits = self.critic.logits(obs, actions)
-                critic_loss = sum(-(target * F.log_softmax(lg, dim=-1)).sum(dim=-1).mean() for lg in logits)
-                with th.no_grad():
-                    data_q = th.cat([self.critic.expected(lg) for lg in logits], dim=1).min(dim=1).values
-            else:
-                current_q_values = self.critic(obs, actions)
-                critic_loss = 0.5 * sum(F.mse_loss(current_q, target) for current_q in current_q_values)  # type: ignore[assignment]
-                data_q = th.cat(current_q_values, dim=1).detach().min(dim=1).values  # [B]
-            assert isinstance(critic_loss, th.Tensor)
-
-            # Advantage of the data's actions against the policy's own actions (before the critic step)
-            mean, std = self._actor_params(self.actor, obs, heads)
+                target = self._critic_target_values(replay_data, heads)
+            # the critic's loss, and the Q-values of the data's actions for the advantage (the same, pre-update critic)
+            fit = critic_loss(self.critic, obs, actions, target)
+            mean, std = actor_distribution(self.actor, obs, heads)
             with th.no_grad():
-                sampled_actions = sample_gaussian(mean, std, self.num_samples)  # [N, B, A]
-                if self._online_scoring_copy is not None:
-                    self._online_scoring_copy.sync()
-                sampled_q = score_actions(self.critic, obs, sampled_actions, self._online_scoring_copy)  # type: ignore[arg-type]
-                advantages = data_q - advantage_baseline(sampled_q, self.advantage_baseline)
-                weights, clipped = crr_weights(advantages, self.advantage_transform, self.beta, self.max_weight)
-
-            self.critic.optimizer.zero_grad(set_to_none=True)
-            critic_loss.backward()
-            if self.max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm, foreach=True)
-            self.critic.optimizer.step()
-
-            # Weighted regression of the data's actions
-            actor_loss = -(weights * gaussian_log_prob(actions, mean, std)).mean()
-            self.actor.optimizer.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            if self.max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
-            self.actor.optimizer.step()
-
+                advantage = advantage_weights(
+                    fit.q_values,
+                    self._policy_action_values(obs, mean, std),
+                    self.advantage_baseline,
+                    self.advantage_transform,
+                    self.beta,
+                    self.max_weight,
+                )
+            self._gradient_step(self.critic, fit.loss)
+            regression_loss = actor_loss(actions, mean, std, advantage.weights)
+            self._gradient_step(self.actor, regression_loss)
             if self._n_updates % self.target_update_interval == 0:
-                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-                polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
-                if self._target_scoring_copy is not None:
-                    self._target_scoring_copy.sync()
-
-            stats["critic_loss"].append(critic_loss.detach())
-            stats["actor_loss"].append(actor_loss.detach())
-            stats["advantage_mean"].append(advantages.mean())
-            stats["weight_mean"].append(weights.mean())
-            stats["weight_clip_frac"].append(clipped.float().mean())
-            stats["q_mean"].append(data_q.mean())
+                self._update_targets()
+            steps.append(CRRStepStats.of(fit, regression_loss, advantage))
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        for key, values in stats.items():
-            if values:
-                self.logger.record_mean(f"train/{key}", th.stack(values).mean().item())
+        for key, values in zip(CRRStepStats._fields, zip(*steps)):
+            self.logger.record_mean(f"train/{key}", th.stack(values).mean().item())
+
+    def _critic_target_values(self, replay_data: Any, heads: Optional[th.Tensor]) -> th.Tensor:
+        """:return: the critic's TD target of the batch (see :func:`critic_td_target`)"""
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+        bootstrap = (1 - replay_data.dones) * discounts  # [B, 1]
+        next_actions = target_actions(
+            self.actor_target,
+            replay_data,
+            heads,
+            self.n_target_samples,
+            data_next_actions=self.critic_target_type == "sarsa",
+        )
+        return critic_td_target(
+            self.critic_target,
+            replay_data.next_observations,
+            next_actions,
+            replay_data.rewards,
+            bootstrap,
+            self._target_scoring_copy,
+        )
+
+    def _policy_action_values(self, obs: Any, mean: th.Tensor, std: th.Tensor) -> th.Tensor:
+        """
+        :return: Q-values ``[num_samples, batch]`` of ``num_samples`` actions per state sampled from the policy,
+            by the online critic (the advantage's baseline)
+        """
+        sampled_actions = sample_gaussian(mean, std, self.num_samples)  # [N, B, A]
+        if self._online_scoring_copy is not None:
+            self._online_scoring_copy.sync()
+        return score_actions(self.critic, obs, sampled_actions, self._online_scoring_copy)  # type: ignore[arg-type]
+
+    def _gradient_step(
+        self, module: Union[GaussianActor, PerSourceActor, ContinuousCritic, CategoricalCritic], loss: th.Tensor
+    ) -> None:
+        module.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.max_grad_norm is not None:
+            th.nn.utils.clip_grad_norm_(module.parameters(), self.max_grad_norm, foreach=True)
+        module.optimizer.step()
+
+    def _update_targets(self) -> None:
+        polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+        polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+        if self._target_scoring_copy is not None:
+            self._target_scoring_copy.sync()
 
     def learn(
         self: SelfCRR,

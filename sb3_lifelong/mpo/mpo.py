@@ -232,7 +232,9 @@ class MPO(LifelongOffPolicyAlgorithm):
         super()._setup_model()
         self._create_aliases()
         action_dim = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
-        # Dual variables, parametrised through softplus to stay positive, with their own optimizer
+        # Dual variables, parametrised through softplus to stay positive, with their own optimizer. The ``log_*``
+        # attributes hold the raw (inverse-softplus) parameters, not logarithms: ``dual_value`` gives the variables.
+        # They keep these names because saved models store them under them (``_get_torch_save_params``).
         self.log_temperature = th.full((1,), inverse_softplus(self.init_temperature), device=self.device).requires_grad_(True)
         self.log_alpha_mean = th.full(
             (action_dim,), inverse_softplus(self.init_alpha_mean), device=self.device
