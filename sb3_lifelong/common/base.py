@@ -8,7 +8,7 @@ import io
 import pathlib
 import random
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any, Optional, TypeVar, Union
 
 import gymnasium as gym
@@ -25,6 +25,22 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype
 
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
+
+#: The Offline Distillation Pipeline behind :meth:`LifelongOffPolicyAlgorithm.distill`. It lives above the
+#: algorithms (:mod:`sb3_lifelong.distill`, which imports them and registers itself here when imported; the package's
+#: ``__init__`` imports it), so this module, below them, holds a reference instead of importing it.
+_distill_pipeline: Optional[Callable[..., Any]] = None
+
+
+def set_distill_pipeline(pipeline: Callable[..., Any]) -> None:
+    """
+    Register the function that :meth:`LifelongOffPolicyAlgorithm.distill` delegates to (done by
+    :mod:`sb3_lifelong.distill`).
+
+    :param pipeline: called as ``pipeline(model, student_class=..., gradient_steps=..., **kwargs)``
+    """
+    global _distill_pipeline
+    _distill_pipeline = pipeline
 
 
 def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, Any]:
@@ -252,7 +268,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     def distill(self, student_class: Optional[type] = None, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
         """
         Distil this model's whole replay buffer into a fresh policy, offline (the Offline Distillation Pipeline).
-        See :func:`sb3_lifelong.common.distill.distill` for the arguments.
+        See :func:`sb3_lifelong.distill.distill` for the arguments.
 
         :param student_class: the offline algorithm (default CRR; BC for behaviour cloning)
         :param gradient_steps: number of offline gradient updates
@@ -260,9 +276,9 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
             (``advantage_transform="exp"``, ``beta=1.0``, ...)
         :return: the trained student
         """
-        from sb3_lifelong.common.distill import distill
-
-        return distill(self, student_class=student_class, gradient_steps=gradient_steps, **kwargs)
+        if _distill_pipeline is None:
+            raise RuntimeError("the distillation pipeline is not loaded: import sb3_lifelong.distill")
+        return _distill_pipeline(self, student_class=student_class, gradient_steps=gradient_steps, **kwargs)
 
     def _pending_rng_state(self) -> Optional[dict[str, Any]]:
         """The random state restored by the last ``load``, while no training happened since (else None)."""
