@@ -10,6 +10,8 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
+from sb3_lifelong import MPO
+from sb3_lifelong.common.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.envs import (
     Constant,
     Cyclic,
@@ -65,6 +67,29 @@ def test_switch_at_exact_model_timestep_across_learn_calls(n_envs: int, switch: 
     assert first_new == switch + (-switch) % n_envs  # first model timestep >= switch reachable with n_envs
     # the wrappers count exactly like SB3
     assert vec_env.get_attr("timestep") == [model.num_timesteps] * n_envs
+
+
+def test_schedule_learns_the_model_timestep_from_learn() -> None:
+    # neither n_envs nor start_timestep is passed: learn() tells the wrappers the model's timestep and n_envs
+    assert hasattr(DynamicsSchedule, SYNC_TIMESTEP_METHOD)
+    vec_env = make_vec_env(
+        ENV_ID,
+        n_envs=2,
+        seed=0,
+        wrapper_class=DynamicsSchedule,
+        wrapper_kwargs=dict(stages=[{}, {"gravity": 5.0}], switch_at=[101], mid_episode=True),
+    )
+    # this package's algorithm (SB3's own do not tell the env), which never trains: only collection is exercised
+    model = MPO("MlpPolicy", vec_env, learning_starts=10_000, buffer_size=1_000, seed=0, policy_kwargs=dict(net_arch=[8]))
+    recorder = StageRecorder()
+    model.learn(80, callback=recorder)
+    model.num_timesteps = 1_000  # e.g. a continued run: the schedule follows the model, not the caller's arithmetic
+    model.learn(10, callback=recorder, reset_num_timesteps=False)
+    assert [r[1] for r in recorder.records] == [int(t >= 101) for t, _, _ in recorder.records]
+    assert recorder.records[-1][:2] == (1_008, 1)
+    assert vec_env.get_attr("timestep") == [model.num_timesteps] * 2
+    model.learn(4, callback=recorder)  # reset_num_timesteps=True: the schedule starts again too
+    assert recorder.records[-1][:2] == (2, 0)
 
 
 def test_switch_applies_at_episode_start_by_default() -> None:

@@ -22,6 +22,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_lifelong.common.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype
 
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
@@ -150,7 +151,8 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     re-seeding the env from ``seed`` (SB3's ``load`` re-seeds every generator from ``seed``, which replays the
     random numbers, and the first episode start, of the start of training). An env that was in the middle of an
     episode starts a new episode from its generator's saved state. The state of the environment itself (e.g.
-    a dynamics schedule's step counter) is not saved.
+    a dynamics schedule's step counter) is not saved; a dynamics schedule follows the model's ``num_timesteps``,
+    which ``learn`` tells it (:mod:`sb3_lifelong.common.contract`).
     """
 
     def _setup_model(self) -> None:
@@ -301,7 +303,19 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         self.__dict__.pop("_resume_rng", None)
         if rng_state is not None:
             restore_rng_state(rng_state, self.action_space)
+        self._sync_env_timestep(0 if reset_num_timesteps else self.num_timesteps)
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def _sync_env_timestep(self, timestep: int) -> None:
+        """
+        Tell the envs that follow the model's timestep (e.g. a ``DynamicsSchedule``) the timestep of the next step
+        and the number of envs, before SB3's ``_setup_learn`` resets them (see :mod:`sb3_lifelong.common.contract`).
+
+        :param timestep: ``num_timesteps`` at the start of this ``learn``
+        """
+        env = self.env
+        if env is not None and env.has_attr(SYNC_TIMESTEP_METHOD):
+            env.env_method(SYNC_TIMESTEP_METHOD, timestep=timestep, n_envs=env.num_envs)
 
     def save(
         self,

@@ -34,6 +34,7 @@ from sb3_lifelong.common.buffer_storage import (
     check_obs_key,
     obs_keys_of,
 )
+from sb3_lifelong.common.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
 from sb3_lifelong.common.datasets import import_minari, minari_columns
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongBufferView", "LifelongReplayBuffer", "merge_buffers"]
@@ -270,7 +271,6 @@ class _LifelongSampler(ReplayBuffer):
 
     n_steps: int
     gamma: float
-    last_sampled_sources: Optional[np.ndarray]
     # keys of Dict observations (fields ``observations.<key>``), None for Box / Discrete observations
     _obs_keys: Optional[tuple[str, ...]]
 
@@ -281,7 +281,6 @@ class _LifelongSampler(ReplayBuffer):
         self.gamma = float(gamma)
         self._sampling_weights: dict[int, float] = {}
         self._reward_scale: dict[int, float] = {}
-        self.last_sampled_sources = None
 
     # ------------------------------------------------------------------ provided by subclasses
     def size(self) -> int:
@@ -420,13 +419,11 @@ class _LifelongSampler(ReplayBuffer):
         :param env: VecNormalize to normalise observations and rewards with
         :param return_sources: Also return the source ids of the batch (a long tensor)
         :return: The samples (``discounts`` is set when ``n_steps > 1``, like SB3's ``NStepReplayBuffer``;
-            ``DictReplayBufferSamples`` for Dict observations), and the source ids if asked. The source ids of the
-            last batch are also in ``last_sampled_sources``.
+            ``DictReplayBufferSamples`` for Dict observations), and the source ids if asked.
         """
-        samples = self._get_samples(self._sample_indices(batch_size), env=env)
+        samples, sources = self._get_samples_and_sources(self._sample_indices(batch_size), env)
         if return_sources:
-            assert self.last_sampled_sources is not None
-            return samples, th.as_tensor(self.last_sampled_sources.astype(np.int64), device=self.device)
+            return samples, th.as_tensor(sources.astype(np.int64), device=self.device)
         return samples
 
     def _scaled(self, rewards: np.ndarray, sources: np.ndarray) -> np.ndarray:
@@ -452,26 +449,29 @@ class _LifelongSampler(ReplayBuffer):
         return (ReplayBufferSamples if self._obs_keys is None else DictReplayBufferSamples)(**kwargs)
 
     def _get_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize] = None) -> _Samples:  # type: ignore[override]
+        return self._get_samples_and_sources(batch_inds, env)[0]
+
+    def _get_samples_and_sources(self, batch_inds: np.ndarray, env: Optional[VecNormalize]) -> tuple[_Samples, np.ndarray]:
+        """:return: the samples of rows ``batch_inds`` and their source ids"""
         batch_inds = np.asarray(batch_inds, dtype=np.int64)
         if self.n_steps > 1:
             return self._get_n_step_samples(batch_inds, env)
         rows = self._gather_rows(("observations", "actions", "next_observations", "rewards", "flags", "sources"), batch_inds)
-        self.last_sampled_sources = rows["sources"]
         flags = rows["flags"]
         dones = ((flags & FLAG_DONE) != 0) & ((flags & FLAG_TIMEOUT) == 0)
         rewards = self._scaled(rows["rewards"], rows["sources"])
-        return self._samples(
+        samples = self._samples(
             observations=self._obs_tensor(rows["observations"], env),
             actions=self._tensor(rows["actions"]),
             next_observations=self._obs_tensor(rows["next_observations"], env),
             dones=self._tensor(dones.astype(np.float32).reshape(-1, 1)),
             rewards=self._tensor(self._normalize_reward(rewards.reshape(-1, 1), env).astype(np.float32, copy=False)),
         )
+        return samples, rows["sources"]
 
-    def _get_n_step_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize]) -> _Samples:
+    def _get_n_step_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize]) -> tuple[_Samples, np.ndarray]:
         total = self.size()
         first = self._gather_rows(("observations", "actions", "rewards", "flags", "sources", "streams", "widths"), batch_inds)
-        self.last_sampled_sources = first["sources"]
         steps = np.arange(1, self.n_steps)
         # the next transition of the same env stream is `widths` rows further (the n_envs of the add() that wrote it)
         succ = batch_inds[:, None] + steps[None, :] * first["widths"].astype(np.int64)[:, None]
@@ -498,7 +498,7 @@ class _LifelongSampler(ReplayBuffer):
         last_flags = flags[rows, count - 1]
         final_dones = ((last_flags & FLAG_DONE) != 0) & ((last_flags & FLAG_TIMEOUT) == 0)
         next_obs = self._gather_rows(("next_observations",), last)["next_observations"]
-        return self._samples(
+        samples = self._samples(
             observations=self._obs_tensor(first["observations"], env),
             actions=self._tensor(first["actions"]),
             next_observations=self._obs_tensor(next_obs, env),
@@ -506,6 +506,7 @@ class _LifelongSampler(ReplayBuffer):
             rewards=self._tensor(returns),
             discounts=self._tensor(discounts),
         )
+        return samples, first["sources"]
 
     # ------------------------------------------------------------------ export
     def _export_columns(self, by_episode: bool, normalized_actions: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -1041,7 +1042,8 @@ class LifelongReplayBuffer(_LifelongSampler):
 
     def set_source(self, source: int, name: Optional[str] = None, metadata: Optional[dict[str, Any]] = None) -> None:
         """
-        Source of the next transitions whose ``info`` carries no ``"stage"``, with an optional name and metadata.
+        Source of the next transitions whose ``info`` carries no ``"stage"`` (``contract.STAGE_KEY``), with an optional
+        name and metadata.
 
         :param source: Source id in [0, 65534]
         :param name: Name (default ``"source_<id>"``)
@@ -1051,7 +1053,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         self._ensure_source(self._source, name, metadata)
 
     def _source_of(self, info: dict[str, Any]) -> int:
-        stage = info.get("stage")
+        stage = info.get(STAGE_KEY)
         if stage is None:
             return self._source
         source = int(stage)
@@ -1059,7 +1061,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         if known is not None and known["name"] != f"source_{source}":
             return source  # named already: by an earlier transition of this stage, or by set_source(name=...)
         source = self._check_source(source)
-        params = info.get("dynamics_params")
+        params = info.get(DYNAMICS_PARAMS_KEY)
         metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
         self.store.sources[source] = {"name": f"stage_{source}", "metadata": metadata}
         return source
@@ -1148,7 +1150,7 @@ class LifelongReplayBuffer(_LifelongSampler):
             self._source_rows_of = source
         timeouts = self.handle_timeout_termination
         for i, info in enumerate(infos):
-            if "stage" in info:
+            if STAGE_KEY in info:
                 if sources is self._source_rows:
                     sources = sources.copy()
                 sources[i] = self._source_of(info)

@@ -1,5 +1,6 @@
 """Critic Regularized Regression (CRR), online and offline."""
 
+import inspect
 import math
 from typing import Any, ClassVar, NamedTuple, Optional, TypeVar, Union
 
@@ -438,13 +439,22 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
             return None
         return self.source_ids[self.actor.active_head]
 
-    def _source_heads(self) -> Optional[th.Tensor]:
-        """:return: the actor index of each row of the last sampled batch (None without actor_per_source)"""
+    def _sample(self, batch_size: int) -> tuple[Any, Optional[th.Tensor]]:
+        """
+        :return: a batch, and the actor index of each of its rows (None without ``actor_per_source``: the buffer
+            is then asked for the batch only)
+        """
+        buffer: Any = self.replay_buffer
         if self._head_of_source is None:
-            return None
-        sources = getattr(self.replay_buffer, "last_sampled_sources", None)
-        if sources is None:
+            return buffer.sample(batch_size, env=self._vec_normalize_env), None
+        if "return_sources" not in inspect.signature(buffer.sample).parameters:
             raise ValueError("actor_per_source=True needs a replay buffer that records sources (a LifelongReplayBuffer)")
+        replay_data, sources = buffer.sample(batch_size, env=self._vec_normalize_env, return_sources=True)
+        return replay_data, self._source_heads(sources.cpu().numpy())
+
+    def _source_heads(self, sources: np.ndarray) -> th.Tensor:
+        """:return: the actor index of each row of a batch, from the rows' source ids"""
+        assert self._head_of_source is not None
         sources = np.asarray(sources, dtype=np.int64)
         known = sources < len(self._head_of_source)
         heads = np.where(known, self._head_of_source[np.minimum(sources, len(self._head_of_source) - 1)], -1)
@@ -472,8 +482,7 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
 
         for _ in range(gradient_steps):
             self._n_updates += 1
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            heads = self._source_heads()
+            replay_data, heads = self._sample(batch_size)
             obs, actions = replay_data.observations, replay_data.actions
             with th.no_grad():
                 target = self._critic_target_values(replay_data, heads)

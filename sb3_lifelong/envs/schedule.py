@@ -7,12 +7,18 @@ Two kinds of change, which can be combined:
 * **schedules** -- one continuous :class:`Scheduler` per parameter (ramp, random walk, drift, cyclic, saw wave,
   uniform per episode) for changes without boundaries, e.g. a robot that wears gradually.
 
-Global timesteps are counted by the wrapper itself: ``timestep = start_timestep + n_envs * (steps taken by this
-wrapper)``. With the ``n_envs`` of the VecEnv it lives in, this is exactly SB3's ``model.num_timesteps`` (which
-grows by ``n_envs`` per vectorised step), however many ``model.learn`` calls, resets or episodes there are.
+Global timesteps are SB3's ``model.num_timesteps``. This package's algorithms tell the wrapper the model's timestep
+(and the VecEnv's ``n_envs``) at the start of every ``learn``, before the env is reset, through the method named
+:data:`~sb3_lifelong.common.contract.SYNC_TIMESTEP_METHOD`; from there the wrapper counts ``n_envs`` per step, as
+SB3 does, however many ``model.learn`` calls, resets or episodes there are. Outside such a ``learn`` (the env used
+on its own, or by another library's algorithm) it counts ``timestep = start_timestep + n_envs * (steps taken by
+this wrapper)`` from its constructor's arguments (or :meth:`DynamicsSchedule.set_timestep`).
 The transition collected when ``model.num_timesteps == t`` uses the setting due at ``t``: stage ``i + 1`` is due
 from ``t >= switch_at[i]``. By default a due change is applied at the next episode start; with
 ``mid_episode=True`` it is applied before the very next step.
+
+The ``info`` keys written (``"stage"``, ``"dynamics_params"``) are defined in :mod:`sb3_lifelong.common.contract`,
+which the replay buffer reads them by.
 """
 
 import math
@@ -22,6 +28,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from sb3_lifelong.common.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
 from sb3_lifelong.envs.perturbations import PERTURBATIONS, PhysicsEditor, find_mujoco, stable_seed
 
 StageLike = Union[str, Mapping[str, float]]
@@ -340,14 +347,16 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
     :param schedules: continuous schedules ``{parameter: Scheduler}``; they override the stages' values of the same
         parameter
     :param n_envs: number of sub-envs of the VecEnv stepping this env, so that ``timestep`` equals SB3's
-        ``num_timesteps``; 1 for a single env
+        ``num_timesteps``; 1 for a single env. Only needed outside this package's algorithms: their ``learn``
+        sets it from the VecEnv (see :mod:`sb3_lifelong.common.contract`)
     :param mid_episode: apply due changes before the next step instead of at the next episode start
     :param append_params: append the observed parameters, normalised as ``(value - nominal) / obs_scale``, to the
         observation (and widen the observation space)
     :param observed_params: parameters appended by ``append_params``; default: those the stages or schedules vary
         (all parameters if none vary)
     :param schedule_seed: seed from which the random schedulers without their own seed are seeded
-    :param start_timestep: global timestep of the first step (to continue a schedule, e.g. after loading a model)
+    :param start_timestep: global timestep of the first step (to continue a schedule, e.g. after loading a model).
+        Only needed outside this package's algorithms: their ``learn`` sets the model's ``num_timesteps``
     """
 
     def __init__(
@@ -472,6 +481,19 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """
         self._start = int(timestep) - self.n_envs * self._local_steps
 
+    def sb3_lifelong_sync_timestep(self, timestep: int, n_envs: int) -> None:
+        """
+        Follow a model's timestep: the next step counts as ``timestep``, and every step as ``n_envs`` (called by
+        this package's algorithms at the start of ``learn``; see :mod:`sb3_lifelong.common.contract`).
+
+        :param timestep: the model's ``num_timesteps``
+        :param n_envs: number of sub-envs of the VecEnv stepping this env
+        """
+        if int(n_envs) < 1:
+            raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        self.n_envs = int(n_envs)
+        self.set_timestep(timestep)
+
     @property
     def stage(self) -> int:
         """Index of the stage whose setting the physics has now."""
@@ -573,8 +595,8 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return np.concatenate([obs, self._obs_extra]).astype(self.observation_space.dtype, copy=False)
 
     def _info(self, info: Dict[str, Any]) -> Dict[str, Any]:
-        info["stage"] = self._stage
-        info["dynamics_params"] = dict(self._applied)
+        info[STAGE_KEY] = self._stage
+        info[DYNAMICS_PARAMS_KEY] = dict(self._applied)
         return info
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[Dict[str, Any]] = None) -> Tuple[Any, Dict[str, Any]]:

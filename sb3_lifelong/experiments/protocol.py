@@ -338,7 +338,7 @@ def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress
     # the agent only: its saved buffer settings point at the lifetime buffer, which other jobs may be reading
     stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
     start = int(stage1.num_timesteps)
-    env = make_env(preset, switch_at=switch_points(preset), start_timestep=start)
+    env = make_env(preset, switch_at=switch_points(preset))  # learn() tells it the timestep: model.num_timesteps
     model = CRR(
         "MlpPolicy",
         env,
