@@ -150,7 +150,7 @@ def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
         ax.set_ylabel("return (deterministic policy)")
         ax.margins(y=0.08)
         ax.grid(alpha=0.3)
-    axes[0][-1].legend(fontsize=8, loc="lower right")
+    axes[0][-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the axes: no curve hidden
     fig.suptitle(f"{study.preset['env_id']}: online learning through the change (mean +- std over seeds)")
     return [_save(plt, fig, directory / "fig_online.png")]
 
