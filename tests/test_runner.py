@@ -1,7 +1,6 @@
 """A study as a graph of jobs: order, parallel workers, skip-finished, a failed job re-run alone, Ray and a pool."""
 
 import os
-import pathlib
 import signal
 import socket
 import subprocess
@@ -95,7 +94,7 @@ def test_ray_cluster_by_address(tmp_path, monkeypatch):
     monkeypatch.delenv("RAY_ADDRESS", raising=False)
     port = _free_port()
     head = subprocess.Popen(
-        [str(pathlib.Path(sys.executable).with_name("ray")), "start", "--head", "--block", f"--port={port}",
+        [sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block", f"--port={port}",
          "--node-ip-address=127.0.0.1", "--num-cpus=2", "--include-dashboard=false"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
     )  # fmt: skip
