@@ -447,8 +447,6 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         buffer: Any = self.replay_buffer
         if self._head_of_source is None:
             return buffer.sample(batch_size, env=self._vec_normalize_env), None
-        if "return_sources" not in inspect.signature(buffer.sample).parameters:
-            raise ValueError("actor_per_source=True needs a replay buffer that records sources (a LifelongReplayBuffer)")
         replay_data, sources = buffer.sample(batch_size, env=self._vec_normalize_env, return_sources=True)
         return replay_data, self._source_heads(sources.cpu().numpy())
 
@@ -479,6 +477,9 @@ class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
         steps: list[CRRStepStats] = []
+        sample: Any = getattr(self.replay_buffer, "sample", None)
+        if self._head_of_source is not None and "return_sources" not in inspect.signature(sample).parameters:
+            raise ValueError("actor_per_source=True needs a replay buffer that records sources (a LifelongReplayBuffer)")
 
         for _ in range(gradient_steps):
             self._n_updates += 1
