@@ -1016,6 +1016,12 @@ class RowStore:
                 "(e.g. space freed)",
             ) from error
 
+    def _write_block(self, fd: int, name: str, chunk: dict[str, Any], lo: int, extra: Optional[dict[str, np.ndarray]]) -> None:
+        """Write field ``name`` of ``chunk`` (its rows from ``lo`` of the pending rows + ``extra``) and record its CRC."""
+        data = self._block(name, lo, lo + chunk["rows"], extra)
+        chunk["crc32"][name] = zlib.crc32(data)
+        _write_all(fd, data)
+
     def _block(self, name: str, lo: int, hi: int, extra: Optional[dict[str, np.ndarray]]) -> memoryview:
         """Bytes of the rows ``lo:hi`` of field ``name`` of the pending rows followed by the rows of ``extra``."""
         pending = self.num_tail
@@ -1057,9 +1063,7 @@ class RowStore:
                     created.append(file_name)
                     try:
                         for name in self.fields:
-                            data = self._block(name, lo, lo + chunk["rows"], extra)
-                            chunk["crc32"][name] = zlib.crc32(data)
-                            _write_all(fd, data)
+                            self._write_block(fd, name, chunk, lo, extra)
                         os.fsync(fd)
                     finally:
                         os.close(fd)
@@ -1083,10 +1087,7 @@ class RowStore:
                     os.ftruncate(fd, committed_bytes)
                     os.lseek(fd, committed_bytes, os.SEEK_SET)
                     for chunk in chunks:
-                        lo = chunk["start"] - base
-                        data = self._block(name, lo, lo + chunk["rows"], extra)
-                        chunk["crc32"][name] = zlib.crc32(data)
-                        _write_all(fd, data)
+                        self._write_block(fd, name, chunk, chunk["start"] - base, extra)
                     os.fsync(fd)
                 finally:
                     os.close(fd)
