@@ -9,8 +9,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_lifelong.bc.policies import BCPolicy, MlpPolicy, MultiInputPolicy
-from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
-from sb3_lifelong.common.offline import OfflineAlgorithmMixin
+from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
 
 SelfBC = TypeVar("SelfBC", bound="BC")
@@ -18,7 +17,7 @@ SelfBC = TypeVar("SelfBC", bound="BC")
 BC_LOSSES = ("nll", "mse")
 
 
-class BC(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
+class BC(LifelongOfflineAlgorithm):
     """
     Behaviour cloning: maximum likelihood of the data's actions under a Gaussian policy (``loss="nll"``), or
     regression of the policy's mean on them (``loss="mse"``). The paper's BC baseline.

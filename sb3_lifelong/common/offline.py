@@ -1,7 +1,8 @@
 """
 Learning from data with no environment: the offline path shared by CRR, BC (and policy distillation).
 
-:class:`OfflineAlgorithmMixin` adds three methods to an SB3 off-policy algorithm:
+:class:`LifelongOfflineAlgorithm`, the base class of the algorithms that can learn from data alone (CRR, BC), adds
+three methods to this package's off-policy algorithm (:class:`~sb3_lifelong.common.base.LifelongOffPolicyAlgorithm`):
 
 - ``Algo.from_offline_data(data, policy="MlpPolicy", **hyperparameters)``: build a model from data, taking the
   observation and action spaces from the data (or ``env=`` / ``observation_space=`` / ``action_space=``);
@@ -29,6 +30,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Progr
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import DummyVecEnv
 
+from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.callbacks import EvalEnvs, MultiEnvEvalCallback, make_eval_envs
 from sb3_lifelong.common.datasets import (
     OfflineData,
@@ -42,15 +44,15 @@ from sb3_lifelong.common.datasets import (
 )
 
 __all__ = [
+    "LifelongOfflineAlgorithm",
     "MultiEnvEvalCallback",
     "NoEnvironment",
-    "OfflineAlgorithmMixin",
     "OfflineProgressBarCallback",
     "make_eval_envs",
     "resolve_data",
 ]
 
-SelfOffline = TypeVar("SelfOffline", bound="OfflineAlgorithmMixin")
+SelfOffline = TypeVar("SelfOffline", bound="LifelongOfflineAlgorithm")
 
 
 def _is_minari(data: Any) -> bool:
@@ -152,19 +154,14 @@ class OfflineProgressBarCallback(ProgressBarCallback):
         return True
 
 
-class OfflineAlgorithmMixin:
+class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
     """
-    Offline training for SB3 off-policy algorithms (mix in before the algorithm's base class). The algorithm's
-    ``train(gradient_steps, batch_size)`` is reused unchanged: offline training is its training step run on a
-    fixed buffer, with no rollouts.
+    An off-policy algorithm that can also learn from data alone. Its ``train(gradient_steps, batch_size)`` is
+    reused unchanged: offline training is its training step run on a fixed buffer, with no rollouts. Online
+    ``learn`` works as for any off-policy algorithm.
 
-    The algorithm's ``__init__`` must accept ``env=None``.
+    A subclass's ``__init__`` must accept ``env=None``.
     """
-
-    # attributes provided by OffPolicyAlgorithm
-    replay_buffer: Optional[ReplayBuffer]
-    observation_space: spaces.Space
-    action_space: spaces.Space
 
     @classmethod
     def from_offline_data(
@@ -201,18 +198,18 @@ class OfflineAlgorithmMixin:
             action_space = action_space or model.action_space
         buffer = resolve_data(data, observation_space, action_space, utils.get_device(device), normalized_actions)
         if env is None:
-            model = cls(policy, None, _init_setup_model=False, **kwargs)  # type: ignore[call-arg]
+            model = cls(policy, None, _init_setup_model=False, **kwargs)  # type: ignore[call-arg, arg-type]
             model.observation_space = buffer.observation_space
             model.action_space = buffer.action_space
-            model.n_envs = 1  # type: ignore[attr-defined]
+            model.n_envs = 1
         elif buffer.observation_space.shape != model.observation_space.shape:
             raise OfflineDataError(
                 f"the data's observation space {buffer.observation_space} does not match the env's {model.observation_space}"
             )
         model._check_offline_spaces()
         model.replay_buffer = buffer
-        model.buffer_size = buffer.buffer_size  # type: ignore[attr-defined]
-        model._setup_model()  # type: ignore[attr-defined]
+        model.buffer_size = buffer.buffer_size
+        model._setup_model()
         return model
 
     def _check_offline_spaces(self) -> None:
@@ -273,8 +270,7 @@ class OfflineAlgorithmMixin:
             in each evaluation environment, by name (see :class:`MultiEnvEvalCallback`)
         :return: the trained model
         """
-        algo: Any = self
-        if algo.replay_buffer is None or algo.replay_buffer.size() == 0:
+        if self.replay_buffer is None or self.replay_buffer.size() == 0:
             raise ValueError(
                 "No offline data: build the model with from_offline_data(...), or call set_offline_data(...) or "
                 "load_replay_buffer(...) first"
@@ -282,31 +278,31 @@ class OfflineAlgorithmMixin:
         if gradient_steps < 0:
             raise ValueError(f"gradient_steps must be >= 0, got {gradient_steps}")
         self._prepare_offline_buffer()
-        algo.start_time = time.time_ns()
-        if algo.ep_info_buffer is None or reset_num_timesteps:
-            algo.ep_info_buffer = deque(maxlen=algo._stats_window_size)
-            algo.ep_success_buffer = deque(maxlen=algo._stats_window_size)
+        self.start_time = time.time_ns()
+        if self.ep_info_buffer is None or reset_num_timesteps:
+            self.ep_info_buffer = deque(maxlen=self._stats_window_size)
+            self.ep_success_buffer = deque(maxlen=self._stats_window_size)
         if reset_num_timesteps:
-            algo.num_timesteps = 0
-            algo._episode_num = 0
-        total_timesteps = gradient_steps + algo.num_timesteps
-        algo._total_timesteps = total_timesteps
-        algo._num_timesteps_at_start = algo.num_timesteps
-        if not algo._custom_logger:
-            algo._logger = utils.configure_logger(
-                algo.verbose, algo.tensorboard_log, tb_log_name or type(self).__name__, reset_num_timesteps
+            self.num_timesteps = 0
+            self._episode_num = 0
+        total_timesteps = gradient_steps + self.num_timesteps
+        self._total_timesteps = total_timesteps
+        self._num_timesteps_at_start = self.num_timesteps
+        if not self._custom_logger:
+            self._logger = utils.configure_logger(
+                self.verbose, self.tensorboard_log, tb_log_name or type(self).__name__, reset_num_timesteps
             )
 
-        placeholder = algo.env is None
+        placeholder = self.env is None
         if placeholder:
-            algo.env = DummyVecEnv([lambda: NoEnvironment(algo.observation_space, algo.action_space)])
+            self.env = DummyVecEnv([lambda: NoEnvironment(self.observation_space, self.action_space)])
         try:
             self._run_offline(
                 total_timesteps, callback, eval_env, eval_freq, n_eval_episodes, log_interval, progress_bar, eval_sources
             )
         finally:
             if placeholder:
-                algo.env = None
+                self.env = None
         return self
 
     def _run_offline(
@@ -320,7 +316,6 @@ class OfflineAlgorithmMixin:
         progress_bar: bool,
         eval_sources: Optional[Mapping[str, int]] = None,
     ) -> None:
-        algo: Any = self
         callbacks: list[BaseCallback] = []
         if isinstance(callback, list):
             callbacks.extend(callback)
@@ -330,36 +325,35 @@ class OfflineAlgorithmMixin:
             raise TypeError(f"callback must be a BaseCallback or a list of them, got {type(callback).__name__}")
         if eval_env is not None:
             callbacks.append(
-                MultiEnvEvalCallback(eval_env, eval_freq, n_eval_episodes, sources=eval_sources, verbose=algo.verbose)
+                MultiEnvEvalCallback(eval_env, eval_freq, n_eval_episodes, sources=eval_sources, verbose=self.verbose)
             )
         if progress_bar:
             callbacks.append(OfflineProgressBarCallback())
         callback_list = CallbackList(callbacks)
-        callback_list.init_callback(algo)
+        callback_list.init_callback(self)
         callback_list.on_training_start(locals(), globals())
 
-        batch_size = algo.batch_size
-        last_dump = algo.num_timesteps
-        while algo.num_timesteps < total_timesteps:
-            algo._update_current_progress_remaining(algo.num_timesteps, total_timesteps)
-            algo.train(gradient_steps=1, batch_size=batch_size)
-            algo.num_timesteps += 1
+        batch_size = self.batch_size
+        last_dump = self.num_timesteps
+        while self.num_timesteps < total_timesteps:
+            self._update_current_progress_remaining(self.num_timesteps, total_timesteps)
+            self.train(gradient_steps=1, batch_size=batch_size)
+            self.num_timesteps += 1
             callback_list.update_locals(locals())
             if not callback_list.on_step():
                 break
-            if log_interval > 0 and algo.num_timesteps % log_interval == 0:
+            if log_interval > 0 and self.num_timesteps % log_interval == 0:
                 self._dump_offline_logs()
-                last_dump = algo.num_timesteps
-        if algo.num_timesteps != last_dump and log_interval > 0:
+                last_dump = self.num_timesteps
+        if self.num_timesteps != last_dump and log_interval > 0:
             self._dump_offline_logs()
         callback_list.on_training_end()
 
     def _dump_offline_logs(self) -> None:
-        algo: Any = self
-        elapsed = max((time.time_ns() - algo.start_time) / 1e9, 1e-9)
-        updates = algo.num_timesteps - algo._num_timesteps_at_start
-        algo.logger.record("time/updates", algo.num_timesteps, exclude="tensorboard")
-        algo.logger.record("time/updates_per_second", int(updates / elapsed))
-        algo.logger.record("time/time_elapsed", int(elapsed), exclude="tensorboard")
-        algo.logger.record("train/n_updates", algo._n_updates, exclude="tensorboard")
-        algo.logger.dump(step=algo.num_timesteps)
+        elapsed = max((time.time_ns() - self.start_time) / 1e9, 1e-9)
+        updates = self.num_timesteps - self._num_timesteps_at_start
+        self.logger.record("time/updates", self.num_timesteps, exclude="tensorboard")
+        self.logger.record("time/updates_per_second", int(updates / elapsed))
+        self.logger.record("time/time_elapsed", int(elapsed), exclude="tensorboard")
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.dump(step=self.num_timesteps)

@@ -14,9 +14,8 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
-from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.distributional import CategoricalCritic, CriticLoss, sum_of
-from sb3_lifelong.common.offline import OfflineAlgorithmMixin, with_next_actions
+from sb3_lifelong.common.offline import LifelongOfflineAlgorithm, with_next_actions
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
 from sb3_lifelong.common.utils import SCORING_DTYPES, LowPrecisionCopy, sample_gaussian, score_actions
 from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor
@@ -214,7 +213,7 @@ def actor_loss(actions: th.Tensor, mean: th.Tensor, std: th.Tensor, weights: th.
     return -(weights * gaussian_log_prob(actions, mean, std)).mean()
 
 
-class CRR(OfflineAlgorithmMixin, LifelongOffPolicyAlgorithm):
+class CRR(LifelongOfflineAlgorithm):
     """
     Critic Regularized Regression (CRR), usable online (``learn``) and offline (``from_offline_data`` +
     ``learn_offline``).
