@@ -10,7 +10,6 @@ from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
-    CombinedExtractor,
     FlattenExtractor,
     create_mlp,
     get_actor_critic_arch,
@@ -171,14 +170,16 @@ class GaussianActor(BasePolicy):
         return self(observation, deterministic)
 
 
-class GaussianActorCriticPolicy(BasePolicy):
+class GaussianPolicy(BasePolicy):
     """
-    Gaussian actor, Q-function critic(s) and a target copy of each, as used by MPO and CRR.
+    What every policy of this package has: a :class:`GaussianActor`'s settings, a features extractor and an
+    optimizer. Its subclasses build the networks (:class:`GaussianActorCriticPolicy` for MPO and CRR, BC's
+    ``BCPolicy``) and add their own parameters by keyword.
 
     :param observation_space: Observation space
     :param action_space: Action space (Box)
     :param lr_schedule: Learning rate schedule (could be constant)
-    :param net_arch: The specification of the policy and value networks (list, or dict with ``pi`` and ``qf``)
+    :param net_arch: The hidden layers (a list; or a dict with ``pi`` and ``qf`` for an actor-critic)
     :param activation_fn: Activation function
     :param squash_mean: Whether the actor's mean is squashed by ``tanh``
     :param init_std: Standard deviation of the initial policy (normalised action units)
@@ -188,14 +189,7 @@ class GaussianActorCriticPolicy(BasePolicy):
     :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
     :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
     :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
-    :param n_critics: Number of critic networks (the minimum over them is used for targets)
-    :param share_features_extractor: Whether to share the features extractor between the actor and the critic
     """
-
-    actor: GaussianActor
-    actor_target: GaussianActor
-    critic: ContinuousCritic
-    critic_target: ContinuousCritic
 
     def __init__(
         self,
@@ -212,8 +206,6 @@ class GaussianActorCriticPolicy(BasePolicy):
         normalize_images: bool = True,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[dict[str, Any]] = None,
-        n_critics: int = 1,
-        share_features_extractor: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -227,29 +219,92 @@ class GaussianActorCriticPolicy(BasePolicy):
         )
         if not isinstance(action_space, spaces.Box):
             raise TypeError(f"{type(self).__name__} supports only gymnasium.spaces.Box actions, got {action_space}")
-        if net_arch is None:
-            net_arch = [256, 256]
-        actor_arch, critic_arch = get_actor_critic_arch(net_arch)
-        self.net_arch = net_arch
+        self.net_arch = [256, 256] if net_arch is None else net_arch
         self.activation_fn = activation_fn
         self.squash_mean = squash_mean
         self.init_std = init_std
         self.min_std = min_std
-        self.n_critics = n_critics
-        self.share_features_extractor = share_features_extractor
-        self.net_args = {
+        self.actor_kwargs: dict[str, Any] = {
             "observation_space": self.observation_space,
             "action_space": self.action_space,
-            "net_arch": actor_arch,
-            "activation_fn": self.activation_fn,
+            "net_arch": get_actor_critic_arch(self.net_arch)[0],
+            "activation_fn": activation_fn,
             "normalize_images": normalize_images,
+            "squash_mean": squash_mean,
+            "init_std": init_std,
+            "min_std": min_std,
         }
-        self.actor_kwargs = self.net_args.copy()
-        self.actor_kwargs.update(dict(squash_mean=squash_mean, init_std=init_std, min_std=min_std))
-        self.critic_kwargs = self.net_args.copy()
-        self.critic_kwargs.update(
-            dict(n_critics=n_critics, net_arch=critic_arch, share_features_extractor=share_features_extractor)
+
+    actor: GaussianActor
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                activation_fn=self.activation_fn,
+                squash_mean=self.squash_mean,
+                init_std=self.init_std,
+                min_std=self.min_std,
+                lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+                features_extractor_class=self.features_extractor_class,
+                features_extractor_kwargs=self.features_extractor_kwargs,
+            )
         )
+        return data
+
+    def make_actor(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> GaussianActor:
+        actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
+        return GaussianActor(**actor_kwargs).to(self.device)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self.actor(observation, deterministic)
+
+
+class GaussianActorCriticPolicy(GaussianPolicy):
+    """
+    Gaussian actor, Q-function critic(s) and a target copy of each, as used by MPO and CRR.
+
+    :param observation_space: Observation space
+    :param action_space: Action space (Box)
+    :param lr_schedule: Learning rate schedule (could be constant)
+    :param n_critics: Number of critic networks (the minimum over them is used for targets)
+    :param share_features_extractor: Whether to share the features extractor between the actor and the critic
+    :param kwargs: the actor's, features extractor's and optimizer's settings, see :class:`GaussianPolicy`
+        (``net_arch`` may be a dict with ``pi`` and ``qf``)
+    """
+
+    actor: GaussianActor
+    actor_target: GaussianActor
+    critic: ContinuousCritic
+    critic_target: ContinuousCritic
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        n_critics: int = 1,
+        share_features_extractor: bool = False,
+        **kwargs: Any,
+    ):
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+        self.n_critics = n_critics
+        self.share_features_extractor = share_features_extractor
+        self.critic_kwargs: dict[str, Any] = {
+            "observation_space": self.observation_space,
+            "action_space": self.action_space,
+            "net_arch": get_actor_critic_arch(self.net_arch)[1],
+            "activation_fn": self.activation_fn,
+            "normalize_images": self.normalize_images,
+            "n_critics": n_critics,
+            "share_features_extractor": share_features_extractor,
+        }
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -276,37 +331,12 @@ class GaussianActorCriticPolicy(BasePolicy):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(
-            dict(
-                net_arch=self.net_arch,
-                activation_fn=self.net_args["activation_fn"],
-                squash_mean=self.squash_mean,
-                init_std=self.init_std,
-                min_std=self.min_std,
-                n_critics=self.n_critics,
-                lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
-                optimizer_class=self.optimizer_class,
-                optimizer_kwargs=self.optimizer_kwargs,
-                features_extractor_class=self.features_extractor_class,
-                features_extractor_kwargs=self.features_extractor_kwargs,
-                share_features_extractor=self.share_features_extractor,
-            )
-        )
+        data.update(dict(n_critics=self.n_critics, share_features_extractor=self.share_features_extractor))
         return data
-
-    def make_actor(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> GaussianActor:
-        actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
-        return GaussianActor(**actor_kwargs).to(self.device)
 
     def make_critic(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> ContinuousCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return ContinuousCritic(**critic_kwargs).to(self.device)
-
-    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self._predict(obs, deterministic=deterministic)
-
-    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self.actor(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
         """
@@ -315,46 +345,3 @@ class GaussianActorCriticPolicy(BasePolicy):
         :param mode: if true, set to training mode, else set to evaluation mode
         """
         set_training_flags(self, mode, self.actor, self.critic)
-
-
-class GaussianActorCriticMultiInputPolicy(GaussianActorCriticPolicy):
-    """
-    :class:`GaussianActorCriticPolicy` for Dict observation spaces (``CombinedExtractor`` by default).
-    See :class:`GaussianActorCriticPolicy` for the parameters.
-    """
-
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        net_arch: Optional[Union[list[int], dict[str, list[int]]]] = None,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        squash_mean: bool = True,
-        init_std: float = 0.7,
-        min_std: float = 1e-4,
-        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
-        features_extractor_kwargs: Optional[dict[str, Any]] = None,
-        normalize_images: bool = True,
-        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
-        optimizer_kwargs: Optional[dict[str, Any]] = None,
-        n_critics: int = 1,
-        share_features_extractor: bool = False,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
-            net_arch,
-            activation_fn,
-            squash_mean,
-            init_std,
-            min_std,
-            features_extractor_class,
-            features_extractor_kwargs,
-            normalize_images,
-            optimizer_class,
-            optimizer_kwargs,
-            n_critics,
-            share_features_extractor,
-        )

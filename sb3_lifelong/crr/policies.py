@@ -5,7 +5,7 @@ from typing import Any, Optional, Union
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
@@ -94,7 +94,8 @@ class CRRPolicy(GaussianActorCriticPolicy):
     :param v_max: largest return of the categorical critic's support
     :param n_actors: number of independent actors (:class:`PerSourceActor` when > 1, sharing the one critic):
         CRR sets it from its data's sources with ``actor_per_source=True``
-    See :class:`sb3_lifelong.common.policies.GaussianActorCriticPolicy` for the other parameters.
+    :param kwargs: the actor-critic's other settings, see
+        :class:`sb3_lifelong.common.policies.GaussianActorCriticPolicy`
     """
 
     critic: Union[ContinuousCritic, CategoricalCritic]  # type: ignore[assignment]
@@ -107,27 +108,16 @@ class CRRPolicy(GaussianActorCriticPolicy):
         observation_space: spaces.Space,
         action_space: spaces.Box,
         lr_schedule: Schedule,
-        net_arch: Optional[Union[list[int], dict[str, list[int]]]] = None,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        squash_mean: bool = True,
-        init_std: float = 0.7,
-        min_std: float = 1e-4,
-        features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
-        features_extractor_kwargs: Optional[dict[str, Any]] = None,
-        normalize_images: bool = True,
-        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
-        optimizer_kwargs: Optional[dict[str, Any]] = None,
-        n_critics: int = 1,
-        share_features_extractor: bool = False,
         distributional_critic: bool = False,
         n_atoms: int = 51,
         v_min: float = -150.0,
         v_max: float = 150.0,
         n_actors: int = 1,
+        **kwargs: Any,
     ):
         if n_actors < 1:
             raise ValueError(f"n_actors must be >= 1, got {n_actors}")
-        if n_actors > 1 and share_features_extractor:
+        if n_actors > 1 and kwargs.get("share_features_extractor", False):
             raise ValueError("n_actors > 1 (one actor per source) cannot share a features extractor with the critic")
         # read by make_actor and make_critic, which the parent's constructor calls
         self.n_actors = n_actors
@@ -135,23 +125,7 @@ class CRRPolicy(GaussianActorCriticPolicy):
         self.n_atoms = n_atoms
         self.v_min = v_min
         self.v_max = v_max
-        super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
-            net_arch,
-            activation_fn,
-            squash_mean,
-            init_std,
-            min_std,
-            features_extractor_class,
-            features_extractor_kwargs,
-            normalize_images,
-            optimizer_class,
-            optimizer_kwargs,
-            n_critics,
-            share_features_extractor,
-        )
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
