@@ -141,3 +141,14 @@ def test_auto_rule(monkeypatch):
         resolve_scoring_dtype("float16", wide.critic, cpu)
     with pytest.raises(ValueError, match="scoring_dtype"):
         MPO("MlpPolicy", "Pendulum-v1", scoring_dtype="half")
+
+
+@pytest.mark.parametrize("dtype", [th.bfloat16, th.float32])
+def test_relu_in_place_matches_relu(dtype):
+    values = th.tensor([-3.5, -0.0, 0.0, 1e-30, -1e-30, 2.25, float("inf"), float("-inf"), 65280.0, -65280.0])
+    x = th.cat([values, th.randn(4096)]).to(dtype).reshape(-1, 2)
+    expected = th.relu(x)
+    out = utils.relu_in_place(x)
+    assert out is x and out.dtype == dtype
+    assert th.equal(out, expected) and not (out < 0).any()
+    assert (out == 0).sum() == (expected == 0).sum()

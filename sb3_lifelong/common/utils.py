@@ -139,6 +139,22 @@ class LowPrecisionCopy:
                 bias.copy_(module.bias)
 
 
+def relu_in_place(x: th.Tensor) -> th.Tensor:
+    """
+    ``x.relu_()``, faster for bfloat16 on CPU: bfloat16's elementwise kernels convert every element to float32 and
+    back (``relu_`` on ``[5120, 256]`` took 2.5x as long as the same bits clamped as int16). A bfloat16 with its sign
+    bit set is a negative int16, so clamping the int16 view at 0 zeroes exactly the negative numbers (and -0.0,
+    and NaNs with the sign bit set; a NaN in a target pass is lost anyway).
+
+    :param x: the tensor, changed in place
+    :return: ``x``
+    """
+    if x.dtype == th.bfloat16 and x.device.type == "cpu" and x.is_contiguous():
+        x.view(th.int16).clamp_min_(0)
+        return x
+    return x.relu_()
+
+
 def _run_mlp_no_grad(
     critic: nn.Module, index: int, mlp: nn.Module, inputs: th.Tensor, low_precision: Optional[LowPrecisionCopy] = None
 ) -> th.Tensor:
@@ -173,7 +189,7 @@ def _run_mlp_no_grad(
                 th.mm(x, weight_t, out=out)
             x, owned = out, True
         elif isinstance(module, nn.ReLU) and owned:
-            x.relu_()
+            relu_in_place(x)
         else:
             x, owned = module(x), False
     return x
