@@ -1,6 +1,5 @@
 import math
-from collections import defaultdict
-from typing import Any, ClassVar, Optional, TypeVar, Union
+from typing import Any, ClassVar, NamedTuple, Optional, TypeVar, Union
 
 import numpy as np
 import torch as th
@@ -55,6 +54,122 @@ def temperature_loss_and_weights(q_values: th.Tensor, temperature: th.Tensor, ep
     log_normaliser = th.logsumexp(q_values / temperature, dim=0) - math.log(num_samples)
     loss = temperature * (epsilon + log_normaliser.mean())
     return loss, weights
+
+
+def action_penalty_q(sampled_actions: th.Tensor) -> th.Tensor:
+    """
+    The Multi-Objective MPO action penalty as a second "Q-function": ``-||a - clip(a, -1, 1)||``.
+
+    :param sampled_actions: ``[num_samples, batch, action_dim]``
+    :return: ``[num_samples, batch]``
+    """
+    return -th.linalg.vector_norm(sampled_actions - sampled_actions.clamp(-1.0, 1.0), dim=-1)
+
+
+def m_step_loss(
+    sampled_actions: th.Tensor,
+    all_weights: list[th.Tensor],
+    online_mean: th.Tensor,
+    online_std: th.Tensor,
+    target_mean: th.Tensor,
+    target_std: th.Tensor,
+) -> th.Tensor:
+    """
+    Decoupled M-step: weighted maximum likelihood of the sampled actions, the mean fitted with the target's std
+    and the std with the target's mean.
+
+    :param sampled_actions: ``[num_samples, batch, action_dim]``
+    :param all_weights: the E-step weights of each objective, ``[num_samples, batch]`` each
+    :param online_mean: the online policy's mean ``[batch, action_dim]`` (with gradient)
+    :param online_std: the online policy's std ``[batch, action_dim]`` (with gradient)
+    :param target_mean: the target policy's mean ``[batch, action_dim]``
+    :param target_std: the target policy's std ``[batch, action_dim]``
+    :return: the policy loss (scalar), summed over the objectives
+    """
+    log_prob_mean = gaussian_log_prob(sampled_actions, online_mean.unsqueeze(0), target_std.unsqueeze(0))
+    log_prob_std = gaussian_log_prob(sampled_actions, target_mean.unsqueeze(0), online_std.unsqueeze(0))
+    policy_loss = sum(-(w * (log_prob_mean + log_prob_std)).sum(dim=0).mean() for w in all_weights)
+    assert isinstance(policy_loss, th.Tensor)
+    return policy_loss
+
+
+class TrustRegion(NamedTuple):
+    """The per-dimension KL constraints of the M-step, as penalties on the policy and losses of their duals."""
+
+    #: ``sum(alpha * KL)`` for the mean and the std (gradient into the policy only)
+    kl_loss: th.Tensor
+    #: ``sum(alpha * (epsilon - KL))`` for the mean and the std (gradient into the duals only)
+    dual_loss: th.Tensor
+    #: ``KL(pi_target || pi_online)`` of the mean and of the std, averaged over the batch, ``[action_dim]`` each
+    kl_mean: th.Tensor
+    kl_stddev: th.Tensor
+
+
+def trust_region(
+    target_mean: th.Tensor,
+    target_std: th.Tensor,
+    online_mean: th.Tensor,
+    online_std: th.Tensor,
+    alpha_mean: th.Tensor,
+    alpha_stddev: th.Tensor,
+    epsilon_mean: float,
+    epsilon_stddev: float,
+) -> TrustRegion:
+    """
+    :param target_mean: ``[batch, action_dim]``
+    :param target_std: ``[batch, action_dim]``
+    :param online_mean: ``[batch, action_dim]`` (with gradient)
+    :param online_std: ``[batch, action_dim]`` (with gradient)
+    :param alpha_mean: the mean's Lagrange multipliers ``[action_dim]`` (with gradient)
+    :param alpha_stddev: the std's Lagrange multipliers ``[action_dim]`` (with gradient)
+    :param epsilon_mean: per-dimension KL bound of the mean
+    :param epsilon_stddev: per-dimension KL bound of the std
+    :return: the penalties, the duals' losses and the KLs
+    """
+    kl_mean = gaussian_kl_per_dim(target_mean, target_std, online_mean, target_std).mean(dim=0)
+    kl_stddev = gaussian_kl_per_dim(target_mean, target_std, target_mean, online_std).mean(dim=0)
+    kl_loss = (alpha_mean.detach() * kl_mean).sum() + (alpha_stddev.detach() * kl_stddev).sum()
+    dual_loss = (alpha_mean * (epsilon_mean - kl_mean.detach())).sum() + (
+        alpha_stddev * (epsilon_stddev - kl_stddev.detach())
+    ).sum()
+    return TrustRegion(kl_loss, dual_loss, kl_mean, kl_stddev)
+
+
+class TargetSamples(NamedTuple):
+    """One no-grad pass of the target networks, shared by the critic's target and the E-step."""
+
+    #: the critic's expected-SARSA target ``[batch, 1]``
+    critic_target: th.Tensor
+    #: the target policy's mean and std on the states the policy is improved on, ``[batch, action_dim]`` each
+    mean: th.Tensor
+    std: th.Tensor
+    #: actions sampled from the target policy on those states ``[num_samples, batch, action_dim]``
+    actions: th.Tensor
+    #: their Q-values under the target critic ``[num_samples, batch]``
+    q_values: th.Tensor
+
+
+class CriticFit(NamedTuple):
+    """What the critic's update logs."""
+
+    critic_loss: th.Tensor
+    q_mean: th.Tensor
+
+
+class PolicyImprovement(NamedTuple):
+    """What the actor's and duals' update logs (``penalty_temperature`` only with the action penalty)."""
+
+    actor_loss: th.Tensor
+    temperature: th.Tensor
+    alpha_mean: th.Tensor
+    alpha_stddev: th.Tensor
+    kl_mean: th.Tensor
+    kl_stddev: th.Tensor
+    std_min: th.Tensor
+    std_max: th.Tensor
+    #: effective sample size of the E-step weights, as a fraction of ``num_samples``
+    ess: th.Tensor
+    penalty_temperature: Optional[th.Tensor] = None
 
 
 class MPO(LifelongOffPolicyAlgorithm):
@@ -268,25 +383,29 @@ class MPO(LifelongOffPolicyAlgorithm):
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
-        stats: dict[str, list[th.Tensor]] = defaultdict(list)
+        logged: list[tuple[CriticFit, PolicyImprovement]] = []
 
         for _ in range(gradient_steps):
             self._n_updates += 1
             with record_function("mpo/sample_batch"):
                 replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
             with th.no_grad(), record_function("mpo/target_sample_and_score"):
-                target_q, target_mean, target_std, sampled_actions, sampled_q = self._sample_and_score(replay_data)
+                targets = self._sample_and_score(replay_data)
             with record_function("mpo/critic_update"):
-                self._update_critic(replay_data, target_q, stats)
+                critic_fit = self._update_critic(replay_data, targets.critic_target)
             with record_function("mpo/actor_and_dual_update"):
                 policy_obs = replay_data.next_observations if self.policy_on_next_obs else replay_data.observations
-                self._update_actor_and_duals(policy_obs, target_mean, target_std, sampled_actions, sampled_q, stats)
+                improvement = self._update_actor_and_duals(policy_obs, targets)
+            logged.append((critic_fit, improvement))
             if self._n_updates % self.target_update_interval == 0:
                 self._update_targets()
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        for key, values in stats.items():
-            self.logger.record(f"train/{key}", th.stack(values).mean().item())
+        for stats in ([fit for fit, _ in logged], [improvement for _, improvement in logged]):
+            for key in stats[0]._fields if stats else ():
+                values = [getattr(step, key) for step in stats if getattr(step, key) is not None]
+                if values:
+                    self.logger.record(f"train/{key}", th.stack(values).mean().item())
 
     def _update_targets(self) -> None:
         polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
@@ -294,16 +413,13 @@ class MPO(LifelongOffPolicyAlgorithm):
         if self._target_scoring_copy is not None:
             self._target_scoring_copy.sync()
 
-    def _sample_and_score(
-        self, replay_data: ReplayBufferSamples
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
+    def _sample_and_score(self, replay_data: ReplayBufferSamples) -> TargetSamples:
         """
         Sample ``num_samples`` actions per state from the target policy and score them with the target critic,
         in one critic call that serves both the critic's target and the E-step.
 
         :param replay_data: the batch
-        :return: the critic's target ``[B, 1]``, the target policy's mean and std ``[B, A]`` on the states the
-            policy is improved on, the sampled actions ``[N, B, A]`` and their Q-values ``[N, B]`` on those states
+        :return: the critic's target and the scored samples of the target policy
         """
         num_samples, batch_size = self.num_samples, replay_data.rewards.shape[0]
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
@@ -324,9 +440,9 @@ class MPO(LifelongOffPolicyAlgorithm):
             next_q = both_q[:, batch_size:].mean(dim=0)
         # Expected SARSA over the target policy's samples (n-step discount from the buffer when it has one)
         target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q.unsqueeze(1)
-        return target_q, target_mean, target_std, sampled_actions, sampled_q
+        return TargetSamples(target_q, target_mean, target_std, sampled_actions, sampled_q)
 
-    def _update_critic(self, replay_data: ReplayBufferSamples, target_q: th.Tensor, stats: dict[str, list[th.Tensor]]) -> None:
+    def _update_critic(self, replay_data: ReplayBufferSamples, target_q: th.Tensor) -> CriticFit:
         current_q_values = self.critic(replay_data.observations, replay_data.actions)
         critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q) for current_q in current_q_values)
         assert isinstance(critic_loss, th.Tensor)
@@ -334,53 +450,45 @@ class MPO(LifelongOffPolicyAlgorithm):
         critic_loss.backward()
         th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm, foreach=True)
         self.critic.optimizer.step()
-        stats["critic_loss"].append(critic_loss.detach())
-        stats["q_mean"].append(current_q_values[0].detach().mean())
+        return CriticFit(critic_loss=critic_loss.detach(), q_mean=current_q_values[0].detach().mean())
 
-    def _update_actor_and_duals(
-        self,
-        policy_obs: Any,
-        target_mean: th.Tensor,
-        target_std: th.Tensor,
-        sampled_actions: th.Tensor,
-        sampled_q: th.Tensor,
-        stats: dict[str, list[th.Tensor]],
-    ) -> None:
-        # E-step: weights of the sampled actions, temperature dual
+    @property
+    def _kl_bounds(self) -> dict[str, float]:
+        return {"epsilon_mean": self.epsilon_mean, "epsilon_stddev": self.epsilon_stddev}
+
+    def _update_actor_and_duals(self, policy_obs: Any, targets: TargetSamples) -> PolicyImprovement:
+        # E-step: weights of the sampled actions (one set per objective), temperature duals
         temperature = dual_value(self.log_temperature)
-        temperature_loss, weights = temperature_loss_and_weights(sampled_q, temperature, self.epsilon)
-        dual_loss = temperature_loss
+        dual_loss, weights = temperature_loss_and_weights(targets.q_values, temperature, self.epsilon)
         all_weights = [weights]
+        penalty_temperature = None
         if self.action_penalty:
             penalty_temperature = dual_value(self.log_penalty_temperature)
-            penalty_q = -th.linalg.vector_norm(sampled_actions - sampled_actions.clamp(-1.0, 1.0), dim=-1)
+            penalty_q = action_penalty_q(targets.actions)
             penalty_loss, penalty_weights = temperature_loss_and_weights(penalty_q, penalty_temperature, self.epsilon_penalty)
             dual_loss = dual_loss + penalty_loss
             all_weights.append(penalty_weights)
-            stats["penalty_temperature"].append(penalty_temperature.detach().squeeze())
 
-        # M-step, decoupled: the mean is fitted with the target's std, the std with the target's mean
+        # M-step, decoupled, under per-dimension KL constraints
         online_mean, online_std = self.actor.distribution_params(policy_obs)
-        log_prob_mean = gaussian_log_prob(sampled_actions, online_mean.unsqueeze(0), target_std.unsqueeze(0))
-        log_prob_std = gaussian_log_prob(sampled_actions, target_mean.unsqueeze(0), online_std.unsqueeze(0))
-        policy_loss = sum(-(w * (log_prob_mean + log_prob_std)).sum(dim=0).mean() for w in all_weights)
-        assert isinstance(policy_loss, th.Tensor)
-
-        # Per-dimension KL(pi_target || pi_online), averaged over the batch: [A]
-        kl_mean = gaussian_kl_per_dim(target_mean, target_std, online_mean, target_std).mean(dim=0)
-        kl_stddev = gaussian_kl_per_dim(target_mean, target_std, target_mean, online_std).mean(dim=0)
+        policy_loss = m_step_loss(targets.actions, all_weights, online_mean, online_std, targets.mean, targets.std)
         alpha_mean = dual_value(self.log_alpha_mean)
         alpha_stddev = dual_value(self.log_alpha_stddev)
-        kl_loss = (alpha_mean.detach() * kl_mean).sum() + (alpha_stddev.detach() * kl_stddev).sum()
-        dual_loss = (
-            dual_loss
-            + (alpha_mean * (self.epsilon_mean - kl_mean.detach())).sum()
-            + (alpha_stddev * (self.epsilon_stddev - kl_stddev.detach())).sum()
+        region = trust_region(
+            targets.mean,
+            targets.std,
+            online_mean,
+            online_std,
+            alpha_mean,
+            alpha_stddev,
+            self.epsilon_mean,
+            self.epsilon_stddev,
         )
+        dual_loss = dual_loss + region.dual_loss
 
         self.actor.optimizer.zero_grad(set_to_none=True)
         self.dual_optimizer.zero_grad(set_to_none=True)
-        (policy_loss + kl_loss + dual_loss).backward()
+        (policy_loss + region.kl_loss + dual_loss).backward()
         th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
         self.actor.optimizer.step()
         self.dual_optimizer.step()
@@ -388,16 +496,18 @@ class MPO(LifelongOffPolicyAlgorithm):
             for raw in self.dual_optimizer.param_groups[0]["params"]:
                 raw.clamp_(min=DUAL_RAW_FLOOR)
 
-        stats["actor_loss"].append(policy_loss.detach())
-        stats["temperature"].append(temperature.detach().squeeze())
-        stats["alpha_mean"].append(alpha_mean.detach().mean())
-        stats["alpha_stddev"].append(alpha_stddev.detach().mean())
-        stats["kl_mean"].append(kl_mean.detach().mean())
-        stats["kl_stddev"].append(kl_stddev.detach().mean())
-        stats["std_min"].append(online_std.detach().min())
-        stats["std_max"].append(online_std.detach().max())
-        # Effective sample size of the E-step weights, as a fraction of num_samples
-        stats["ess"].append((1.0 / weights.pow(2).sum(dim=0)).mean() / self.num_samples)
+        return PolicyImprovement(
+            actor_loss=policy_loss.detach(),
+            temperature=temperature.detach().squeeze(),
+            alpha_mean=alpha_mean.detach().mean(),
+            alpha_stddev=alpha_stddev.detach().mean(),
+            kl_mean=region.kl_mean.detach().mean(),
+            kl_stddev=region.kl_stddev.detach().mean(),
+            std_min=online_std.detach().min(),
+            std_max=online_std.detach().max(),
+            ess=(1.0 / weights.pow(2).sum(dim=0)).mean() / self.num_samples,
+            penalty_temperature=None if penalty_temperature is None else penalty_temperature.detach().squeeze(),
+        )
 
     def learn(
         self: SelfMPO,
