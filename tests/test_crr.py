@@ -11,7 +11,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_lifelong import CRR
 from sb3_lifelong.common.distributional import CategoricalCritic, categorical_projection
-from sb3_lifelong.crr.crr import advantage_baseline, crr_weights
+from sb3_lifelong.crr.crr import advantage_baseline, advantage_weights, crr_weights
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50)
 LOGGED = ("critic_loss", "actor_loss", "advantage_mean", "weight_mean", "weight_clip_frac", "q_mean")
@@ -75,6 +75,20 @@ def test_exp_transform_hand_computed():
     assert not clipped.any()
     weights, _ = crr_weights(th.tensor([1.0, 3.0]), "exp", beta=1.0, max_weight=1.0)
     np.testing.assert_allclose(weights.numpy(), [1.0, 1.0])
+
+
+def test_normalized_advantages_scale_free():
+    data_q = th.tensor([10.0, 12.0, 14.0, 16.0])
+    sampled_q = th.full((3, 4), 13.0)  # baseline 13: advantages -3, -1, 1, 3 (std 2.582)
+    plain = advantage_weights(data_q, sampled_q, "mean", "exp", beta=1.0, max_weight=20.0)
+    normalized = advantage_weights(data_q, sampled_q, "mean", "exp", beta=1.0, max_weight=20.0, normalize=True)
+    scale = th.tensor([-3.0, -1.0, 1.0, 3.0]).std().item()
+    np.testing.assert_allclose(plain.weights.numpy(), np.minimum(np.exp([-3.0, -1.0, 1.0, 3.0]), 20.0), rtol=1e-6)
+    np.testing.assert_allclose(normalized.weights.numpy(), np.exp(np.array([-3.0, -1.0, 1.0, 3.0]) / scale), rtol=1e-6)
+    assert normalized.advantages.tolist() == [-3.0, -1.0, 1.0, 3.0]  # logged as they are
+    scaled = advantage_weights(100 * data_q, 100 * sampled_q, "mean", "exp", 1.0, 20.0, normalize=True)
+    np.testing.assert_allclose(scaled.weights.numpy(), normalized.weights.numpy(), rtol=1e-5)  # reward scale drops out
+    CRR("MlpPolicy", "Pendulum-v1", normalize_advantages=True, learning_starts=10, batch_size=8).learn(20)
 
 
 def test_indicator_transform_hand_computed():

@@ -189,7 +189,13 @@ def critic_loss(
 
 
 def advantage_weights(
-    data_q: th.Tensor, sampled_q: th.Tensor, baseline: str, transform: str, beta: float, max_weight: float
+    data_q: th.Tensor,
+    sampled_q: th.Tensor,
+    baseline: str,
+    transform: str,
+    beta: float,
+    max_weight: float,
+    normalize: bool = False,
 ) -> AdvantageWeights:
     """
     :param data_q: Q-values of the data's actions ``[batch]``
@@ -198,10 +204,13 @@ def advantage_weights(
     :param transform: ``"exp"`` or ``"indicator"`` (:func:`crr_weights`)
     :param beta: temperature of ``exp``
     :param max_weight: upper bound of ``exp``'s weights
-    :return: the advantages of the data's actions and their weights
+    :param normalize: divide the advantages by their standard deviation over the batch before the transform, so
+        that ``beta`` is in units of that spread rather than of the reward
+    :return: the advantages of the data's actions (not normalised) and their weights
     """
     advantages = data_q - advantage_baseline(sampled_q, baseline)
-    weights, clipped = crr_weights(advantages, transform, beta, max_weight)
+    scaled = advantages / advantages.std().clamp_min(1e-6) if normalize and advantages.numel() > 1 else advantages
+    weights, clipped = crr_weights(scaled, transform, beta, max_weight)
     return AdvantageWeights(advantages, weights, clipped)
 
 
@@ -250,6 +259,9 @@ class CRR(LifelongOfflineAlgorithm):
         (``1[A > 0]``)
     :param beta: temperature of the ``exp`` transform (higher: closer to behaviour cloning, more conservative)
     :param max_weight: upper bound of the ``exp`` transform's weights
+    :param normalize_advantages: divide the advantages by their standard deviation over the batch before the
+        transform, which makes ``beta`` independent of the reward's scale (with raw advantages of a few units,
+        ``exp`` at ``beta=1`` puts most of a batch's weight on a few transitions)
     :param critic_target: ``"policy"`` (TD target with actions sampled from the target policy) or ``"sarsa"``
         (with the data's next action; offline only, falls back to a policy sample where the data does not show it)
     :param n_target_samples: number of target-policy actions averaged in the TD target
@@ -303,6 +315,7 @@ class CRR(LifelongOfflineAlgorithm):
         advantage_transform: str = "exp",
         beta: float = 1.0,
         max_weight: float = 20.0,
+        normalize_advantages: bool = False,
         critic_target: str = "policy",
         n_target_samples: int = 1,
         target_update_interval: int = 100,
@@ -352,6 +365,7 @@ class CRR(LifelongOfflineAlgorithm):
         self.advantage_transform = advantage_transform
         self.beta = beta
         self.max_weight = max_weight
+        self.normalize_advantages = normalize_advantages
         self.critic_target_type = critic_target
         self.n_target_samples = n_target_samples
         self.target_update_interval = target_update_interval
@@ -497,6 +511,7 @@ class CRR(LifelongOfflineAlgorithm):
                     self.advantage_transform,
                     self.beta,
                     self.max_weight,
+                    self.normalize_advantages,
                 )
             self._gradient_step(self.critic, fit.loss)
             regression_loss = actor_loss(actions, mean, std, advantage.weights)
