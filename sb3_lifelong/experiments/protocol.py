@@ -374,9 +374,25 @@ def sampling_weights(ratio: tuple[float, float], counts: Mapping[int, int]) -> d
     return {0: a / n_a if n_a else 0.0, 1: b / n_b if n_b else 0.0}
 
 
-def distill_student(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False) -> None:
-    """Train one offline student on the lifetime buffer (opened read-only) and save it."""
-    student = STUDENTS[name]
+def distill_student(
+    name: str,
+    preset: Preset,
+    seed: int,
+    run_dir: pathlib.Path,
+    progress_bar: bool = False,
+    student: Optional[Student] = None,
+) -> None:
+    """
+    Train one offline student on the lifetime buffer (opened read-only) and save it in ``run_dir/distill_<name>``.
+
+    :param name: the student's name (its settings are ``STUDENTS[name]`` unless ``student`` is given)
+    :param preset: the protocol's settings
+    :param seed: the seed
+    :param run_dir: the seed's directory (holds ``buffer``)
+    :param progress_bar: show a progress bar
+    :param student: settings of a student that is not in :data:`STUDENTS` (e.g. a benchmark's variant)
+    """
+    student = STUDENTS[name] if student is None else student
     directory = run_dir / f"distill_{name}"
     shutil.rmtree(directory, ignore_errors=True)
     directory.mkdir(parents=True)
