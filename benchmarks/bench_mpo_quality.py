@@ -9,7 +9,11 @@ policy every ``--eval-freq`` steps on a separate environment, and appends a row 
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_mpo_quality.py --envs Hopper-v5 Walker2d-v5 --seeds 0 1 --steps 30000 --jobs 2
+    OMP_NUM_THREADS=1 python benchmarks/bench_mpo_quality.py --envs Hopper-v5 --algos MPO_n5 MPO_penalty --steps 30000
     python benchmarks/bench_mpo_quality.py --summarise
+
+``--algos`` takes SAC and the MPO variants of :data:`MPO_VARIANTS` (the reference MPOs' options: n-step returns,
+the action penalty, observation normalisation), each with the same networks, batch and update rate.
 """
 
 import argparse
@@ -23,6 +27,15 @@ from typing import Any
 import numpy as np
 
 RESULTS = pathlib.Path(__file__).parent / "results"
+
+#: MPO variants by name: constructor settings, and whether observations are normalised (SB3's VecNormalize)
+MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
+    "MPO": ({}, False),
+    "MPO_n5": ({"n_steps": 5}, False),
+    "MPO_penalty": ({"action_penalty": True}, False),
+    "MPO_n5_penalty": ({"n_steps": 5, "action_penalty": True}, False),
+    "MPO_obsnorm": ({}, True),
+}
 CURVES = RESULTS / "quality"
 
 
@@ -40,11 +53,22 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
     th.set_num_threads(1)
     CURVES.mkdir(parents=True, exist_ok=True)
     path = CURVES / f"{env_id}__{algo}__s{seed}.csv"
-    eval_env = Monitor(gym.make(env_id))
-    eval_env.reset(seed=10_000 + seed)
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
     common: dict[str, Any] = dict(batch_size=256, learning_starts=learning_starts, seed=seed, verbose=0)
     policy_kwargs = dict(net_arch=[256, 256])
-    model = (MPO if algo == "MPO" else SAC)("MlpPolicy", env_id, policy_kwargs=policy_kwargs, **common)
+    settings, normalise = MPO_VARIANTS.get(algo, ({}, False))
+    env: Any = env_id
+    eval_env: Any = Monitor(gym.make(env_id))
+    eval_env.reset(seed=10_000 + seed)
+    if normalise:  # statistics from the training env, frozen copies for evaluation
+        env = VecNormalize(DummyVecEnv([lambda: gym.make(env_id)]), norm_reward=False)
+        eval_env = VecNormalize(DummyVecEnv([lambda: Monitor(gym.make(env_id))]), norm_reward=False, training=False)
+        eval_env.seed(10_000 + seed)
+    if algo == "SAC":
+        model = SAC("MlpPolicy", env, policy_kwargs=policy_kwargs, **common)
+    else:
+        model = MPO("MlpPolicy", env, policy_kwargs=policy_kwargs, **settings, **common)
     start = time.perf_counter()
 
     with open(path, "w", newline="") as handle:
@@ -54,6 +78,8 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
         class Evaluate(BaseCallback):
             def _on_step(self) -> bool:
                 if self.num_timesteps % eval_freq == 0:
+                    if normalise:
+                        eval_env.obs_rms = model.get_vec_normalize_env().obs_rms  # type: ignore[union-attr]
                     mean, std = evaluate_policy(self.model, eval_env, n_eval_episodes=eval_episodes, deterministic=True)
                     writer.writerow([self.num_timesteps, f"{mean:.2f}", f"{std:.2f}", f"{time.perf_counter() - start:.1f}"])
                     handle.flush()
@@ -66,6 +92,8 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
 def summarise() -> None:
     import matplotlib
 
+    from sb3_lifelong.experiments.report import bootstrap_ci
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -76,16 +104,18 @@ def summarise() -> None:
         if data.size:
             curves.setdefault((env_id, algo), []).append(data)
     lines = [
-        "| env | algorithm | seeds | steps reached | final return (mean +- std over seeds) | best eval (mean over seeds) |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| env | algorithm | seeds | steps reached | final return (mean +- std over seeds) | 95 % bootstrap CI | per seed "
+        "| best eval (mean over seeds) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for (env_id, algo), runs in sorted(curves.items()):
         reached = min(int(run[-1, 0]) for run in runs)
         finals = [run[run[:, 0] <= reached][-1, 1] for run in runs]
         bests = [run[:, 1].max() for run in runs]
+        low, high = bootstrap_ci(finals)
         lines.append(
             f"| {env_id} | {algo} | {len(runs)} | {reached} | {np.mean(finals):.0f} +- {np.std(finals):.0f} | "
-            f"{np.mean(bests):.0f} |"
+            f"[{low:.0f}, {high:.0f}] | {', '.join(f'{value:.0f}' for value in finals)} | {np.mean(bests):.0f} |"
         )
     table = "\n".join(lines)
     print(table)
@@ -114,7 +144,7 @@ def summarise() -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", default=["Hopper-v5", "Walker2d-v5"])
-    parser.add_argument("--algos", nargs="+", default=["MPO", "SAC"])
+    parser.add_argument("--algos", nargs="+", default=["MPO", "SAC"], choices=["SAC", *MPO_VARIANTS])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--steps", type=int, default=100_000)
     parser.add_argument("--eval-freq", type=int, default=5000)
