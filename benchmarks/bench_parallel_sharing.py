@@ -24,7 +24,7 @@ import tempfile
 import numpy as np
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.common.buffers import merge_buffers
+from sb3_lifelong.buffers import merge_buffers
 from sb3_lifelong.experiments.sequential import PRESETS
 from sb3_lifelong.experiments.sharing import run_sharing
 

@@ -58,8 +58,8 @@ import gymnasium as gym
 import numpy as np
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.common import buffer_storage
-from sb3_lifelong.common.buffer_storage import FIELD_NAMES, BufferFormatError, CommitNotDurableError, RowStore
+from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers.storage import FIELD_NAMES, BufferFormatError, CommitNotDurableError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)

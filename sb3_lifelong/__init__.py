@@ -3,7 +3,7 @@ import os
 # the Offline Distillation Pipeline, above the algorithms (it registers their ``distill`` method's implementation)
 from sb3_lifelong import distill as _distill_pipeline
 from sb3_lifelong.bc import BC
-from sb3_lifelong.common.buffers import LifelongReplayBuffer
+from sb3_lifelong.buffers import LifelongReplayBuffer
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.mpo import MPO
 

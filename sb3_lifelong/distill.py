@@ -19,8 +19,8 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import MaybeCallback
 
+from sb3_lifelong.buffers import LifelongReplayBuffer
 from sb3_lifelong.common.base import set_distill_pipeline
-from sb3_lifelong.common.buffers import LifelongReplayBuffer
 from sb3_lifelong.crr import CRR
 
 __all__ = ["DistillSource", "distill"]

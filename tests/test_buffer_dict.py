@@ -11,8 +11,8 @@ from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.common.buffer_storage import BufferFormatError
-from sb3_lifelong.common.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers.storage import BufferFormatError
 
 OBS = spaces.Dict(
     {

@@ -13,9 +13,9 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.common import buffer_storage
-from sb3_lifelong.common.buffer_storage import BufferFormatError, RowStore
-from sb3_lifelong.common.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers.storage import BufferFormatError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (5,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)

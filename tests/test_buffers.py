@@ -16,9 +16,9 @@ from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.common import buffer_storage
-from sb3_lifelong.common.buffer_storage import BufferFormatError
-from sb3_lifelong.common.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers.storage import BufferFormatError
 
 OBS = gym.spaces.Box(-10, 10, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)

@@ -4,7 +4,7 @@ algorithms that learn from them (:mod:`sb3_lifelong.common`, the algorithms). Bo
 here, and this module imports nothing, so neither side depends on the other.
 
 **Info keys** written by :class:`~sb3_lifelong.envs.DynamicsSchedule` into the ``info`` of every ``reset`` and
-``step``, and read by :class:`~sb3_lifelong.common.buffers.LifelongReplayBuffer` in ``add``:
+``step``, and read by :class:`~sb3_lifelong.buffers.LifelongReplayBuffer` in ``add``:
 
 * :data:`STAGE_KEY` (``"stage"``): the index of the stage in effect (an ``int``). The buffer stores it as the
   transition's *source* id; a transition whose ``info`` has no such key gets the buffer's current source

@@ -38,7 +38,7 @@ import gymnasium as gym
 import numpy as np
 
 from sb3_lifelong.bc import BC
-from sb3_lifelong.common.buffers import LifelongReplayBuffer, merge_buffers
+from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.common.callbacks import MultiEnvEvalCallback, SourceQCallback
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill

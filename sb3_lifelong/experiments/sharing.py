@@ -25,7 +25,7 @@ from typing import Any, Optional
 import torch as th
 
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
-from sb3_lifelong.common.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
 from sb3_lifelong.distill import distill
 from sb3_lifelong.experiments.runner import map_parallel
 from sb3_lifelong.experiments.sequential import (

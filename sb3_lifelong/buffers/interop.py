@@ -1,0 +1,364 @@
+"""
+The lifelong buffer's exchange formats: d4rl-style dicts (and ``.npz`` files of them) and Minari datasets, in and out.
+
+:class:`~sb3_lifelong.buffers.lifelong.LifelongReplayBuffer`'s ``from_d4rl``, ``from_minari``, ``to_d4rl``,
+``to_minari`` and ``save_npz`` are thin methods over these functions.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+from typing import TYPE_CHECKING, Any, Optional, Union
+
+import numpy as np
+from gymnasium import spaces
+
+from sb3_lifelong.buffers.storage import FLAG_DONE, FLAG_TIMEOUT, MAX_SOURCE_ID
+from sb3_lifelong.common.datasets import import_minari, minari_columns
+
+if TYPE_CHECKING:
+    from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
+
+#: rows checked for non-finite values at a time
+_COPY_BLOCK = 1 << 16
+# Minari interop: per-step source ids (in the episodes' infos) and source names / metadata (in the dataset metadata)
+MINARI_SOURCE_INFO = "sb3_lifelong_source"
+MINARI_SOURCES_METADATA = "sb3_lifelong_sources"
+
+
+def raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset: int = 0) -> None:
+    """
+    :param values: Array whose first dimension is the env (or row) index
+    :param what: Start of the message, e.g. ``"add(): rewards of env"``, followed by the first bad index
+    :param consequence: End of the message
+    :param offset: Added to the index reported
+    :raises ValueError: if a value is NaN or infinite
+    """
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return
+    rows = np.flatnonzero(bad.reshape(len(values), -1).any(axis=1)) if values.ndim else np.zeros(1, np.int64)
+    first = int(rows[0])
+    value = values.reshape(len(values), -1)[first][bad.reshape(len(values), -1)[first]][0] if values.ndim else values
+    more = f" (and {len(rows) - 1} more)" if len(rows) > 1 else ""
+    raise ValueError(
+        f"{what} {first + offset}{more} is not finite ({value}): NaN and infinite values are refused; {consequence}"
+    )
+
+
+def _load_npz(file: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
+    """
+    The arrays of a ``.npz`` archive, read without pickle; a ValueError naming the file (and the array) for anything
+    else (a single ``np.save`` array, pickled content, object arrays).
+    """
+    name = os.fspath(file)
+    try:
+        loaded = np.load(name, allow_pickle=False)
+    except ValueError as error:  # pickled content, or not a numpy file at all
+        raise ValueError(
+            f"{name}: not a .npz archive of arrays that can be read without pickle (nothing pickled is loaded): {error}"
+        ) from None
+    if not hasattr(loaded, "files"):  # np.save wrote one array (a .npy file): no names
+        raise ValueError(
+            f"{name}: holds a single array (written by np.save), not a .npz archive of named arrays: write the data with "
+            "np.savez(file, observations=..., actions=..., rewards=..., next_observations=..., terminals=...)"
+        )
+    result = {}
+    with loaded as npz:
+        for key in npz.files:
+            try:
+                result[key] = npz[key]
+            except ValueError as error:  # object arrays need pickle
+                raise ValueError(
+                    f"{name}: array {key!r} is stored with pickle (object dtype), which is refused: {error}"
+                ) from None
+    return result
+
+
+def _check_finite_columns(columns: dict[str, Any], where: str) -> None:
+    """
+    Imports: raise a ValueError naming the column and the first row if a float value of the observations, next
+    observations, actions or rewards is NaN or infinite (checked in blocks of rows, to bound the memory used).
+    """
+    for name in ("observations", "next_observations", "actions", "rewards"):
+        values = np.asarray(columns[name])
+        if values.dtype.kind != "f":
+            continue
+        for start in range(0, len(values), _COPY_BLOCK):
+            block = values[start : start + _COPY_BLOCK]
+            if not np.isfinite(block).all():
+                raise_if_not_finite(block, f"{where}: {name} of row", "nothing was imported", offset=start)
+
+
+def _rescale_actions(actions: np.ndarray, action_space: spaces.Space, to_env_units: bool) -> np.ndarray:
+    """
+    Map actions between the normalised ``[-1, 1]`` range SB3 stores and the action space's bounds. Unbounded
+    spaces, and spaces that already are ``[-1, 1]``, leave the actions untouched (bit for bit).
+    """
+    if not isinstance(action_space, spaces.Box) or not action_space.is_bounded():
+        return actions
+    low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
+    if np.all(low == -1.0) and np.all(high == 1.0):
+        return actions
+    values = actions.astype(np.float64)
+    if to_env_units:
+        values = low + 0.5 * (values + 1.0) * (high - low)
+    else:
+        values = 2.0 * (values - low) / (high - low) - 1.0
+    return values.astype(actions.dtype)
+
+
+def export_columns(
+    buffer: _LifelongSampler, by_episode: bool, normalized_actions: bool
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """
+    :param buffer: the buffer (or view) to export
+    :param by_episode: see :meth:`LifelongReplayBuffer.to_d4rl`
+    :param normalized_actions: see :meth:`LifelongReplayBuffer.to_d4rl`
+    :return: The d4rl columns of ``to_d4rl`` plus ``streams``, and a mask of the rows marked as a timeout
+        only because their stream stops there (the write head of an env, a reopen, an ``n_envs`` change)
+    """
+    buffer._check_exportable("d4rl export")
+    total = buffer.size()
+    names = ("observations", "next_observations", "actions", "rewards", "flags", "sources", "streams")
+    data = {name: np.asarray(buffer._read_range(name, 0, total)) for name in names}
+    flags = data["flags"]
+    timeouts = (flags & FLAG_TIMEOUT) != 0
+    terminals = ((flags & FLAG_DONE) != 0) & ~timeouts
+    order = np.arange(total)
+    open_end = np.zeros(total, dtype=bool)
+    if by_episode and total:
+        streams = data["streams"].astype(np.int64)
+        order = np.argsort(streams, kind="stable")
+        sorted_streams = streams[order]
+        last_of_stream = np.append(sorted_streams[1:] != sorted_streams[:-1], True)
+        terminals, timeouts = terminals[order], timeouts[order]
+        open_end = last_of_stream & ~terminals & ~timeouts
+        timeouts = timeouts | open_end
+    actions = data["actions"][order]
+    if not normalized_actions:
+        actions = _rescale_actions(actions, buffer.action_space, to_env_units=True)
+    columns = {
+        "observations": data["observations"][order],
+        "actions": actions,
+        "rewards": data["rewards"][order],
+        "next_observations": data["next_observations"][order],
+        "terminals": terminals,
+        "timeouts": timeouts,
+        "sources": data["sources"][order].astype(np.int64),
+        "streams": data["streams"][order].astype(np.int64),
+    }
+    return columns, open_end
+
+
+def to_minari(
+    buffer: _LifelongSampler,
+    dataset_id: str,
+    normalized_actions: bool = False,
+    unfinished: str = "truncate",
+    description: Optional[str] = None,
+    **minari_kwargs: Any,
+) -> Any:
+    """Write ``buffer`` as a new local Minari dataset: see :meth:`LifelongReplayBuffer.to_minari`."""
+    if unfinished not in ("truncate", "drop"):
+        raise ValueError(f"unfinished must be 'truncate' or 'drop', got {unfinished!r}")
+    buffer._check_exportable("Minari export")
+    minari = import_minari("LifelongReplayBuffer.to_minari")
+    from minari.data_collector import EpisodeBuffer
+
+    if buffer.size() == 0:
+        raise ValueError("cannot export an empty buffer to Minari")
+    data, open_end = export_columns(buffer, by_episode=True, normalized_actions=normalized_actions)
+    obs, next_obs = data["observations"], data["next_observations"]
+    terminals, timeouts = data["terminals"], data["timeouts"]
+    total = len(obs)
+    ends = terminals | timeouts
+    if total > 1:  # a stream whose observations do not chain is cut into episodes there
+        chained = (next_obs[:-1] == obs[1:]).reshape(total - 1, -1).all(axis=1)
+        cut = np.append(~ends[:-1] & ~chained, False)
+        timeouts = timeouts | cut
+        ends = ends | cut
+    stops = np.flatnonzero(ends) + 1
+    starts = np.concatenate([[0], stops[:-1]])
+    if unfinished == "drop":
+        keep = ~open_end[stops - 1]
+        starts, stops = starts[keep], stops[keep]
+    if len(starts) == 0:
+        raise ValueError("the buffer holds no finished episode to export (unfinished='drop')")
+    obs_shape = tuple(buffer.observation_space.shape or ())
+    action_space = buffer.action_space
+    if normalized_actions and isinstance(action_space, spaces.Box):
+        action_space = spaces.Box(-1.0, 1.0, shape=action_space.shape, dtype=action_space.dtype)  # type: ignore[arg-type]
+    action_shape = tuple(action_space.shape or ())
+    sources = data["sources"].astype(np.int64)
+    episodes = []
+    for episode_id, (start, stop) in enumerate(zip(starts.tolist(), stops.tolist())):
+        episode_obs = np.concatenate([obs[start:stop], next_obs[stop - 1 : stop]])
+        episodes.append(
+            EpisodeBuffer(
+                id=episode_id,
+                observations=episode_obs.reshape(stop - start + 1, *obs_shape),
+                actions=data["actions"][start:stop].reshape(stop - start, *action_shape),
+                rewards=data["rewards"][start:stop],
+                terminations=terminals[start:stop],
+                truncations=timeouts[start:stop],
+                infos={MINARI_SOURCE_INFO: np.concatenate([sources[start : start + 1], sources[start:stop]])},
+            )
+        )
+    if description is None:
+        description = f"Exported from an sb3_lifelong LifelongReplayBuffer ({len(episodes)} episodes)"
+    if "jpeg_encoding" in inspect.signature(minari.create_dataset_from_buffers).parameters:
+        minari_kwargs.setdefault("jpeg_encoding", False)
+    dataset = minari.create_dataset_from_buffers(
+        dataset_id,
+        episodes,
+        observation_space=buffer.observation_space,
+        action_space=action_space,
+        description=description,
+        **minari_kwargs,
+    )
+    dataset.storage.update_metadata({MINARI_SOURCES_METADATA: {str(k): v for k, v in sorted(buffer.sources.items())}})
+    return dataset
+
+
+def from_d4rl(
+    cls: type[LifelongReplayBuffer],
+    data: Union[dict[str, np.ndarray], str, os.PathLike],
+    observation_space: Optional[spaces.Space] = None,
+    action_space: Optional[spaces.Space] = None,
+    source: int = 0,
+    normalized_actions: bool = False,
+    **kwargs: Any,
+) -> LifelongReplayBuffer:
+    """Build a ``cls`` buffer from a d4rl-style dict or ``.npz`` file: see :meth:`LifelongReplayBuffer.from_d4rl`."""
+    if isinstance(observation_space, spaces.Dict):
+        raise NotImplementedError("from_d4rl: d4rl data has one observation array: Dict observation spaces are not supported")
+    where = "from_d4rl"
+    if not isinstance(data, dict):
+        where = f"from_d4rl({os.fspath(data)})"
+        data = _load_npz(data)
+    for key in ("observations", "actions", "rewards", "next_observations", "terminals"):
+        if key not in data:
+            raise KeyError(f"d4rl data has no {key!r}")
+    obs = np.asarray(data["observations"])
+    actions = np.asarray(data["actions"])
+    total = len(obs)
+    for key, value in data.items():
+        if key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts", "sources"):
+            if len(value) != total:
+                raise ValueError(f"d4rl key {key!r} has {len(value)} rows, observations have {total}")
+    if actions.ndim == 1:
+        actions = actions.reshape(-1, 1)
+    _check_finite_columns(
+        {**data, "rewards": np.asarray(data["rewards"], dtype=np.float32), "actions": actions}, where
+    )  # before anything is created
+    if observation_space is None:
+        observation_space = spaces.Box(-np.inf, np.inf, shape=obs.shape[1:], dtype=obs.dtype)  # type: ignore[arg-type]
+    if action_space is None:
+        action_space = spaces.Box(-np.inf, np.inf, shape=actions.shape[1:], dtype=actions.dtype)  # type: ignore[arg-type]
+    buffer = cls(total, observation_space, action_space, source=source, **kwargs)
+    terminals = np.asarray(data["terminals"]).astype(bool).reshape(-1)
+    timeouts = np.asarray(data.get("timeouts", np.zeros(total, dtype=bool))).astype(bool).reshape(-1)
+    next_obs = np.asarray(data["next_observations"])
+    sources = np.asarray(data["sources"]).reshape(-1) if "sources" in data else np.full(total, source)
+    if total and (sources.min() < 0 or sources.max() > MAX_SOURCE_ID):
+        raise ValueError(f"source ids must be in [0, {MAX_SOURCE_ID}]")
+    ended = terminals | timeouts
+    chained = np.zeros(total, dtype=bool)
+    if total > 1:
+        same = (next_obs[:-1] == obs[1:]).reshape(total - 1, -1).all(axis=1)
+        chained[1:] = same & ~ended[:-1]
+    streams = buffer.store.next_stream_id + np.cumsum(~chained) - 1
+    buffer.store.next_stream_id = int(streams[-1]) + 1 if total else buffer.store.next_stream_id
+    if not normalized_actions:
+        actions = _rescale_actions(actions, action_space, to_env_units=False)
+    rows = {
+        "observations": obs,
+        "next_observations": next_obs,
+        "actions": actions,
+        "rewards": np.asarray(data["rewards"], dtype=np.float32).reshape(-1),
+        "flags": ((terminals | timeouts) * FLAG_DONE + timeouts * FLAG_TIMEOUT).astype(np.uint8),
+        "sources": sources.astype(np.uint16),
+        "streams": streams.astype(np.uint32),
+        "widths": np.ones(total, dtype=np.uint16),
+    }
+    for source_id in np.unique(sources):
+        buffer._ensure_source(int(source_id))
+    buffer._append_rows(rows)
+    buffer.flush()
+    return buffer
+
+
+def from_minari(
+    cls: type[LifelongReplayBuffer],
+    dataset: Any,
+    path: Optional[Union[str, os.PathLike]] = None,
+    source: Optional[int] = None,
+    source_name: Optional[str] = None,
+    source_metadata: Optional[dict[str, Any]] = None,
+    normalized_actions: bool = False,
+    observation_space: Optional[spaces.Space] = None,
+    action_space: Optional[spaces.Space] = None,
+    **kwargs: Any,
+) -> LifelongReplayBuffer:
+    """Build a ``cls`` buffer from a Minari dataset: see :meth:`LifelongReplayBuffer.from_minari`."""
+    if isinstance(dataset, (str, os.PathLike)):
+        dataset = import_minari("LifelongReplayBuffer.from_minari").load_dataset(os.fspath(dataset))
+    observation_space = observation_space if observation_space is not None else dataset.observation_space
+    action_space = action_space if action_space is not None else dataset.action_space
+    if observation_space is None or action_space is None:
+        raise ValueError("the Minari dataset has no observation or action space: pass observation_space and action_space")
+    if isinstance(observation_space, spaces.Dict) or isinstance(action_space, spaces.Dict):
+        raise NotImplementedError("Minari import of Dict observation or action spaces is not supported")
+    dataset_id = getattr(dataset, "id", None)
+    columns = minari_columns(dataset, info_keys=(MINARI_SOURCE_INFO,))
+    lengths = columns["episode_lengths"]
+    total = int(lengths.sum())
+    name_of = dataset_id if isinstance(dataset_id, str) else type(dataset).__name__
+    _check_finite_columns(
+        {**columns, "rewards": np.asarray(columns["rewards"], dtype=np.float32)}, f"from_minari({name_of})"
+    )  # before anything is created
+    buffer = cls(total, observation_space, action_space, path=path, **kwargs)
+    common = {
+        "minari_dataset_id": dataset_id if isinstance(dataset_id, str) else None,
+        "minari_total_episodes": len(lengths),
+        "minari_total_steps": total,
+    }
+    tags = columns.get(f"info/{MINARI_SOURCE_INFO}")
+    if source is None and tags is not None:
+        sources = tags.astype(np.int64).reshape(total)
+        if total and (sources.min() < 0 or sources.max() > MAX_SOURCE_ID):
+            raise ValueError(f"the dataset's source ids must be in [0, {MAX_SOURCE_ID}]")
+        storage = getattr(dataset, "storage", None)
+        stored = storage.metadata.get(MINARI_SOURCES_METADATA, {}) if storage is not None else {}
+        for source_id in np.unique(sources).tolist():
+            info = stored.get(str(source_id)) if isinstance(stored, dict) else None
+            info = info if isinstance(info, dict) else {}
+            name = info["name"] if isinstance(info.get("name"), str) else None
+            extra: dict[str, Any] = info["metadata"] if isinstance(info.get("metadata"), dict) else {}
+            buffer._ensure_source(source_id, name, {**extra, "minari_dataset_id": common["minari_dataset_id"]})
+    else:
+        source = buffer._check_source(0 if source is None else source)
+        sources = np.full(total, source, dtype=np.int64)
+        name = source_name or f"minari:{dataset_id if isinstance(dataset_id, str) else 'dataset'}"
+        buffer._ensure_source(source, name, {**common, **dict(source_metadata or {})})
+    actions = columns["actions"].reshape(total, buffer.action_dim)
+    if not normalized_actions:
+        actions = _rescale_actions(actions, action_space, to_env_units=False)
+    terminals, timeouts = columns["terminals"], columns["timeouts"]
+    base = buffer.store.next_stream_id
+    buffer.store.next_stream_id += len(lengths)
+    rows = {
+        "observations": columns["observations"].reshape(total, *buffer.obs_shape),
+        "next_observations": columns["next_observations"].reshape(total, *buffer.obs_shape),
+        "actions": actions,
+        "rewards": np.asarray(columns["rewards"], dtype=np.float32).reshape(total),
+        "flags": ((terminals | timeouts) * FLAG_DONE + timeouts * FLAG_TIMEOUT).astype(np.uint8),
+        "sources": sources.astype(np.uint16),
+        "streams": np.repeat(np.arange(base, base + len(lengths), dtype=np.int64), lengths).astype(np.uint32),
+        "widths": np.ones(total, dtype=np.uint16),
+    }
+    buffer._append_rows(rows)
+    buffer.flush()
+    return buffer

@@ -1,0 +1,1469 @@
+"""
+On-disk / in-memory row store behind :class:`sb3_lifelong.common.buffers.LifelongReplayBuffer`.
+
+This module only depends on numpy and the standard library (it can be loaded without torch), so that
+crash tests and tools can use it in light subprocesses.
+
+Directory format (versions 1 and 2), see ``docs/modules/buffer.md``::
+
+    <path>/manifest.json     committed state (JSON, rewritten atomically after each flushed chunk)
+    <path>/<field>.bin       one append-only file per field: raw little-endian C-order rows, no header
+    <path>/writer.lock       advisory lock held by the (single) writer process
+
+Committed rows are read with memory maps (``read_mode="mmap"``, the default) or with positioned reads
+(``read_mode="pread"``: ``os.pread`` / ``os.preadv`` on file descriptors kept open, so that no page of the files
+is ever mapped into the process).
+
+Dict observations store one field per key, ``observations.<key>`` and ``next_observations.<key>`` (version 2;
+plain buffers are still written as version 1).
+
+A row ``i`` of field ``f`` lives at byte offset ``i * row_bytes(f)`` of ``f.bin``. Only the first
+``num_transitions`` rows (sum of the chunk sizes listed in the manifest) are committed; bytes after
+them are an unflushed tail of a crashed writer and are ignored by readers and cut off by the next writer.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+import mmap
+import os
+import re
+import warnings
+import weakref
+import zlib
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import numpy as np
+
+try:  # POSIX only: the writer lock is advisory and simply skipped elsewhere
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None  # type: ignore[assignment]
+
+FORMAT_NAME = "sb3-lifelong-buffer"
+FORMAT_VERSION = 2  # the newest version written (version 1 is still written when it can describe the buffer)
+READABLE_VERSIONS = (1, 2)
+# manifest keys added by version 2 (version 1 means layout "single", capacity null, first_row 0)
+V2_KEYS = ("layout", "capacity", "first_row")
+# "single": one append-only file per field, "<field>.bin", rows from 0 (every row kept);
+# "chunked": one file per flushed chunk, "chunk.<start>.bin", holding each field's rows one field after the other
+LAYOUTS = ("single", "chunked")
+CHUNK_FILE_PATTERN = re.compile(r"chunk\.([0-9]{12,19})\.bin")
+# the data files any buffer directory may hold (field files of layout "single", chunk files of layout "chunked")
+DATA_FILE_PATTERN = re.compile(
+    r"(?:(?:observations|next_observations)(?:\.[A-Za-z0-9_][A-Za-z0-9_-]{0,63})?|actions|rewards|flags|sources|streams"
+    r"|widths)\.bin|chunk\.[0-9]{12,19}\.bin"
+)
+MANIFEST_NAME = "manifest.json"
+LOCK_NAME = "writer.lock"
+MAX_MANIFEST_BYTES = 256 * 1024 * 1024
+MAX_ROW_ELEMENTS = 1 << 24
+MAX_SOURCE_ID = 65534
+# how committed rows are read: memory maps, or positioned reads into this process's memory
+READ_MODES = ("mmap", "pread")
+# read_mode "pread": rows of a field at most this many bytes apart are read with one call, gap included (adjacent
+# rows always are). Measured on 1M-2M rows of 240 bytes: 0 to 8 KiB within noise of each other, 16 KiB and more slower
+PREAD_MERGE_GAP = 4096
+
+# dtypes a manifest may name (numpy ``dtype.str``), nothing else is accepted
+ALLOWED_DTYPES = frozenset(["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"])
+# fields every buffer stores, with the dtypes that are fixed by the format (None: chosen by the spaces)
+FIELD_NAMES = ("observations", "next_observations", "actions", "rewards", "flags", "sources", "streams", "widths")
+OBS_FIELDS = ("observations", "next_observations")
+# keys of Dict observations name files (``observations.<key>.bin``): a conservative portable file-name pattern
+OBS_KEY_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,63}")
+FIXED_FIELDS = {
+    "rewards": ("<f4", ()),
+    "flags": ("|u1", ()),
+    "sources": ("<u2", ()),
+    "streams": ("<u4", ()),
+    "widths": ("<u2", ()),
+}
+FLAG_DONE = 1
+FLAG_TIMEOUT = 2
+# writer stores of this process by directory, so that unpickling can take a directory over from a stale object
+_WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictionary()
+
+
+class BufferFormatError(ValueError):
+    """A manifest or a data file (field or chunk file) is not a valid buffer directory (corrupted, truncated or hostile)."""
+
+
+# errno values of an fsync of a directory that mean "this filesystem cannot sync directories" (nothing to wait for)
+_DIR_FSYNC_UNSUPPORTED = frozenset({errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP})
+
+
+class CommitNotDurableError(OSError):
+    """
+    A buffer's new manifest was renamed into place, so its rows are committed and readable (by this object, by
+    readers and by a reopen), but the fsync of the directory that follows the rename failed: the commit may not
+    survive a power loss or an operating-system crash (it survives a crash of the process). Whichever manifest a
+    power loss leaves, the directory stays consistent: no file that the previous manifest needs is deleted until a
+    later manifest is synced. ``flush()`` (or ``close()``) writes and syncs the manifest again.
+    """
+
+
+def _explained(error: OSError, context: str) -> OSError:
+    """An OSError of the same errno (so of the same class) and file name, whose message starts with ``context``."""
+    if error.errno is None:
+        return OSError(f"{context}: {error}")
+    return OSError(error.errno, f"{context} ({error.strerror})", error.filename)
+
+
+def _fsync_dir(path: str, strict: bool = False) -> None:
+    """
+    fsync a directory, so that the entries created, renamed or deleted in it survive a power loss.
+
+    :param path: The directory
+    :param strict: Raise the ``OSError`` of a failed fsync (commits); otherwise it is ignored (deletions, which the
+        next writer redoes). A filesystem that cannot sync directories (EINVAL, ENOTSUP) or a platform that cannot
+        open them is not a failure
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # pragma: no cover (e.g. Windows)
+        return
+    try:
+        os.fsync(fd)
+    except OSError as error:
+        if strict and error.errno not in _DIR_FSYNC_UNSUPPORTED:
+            raise
+    finally:
+        os.close(fd)
+
+
+def _delete_file(path: str) -> None:
+    """Delete a chunk file (a missing one is fine). A separate function so that tests can simulate a crash here."""
+    try:
+        os.remove(path)
+    except FileNotFoundError:  # pragma: no cover (removed by hand)
+        pass
+
+
+def _write_all(fd: int, data: Any) -> None:
+    """
+    Write every byte of ``data`` at the file offset of ``fd`` (``os.write`` may write fewer bytes than asked).
+
+    :raises OSError: as ``os.write`` does, e.g. ENOSPC when the disk is full (after a short write)
+    """
+    view = memoryview(data).cast("B")
+    while len(view):
+        written = os.write(fd, view)
+        if written <= 0:  # pragma: no cover (regular files do not do this)
+            raise OSError(errno.EIO, "write() wrote nothing")
+        view = view[written:]
+
+
+def _open_for_writing(file_name: str, flags: int = 0) -> int:
+    return os.open(file_name, os.O_WRONLY | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0) | flags, 0o666)
+
+
+def _remove_quietly(file_name: str) -> None:
+    """Delete a file that a failed write left behind (nothing refers to it); never raises."""
+    try:
+        os.remove(file_name)
+    except OSError:
+        pass
+
+
+def write_json_atomic(path: str, data: dict[str, Any]) -> None:
+    """
+    Write a JSON document atomically: temporary file, fsync, rename over the target, fsync of the directory.
+
+    :param path: Target file
+    :param data: JSON-serialisable document
+    :raises OSError: (e.g. disk full) the target is unchanged and the temporary file removed
+    :raises CommitNotDurableError: only the fsync of the directory after the rename failed: the target is replaced
+        by the new document, which may not survive a power loss
+    """
+    directory = os.path.dirname(os.path.abspath(path))
+    tmp = path + ".tmp"
+    payload = json.dumps(data, indent=1, sort_keys=True, allow_nan=False).encode("utf-8")
+    try:
+        fd = _open_for_writing(tmp, os.O_CREAT | os.O_TRUNC)
+        try:
+            _write_all(fd, payload)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
+    try:
+        _fsync_dir(directory, strict=True)
+    except OSError as error:
+        raise CommitNotDurableError(
+            error.errno,
+            f"{path} was replaced, but the fsync of its directory failed ({error.strerror}): the new version may not "
+            "survive a power loss or an operating-system crash",
+        ) from error
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_json_value(value: Any, where: str, depth: int = 0) -> None:
+    if depth > 8:
+        raise BufferFormatError(f"{where}: metadata nested too deeply")
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return
+    if isinstance(value, list):
+        for item in value:
+            _check_json_value(item, where, depth + 1)
+        return
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise BufferFormatError(f"{where}: metadata keys must be strings")
+            _check_json_value(item, where, depth + 1)
+        return
+    raise BufferFormatError(f"{where}: unsupported metadata value of type {type(value).__name__}")
+
+
+def check_obs_key(key: Any) -> str:
+    """
+    Check that a Dict observation key can name a field file (``observations.<key>.bin``).
+
+    :param key: The key
+    :return: The key
+    :raises BufferFormatError: when it is not a string of 1-64 letters, digits, ``_`` or ``-`` (not starting with ``-``)
+    """
+    if not isinstance(key, str) or OBS_KEY_PATTERN.fullmatch(key) is None or key.lower() in ("con", "prn", "aux", "nul"):
+        raise BufferFormatError(
+            f"Dict observation key {key!r} cannot name a field file: keys must be 1 to 64 ASCII letters, digits, '_' "
+            "or '-' (not starting with '-')"
+        )
+    return key
+
+
+def obs_keys_of(names: Any) -> Optional[tuple[str, ...]]:
+    """
+    :param names: Field names
+    :return: The sorted keys of Dict observations, or None when the observations are one field
+    """
+    keys = sorted(name.split(".", 1)[1] for name in names if isinstance(name, str) and name.startswith("observations."))
+    return tuple(keys) if keys else None
+
+
+def field_names(obs_keys: Optional[Sequence[str]] = None) -> tuple[str, ...]:
+    """
+    :param obs_keys: Keys of Dict observations (None: one observation field)
+    :return: The fields of a buffer, in their canonical order
+    """
+    if obs_keys is None:
+        return FIELD_NAMES
+    keys = sorted(obs_keys)
+    obs = tuple(f"{base}.{key}" for base in OBS_FIELDS for key in keys)
+    return obs + FIELD_NAMES[2:]
+
+
+def validate_fields(fields: Any) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """
+    Validate the ``fields`` entry of a manifest.
+
+    :param fields: The decoded JSON value
+    :return: field name -> (dtype string, row shape), in the canonical order
+    """
+    if not isinstance(fields, dict):
+        raise BufferFormatError("manifest 'fields' must be an object")
+    obs_keys = obs_keys_of(fields)
+    if obs_keys is not None:
+        lowered = [key.lower() for key in obs_keys]
+        if len(set(lowered)) != len(lowered):
+            raise BufferFormatError(f"Dict observation keys {list(obs_keys)} differ only by case (they name files)")
+        for key in obs_keys:
+            check_obs_key(key)
+    names = field_names(obs_keys)
+    if set(fields) != set(names):
+        raise BufferFormatError(f"manifest 'fields' must name exactly {sorted(names)}, got {sorted(map(str, fields))}")
+    result: dict[str, tuple[str, tuple[int, ...]]] = {}
+    for name in names:
+        spec = fields[name]
+        if not isinstance(spec, dict) or set(spec) != {"dtype", "shape"}:
+            raise BufferFormatError(f"manifest field {name!r} must be an object with exactly 'dtype' and 'shape'")
+        dtype, shape = spec["dtype"], spec["shape"]
+        if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+            raise BufferFormatError(f"manifest field {name!r}: dtype {dtype!r} is not one of {sorted(ALLOWED_DTYPES)}")
+        if not isinstance(shape, list) or len(shape) > 8 or not all(_is_int(d) and 0 < d <= MAX_ROW_ELEMENTS for d in shape):
+            raise BufferFormatError(f"manifest field {name!r}: shape must be a list of at most 8 positive ints, got {shape!r}")
+        if math.prod(shape) > MAX_ROW_ELEMENTS:
+            raise BufferFormatError(f"manifest field {name!r}: row of {math.prod(shape)} elements is too large")
+        if name in FIXED_FIELDS and (dtype, tuple(shape)) != FIXED_FIELDS[name]:
+            raise BufferFormatError(f"manifest field {name!r} must have dtype/shape {FIXED_FIELDS[name]}, got {dtype, shape}")
+        result[name] = (dtype, tuple(shape))
+    for suffix in [""] if obs_keys is None else [f".{key}" for key in obs_keys]:
+        if result["observations" + suffix] != result["next_observations" + suffix]:
+            raise BufferFormatError(
+                f"manifest: observations{suffix} and next_observations{suffix} must have the same dtype and shape"
+            )
+    return result
+
+
+def _validate_chunks(chunks: Any, names: Sequence[str], start: Optional[int] = 0) -> int:
+    """
+    :param chunks: The ``chunks`` entry of a manifest
+    :param names: The buffer's fields
+    :param start: Row where the first chunk must start (None: anywhere, for chunk files whose oldest were evicted)
+    :return: The row after the last chunk (``start`` when there is none)
+    """
+    if not isinstance(chunks, list):
+        raise BufferFormatError("manifest 'chunks' must be a list")
+    first: Any = start
+    if first is None:
+        first = chunks[0].get("start") if chunks and isinstance(chunks[0], dict) else 0
+        if not _is_int(first) or not 0 <= first < 2**62:
+            raise BufferFormatError(f"manifest chunk 0: 'start' must be an int in [0, 2**62), got {first!r}")
+    start = int(first)
+    for k, chunk in enumerate(chunks):
+        if not isinstance(chunk, dict) or set(chunk) != {"start", "rows", "crc32"}:
+            raise BufferFormatError(f"manifest chunk {k} must be an object with exactly 'start', 'rows', 'crc32'")
+        if not _is_int(chunk["start"]) or chunk["start"] != start:
+            raise BufferFormatError(f"manifest chunk {k}: 'start' must be {start}, got {chunk['start']!r}")
+        if not _is_int(chunk["rows"]) or chunk["rows"] <= 0:
+            raise BufferFormatError(f"manifest chunk {k}: 'rows' must be a positive int, got {chunk['rows']!r}")
+        crc = chunk["crc32"]
+        if not isinstance(crc, dict) or set(crc) != set(names):
+            raise BufferFormatError(f"manifest chunk {k}: 'crc32' must give one checksum per field")
+        if not all(_is_int(v) and 0 <= v < 2**32 for v in crc.values()):
+            raise BufferFormatError(f"manifest chunk {k}: checksums must be ints in [0, 2**32)")
+        start += chunk["rows"]
+    return start
+
+
+def _validate_layout(manifest: dict[str, Any], names: list[str]) -> None:
+    """Check the chunks of a manifest against its layout, capacity and first retained row."""
+    num = manifest["num_transitions"]
+    layout: Any = manifest.get("layout", "single")
+    capacity: Any = manifest.get("capacity")
+    first_row: Any = manifest.get("first_row", 0)
+    if layout not in LAYOUTS:
+        raise BufferFormatError(f"manifest 'layout' must be one of {list(LAYOUTS)}, got {layout!r}")
+    if layout == "single" and (capacity is not None or first_row != 0):
+        raise BufferFormatError("manifest: layout 'single' keeps every row: 'capacity' must be null and 'first_row' 0")
+    if layout == "chunked" and (not _is_int(capacity) or not 1 <= capacity < 2**62):
+        raise BufferFormatError(f"manifest 'capacity' must be a positive int with layout 'chunked', got {capacity!r}")
+    end = _validate_chunks(manifest["chunks"], names, start=0 if layout == "single" else None)
+    if end != num:
+        raise BufferFormatError(f"manifest chunks hold rows up to {end} but 'num_transitions' is {num}")
+    if not _is_int(first_row) or not 0 <= first_row <= num:
+        raise BufferFormatError(f"manifest 'first_row' must be an int in [0, num_transitions], got {first_row!r}")
+    chunks = manifest["chunks"]
+    if layout == "chunked":
+        if chunks and not chunks[0]["start"] <= first_row < chunks[0]["start"] + chunks[0]["rows"]:
+            raise BufferFormatError(
+                f"manifest 'first_row' {first_row} must lie in the first chunk (rows {chunks[0]['start']} to "
+                f"{chunks[0]['start'] + chunks[0]['rows'] - 1}): chunks with no retained row are not listed"
+            )
+        if not chunks and first_row != num:
+            raise BufferFormatError("manifest: with no chunk, 'first_row' must equal 'num_transitions'")
+        if num - first_row > capacity:
+            raise BufferFormatError(f"manifest: {num - first_row} retained rows exceed the capacity {capacity}")
+
+
+def validate_manifest(manifest: Any) -> dict[str, Any]:
+    """
+    Check every entry of a decoded manifest (types, ranges, consistency). Never evaluates anything.
+
+    :param manifest: The decoded JSON document
+    :return: The same document
+    :raises BufferFormatError: with a message naming the offending entry
+    """
+    if not isinstance(manifest, dict):
+        raise BufferFormatError("manifest must be a JSON object")
+    if manifest.get("format") != FORMAT_NAME:
+        raise BufferFormatError(f"manifest 'format' must be {FORMAT_NAME!r}, got {manifest.get('format')!r}")
+    version = manifest.get("version")
+    if not _is_int(version) or version not in READABLE_VERSIONS:
+        raise BufferFormatError(f"unsupported format version {version!r} (this code reads versions {list(READABLE_VERSIONS)})")
+    expected = {"format", "version", "fields", "num_transitions", "chunks", "sources", "next_stream_id", "spaces"}
+    if version >= 2:
+        expected |= set(V2_KEYS)
+    if set(manifest) != expected:
+        raise BufferFormatError(f"manifest keys must be {sorted(expected)}, got {sorted(map(str, manifest))}")
+    fields = validate_fields(manifest["fields"])
+    if version == 1 and obs_keys_of(fields) is not None:
+        raise BufferFormatError("manifest: Dict observation fields need format version 2")
+    num = manifest["num_transitions"]
+    if not _is_int(num) or not 0 <= num < 2**62:
+        raise BufferFormatError(f"manifest 'num_transitions' must be a non-negative int, got {num!r}")
+    _validate_layout(manifest, list(fields))
+    sources = manifest["sources"]
+    if not isinstance(sources, dict):
+        raise BufferFormatError("manifest 'sources' must be an object")
+    for key, value in sources.items():
+        if not (isinstance(key, str) and key.isdigit() and int(key) <= MAX_SOURCE_ID):
+            raise BufferFormatError(f"manifest source id {key!r} must be a decimal int in [0, {MAX_SOURCE_ID}]")
+        if not isinstance(value, dict) or set(value) != {"name", "metadata"} or not isinstance(value["name"], str):
+            raise BufferFormatError(f"manifest source {key}: must be an object with a string 'name' and a 'metadata' object")
+        if not isinstance(value["metadata"], dict):
+            raise BufferFormatError(f"manifest source {key}: 'metadata' must be an object")
+        _check_json_value(value["metadata"], f"manifest source {key}")
+    stream = manifest["next_stream_id"]
+    if not _is_int(stream) or not 0 <= stream < 2**32:
+        raise BufferFormatError(f"manifest 'next_stream_id' must be an int in [0, 2**32), got {stream!r}")
+    if not isinstance(manifest["spaces"], dict):
+        raise BufferFormatError("manifest 'spaces' must be an object")
+    _check_json_value(manifest["spaces"], "manifest 'spaces'")
+    return manifest
+
+
+def read_manifest(path: str) -> dict[str, Any]:
+    """
+    Read and validate ``<path>/manifest.json``.
+
+    :param path: Buffer directory
+    :return: The validated manifest
+    """
+    file_name = os.path.join(path, MANIFEST_NAME)
+    if not os.path.isfile(file_name):
+        raise FileNotFoundError(f"{path!r} is not a buffer directory (no {MANIFEST_NAME})")
+    size = os.path.getsize(file_name)
+    if size > MAX_MANIFEST_BYTES:
+        raise BufferFormatError(f"{file_name}: manifest of {size} bytes is larger than the {MAX_MANIFEST_BYTES} allowed")
+    with open(file_name, "rb") as file:
+        raw = file.read()
+
+    def _no_constants(name: str) -> Any:
+        raise BufferFormatError(f"{file_name}: non-standard JSON constant {name}")
+
+    try:
+        manifest = json.loads(raw.decode("utf-8"), parse_constant=_no_constants)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        raise BufferFormatError(f"{file_name}: not valid JSON ({error})") from error
+    try:
+        return validate_manifest(manifest)
+    except BufferFormatError as error:
+        raise BufferFormatError(f"{file_name}: {error}") from None
+
+
+def check_read_mode(read_mode: Any, max_resident_bytes: Optional[int] = None) -> str:
+    """
+    :param read_mode: How committed rows are read: ``"mmap"`` or ``"pread"``
+    :param max_resident_bytes: The remap limit asked for with it (only meaningful with ``"mmap"``)
+    :return: The read mode
+    :raises ValueError: for another value, for ``"pread"`` with ``max_resident_bytes``, or for ``"pread"`` where the
+        OS has no ``pread``
+    """
+    if not isinstance(read_mode, str) or read_mode not in READ_MODES:
+        raise ValueError(f"read_mode must be one of {list(READ_MODES)}, got {read_mode!r}")
+    if read_mode == "pread":
+        if max_resident_bytes is not None:
+            raise ValueError(
+                "max_resident_bytes bounds the pages mapped by read_mode='mmap'; read_mode='pread' maps none: leave it None"
+            )
+        if not hasattr(os, "pread"):  # pragma: no cover (Windows)
+            raise ValueError("read_mode='pread' needs os.pread, which this OS does not have: use read_mode='mmap'")
+    return read_mode
+
+
+def _read_into(fd: int, target: memoryview, offset: int) -> None:
+    """
+    Fill ``target`` with the bytes of ``fd`` from ``offset`` (positioned reads: the file offset is not used).
+
+    :param fd: Open file descriptor
+    :param target: Writable byte buffer
+    :param offset: Byte offset in the file
+    :raises BufferFormatError: when the file ends first (truncated or replaced while open)
+    """
+    done, size = 0, len(target)
+    while done < size:
+        if hasattr(os, "preadv"):
+            count = os.preadv(fd, [target[done:]], offset + done)
+        else:  # pragma: no cover (no preadv)
+            part = os.pread(fd, size - done, offset + done)
+            target[done : done + len(part)] = part
+            count = len(part)
+        if count == 0:
+            raise BufferFormatError(
+                f"a buffer file ended at byte {offset + done} but the manifest commits rows up to byte {offset + size}; "
+                "it was truncated or replaced while open"
+            )
+        done += count
+
+
+def orphaned_data_files(path: str) -> list[str]:
+    """
+    :param path: A directory with no manifest
+    :return: The names of the buffer data files in it (field or chunk files) that are not empty or not regular files
+        (a directory whose manifest was lost). Empty field files are what a writer killed while creating the
+        directory leaves: nothing to lose
+    """
+    try:
+        entries = sorted(os.listdir(path))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    found = []
+    for entry in entries:
+        if DATA_FILE_PATTERN.fullmatch(entry):
+            file_name = os.path.join(path, entry)
+            if os.path.islink(file_name) or not os.path.isfile(file_name) or os.path.getsize(file_name) > 0:
+                found.append(entry)
+    return found
+
+
+def chunk_file_name(start: int) -> str:
+    """
+    :param start: First row of a chunk
+    :return: The name of its file in the "chunked" layout
+    """
+    return f"chunk.{start:012d}.bin"
+
+
+class RowStore:
+    """
+    Append-only table of fixed-size rows (one array per field), in memory or in a buffer directory, optionally
+    keeping only the most recent ``capacity`` rows.
+
+    Rows have global numbers (0 for the first row ever appended); indices given to :meth:`gather` and
+    :meth:`read_range` count from the oldest retained row (:attr:`first`).
+
+    In memory (``path=None``) the rows live in preallocated arrays that double when full (with a capacity, the
+    evicted rows at their front are dropped by moving the retained ones down instead). With a path, committed rows
+    are read from the files (memory-mapped, or with positioned reads, see ``read_mode``) and the unflushed rows wait
+    in a tail of ``chunk_size`` rows, written out
+    (appended, fsync'd, manifest replaced atomically) when full or on ``flush()``. Without a capacity the directory
+    has one append-only file per field (layout "single"); with one, a file per chunk (layout "chunked"), deleted
+    once the committed manifest no longer lists it.
+
+    :param fields: field name -> (dtype string, row shape)
+    :param path: Buffer directory, or None for an in-memory store
+    :param read_only: Open an existing directory without writing (another process may be writing)
+    :param chunk_size: Rows per flushed chunk
+    :param verify: Checksums to verify when opening: "all", "last" (only the last chunk: corrupted bytes in an
+        earlier chunk are not detected and are served as they are) or "none"
+    :param max_resident_bytes: Remap the files after random reads may have touched about this many bytes of
+        pages, which drops them from this process's RSS (they stay in the OS page cache). None: never. Only with
+        ``read_mode="mmap"``
+    :param capacity: Keep only the most recent ``capacity`` rows (None: keep everything). For an existing
+        directory, None keeps its stored capacity
+    :param read_mode: How committed rows are read: ``"mmap"`` (memory maps: fastest when the rows sampled are
+        mapped already, but every page touched counts in this process's RSS) or ``"pread"`` (positioned reads
+        into fresh arrays, one call per run of nearby rows: no file page is mapped, the RSS stays at the anonymous
+        memory; one file descriptor per field file or chunk file, closed by :meth:`close`). No effect in memory
+    """
+
+    def __init__(
+        self,
+        fields: Optional[dict[str, tuple[str, tuple[int, ...]]]] = None,
+        path: Optional[str] = None,
+        read_only: bool = False,
+        chunk_size: int = 10_000,
+        verify: str = "last",
+        max_resident_bytes: Optional[int] = None,
+        capacity: Optional[int] = None,
+        read_mode: str = "mmap",
+    ) -> None:
+        check_read_mode(read_mode, max_resident_bytes)
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        if verify not in ("all", "last", "none"):
+            raise ValueError(f"verify must be 'all', 'last' or 'none', got {verify!r}")
+        if capacity is not None and (
+            not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1
+        ):
+            raise ValueError(
+                f"capacity must be a positive int (the number of most recent transitions kept) or None, got {capacity!r}"
+            )
+        self.path = None if path is None else os.path.abspath(os.fspath(path))
+        self.read_only = read_only
+        self.chunk_size = chunk_size
+        self.capacity = None if capacity is None else int(capacity)
+        self.layout = "memory" if self.path is None else "single" if capacity is None else "chunked"
+        self.sources: dict[int, dict[str, Any]] = {}
+        self.spaces: dict[str, Any] = {}
+        self.next_stream_id = 0
+        self.chunks: list[dict[str, Any]] = []
+        self.num_committed = 0  # global row after the last committed row
+        self.committed_first = 0  # global row of the oldest retained committed row (the manifest's first_row)
+        self.recovered = 0
+        self.discarded_bytes = 0
+        self.removed_files: list[str] = []  # chunk files found unreferenced (and deleted) when opening
+        self._tail_start = 0  # global row of the tail's first row
+        self._lock_file: Any = None
+        self._maps: dict[str, np.ndarray] = {}  # layout "single": field -> committed rows
+        self._chunk_maps: list[dict[str, np.ndarray]] = []  # layout "chunked": one dict per entry of self.chunks
+        self._chunk_starts = np.zeros(0, dtype=np.int64)
+        self._closed = False
+        # chunk files dropped by a commit whose directory fsync failed: deleted once a later manifest is synced (the
+        # previous manifest, which lists them, may be the one a power loss leaves)
+        self._undeleted: list[str] = []
+        self.read_mode = read_mode
+        # read_mode "pread": open read descriptors by file name, and per field the descriptor and byte offset of
+        # each segment of rows (layout "single": one segment from row 0; "chunked": one per chunk); None: to open
+        self._read_fds: dict[str, int] = {}
+        self._pread_table: Optional[dict[str, tuple[list[int], np.ndarray]]] = None
+        self._segment_starts = np.zeros(1, dtype=np.int64)
+        self.max_resident_bytes = max_resident_bytes
+        self.remaps = 0  # number of remaps done to bound the RSS
+        self._baseline_file_bytes = 0
+        if self.path is not None and os.path.isfile(os.path.join(self.path, MANIFEST_NAME)):
+            manifest = self._read_consistent_manifest() if read_only else read_manifest(self.path)
+            stored = validate_fields(manifest["fields"])
+            if fields is not None and dict(fields) != stored:
+                raise ValueError(f"{self.path}: stored fields {stored} do not match the requested {fields}")
+            self.fields = stored
+            self.layout = manifest.get("layout", "single")
+            stored_capacity = manifest.get("capacity")
+            if capacity is not None and capacity != stored_capacity:
+                if self.layout == "single":
+                    raise ValueError(
+                        f"{self.path} keeps every transition in one file per field (it was created without a capacity) "
+                        "and cannot evict: copy it into a new directory with a capacity, e.g. "
+                        "merge_buffers([LifelongReplayBuffer.open(old, read_only=True)], path=new, capacity=N)"
+                    )
+                if read_only:
+                    raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
+            self.capacity = stored_capacity if capacity is None else int(capacity)
+            self._load_manifest(manifest)
+            self._open_existing(verify)
+        else:
+            orphans = [] if self.path is None else orphaned_data_files(self.path)
+            if orphans:
+                assert self.path is not None
+                listed = ", ".join(
+                    (
+                        f"{name} ({os.path.getsize(os.path.join(self.path, name))} bytes)"
+                        if os.path.isfile(os.path.join(self.path, name))
+                        else name
+                    )
+                    for name in orphans[:8]
+                )
+                more = f" and {len(orphans) - 8} more" if len(orphans) > 8 else ""
+                raise BufferFormatError(
+                    f"{self.path} has no {MANIFEST_NAME} but holds buffer data files: {listed}{more}. Its manifest was "
+                    "lost (or removed), so these rows cannot be read, and creating a buffer there would overwrite them: "
+                    "refusing. Move these files (or the whole directory) away, to keep them, or delete them if their data "
+                    "is not needed, then create the buffer again; or pass another path"
+                )
+            if fields is None:
+                raise FileNotFoundError(f"no buffer at {self.path!r} and no field specification to create one")
+            if read_only:
+                raise FileNotFoundError(f"no buffer at {self.path!r} to open read-only")
+            given = {name: (np.dtype(dt).str, tuple(int(d) for d in shape)) for name, (dt, shape) in fields.items()}
+            self.fields = validate_fields({k: {"dtype": d, "shape": list(s)} for k, (d, s) in given.items()})
+            if self.path is not None:
+                os.makedirs(self.path, exist_ok=True)
+                self._take_lock()
+                if self.layout == "single":
+                    for name in self.fields:
+                        open(self._file(name), "wb").close()
+                else:
+                    self._remove_orphans()  # empty chunk files (non-empty ones without a manifest are refused above)
+                self._write_manifest()
+        self.dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
+        self.row_bytes = {name: self.dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
+        self._tail_start = self.num_committed
+        tail_rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
+        self._tail = {name: np.empty((tail_rows, *shape), dtype=self.dtypes[name]) for name, (_, shape) in self.fields.items()}
+        self.num_tail = 0
+        self._maps_stale = False  # True while the maps (or read files) may not cover every committed row
+        if self.path is not None and self.layout == "chunked" and not read_only:
+            self._commit(self.chunks, self.num_committed)  # a smaller capacity than the stored one evicts now; maps
+        else:
+            self._remap()
+        self.recovered = len(self)
+        if self.max_resident_bytes is not None and self.path is not None:
+            try:  # file-backed pages mapped before this store (python, numpy, torch libraries)
+                with open("/proc/self/statm", "rb") as file:
+                    self._baseline_file_bytes = int(file.read().split()[2]) * mmap.PAGESIZE
+            except (OSError, ValueError, IndexError):  # pragma: no cover (not Linux)
+                pass
+        if self.discarded_bytes:
+            removed = f" ({len(self.removed_files)} unreferenced chunk files removed)" if self.removed_files else ""
+            warnings.warn(
+                f"{self.path}: recovered {self.recovered} transitions; discarded {self.discarded_bytes} bytes of "
+                f"unflushed rows left by a writer that did not close the buffer{removed}"
+            )
+
+    # ------------------------------------------------------------------ positions
+    @property
+    def end(self) -> int:
+        """Global row after the last stored row (committed or not)."""
+        return self._tail_start + self.num_tail
+
+    @property
+    def first(self) -> int:
+        """Global row of the oldest retained row (index 0 of :meth:`gather` and :meth:`read_range`)."""
+        low = self._tail_start if self.path is None else self.committed_first
+        if self.capacity is None:
+            return low
+        return max(low, self._tail_start + self.num_tail - self.capacity)
+
+    def __len__(self) -> int:
+        return self.end - self.first
+
+    # ------------------------------------------------------------------ opening / recovery
+    def _file(self, name: str) -> str:
+        assert self.path is not None
+        return os.path.join(self.path, name + ".bin")
+
+    def _chunk_file(self, chunk: dict[str, Any]) -> str:
+        assert self.path is not None
+        return os.path.join(self.path, chunk_file_name(chunk["start"]))
+
+    def _load_manifest(self, manifest: dict[str, Any]) -> None:
+        self.chunks = manifest["chunks"]
+        self.num_committed = manifest["num_transitions"]
+        self.committed_first = manifest.get("first_row", 0)
+        self.sources = {int(k): v for k, v in manifest["sources"].items()}
+        self.spaces = manifest["spaces"]
+        self.next_stream_id = manifest["next_stream_id"]
+
+    def _read_consistent_manifest(self) -> dict[str, Any]:
+        """Read-only stores: a manifest whose chunk files all exist (a writer deletes evicted chunks after a commit)."""
+        assert self.path is not None
+        for _ in range(20):
+            manifest = read_manifest(self.path)
+            if manifest.get("layout") != "chunked":
+                return manifest
+            if all(os.path.isfile(os.path.join(self.path, chunk_file_name(c["start"]))) for c in manifest["chunks"]):
+                return manifest
+        return manifest  # _open_existing names the missing file
+
+    def _take_lock(self) -> None:
+        assert self.path is not None
+        if fcntl is None:  # pragma: no cover
+            return
+        self._lock_file = open(os.path.join(self.path, LOCK_NAME), "a+")
+        try:
+            fcntl.flock(self._lock_file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._lock_file.close()
+            self._lock_file = None
+            raise RuntimeError(
+                f"{self.path} is open for writing by another buffer (process or object); open it with read_only=True"
+            ) from None
+        _WRITERS[self.path] = self
+
+    def _field_offsets(self, rows: int) -> dict[str, int]:
+        """Byte offset of each field's block in a chunk file of ``rows`` rows, and ``""`` -> the file size."""
+        offsets, offset = {}, 0
+        for name, (dtype, shape) in self.fields.items():
+            offsets[name] = offset
+            offset += rows * np.dtype(dtype).itemsize * math.prod(shape)
+        offsets[""] = offset
+        return offsets
+
+    def _open_existing(self, verify: str) -> None:
+        assert self.path is not None
+        if not self.read_only:
+            self._take_lock()
+        if self.layout == "chunked":
+            self._open_chunked(verify)
+            return
+        for name in self.fields:
+            file_name = self._file(name)
+            if not os.path.isfile(file_name) or os.path.islink(file_name):
+                raise BufferFormatError(f"{self.path}: field file {name}.bin is missing or not a regular file")
+        dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
+        sizes = {name: dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
+        for name in self.fields:
+            have = os.path.getsize(self._file(name))
+            need = self.num_committed * sizes[name]
+            if have < need:
+                raise BufferFormatError(
+                    f"{self._file(name)}: {have} bytes but the manifest commits {self.num_committed} rows ({need} bytes); "
+                    "the file was truncated or replaced"
+                )
+            if have > need and not self.read_only:
+                # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
+                with open(self._file(name), "r+b") as file:
+                    file.truncate(need)
+                    os.fsync(file.fileno())
+                self.discarded_bytes += have - need
+        checked = self.chunks if verify == "all" else self.chunks[-1:] if verify == "last" else []
+        for chunk in checked:
+            for name in self.fields:
+                with open(self._file(name), "rb") as file:
+                    file.seek(chunk["start"] * sizes[name])
+                    data = file.read(chunk["rows"] * sizes[name])
+                if zlib.crc32(data) != chunk["crc32"][name]:
+                    raise BufferFormatError(
+                        f"{self._file(name)}: checksum mismatch in chunk starting at row {chunk['start']} (corrupted data)"
+                    )
+
+    def _open_chunked(self, verify: str) -> None:
+        assert self.path is not None
+        for chunk in self.chunks:
+            file_name = self._chunk_file(chunk)
+            if not os.path.isfile(file_name) or os.path.islink(file_name):
+                raise BufferFormatError(f"{file_name}: chunk file is missing or not a regular file")
+            need = self._field_offsets(chunk["rows"])[""]
+            have = os.path.getsize(file_name)
+            if have != need:
+                raise BufferFormatError(
+                    f"{file_name}: {have} bytes but the manifest's chunk of {chunk['rows']} rows needs {need} bytes; "
+                    "the file was truncated or replaced"
+                )
+        checked = self.chunks if verify == "all" else self.chunks[-1:] if verify == "last" else []
+        for chunk in checked:
+            offsets = self._field_offsets(chunk["rows"])
+            with open(self._chunk_file(chunk), "rb") as file:
+                data = file.read()
+            for k, name in enumerate(self.fields):
+                stop = offsets[list(self.fields)[k + 1]] if k + 1 < len(self.fields) else offsets[""]
+                if zlib.crc32(data[offsets[name] : stop]) != chunk["crc32"][name]:
+                    raise BufferFormatError(f"{self._chunk_file(chunk)}: checksum mismatch in field {name!r} (corrupted data)")
+        if not self.read_only:
+            self._remove_orphans()
+
+    def _remove_orphans(self) -> None:
+        """Delete the chunk files the manifest does not list: evicted ones left by a crash after a commit, or the
+        unflushed chunk of a crash before it (writer only)."""
+        assert self.path is not None
+        listed = {chunk_file_name(chunk["start"]) for chunk in self.chunks}
+        removed = False
+        for entry in sorted(os.listdir(self.path)):
+            if CHUNK_FILE_PATTERN.fullmatch(entry) and entry not in listed:
+                file_name = os.path.join(self.path, entry)
+                if os.path.islink(file_name) or not os.path.isfile(file_name):
+                    continue
+                self.discarded_bytes += os.path.getsize(file_name)
+                _delete_file(file_name)
+                self.removed_files.append(entry)
+                removed = True
+        if removed:
+            _fsync_dir(self.path)
+
+    def _map_file(self, file_name: str, length: int) -> Optional[mmap.mmap]:
+        if length == 0:
+            return None
+        with open(file_name, "rb") as file:
+            mapped = mmap.mmap(file.fileno(), length, access=mmap.ACCESS_READ)
+        if hasattr(mapped, "madvise") and hasattr(mmap, "MADV_RANDOM"):
+            mapped.madvise(mmap.MADV_RANDOM)
+        return mapped
+
+    def _map_chunk(self, chunk: dict[str, Any]) -> dict[str, np.ndarray]:
+        rows = chunk["rows"]
+        offsets = self._field_offsets(rows)
+        mapped = self._map_file(self._chunk_file(chunk), offsets[""])
+        arrays = {}
+        for name, (_, shape) in self.fields.items():
+            count = rows * math.prod(shape)
+            array = np.frombuffer(mapped, dtype=self.dtypes[name], count=count, offset=offsets[name])  # type: ignore[arg-type]
+            arrays[name] = array.reshape(rows, *shape)
+        return arrays
+
+    def _remap(self) -> None:
+        """(Re)create the read-only memory maps over the committed rows (drops their resident pages from this process);
+        with ``read_mode="pread"``, open the files to read instead."""
+        self._maps = {}
+        self._chunk_maps = []
+        if self.path is None:
+            return
+        if self.read_mode == "pread":
+            self._sync_read_files()
+            return
+        if self.layout == "chunked":
+            self._chunk_maps = [self._map_chunk(chunk) for chunk in self.chunks]
+            self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
+            return
+        if self.num_committed == 0:
+            return
+        for name, (_, shape) in self.fields.items():
+            mapped = self._map_file(self._file(name), self.num_committed * self.row_bytes[name])
+            array = np.frombuffer(mapped, dtype=self.dtypes[name], count=self.num_committed * math.prod(shape))  # type: ignore[arg-type]
+            self._maps[name] = array.reshape(self.num_committed, *shape)
+
+    def _update_chunk_maps(self) -> None:
+        """Layout "chunked": map the chunks listed since the last call, unmap those no longer listed."""
+        if self.read_mode == "pread":
+            self._remap()  # opens the new chunk files, closes those no longer listed
+            return
+        known = {int(start): maps for start, maps in zip(self._chunk_starts.tolist(), self._chunk_maps)}
+        self._chunk_maps = [known.get(chunk["start"]) or self._map_chunk(chunk) for chunk in self.chunks]
+        self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
+
+    def refresh(self) -> int:
+        """
+        Read-only stores: re-read the manifest to see the rows a writer committed (and evicted) since.
+
+        :return: The number of retained committed rows
+        """
+        if not self.read_only or self.path is None:
+            return len(self)
+        manifest = self._read_consistent_manifest()
+        if validate_fields(manifest["fields"]) != self.fields or manifest.get("layout", "single") != self.layout:
+            raise BufferFormatError(f"{self.path}: fields or layout changed while open")
+        if manifest["num_transitions"] < self.num_committed or manifest.get("first_row", 0) < self.committed_first:
+            raise BufferFormatError(f"{self.path}: committed rows went down from {self.num_committed}")
+        changed = manifest["num_transitions"] != self.num_committed or manifest.get("first_row", 0) != self.committed_first
+        self.capacity = manifest.get("capacity")
+        self._load_manifest(manifest)
+        self._tail_start = self.num_committed
+        if changed:
+            self._sync_maps()
+        return len(self)
+
+    # ------------------------------------------------------------------ writing
+    def append(self, rows: dict[str, np.ndarray]) -> None:
+        """
+        Append rows (every field, same leading length). In a directory, once ``chunk_size`` rows are pending, the
+        pending rows and the rows of this call that complete chunks of ``chunk_size`` rows are written and committed
+        together, with one manifest; the rest of the call's rows stay pending.
+
+        All or nothing: if writing fails (e.g. ``OSError``, disk full), this raises having stored none of the rows of
+        this call, in this object or in the directory (its manifest is unchanged), whatever their number; the rows
+        pending from earlier calls stay pending. The one exception is :class:`CommitNotDurableError`: the new
+        manifest is in place and every row of this call is stored, but the commit may not survive a power loss.
+
+        :param rows: field name -> array of shape (n, *row_shape)
+        """
+        if self.read_only:
+            raise RuntimeError("buffer is open read-only")
+        if self._closed:
+            raise RuntimeError("buffer is closed (or was handed over to a buffer unpickled from it)")
+        count = len(rows["rewards"])
+        tail = self._tail
+        if self.num_tail + count <= len(tail["rewards"]) and (self.path is None or self.num_tail + count < self.chunk_size):
+            # fast path of add(): no growth, no flush
+            start, stop = self.num_tail, self.num_tail + count
+            for name in self.fields:
+                tail[name][start:stop] = rows[name]
+            self.num_tail = stop
+            return
+        if self.path is None:
+            done = 0
+            while done < count:
+                if self.num_tail == len(self._tail["rewards"]):
+                    self._make_room(count - done)
+                take = min(len(self._tail["rewards"]) - self.num_tail, count - done)
+                for name in self.fields:
+                    self._tail[name][self.num_tail : self.num_tail + take] = rows[name][done : done + take]
+                self.num_tail += take
+                done += take
+            return
+        keep = (self.num_tail + count) % self.chunk_size  # rows of this call left pending
+        not_durable: Optional[CommitNotDurableError] = None
+        try:
+            self._write_chunks(rows, count - keep)
+        except CommitNotDurableError as error:  # committed: the call's rows are stored
+            not_durable = error
+        except OSError as error:
+            raise _explained(
+                error,
+                f"{self.path}: writing failed before the commit, so none of the {count:,} transitions of this call was "
+                f"stored and the manifest is unchanged; the {self.num_tail:,} transitions pending before it stay in memory. "
+                "Repeat the call once the cause is fixed (e.g. space freed)",
+            ) from error
+        for name in self.fields:
+            self._tail[name][:keep] = rows[name][count - keep : count]
+        self.num_tail = keep
+        if not_durable is not None:
+            raise not_durable
+
+    def _make_room(self, need: int) -> None:
+        """In memory, the arrays are full: drop the evicted rows at their front (if that frees enough), else grow."""
+        evicted = self.first - self._tail_start
+        if evicted > 0 and evicted >= len(self._tail["rewards"]) // 4:
+            for name in self.fields:
+                self._tail[name][: self.num_tail - evicted] = self._tail[name][evicted : self.num_tail]
+            self._tail_start += evicted
+            self.num_tail -= evicted
+            return
+        target = max(2 * self.num_tail, self.num_tail + need)
+        if self.capacity is not None:  # twice the capacity is enough to compact rarely
+            target = max(min(target, 2 * self.capacity), self.num_tail + min(need, self.capacity), self.num_tail + 1)
+        self._grow(target)
+
+    def _grow(self, rows: int) -> None:
+        for name in self.fields:
+            new = np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype)
+            new[: self.num_tail] = self._tail[name][: self.num_tail]
+            self._tail[name] = new
+
+    def clear(self) -> None:
+        """Forget every row of an in-memory store."""
+        if self.path is not None:
+            raise RuntimeError("a directory store cannot be cleared")
+        self.num_tail = 0
+        self._tail_start = 0
+
+    def flush(self) -> None:
+        """
+        Write the pending rows as one chunk: the field files (layout "single": each cut back to its committed length
+        first, then appended to) or the chunk file (layout "chunked") are written and fsync'd, then the manifest is
+        replaced atomically, then the files of evicted chunks are deleted.
+
+        Only once the new manifest is in place does this object count the rows as committed. If anything fails
+        before (e.g. ``OSError`` ENOSPC, disk full), it raises with the committed state (on disk and in memory)
+        unchanged and the rows still pending in memory, readable and sampled as before: calling ``flush()`` again
+        (e.g. after freeing space) writes the same bytes to the same places and commits them. If only the fsync of
+        the directory after the manifest's rename fails, it raises :class:`CommitNotDurableError` with the rows
+        committed (the manifest is in place); calling ``flush()`` again writes and syncs the manifest again.
+        """
+        if self.path is None or self.read_only or self._closed:
+            return
+        if self.num_tail == 0:
+            self._write_manifest()  # source names may have changed; a commit whose directory sync failed is synced
+            self._delete_undeleted()
+            return
+        try:
+            self._write_chunks()
+        except CommitNotDurableError:
+            raise
+        except OSError as error:
+            raise _explained(
+                error,
+                f"{self.path}: flush() failed before the commit: the {self.num_tail:,} pending transitions stay in memory "
+                "(read and sampled as before) and the manifest is unchanged. flush() again once the cause is fixed "
+                "(e.g. space freed)",
+            ) from error
+
+    def _write_block(self, fd: int, name: str, chunk: dict[str, Any], lo: int, extra: Optional[dict[str, np.ndarray]]) -> None:
+        """Write field ``name`` of ``chunk`` (its rows from ``lo`` of the pending rows + ``extra``) and record its CRC."""
+        data = self._block(name, lo, lo + chunk["rows"], extra)
+        chunk["crc32"][name] = zlib.crc32(data)
+        _write_all(fd, data)
+
+    def _block(self, name: str, lo: int, hi: int, extra: Optional[dict[str, np.ndarray]]) -> memoryview:
+        """Bytes of the rows ``lo:hi`` of field ``name`` of the pending rows followed by the rows of ``extra``."""
+        pending = self.num_tail
+        if hi <= pending:
+            block = self._tail[name][lo:hi]  # contiguous: no copy
+        else:
+            assert extra is not None
+            block = np.empty((hi - lo, *self._tail[name].shape[1:]), dtype=self.dtypes[name])
+            split = max(pending - lo, 0)
+            block[:split] = self._tail[name][lo:pending]
+            block[split:] = extra[name][max(lo - pending, 0) : hi - pending]  # the tail's conversions (dtype, broadcast)
+        return memoryview(block).cast("B")  # type: ignore[arg-type]
+
+    def _write_chunks(self, extra: Optional[dict[str, np.ndarray]] = None, extra_rows: int = 0) -> None:
+        """
+        Write the pending rows followed by the first ``extra_rows`` rows of ``extra`` as chunks of at most
+        ``chunk_size`` rows (appended to the field files, or one chunk file each, fsync'd), then commit them all with
+        one manifest (:meth:`_commit`, which empties the tail).
+
+        If anything fails before the manifest is in place, this raises with nothing changed: the committed state (in
+        memory and on disk) and the pending rows are as before, and the bytes written are removed (best effort).
+
+        :param extra: Rows to write after the pending ones (field name -> array), or None
+        :param extra_rows: How many rows of ``extra`` to write
+        """
+        assert self.path is not None
+        base, total = self.num_committed, self.num_tail + extra_rows
+        bounds = [*range(0, total, self.chunk_size), total]
+        chunks: list[dict[str, Any]] = [
+            {"start": base + lo, "rows": hi - lo, "crc32": {}} for lo, hi in zip(bounds[:-1], bounds[1:])
+        ]
+        if self.layout == "chunked":
+            created = []
+            try:
+                for chunk in chunks:
+                    lo = chunk["start"] - base
+                    file_name = self._chunk_file(chunk)
+                    fd = _open_for_writing(file_name, os.O_CREAT | os.O_TRUNC)
+                    created.append(file_name)
+                    try:
+                        for name in self.fields:
+                            self._write_block(fd, name, chunk, lo, extra)
+                        os.fsync(fd)
+                    finally:
+                        os.close(fd)
+                _fsync_dir(self.path, strict=True)  # the new files' entries are durable before a manifest names them
+                self._commit([*self.chunks, *chunks], base + total)
+            except BaseException:
+                if self.num_committed == base:  # not committed: nothing refers to these files
+                    for file_name in created:
+                        _remove_quietly(file_name)
+                raise
+            return
+        written = []
+        try:
+            for name in self.fields:
+                committed_bytes = base * self.row_bytes[name]
+                fd = _open_for_writing(self._file(name))
+                written.append(name)
+                try:
+                    # bytes after the committed rows are left by a failed flush: cut them off so that this one
+                    # writes the same rows to the same place (the manifest's offsets)
+                    os.ftruncate(fd, committed_bytes)
+                    os.lseek(fd, committed_bytes, os.SEEK_SET)
+                    for chunk in chunks:
+                        self._write_block(fd, name, chunk, chunk["start"] - base, extra)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            self._commit([*self.chunks, *chunks], base + total)
+        except BaseException:
+            if self.num_committed == base:  # not committed: give the space back (best effort)
+                for name in written:
+                    try:
+                        os.truncate(self._file(name), base * self.row_bytes[name])
+                    except OSError:
+                        pass
+            raise
+
+    def _commit(self, chunks: list[dict[str, Any]], num_committed: int) -> None:
+        """
+        Commit every pending row, up to global row ``num_committed`` (listed by ``chunks``; with a capacity, the
+        chunks with no retained row are dropped): replace the manifest atomically, then, and only then, move this
+        object's committed state (the tail is emptied), delete the files of the dropped chunks and map the committed
+        rows. If the manifest cannot be written, this raises and nothing changed. If it was replaced but the
+        directory's fsync failed, the state moves all the same (the manifest in place is the new one) but the files
+        of the dropped chunks are kept until a later manifest is synced, and :class:`CommitNotDurableError` is raised.
+
+        :param chunks: The chunks of the new manifest
+        :param num_committed: Global row after the last committed row
+        """
+        committed_first = self.committed_first
+        dropped: list[dict[str, Any]] = []
+        if self.layout == "chunked":
+            # the manifest keeps the last ``capacity`` committed rows (rows still pending do not evict on disk)
+            if self.capacity is not None:
+                committed_first = max(committed_first, num_committed - self.capacity)
+            dropped = [chunk for chunk in chunks if chunk["start"] + chunk["rows"] <= committed_first]
+            chunks = chunks[len(dropped) :]
+        not_durable: Optional[CommitNotDurableError] = None
+        try:
+            self._write_manifest(chunks, num_committed, committed_first)
+        except CommitNotDurableError as error:
+            not_durable = error
+        # committed: from here on, no committed state refers to the dropped chunks
+        self.chunks, self.committed_first = chunks, committed_first
+        self.num_committed = self._tail_start = num_committed
+        self.num_tail = 0
+        self._maps_stale = True  # until the maps (or read files) follow: reads map again first
+        self._undeleted.extend(self._chunk_file(chunk) for chunk in dropped)
+        if not_durable is None:
+            self._delete_undeleted()
+        self._sync_maps()
+        if not_durable is not None:
+            raise not_durable
+
+    def _delete_undeleted(self) -> None:
+        """Delete the files of chunks dropped by commits, once the manifest in place (which does not list them) is
+        synced."""
+        if self._undeleted:
+            for file_name in self._undeleted:
+                _delete_file(file_name)
+            self._undeleted = []
+            assert self.path is not None
+            _fsync_dir(self.path)
+
+    def _sync_maps(self) -> None:
+        """Map the committed rows (or, with ``read_mode="pread"``, open their files) after a commit or a refresh."""
+        self._maps_stale = True
+        if self.layout == "chunked":
+            self._update_chunk_maps()
+        else:
+            self._remap()
+        self._maps_stale = False
+
+    def _write_manifest(
+        self,
+        chunks: Optional[list[dict[str, Any]]] = None,
+        num_committed: Optional[int] = None,
+        committed_first: Optional[int] = None,
+    ) -> None:
+        """Atomically replace the manifest: the committed state of this object, or the one given."""
+        assert self.path is not None
+        plain = self.layout == "single" and obs_keys_of(self.fields) is None
+        manifest: dict[str, Any] = {
+            "format": FORMAT_NAME,
+            "version": 1 if plain else 2,
+            "fields": {name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in self.fields.items()},
+            "num_transitions": self.num_committed if num_committed is None else num_committed,
+            "chunks": self.chunks if chunks is None else chunks,
+            "sources": {str(k): v for k, v in sorted(self.sources.items())},
+            "next_stream_id": self.next_stream_id,
+            "spaces": self.spaces,
+        }
+        if not plain:
+            first = self.committed_first if committed_first is None else committed_first
+            manifest.update(layout=self.layout, capacity=self.capacity, first_row=first)
+        try:
+            write_json_atomic(os.path.join(self.path, MANIFEST_NAME), manifest)
+        except CommitNotDurableError as error:
+            raise CommitNotDurableError(
+                error.errno,
+                f"{self.path}: the new {MANIFEST_NAME} is in place, so its {manifest['num_transitions']:,} transitions are "
+                f"committed and readable, but the fsync of the directory failed ({error.strerror}): this commit may not "
+                "survive a power loss or an operating-system crash (a crash of this process is fine). flush() (or "
+                "close()) writes and syncs the manifest again; until then, files the previous manifest needs are kept",
+            ) from error
+
+    def __getstate__(self) -> dict[str, Any]:
+        if self.path is None:
+            state = dict(self.__dict__)
+            skip = self.first - self._tail_start  # evicted rows are not pickled
+            state["_tail"] = {name: array[skip : self.num_tail].copy() for name, array in self._tail.items()}
+            state["_tail_start"] = self._tail_start + skip
+            state["num_tail"] = self.num_tail - skip
+            return state
+        # a directory store pickles as a reference to its directory: flush, then reopen on unpickling
+        self.flush()
+        return {
+            "path": self.path,
+            "read_only": self.read_only,
+            "chunk_size": self.chunk_size,
+            "max_resident_bytes": self.max_resident_bytes,
+            "read_mode": self.read_mode,
+        }
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if "fields" in state:
+            # in memory; pickles of earlier versions have no read mode
+            self.__dict__.update(
+                read_mode="mmap", _read_fds={}, _pread_table=None, _segment_starts=np.zeros(1, np.int64), _maps_stale=False
+            )
+            self.__dict__.update(state)
+            return
+        previous = _WRITERS.get(state["path"])
+        if previous is not None and not state["read_only"]:
+            # e.g. SB3's load() built a buffer on this directory before load_replay_buffer(): hand it over
+            previous.close()
+        try:
+            self.__init__(**state)  # type: ignore[misc]
+        except RuntimeError:
+            warnings.warn(f"{state['path']} is locked by another writer: the unpickled buffer is opened read-only")
+            self.__init__(**dict(state, read_only=True))  # type: ignore[misc]
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # pragma: no cover (interpreter shutdown)
+            pass
+
+    def close(self) -> None:
+        """Flush, release the writer lock and close the read file descriptors (``read_mode="pread"``). Reading the
+        committed rows keeps working (with ``"pread"`` it opens the files again, until the next ``close()``)."""
+        if not getattr(self, "_closed", True):
+            self.flush()
+            self._closed = True
+            if self._lock_file is not None:
+                self._lock_file.close()
+                self._lock_file = None
+        self._close_read_files()
+
+    # ------------------------------------------------------------------ read_mode "pread": files
+    def _sync_read_files(self, reopen: bool = False) -> None:
+        """
+        Open the files of the committed rows that are not open yet, close those no longer needed, and index them.
+
+        :param reopen: Also when the store was closed and its files are not open (otherwise left to the next read)
+        """
+        if self._closed and self._pread_table is None and not reopen:
+            return
+        assert self.path is not None
+        if self.layout == "chunked":
+            names = [self._chunk_file(chunk) for chunk in self.chunks]
+        else:
+            names = [self._file(name) for name in self.fields]
+        for name in names:  # first, so that a file that cannot be opened leaves the current table working
+            if name not in self._read_fds:
+                self._read_fds[name] = os.open(name, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        table: dict[str, tuple[list[int], np.ndarray]] = {}
+        if self.layout == "chunked":
+            fds = [self._read_fds[name] for name in names]
+            offsets = [self._field_offsets(chunk["rows"]) for chunk in self.chunks]
+            for name in self.fields:
+                table[name] = (fds, np.array([offset[name] for offset in offsets], dtype=np.int64))
+            self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
+            self._segment_starts = self._chunk_starts
+        else:
+            for name in self.fields:
+                table[name] = ([self._read_fds[self._file(name)]], np.zeros(1, dtype=np.int64))
+            self._segment_starts = np.zeros(1, dtype=np.int64)
+        self._pread_table = table
+        for name in set(self._read_fds) - set(names):  # chunks evicted (their files may be deleted already)
+            os.close(self._read_fds.pop(name))
+
+    def _close_read_files(self) -> None:
+        """Close the read file descriptors (``read_mode="pread"``)."""
+        fds = getattr(self, "_read_fds", None)
+        while fds:
+            os.close(fds.popitem()[1])
+        self._pread_table = None
+
+    def _read_table(self) -> dict[str, tuple[list[int], np.ndarray]]:
+        if self._pread_table is None:  # closed: open the files again
+            self._sync_read_files(reopen=True)
+            assert self._pread_table is not None
+        return self._pread_table
+
+    @staticmethod
+    def _pread_exact(fd: int, size: int, offset: int) -> bytes:
+        """``size`` bytes at ``offset`` (a single read may return fewer, e.g. past 2 GiB on Linux)."""
+        data = bytearray(size)
+        _read_into(fd, memoryview(data), offset)
+        return bytes(data)
+
+    def _pread_gather(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
+        """
+        Committed rows by global number (any order, repeats allowed), read with positioned reads: the distinct rows
+        in file order, one call per run of rows of a field whose bytes are at most ``PREAD_MERGE_GAP`` apart.
+
+        :param names: Fields to read
+        :param rows: Global row numbers, all committed and retained
+        :return: field name -> array of shape (len(rows), *row_shape)
+        """
+        if len(rows) == 0:
+            return self._empty(names)
+        table = self._read_table()
+        unique, inverse = np.unique(rows, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        starts = self._segment_starts
+        segment = np.searchsorted(starts, unique, side="right") - 1 if len(starts) > 1 else np.zeros(len(unique), np.int64)
+        local = unique - starts[segment]
+        new_segment = np.ones(len(unique), dtype=bool)
+        new_segment[1:] = segment[1:] != segment[:-1]
+        result = {}
+        for name in names:
+            fds, bases = table[name]
+            size = self.row_bytes[name]
+            offsets = bases[segment] + local * size
+            new_read = new_segment.copy()
+            new_read[1:] |= offsets[1:] - offsets[:-1] > size + PREAD_MERGE_GAP
+            firsts = np.flatnonzero(new_read)
+            low = offsets[firsts]
+            sizes = offsets[np.append(firsts[1:], len(unique)) - 1] + size - low
+            read_fds = [fds[k] for k in segment[firsts].tolist()]
+            data = b"".join(map(os.pread, read_fds, sizes.tolist(), low.tolist()))
+            if len(data) != int(sizes.sum()):  # short reads (a run past 2 GiB): read again, in full
+                data = b"".join(map(self._pread_exact, read_fds, sizes.tolist(), low.tolist()))
+            run = np.cumsum(new_read) - 1
+            position = ((np.cumsum(sizes) - sizes)[run] + offsets - low[run]) // size  # row of `data` of each row
+            rows_read = np.frombuffer(data, dtype=self.dtypes[name]).reshape(-1, *self.fields[name][1])
+            result[name] = rows_read[position[inverse]]
+        return result
+
+    def _pread_range(self, name: str, lo: int, hi: int) -> np.ndarray:
+        """Committed rows ``lo:hi`` (global numbers) of a field, read into a new array."""
+        shape = self.fields[name][1]
+        out = np.empty((max(hi - lo, 0), *shape), dtype=self.dtypes[name])
+        if hi <= lo:
+            return out
+        fds, bases = self._read_table()[name]
+        size = self.row_bytes[name]
+        view = memoryview(out.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
+        starts = self._segment_starts.tolist()
+        ends = [*starts[1:], self.num_committed]
+        for k, (start, end) in enumerate(zip(starts, ends)):
+            a, b = max(lo, start), min(hi, end)
+            if a >= b:
+                continue
+            _read_into(fds[k], view[(a - lo) * size : (b - lo) * size], int(bases[k]) + (a - start) * size)
+        return out
+
+    # ------------------------------------------------------------------ reading
+    def _limit_resident(self) -> None:
+        # random reads map file pages into this process (with the kernel's fault-around, 64 KiB per touched row);
+        # they count in its RSS although the kernel can drop them at will. Past the limit, remap to unmap them.
+        try:
+            with open("/proc/self/statm", "rb") as file:
+                mapped_file_pages = int(file.read().split()[2])
+        except (OSError, ValueError, IndexError):  # pragma: no cover (not Linux)
+            return
+        assert self.max_resident_bytes is not None
+        if mapped_file_pages * mmap.PAGESIZE > self.max_resident_bytes + self._baseline_file_bytes:
+            self._remap()
+            self.remaps += 1
+
+    def _gather_committed(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Committed rows by global number."""
+        if self.read_mode == "pread":
+            return self._pread_gather(names, rows)
+        if self.layout != "chunked":
+            return {name: self._maps[name][rows] for name in names}
+        owner = np.searchsorted(self._chunk_starts, rows, side="right") - 1
+        if len(rows) == 0:
+            return self._empty(names)
+        if owner[0] == owner[-1] and (owner == owner[0]).all():  # one chunk (e.g. a single row)
+            k = int(owner[0])
+            local = rows - self._chunk_starts[k]
+            return {name: self._chunk_maps[k][name][local] for name in names}
+        order = np.argsort(owner, kind="stable")
+        sorted_owner = owner[order]
+        bounds = np.concatenate([[0], np.flatnonzero(sorted_owner[1:] != sorted_owner[:-1]) + 1, [len(rows)]]).tolist()
+        result = self._empty(names, len(rows))
+        if 4 * (len(bounds) - 1) > len(rows):
+            # rows spread over many chunks (random sampling): copying row by row is the fastest in numpy
+            pairs = list(zip(owner.tolist(), (rows - self._chunk_starts[owner]).tolist()))
+            for name in names:
+                out, maps = result[name], [chunk[name] for chunk in self._chunk_maps]
+                for i, (k, j) in enumerate(pairs):
+                    out[i] = maps[k][j]
+            return result
+        local = rows[order] - self._chunk_starts[sorted_owner]
+        for name in names:  # one read per chunk touched
+            ordered = np.empty_like(result[name])
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                ordered[a:b] = self._chunk_maps[int(sorted_owner[a])][name][local[a:b]]
+            result[name][order] = ordered
+        return result
+
+    def _empty(self, names: tuple[str, ...], rows: int = 0) -> dict[str, np.ndarray]:
+        return {name: np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype) for name in names}
+
+    def gather(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, np.ndarray]:
+        """
+        Copy the rows ``indices`` (ints in [0, len(self)), counted from the oldest retained row) of several fields.
+
+        :param names: Fields to read
+        :param indices: Row indices
+        :return: field name -> array of shape (len(indices), *row_shape)
+        """
+        if self._maps_stale:
+            self._sync_maps()
+        first = self.first
+        rows = indices + first if first else indices
+        committed = self._tail_start
+        if self.path is None or self.num_committed == 0 or (len(rows) and rows.min() >= committed):
+            local = rows - committed if committed else rows
+            return {name: self._tail[name][local] for name in names}
+        if self.max_resident_bytes is not None:
+            self._limit_resident()
+        if len(rows) == 0 or rows.max() < committed:
+            return self._gather_committed(names, rows)
+        in_tail = rows >= committed
+        from_maps = self._gather_committed(names, rows[~in_tail])
+        tail_idx = rows[in_tail] - committed
+        result = {}
+        for name in names:
+            out = np.empty((len(rows), *self._tail[name].shape[1:]), dtype=self._tail[name].dtype)
+            out[in_tail] = self._tail[name][tail_idx]
+            out[~in_tail] = from_maps[name]
+            result[name] = out
+        return result
+
+    def read_range(self, name: str, start: int, stop: int) -> np.ndarray:
+        """
+        Rows ``start:stop`` of a field, counted from the oldest retained row (a view of a map or of the tail where
+        possible, a copy when the range spans several or is read with ``read_mode="pread"``).
+
+        :param name: Field
+        :param start: First row
+        :param stop: One past the last row
+        :return: Array of shape (stop - start, *row_shape)
+        """
+        if self._maps_stale:
+            self._sync_maps()
+        first = self.first
+        lo, hi = start + first, max(start, stop) + first
+        committed = self._tail_start
+        pieces = []
+        if lo < committed and self.path is not None:
+            if self.read_mode == "pread":
+                pieces.append(self._pread_range(name, lo, min(hi, committed)))
+            elif self.layout == "chunked":
+                for k, chunk in enumerate(self.chunks):
+                    a, b = max(lo, chunk["start"]), min(hi, committed, chunk["start"] + chunk["rows"])
+                    if a < b:
+                        pieces.append(self._chunk_maps[k][name][a - chunk["start"] : b - chunk["start"]])
+            else:
+                pieces.append(self._maps[name][lo : min(hi, committed)])
+        if hi > committed:
+            pieces.append(self._tail[name][max(lo, committed) - committed : hi - committed])
+        if len(pieces) == 1:
+            return pieces[0]
+        if not pieces:
+            return self._tail[name][:0]
+        return np.concatenate(pieces)
