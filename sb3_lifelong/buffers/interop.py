@@ -269,8 +269,8 @@ def from_d4rl(
     if total > 1:
         same = (next_obs[:-1] == obs[1:]).reshape(total - 1, -1).all(axis=1)
         chained[1:] = same & ~ended[:-1]
-    streams = buffer.store.next_stream_id + np.cumsum(~chained) - 1
-    buffer.store.next_stream_id = int(streams[-1]) + 1 if total else buffer.store.next_stream_id
+    new_streams = np.cumsum(~chained) - 1
+    streams = buffer.store.reserve_streams(int(new_streams[-1]) + 1 if total else 0) + new_streams
     if not normalized_actions:
         actions = _rescale_actions(actions, action_space, to_env_units=False)
     rows = {
@@ -347,8 +347,7 @@ def from_minari(
     if not normalized_actions:
         actions = _rescale_actions(actions, action_space, to_env_units=False)
     terminals, timeouts = columns["terminals"], columns["timeouts"]
-    base = buffer.store.next_stream_id
-    buffer.store.next_stream_id += len(lengths)
+    base = buffer.store.reserve_streams(len(lengths))
     rows = {
         "observations": columns["observations"].reshape(total, *buffer.obs_shape),
         "next_observations": columns["next_observations"].reshape(total, *buffer.obs_shape),

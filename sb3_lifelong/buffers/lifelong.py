@@ -634,7 +634,9 @@ class LifelongReplayBuffer(_LifelongSampler):
             read_mode=read_mode,
         )
         if not self.store.spaces and observation_space is not None and action_space is not None and not read_only:
-            self.store.spaces = {"observation": _space_to_json(observation_space), "action": _space_to_json(action_space)}
+            self.store.describe_spaces(
+                {"observation": _space_to_json(observation_space), "action": _space_to_json(action_space)}
+            )
         if observation_space is None or action_space is None:
             act_dtype, act_shape = self.store.fields["actions"]
             observation_space = _observation_space_from_store(self.store)
@@ -762,19 +764,16 @@ class LifelongReplayBuffer(_LifelongSampler):
         return int(source)
 
     def _ensure_source(self, source: int, name: Optional[str] = None, metadata: Optional[dict[str, Any]] = None) -> None:
-        known = self.store.sources.get(source)
+        known = self.store.source(source)
         if known is None:
-            self.store.sources[source] = {"name": name or f"source_{source}", "metadata": dict(metadata or {})}
+            self.store.set_source(source, name or f"source_{source}", metadata or {})
         elif name is not None or metadata is not None:
-            self.store.sources[source] = {
-                "name": name or known["name"],
-                "metadata": dict(metadata) if metadata is not None else known["metadata"],
-            }
+            self.store.set_source(source, name or known["name"], metadata if metadata is not None else known["metadata"])
 
     @property
     def sources(self) -> dict[int, dict[str, Any]]:
         """Source id -> ``{"name": str, "metadata": dict}`` (e.g. the dynamics parameters of a stage)."""
-        return {k: {"name": v["name"], "metadata": dict(v["metadata"])} for k, v in self.store.sources.items()}
+        return self.store.source_table()
 
     def set_source(self, source: int, name: Optional[str] = None, metadata: Optional[dict[str, Any]] = None) -> None:
         """
@@ -793,13 +792,13 @@ class LifelongReplayBuffer(_LifelongSampler):
         if stage is None:
             return self._source
         source = int(stage)
-        known = self.store.sources.get(source)
+        known = self.store.source(source)
         if known is not None and known["name"] != f"source_{source}":
             return source  # named already: by an earlier transition of this stage, or by set_source(name=...)
         source = self._check_source(source)
         params = info.get(DYNAMICS_PARAMS_KEY)
         metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
-        self.store.sources[source] = {"name": f"stage_{source}", "metadata": metadata}
+        self.store.set_source(source, f"stage_{source}", metadata)
         return source
 
     # ------------------------------------------------------------------ writing
@@ -871,14 +870,13 @@ class LifelongReplayBuffer(_LifelongSampler):
         rows = self._checked_rows(obs, next_obs, actions, reward, width)
         # checked: nothing of this call was stored (or changed) before
         if width != self._width or self._stream_base is None:
-            self._stream_base = self.store.next_stream_id
-            self.store.next_stream_id += width
+            self._stream_base = self.store.reserve_streams(width)
             self._width = width
             self.n_envs = width
             self._stream_ids = np.arange(self._stream_base, self._stream_base + width, dtype=np.uint32)
             self._widths = np.full(width, width, dtype=np.uint16)
         source = self._source
-        if source not in self.store.sources:
+        if self.store.source(source) is None:
             self._ensure_source(source)
         sources = self._source_rows
         if self._source_rows_of != source or len(sources) != width:
@@ -1117,4 +1115,4 @@ class LifelongReplayBuffer(_LifelongSampler):
 
     def __repr__(self) -> str:
         where = self.store.path or "memory"
-        return f"LifelongReplayBuffer({self.size()} transitions, {len(self.store.sources)} sources, {where})"
+        return f"LifelongReplayBuffer({self.size()} transitions, {len(self.store.source_table())} sources, {where})"

@@ -1403,6 +1403,51 @@ class RowStore:
     def _empty(self, names: tuple[str, ...], rows: int = 0) -> dict[str, np.ndarray]:
         return {name: np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype) for name in names}
 
+    # ------------------------------------------------------------------ streams, sources and spaces
+    def reserve_streams(self, count: int) -> int:
+        """
+        Reserve ``count`` new stream ids (a stream is one env's chain of transitions: n-step returns and next
+        actions never cross streams). Saved with the next commit.
+
+        :param count: how many ids
+        :return: the first of the ``count`` consecutive new ids
+        """
+        if count < 0:
+            raise ValueError(f"count must be >= 0, got {count}")
+        first = self.next_stream_id
+        self.next_stream_id += int(count)
+        return first
+
+    def source(self, source: int) -> Optional[dict[str, Any]]:
+        """:return: ``{"name": str, "metadata": dict}`` of a source id (a copy), or None if it is not known"""
+        known = self.sources.get(source)
+        return None if known is None else {"name": known["name"], "metadata": dict(known["metadata"])}
+
+    def set_source(self, source: int, name: str, metadata: dict[str, Any]) -> None:
+        """
+        Name a source id and set its metadata (JSON-serialisable); saved with the next commit.
+
+        :param source: source id in ``[0, MAX_SOURCE_ID]``
+        :param name: its name
+        :param metadata: its metadata (copied)
+        """
+        if not 0 <= int(source) <= MAX_SOURCE_ID:
+            raise ValueError(f"source ids are ints in [0, {MAX_SOURCE_ID}], got {source!r}")
+        self.sources[int(source)] = {"name": str(name), "metadata": dict(metadata)}
+
+    def source_table(self) -> dict[int, dict[str, Any]]:
+        """:return: every source id -> ``{"name": str, "metadata": dict}`` (copies)"""
+        return {k: {"name": v["name"], "metadata": dict(v["metadata"])} for k, v in self.sources.items()}
+
+    def describe_spaces(self, spaces: dict[str, Any]) -> None:
+        """
+        Record the JSON description of the observation and action spaces, once: a store that has one keeps it.
+
+        :param spaces: ``{"observation": ..., "action": ...}``
+        """
+        if not self.spaces:
+            self.spaces = dict(spaces)
+
     def gather(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, np.ndarray]:
         """
         Copy the rows ``indices`` (ints in [0, len(self)), counted from the oldest retained row) of several fields.

@@ -137,13 +137,12 @@ def merge_buffers(
     for source, info in view.sources.items():
         merged._ensure_source(source, info["name"], info["metadata"])
     for buffer, first_row in zip(buffers, starts):
-        base = merged.store.next_stream_id
+        base = merged.store.reserve_streams(buffer.store.next_stream_id)  # the copy's stream ids, shifted
         total = buffer.size()
         for start in range(int(first_row), total, _COPY_BLOCK):
             stop = min(total, start + _COPY_BLOCK)
             rows = {name: np.asarray(buffer.store.read_range(name, start, stop)) for name in merged.store.fields}
             rows["streams"] = (rows["streams"].astype(np.int64) + base).astype(np.uint32)
             merged._append_rows(rows)
-        merged.store.next_stream_id = base + buffer.store.next_stream_id
     merged.flush()
     return merged
