@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
 
 from sb3_lifelong import CRR, LifelongReplayBuffer
 from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
@@ -135,11 +136,16 @@ def test_clear_errors():
         model.select_source(1)
     with pytest.raises(ValueError, match="offline diagnostic"):
         model.learn(10)
-    with pytest.raises(ValueError, match="sarsa"):
-        CRR.from_offline_data(buffer, actor_per_source=True, critic_target="sarsa")
-    data = buffer.to_d4rl()  # no source tags once exported
-    with pytest.raises(ValueError, match="source-tagged"):
-        CRR.from_offline_data(data, actor_per_source=True, action_space=ACT)
+    # one actor per source with SARSA targets: the lifelong buffer gives both the sources and the next actions
+    sarsa = CRR.from_offline_data(buffer, actor_per_source=True, critic_target="sarsa", batch_size=16, seed=0)
+    sarsa.learn_offline(5, log_interval=0)
+    assert sarsa.replay_buffer is buffer and sarsa._n_updates == 5
+    data = buffer.to_d4rl()  # the export keeps the source ids, and the import reads them back
+    assert CRR.from_offline_data(data, actor_per_source=True, action_space=ACT).source_ids == sorted(buffer.source_counts())
+    untagged = ReplayBuffer(50, OBS, ACT)
+    untagged.add(np.zeros(OBS.shape), np.zeros(OBS.shape), np.zeros(ACT.shape), 0.0, False, [{}])
+    with pytest.raises(ValueError, match="source-tagged"):  # an SB3 buffer has no sources
+        CRR.from_offline_data(untagged, actor_per_source=True)
     with pytest.raises(ValueError, match="actor_per_source=True"):
         CRR.from_offline_data(buffer).select_source(0)
     # data with a source the model has no actor for

@@ -8,17 +8,16 @@ import pytest
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 
-from sb3_lifelong import BC, CRR
+from sb3_lifelong import BC, CRR, LifelongReplayBuffer
 from sb3_lifelong.common.datasets import (
     OfflineDataError,
-    OfflineReplayBuffer,
+    OfflineSamples,
     load_d4rl,
     minari_to_d4rl,
-    next_actions_of,
     replay_buffer_to_d4rl,
     validate_d4rl,
 )
-from sb3_lifelong.common.offline import make_eval_envs, resolve_data
+from sb3_lifelong.common.offline import as_lifelong_data, make_eval_envs, resolve_data
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), batch_size=16, seed=0)
 
@@ -57,9 +56,10 @@ def test_dict_source_scales_actions_and_trains():
     pendulum = gym.make("Pendulum-v1")  # action bounds +-2
     model = CRR.from_offline_data(data, env=pendulum, **SMALL)
     buffer = model.replay_buffer
-    assert isinstance(buffer, OfflineReplayBuffer) and buffer.size() == 60 and buffer.full
-    np.testing.assert_allclose(buffer.actions[:, 0], data["actions"] / 2.0, atol=1e-6)
-    np.testing.assert_array_equal(buffer.observations[:, 0], data["observations"])
+    assert isinstance(buffer, LifelongReplayBuffer) and buffer.size() == 60 and buffer.path is None
+    stored = buffer.to_d4rl(by_episode=False, normalized_actions=True)
+    np.testing.assert_allclose(stored["actions"][:, 0], data["actions"][:, 0] / 2.0, atol=1e-6)
+    np.testing.assert_array_equal(stored["observations"], data["observations"])
     # timeouts are stored as done + timeout: no effect on bootstrapping
     samples = buffer.sample(200)
     assert float(samples.dones.sum()) == 0.0
@@ -73,7 +73,8 @@ def test_npz_source(tmp_path):
     np.savez(path, **data)
     model = BC.from_offline_data(str(path), action_space=spaces.Box(-2, 2, (1,)), **SMALL)
     assert model.replay_buffer.size() == 60
-    np.testing.assert_allclose(model.replay_buffer.actions[:, 0], data["actions"] / 2.0, atol=1e-6)
+    stored = model.replay_buffer.to_d4rl(by_episode=False, normalized_actions=True)
+    np.testing.assert_allclose(stored["actions"][:, 0], data["actions"][:, 0] / 2.0, atol=1e-6)
     model.learn_offline(10, log_interval=0)
     with pytest.raises(FileNotFoundError):
         CRR.from_offline_data(str(tmp_path / "missing.npz"))
@@ -111,31 +112,64 @@ def test_replay_buffer_to_d4rl_time_order_and_sarsa():
     # rows of one env are in time order: each next_observation is obs + 1 and starts the following row
     continues = ~data["terminals"][:29]
     np.testing.assert_array_equal(first_env[1:][continues], data["next_observations"][:29][continues])
-    next_actions, known = next_actions_of(data)
+    # the lifelong copy of an SB3 buffer knows the next action of every row whose trajectory goes on
+    copy = as_lifelong_data(buffer)
+    assert isinstance(copy, LifelongReplayBuffer) and copy.size() == 60
+    samples, _ = copy._get_samples_and_sources(np.arange(60), None, next_actions=True)
+    known = samples.next_action_mask.numpy()[:, 0].astype(bool)
     assert known[:29].sum() == continues.sum() and not known[29]
-    np.testing.assert_array_equal(next_actions[:29][known[:29]], data["actions"][1:30][known[:29]])
-    # SARSA on an SB3 buffer: the buffer is converted to one that knows next actions
+    np.testing.assert_allclose(samples.next_actions.numpy()[:29][known[:29]], data["actions"][1:30][known[:29]], atol=1e-6)
+    # SARSA on an SB3 buffer: the buffer is converted to a lifelong one, which knows next actions
     model = CRR.from_offline_data(buffer, critic_target="sarsa", **SMALL)
     model.learn_offline(5, log_interval=0)
-    assert isinstance(model.replay_buffer, OfflineReplayBuffer)
+    assert isinstance(model.replay_buffer, LifelongReplayBuffer)
 
 
 def test_lifelong_buffer_source():
-    buffers = pytest.importorskip("sb3_lifelong.common.buffers")
-    try:
-        buffer = buffers.LifelongReplayBuffer.from_d4rl(
-            make_data(action_scale=1.0),
-            observation_space=spaces.Box(-np.inf, np.inf, (3,)),
-            action_space=spaces.Box(-1, 1, (1,)),
-        )
-    except Exception as error:
-        pytest.skip(f"LifelongReplayBuffer not usable yet: {error}")
+    buffer = LifelongReplayBuffer.from_d4rl(
+        make_data(action_scale=1.0),
+        observation_space=spaces.Box(-np.inf, np.inf, (3,)),
+        action_space=spaces.Box(-1, 1, (1,)),
+    )
     model = CRR.from_offline_data(buffer, **SMALL)
     assert model.replay_buffer is buffer
     model.learn_offline(10, log_interval=0)
     sarsa = CRR.from_offline_data(buffer, critic_target="sarsa", **SMALL)
     sarsa.learn_offline(5, log_interval=0)
-    assert isinstance(sarsa.replay_buffer, OfflineReplayBuffer) and sarsa.replay_buffer.next_action_known.any()
+    assert sarsa.replay_buffer is buffer  # SARSA reads the lifetime buffer itself: no copy
+    batch = buffer.sample(64, next_actions=True)
+    assert isinstance(batch, OfflineSamples) and batch.next_action_mask.any()
+
+
+@pytest.mark.parametrize("n_steps", [1, 3])
+def test_next_actions_follow_each_env_stream(n_steps):
+    """Two envs written interleaved, episodes of different lengths: the next action is the same env's next one."""
+    obs_space, act_space = spaces.Box(-np.inf, np.inf, (2,)), spaces.Box(-1, 1, (1,))
+    buffer = LifelongReplayBuffer(200, obs_space, act_space, n_envs=2, n_steps=n_steps, gamma=0.9)
+    lengths = (4, 3)  # env 0 ends an episode every 4 steps (a terminal), env 1 every 3 (a timeout)
+    actions = np.zeros((30, 2), dtype=np.float32)
+    for t in range(30):
+        actions[t] = [0.001 * t, -0.001 * t]  # a row's action says which env and step it is
+        dones = np.array([(t + 1) % lengths[0] == 0, (t + 1) % lengths[1] == 0])
+        infos = [{}, {"TimeLimit.truncated": bool(dones[1])}]
+        obs = np.array([[t, 0.0], [t, 1.0]], dtype=np.float32)
+        buffer.add(obs, obs + 1, actions[t].reshape(2, 1), np.ones(2), dones, infos)
+    rows = np.arange(buffer.size())
+    samples, _ = buffer._get_samples_and_sources(rows, None, next_actions=True)
+    mask = samples.next_action_mask.numpy()[:, 0]
+    got = samples.next_actions.numpy()[:, 0]
+    for row in rows:
+        t, env = divmod(int(row), 2)
+        last = t  # the step whose next observation the sample bootstraps from
+        for _ in range(n_steps - 1):
+            if (last + 1) % lengths[env] == 0 or last + 1 >= 30:
+                break
+            last += 1
+        ends = (last + 1) % lengths[env] == 0
+        expected_known = not ends and last + 1 < 30
+        assert mask[row] == float(expected_known), (row, n_steps)
+        if expected_known:
+            assert got[row] == pytest.approx(actions[last + 1, env])
 
 
 class _FakeMinariDataset:
@@ -163,7 +197,7 @@ def test_minari_source():
     assert data["timeouts"].tolist() == [False] * 6 + [True]
     model = CRR.from_offline_data(_FakeMinariDataset(), **SMALL)
     assert model.action_space == _FakeMinariDataset.action_space  # the dataset's spaces are used
-    np.testing.assert_allclose(model.replay_buffer.actions[:7, 0], 0.5)  # 1.5 in [-3, 3]
+    np.testing.assert_allclose(model.replay_buffer.to_d4rl(normalized_actions=True)["actions"][:7, 0], 0.5)  # 1.5 in [-3, 3]
     model.learn_offline(5, log_interval=0)
 
 
@@ -201,7 +235,7 @@ def test_space_inference():
 def test_out_of_bound_actions_are_clipped_with_a_warning():
     with pytest.warns(UserWarning, match="outside the action space"):
         model = BC.from_offline_data(make_data(action_scale=3.0), action_space=spaces.Box(-1, 1, (1,)), **SMALL)
-    assert np.abs(model.replay_buffer.actions).max() <= 1.0
+    assert np.abs(model.replay_buffer.to_d4rl(normalized_actions=True)["actions"]).max() <= 1.0
 
 
 def test_bad_spaces():

@@ -35,6 +35,7 @@ from sb3_lifelong.buffers.storage import (
     obs_keys_of,
 )
 from sb3_lifelong.common.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
+from sb3_lifelong.common.datasets import OfflineSamples
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongReplayBuffer"]
 
@@ -345,7 +346,11 @@ class _LifelongSampler(ReplayBuffer):
         return indices
 
     def sample(  # type: ignore[override]
-        self, batch_size: int, env: Optional[VecNormalize] = None, return_sources: bool = False
+        self,
+        batch_size: int,
+        env: Optional[VecNormalize] = None,
+        return_sources: bool = False,
+        next_actions: bool = False,
     ) -> Union[_Samples, tuple[_Samples, th.Tensor]]:
         """
         Sample transitions uniformly (or with the per-source weights) over everything stored.
@@ -353,10 +358,13 @@ class _LifelongSampler(ReplayBuffer):
         :param batch_size: Number of transitions
         :param env: VecNormalize to normalise observations and rewards with
         :param return_sources: Also return the source ids of the batch (a long tensor)
+        :param next_actions: Also return the action the data took at each sample's (last) next observation, for
+            SARSA targets: ``OfflineSamples`` with ``next_actions`` (zeros where unknown) and ``next_action_mask``
+            (1.0 where the same stream goes on after that transition without an episode end)
         :return: The samples (``discounts`` is set when ``n_steps > 1``, like SB3's ``NStepReplayBuffer``;
             ``DictReplayBufferSamples`` for Dict observations), and the source ids if asked.
         """
-        samples, sources = self._get_samples_and_sources(self._sample_indices(batch_size), env)
+        samples, sources = self._get_samples_and_sources(self._sample_indices(batch_size), env, next_actions)
         if return_sources:
             return samples, th.as_tensor(sources.astype(np.int64), device=self.device)
         return samples
@@ -386,11 +394,13 @@ class _LifelongSampler(ReplayBuffer):
     def _get_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize] = None) -> _Samples:  # type: ignore[override]
         return self._get_samples_and_sources(batch_inds, env)[0]
 
-    def _get_samples_and_sources(self, batch_inds: np.ndarray, env: Optional[VecNormalize]) -> tuple[_Samples, np.ndarray]:
-        """:return: the samples of rows ``batch_inds`` and their source ids"""
+    def _get_samples_and_sources(
+        self, batch_inds: np.ndarray, env: Optional[VecNormalize], next_actions: bool = False
+    ) -> tuple[_Samples, np.ndarray]:
+        """:return: the samples of rows ``batch_inds`` (with the data's next actions if asked) and their source ids"""
         batch_inds = np.asarray(batch_inds, dtype=np.int64)
         if self.n_steps > 1:
-            return self._get_n_step_samples(batch_inds, env)
+            return self._get_n_step_samples(batch_inds, env, next_actions)
         rows = self._gather_rows(("observations", "actions", "next_observations", "rewards", "flags", "sources"), batch_inds)
         flags = rows["flags"]
         dones = ((flags & FLAG_DONE) != 0) & ((flags & FLAG_TIMEOUT) == 0)
@@ -402,9 +412,13 @@ class _LifelongSampler(ReplayBuffer):
             dones=self._tensor(dones.astype(np.float32).reshape(-1, 1)),
             rewards=self._tensor(self._normalize_reward(rewards.reshape(-1, 1), env).astype(np.float32, copy=False)),
         )
+        if next_actions:
+            samples = self._with_next_actions(samples, batch_inds, flags)
         return samples, rows["sources"]
 
-    def _get_n_step_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize]) -> tuple[_Samples, np.ndarray]:
+    def _get_n_step_samples(
+        self, batch_inds: np.ndarray, env: Optional[VecNormalize], next_actions: bool = False
+    ) -> tuple[_Samples, np.ndarray]:
         total = self.size()
         first = self._gather_rows(("observations", "actions", "rewards", "flags", "sources", "streams", "widths"), batch_inds)
         steps = np.arange(1, self.n_steps)
@@ -441,7 +455,34 @@ class _LifelongSampler(ReplayBuffer):
             rewards=self._tensor(returns),
             discounts=self._tensor(discounts),
         )
+        if next_actions:
+            samples = self._with_next_actions(samples, last, last_flags)
         return samples, first["sources"]
+
+    def _with_next_actions(self, samples: _Samples, last: np.ndarray, last_flags: np.ndarray) -> OfflineSamples:
+        """
+        :param samples: the batch
+        :param last: the row whose next observation each sample bootstraps from
+        :param last_flags: the flags of those rows
+        :return: the batch plus the action taken at that next observation, where the same stream goes on
+        """
+        total = self.size()
+        own = self._gather(("streams", "widths"), last)
+        successor = last + own["widths"].astype(np.int64)
+        in_range = successor < total
+        later = self._gather(("actions", "streams"), np.where(in_range, successor, last))
+        known = in_range & (later["streams"] == own["streams"]) & ((last_flags & (FLAG_DONE | FLAG_TIMEOUT)) == 0)
+        actions = np.where(known[:, None], later["actions"].reshape(len(last), -1), 0.0).astype(np.float32)
+        return OfflineSamples(
+            observations=samples.observations,
+            actions=samples.actions,
+            next_observations=samples.next_observations,
+            dones=samples.dones,
+            rewards=samples.rewards,
+            discounts=samples.discounts,
+            next_actions=self._tensor(actions.reshape(len(last), *later["actions"].shape[1:])),
+            next_action_mask=self._tensor(known.astype(np.float32).reshape(-1, 1)),
+        )
 
     # ------------------------------------------------------------------ export
     def to_d4rl(self, by_episode: bool = True, normalized_actions: bool = False) -> dict[str, np.ndarray]:

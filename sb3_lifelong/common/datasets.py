@@ -9,8 +9,9 @@ The canonical in-memory form is a *d4rl dict* of equal-length arrays:
 - ``terminals`` ``[N]``: the episode ended in a terminal state (no bootstrapping)
 - ``timeouts`` ``[N]`` (optional): the episode was cut by a time limit (bootstrapping continues)
 
-It is turned into an :class:`OfflineReplayBuffer`, an SB3 ``ReplayBuffer`` that also knows each transition's next
-action in the data (for SARSA targets).
+It is turned into an in-memory :class:`~sb3_lifelong.buffers.LifelongReplayBuffer` (``from_d4rl``), the one
+buffer every offline algorithm reads: it keeps each transition's source and chains consecutive rows into
+trajectories, so it also gives the next action in the data (for SARSA targets).
 """
 
 import os
@@ -22,28 +23,26 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.vec_env import VecNormalize
+from stable_baselines3.common.type_aliases import PyTorchObs
 
 __all__ = [
     "OPTIONAL_KEYS",
     "REQUIRED_KEYS",
     "OfflineData",
     "OfflineDataError",
-    "OfflineReplayBuffer",
     "OfflineSamples",
-    "d4rl_to_replay_buffer",
     "import_minari",
     "infer_spaces",
     "load_d4rl",
     "minari_columns",
     "minari_to_d4rl",
-    "next_actions_of",
+    "normalize_actions",
     "replay_buffer_to_d4rl",
     "validate_d4rl",
 ]
 
 REQUIRED_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals")
-OPTIONAL_KEYS = ("timeouts",)
+OPTIONAL_KEYS = ("timeouts", "sources")
 
 # What the offline entry points accept
 OfflineData = Union[ReplayBuffer, Mapping[str, Any], str, os.PathLike, Any]
@@ -54,11 +53,11 @@ class OfflineDataError(ValueError):
 
 
 class OfflineSamples(NamedTuple):
-    """``ReplayBufferSamples`` plus the next action recorded in the data (for SARSA targets)."""
+    """``ReplayBufferSamples`` (or ``DictReplayBufferSamples``) plus the next action recorded in the data (for SARSA)."""
 
-    observations: th.Tensor
+    observations: PyTorchObs
     actions: th.Tensor
-    next_observations: th.Tensor
+    next_observations: PyTorchObs
     dones: th.Tensor
     rewards: th.Tensor
     discounts: Optional[th.Tensor] = None
@@ -103,9 +102,9 @@ def validate_d4rl(data: Mapping[str, Any]) -> dict[str, np.ndarray]:
     Check a d4rl-style dict and return a clean copy of its standard keys (other keys are dropped).
 
     :param data: mapping with ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals`` and
-        optionally ``timeouts``
+        optionally ``timeouts`` and ``sources`` (the source id of each transition, as ``to_d4rl`` exports them)
     :return: dict with float observations, ``actions`` ``[N, action_dim]``, ``rewards`` ``[N]`` (float32), boolean
-        ``terminals`` and ``timeouts``
+        ``terminals`` and ``timeouts``, and ``sources`` ``[N]`` (int64) when given
     :raises OfflineDataError: on missing keys, mismatched lengths or shapes, wrong dtypes, NaN or infinite values
     """
     if not isinstance(data, Mapping):
@@ -153,7 +152,7 @@ def validate_d4rl(data: Mapping[str, Any]) -> dict[str, np.ndarray]:
     def float_obs(array: np.ndarray) -> np.ndarray:
         return array.astype(np.float32) if array.dtype == np.float64 else array
 
-    return {
+    clean = {
         "observations": float_obs(obs),
         "next_observations": float_obs(next_obs),
         "actions": actions.astype(np.float32),
@@ -161,6 +160,14 @@ def validate_d4rl(data: Mapping[str, Any]) -> dict[str, np.ndarray]:
         "terminals": flags["terminals"],
         "timeouts": flags["timeouts"],
     }
+    if "sources" in arrays:
+        sources = arrays["sources"]
+        if sources.dtype.kind not in "iu" or sources.size != total or sources.ndim > 2:
+            raise OfflineDataError(f"sources must be integer source ids, [N] (or [N, 1]), got {sources.dtype} {sources.shape}")
+        if sources.min() < 0 or sources.max() > 65534:
+            raise OfflineDataError(f"sources must be in [0, 65534], got values in [{sources.min()}, {sources.max()}]")
+        clean["sources"] = sources.reshape(total).astype(np.int64)
+    return clean
 
 
 def load_d4rl(data: Union[Mapping[str, Any], str, os.PathLike]) -> dict[str, np.ndarray]:
@@ -261,7 +268,7 @@ def minari_to_d4rl(dataset: Any) -> tuple[dict[str, np.ndarray], Optional[spaces
         minari = import_minari(f"{dataset!r} is not a file, so it was taken as a Minari dataset id; loading it")
         dataset = minari.load_dataset(dataset)
     columns = minari_columns(dataset)
-    data = validate_d4rl({key: columns[key] for key in REQUIRED_KEYS + OPTIONAL_KEYS})
+    data = validate_d4rl({key: columns[key] for key in (*REQUIRED_KEYS, "timeouts")})
     return data, getattr(dataset, "observation_space", None), getattr(dataset, "action_space", None)
 
 
@@ -284,7 +291,7 @@ def replay_buffer_to_d4rl(buffer: ReplayBuffer) -> dict[str, np.ndarray]:
         raise OfflineDataError("the replay buffer is empty")
     # rows in time order: a full circular buffer starts at pos
     order = (np.arange(size) + buffer.pos) % buffer.buffer_size if buffer.full else np.arange(size)
-    columns: dict[str, list[np.ndarray]] = {key: [] for key in REQUIRED_KEYS + OPTIONAL_KEYS}
+    columns: dict[str, list[np.ndarray]] = {key: [] for key in (*REQUIRED_KEYS, "timeouts")}
     for env_index in range(buffer.n_envs):
         if buffer.optimize_memory_usage:
             next_obs = buffer.observations[(order + 1) % buffer.buffer_size, env_index]
@@ -302,26 +309,6 @@ def replay_buffer_to_d4rl(buffer: ReplayBuffer) -> dict[str, np.ndarray]:
         for key in columns:
             columns[key] = [value[:-1] for value in columns[key]]
     return validate_d4rl({key: np.concatenate(values) for key, values in columns.items()})
-
-
-def next_actions_of(data: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """
-    The action taken at each transition's next observation, where the data shows it: row ``i + 1`` continues row
-    ``i`` when row ``i`` did not end an episode and ``observations[i + 1] == next_observations[i]``.
-
-    :param data: a validated d4rl dict
-    :return: ``next_actions`` (zeros where unknown) and a boolean mask of where they are known
-    """
-    obs, next_obs, actions = data["observations"], data["next_observations"], data["actions"]
-    total = len(obs)
-    known = np.zeros(total, dtype=bool)
-    next_actions = np.zeros_like(actions)
-    if total > 1:
-        ended = data["terminals"][:-1] | data["timeouts"][:-1]
-        continues = (next_obs[:-1] == obs[1:]).reshape(total - 1, -1).all(axis=1) & ~ended
-        known[:-1] = continues
-        next_actions[:-1][continues] = actions[1:][continues]
-    return next_actions, known
 
 
 def _is_box_bounded(space: spaces.Space) -> bool:
@@ -380,62 +367,18 @@ def infer_spaces(
     return observation_space, action_space
 
 
-class OfflineReplayBuffer(ReplayBuffer):
+def normalize_actions(
+    data: Mapping[str, np.ndarray], action_space: spaces.Box, normalized_actions: bool = False
+) -> np.ndarray:
     """
-    A full, single-env SB3 ``ReplayBuffer`` built from offline data, that also samples each transition's next
-    action in the data (``OfflineSamples.next_actions``, for SARSA critic targets).
-
-    Build it with :func:`d4rl_to_replay_buffer`. ``add`` keeps working (the buffer is circular, like SB3's); rows
-    added that way have no known next action.
-    """
-
-    next_actions: np.ndarray
-    next_action_known: np.ndarray
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.next_actions = np.zeros_like(self.actions[:, 0])
-        self.next_action_known = np.zeros(self.buffer_size, dtype=bool)
-
-    def add(self, *args: Any, **kwargs: Any) -> None:
-        self.next_action_known[self.pos] = False
-        super().add(*args, **kwargs)
-
-    def _get_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize] = None) -> OfflineSamples:  # type: ignore[override]
-        obs = self._normalize_obs(self.observations[batch_inds, 0], env)
-        next_obs = self._normalize_obs(self.next_observations[batch_inds, 0], env)
-        dones = self.dones[batch_inds, 0] * (1 - self.timeouts[batch_inds, 0])
-        return OfflineSamples(
-            observations=self.to_torch(obs),  # type: ignore[arg-type]
-            actions=self.to_torch(self.actions[batch_inds, 0]),
-            next_observations=self.to_torch(next_obs),  # type: ignore[arg-type]
-            dones=self.to_torch(dones.reshape(-1, 1)),
-            rewards=self.to_torch(self._normalize_reward(self.rewards[batch_inds, 0].reshape(-1, 1), env)),
-            next_actions=self.to_torch(self.next_actions[batch_inds]),
-            next_action_mask=self.to_torch(self.next_action_known[batch_inds].astype(np.float32).reshape(-1, 1)),
-        )
-
-
-def d4rl_to_replay_buffer(
-    data: Mapping[str, np.ndarray],
-    observation_space: spaces.Space,
-    action_space: spaces.Box,
-    device: Union[th.device, str] = "auto",
-    normalized_actions: bool = False,
-) -> OfflineReplayBuffer:
-    """
-    Copy a validated d4rl dict into an :class:`OfflineReplayBuffer`, normalising the actions to ``[-1, 1]`` with
-    the action space's bounds (as SB3 stores them for squashed policies). Actions outside the bounds are clipped,
-    with a warning.
+    The data's actions normalised to ``[-1, 1]`` with the action space's bounds (as SB3 stores them for squashed
+    policies). Actions outside the bounds are clipped, with a warning.
 
     :param data: a validated d4rl dict (see :func:`validate_d4rl`)
-    :param observation_space: observation space
     :param action_space: bounded Box action space
-    :param device: device of the sampled tensors
     :param normalized_actions: whether the data's actions are already normalised to ``[-1, 1]``
-    :return: the full buffer
+    :return: the normalised actions, float32
     """
-    total = len(data["observations"])
     actions: np.ndarray = data["actions"].astype(np.float32)
     if not normalized_actions:
         low, high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
@@ -443,20 +386,7 @@ def d4rl_to_replay_buffer(
     outside = np.abs(actions) > 1.0 + 1e-5
     if outside.any():
         warnings.warn(
-            f"{int(outside.any(axis=1).sum())} of {total} actions lie outside the action space's bounds: clipped",
+            f"{int(outside.any(axis=1).sum())} of {len(actions)} actions lie outside the action space's bounds: clipped",
             stacklevel=3,
         )
-    actions = np.clip(actions, -1.0, 1.0)
-    buffer = OfflineReplayBuffer(total, observation_space, action_space, device=device, n_envs=1)
-    buffer.observations[:, 0] = data["observations"]
-    buffer.next_observations[:, 0] = data["next_observations"]
-    buffer.actions[:, 0] = actions
-    buffer.rewards[:, 0] = data["rewards"]
-    buffer.dones[:, 0] = data["terminals"] | data["timeouts"]
-    buffer.timeouts[:, 0] = data["timeouts"]
-    next_actions, known = next_actions_of({**data, "actions": actions})
-    buffer.next_actions[:] = next_actions
-    buffer.next_action_known[:] = known
-    buffer.pos = 0
-    buffer.full = True
-    return buffer
+    return np.clip(actions, -1.0, 1.0)

@@ -30,16 +30,16 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Progr
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import DummyVecEnv
 
+from sb3_lifelong.buffers import LifelongBufferView, LifelongReplayBuffer
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.callbacks import EvalEnvs, MultiEnvEvalCallback, make_eval_envs
 from sb3_lifelong.common.datasets import (
     OfflineData,
     OfflineDataError,
-    OfflineReplayBuffer,
-    d4rl_to_replay_buffer,
     infer_spaces,
     load_d4rl,
     minari_to_d4rl,
+    normalize_actions,
     replay_buffer_to_d4rl,
 )
 
@@ -110,19 +110,27 @@ def resolve_data(
         action_space = spaces_from_data[1]
     normalized = bool(normalized_actions)
     observation_space, action_space = infer_spaces(d4rl, observation_space, action_space, normalized)
-    return d4rl_to_replay_buffer(d4rl, observation_space, action_space, device=device, normalized_actions=normalized)
+    assert isinstance(action_space, spaces.Box)
+    d4rl = {**d4rl, "actions": normalize_actions(d4rl, action_space, normalized)}
+    return LifelongReplayBuffer.from_d4rl(
+        d4rl, observation_space, action_space, normalized_actions=True, device=utils.get_device(device)
+    )
 
 
-def with_next_actions(buffer: ReplayBuffer) -> OfflineReplayBuffer:
+def as_lifelong_data(buffer: ReplayBuffer) -> Union[LifelongReplayBuffer, LifelongBufferView]:
     """
     :param buffer: a replay buffer
-    :return: the buffer itself if it records next actions, else a copy that does (for SARSA targets)
+    :return: the buffer itself if it is a lifelong buffer or view (which know each transition's source and the
+        next action in its stream), else an in-memory ``LifelongReplayBuffer`` copy of an SB3 buffer's rows
     """
-    if isinstance(buffer, OfflineReplayBuffer):
+    if isinstance(buffer, (LifelongReplayBuffer, LifelongBufferView)):
         return buffer
-    data = replay_buffer_to_d4rl(buffer)
-    return d4rl_to_replay_buffer(
-        data, buffer.observation_space, buffer.action_space, device=buffer.device, normalized_actions=True  # type: ignore[arg-type]
+    return LifelongReplayBuffer.from_d4rl(
+        replay_buffer_to_d4rl(buffer),
+        buffer.observation_space,
+        buffer.action_space,
+        normalized_actions=True,
+        device=buffer.device,
     )
 
 

@@ -15,7 +15,7 @@ from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_lifelong.common.distributional import CategoricalCritic, CriticLoss, sum_of
-from sb3_lifelong.common.offline import LifelongOfflineAlgorithm, with_next_actions
+from sb3_lifelong.common.offline import LifelongOfflineAlgorithm, as_lifelong_data
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
 from sb3_lifelong.common.utils import SCORING_DTYPES, LowPrecisionCopy, sample_gaussian, score_actions
 from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor
@@ -393,8 +393,6 @@ class CRR(LifelongOfflineAlgorithm):
             "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
             "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
         }
-        if self.actor_per_source and self.critic_target_type == "sarsa":
-            raise ValueError("actor_per_source=True does not support critic_target='sarsa' (its data carries no sources)")
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
             attributes = {"critic_target": "critic_target_type"}
@@ -458,9 +456,11 @@ class CRR(LifelongOfflineAlgorithm):
             is then asked for the batch only)
         """
         buffer: Any = self.replay_buffer
+        # SARSA targets read the next action in the data: the lifelong buffer gives it (learn_offline ensures one)
+        extra = {"next_actions": True} if self.critic_target_type == "sarsa" else {}
         if self._head_of_source is None:
-            return buffer.sample(batch_size, env=self._vec_normalize_env), None
-        replay_data, sources = buffer.sample(batch_size, env=self._vec_normalize_env, return_sources=True)
+            return buffer.sample(batch_size, env=self._vec_normalize_env, **extra), None
+        replay_data, sources = buffer.sample(batch_size, env=self._vec_normalize_env, return_sources=True, **extra)
         return replay_data, self._source_heads(sources.cpu().numpy())
 
     def _source_heads(self, sources: np.ndarray) -> th.Tensor:
@@ -483,7 +483,7 @@ class CRR(LifelongOfflineAlgorithm):
     def _prepare_offline_buffer(self) -> None:
         if self.critic_target_type == "sarsa":
             assert self.replay_buffer is not None
-            self.replay_buffer = with_next_actions(self.replay_buffer)
+            self.replay_buffer = as_lifelong_data(self.replay_buffer)
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
