@@ -1,0 +1,81 @@
+"""The package's layers import downwards only (docs/guide/architecture.md): a move that breaks this fails here."""
+
+import ast
+import pathlib
+
+import pytest
+
+PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "sb3_lifelong"
+
+#: layer of each module prefix, lowest first; a module may import its own layer and the layers below it
+LAYERS = [
+    ("sb3_lifelong.common.contract", 0),
+    ("sb3_lifelong.common.datasets", 0),
+    ("sb3_lifelong.envs", 1),
+    ("sb3_lifelong.buffers", 1),
+    ("sb3_lifelong.common", 2),
+    ("sb3_lifelong.mpo", 3),
+    ("sb3_lifelong.crr", 3),
+    ("sb3_lifelong.bc", 3),
+    ("sb3_lifelong.distill", 4),
+    ("sb3_lifelong", 5),  # the package's __init__ (the public names), and names imported from it
+    ("sb3_lifelong.zoo", 6),
+    ("sb3_lifelong.experiments", 6),
+    ("sb3_lifelong.plotting", 7),
+]
+#: names the package's __init__ exports (``from sb3_lifelong import MPO`` is an import of layer 5)
+PUBLIC = {"sb3_lifelong.BC", "sb3_lifelong.CRR", "sb3_lifelong.MPO", "sb3_lifelong.LifelongReplayBuffer"}
+#: modules that only re-export a lower or higher layer's names under an older path (no code of their own)
+SHIMS = {"sb3_lifelong.common.buffers", "sb3_lifelong.common.buffer_storage", "sb3_lifelong.common.distill"}
+#: the algorithms do not import each other
+PEERS = ("sb3_lifelong.mpo", "sb3_lifelong.crr", "sb3_lifelong.bc")
+
+
+def layer_of(module: str) -> int:
+    if module in PUBLIC:
+        return layer_of("sb3_lifelong")
+    for prefix, layer in LAYERS:
+        if module == prefix or (prefix != "sb3_lifelong" and module.startswith(prefix + ".")):
+            return layer
+    raise AssertionError(f"{module} is in no layer: add it to LAYERS (and to docs/guide/architecture.md)")
+
+
+def module_name(path: pathlib.Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports_of(path: pathlib.Path) -> set[str]:
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found.update(f"{node.module}.{alias.name}" for alias in node.names)
+        elif isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+    return {name for name in found if name.split(".")[0] == "sb3_lifelong"}
+
+
+MODULES = sorted(PACKAGE.rglob("*.py"))
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda path: module_name(path))
+def test_imports_go_downwards(path):
+    module = module_name(path)
+    if module in SHIMS:
+        return
+    own = layer_of(module)
+    for imported in imports_of(path):
+        try:
+            target = layer_of(imported)
+        except AssertionError:
+            continue  # a name imported from a module (e.g. sb3_lifelong.buffers.LifelongReplayBuffer) is checked as its module
+        assert target <= own, f"{module} (layer {own}) imports {imported} (layer {target}): imports must go downwards"
+        for peer in PEERS:
+            if module.startswith(peer) and imported.startswith(PEERS) and not imported.startswith(peer):
+                raise AssertionError(f"{module} imports another algorithm, {imported}")
+
+
+def test_every_module_has_a_layer():
+    for path in MODULES:
+        layer_of(module_name(path))
