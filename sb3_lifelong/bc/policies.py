@@ -3,10 +3,9 @@
 from typing import Any
 
 from gymnasium import spaces
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
 from stable_baselines3.common.type_aliases import Schedule
 
-from sb3_lifelong.common.policies import GaussianActor, GaussianPolicy, set_training_flags
+from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActor, GaussianPolicy, set_training_flags
 
 
 class BCPolicy(GaussianPolicy):
@@ -29,22 +28,10 @@ class BCPolicy(GaussianPolicy):
         set_training_flags(self, mode, self.actor)
 
 
-class MultiInputPolicy(BCPolicy):
+class MultiInputPolicy(DictObservationsMixin, BCPolicy):
     """
     BC policy for Dict observation spaces (``CombinedExtractor`` by default). See :class:`BCPolicy`.
     """
-
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
-        **kwargs: Any,
-    ):
-        super().__init__(
-            observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
-        )
 
 
 MlpPolicy = BCPolicy

@@ -10,6 +10,7 @@ from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
+    CombinedExtractor,
     FlattenExtractor,
     create_mlp,
     get_actor_critic_arch,
@@ -345,3 +346,22 @@ class GaussianActorCriticPolicy(GaussianPolicy):
         :param mode: if true, set to training mode, else set to evaluation mode
         """
         set_training_flags(self, mode, self.actor, self.critic)
+
+
+class DictObservationsMixin:
+    """
+    Mixed in before a policy class of this package, makes its ``features_extractor_class`` default to SB3's
+    ``CombinedExtractor``: the policy for Dict observation spaces (``MultiInputPolicy``), as in SB3.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
+        **kwargs: Any,
+    ):
+        super().__init__(  # type: ignore[call-arg]
+            observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
+        )

@@ -5,12 +5,12 @@ from typing import Any, Optional, Union
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_lifelong.common.distributional import CategoricalCritic
-from sb3_lifelong.common.policies import GaussianActor, GaussianActorCriticPolicy
+from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActor, GaussianActorCriticPolicy
 
 
 def _select_rows(obs: PyTorchObs, rows: th.Tensor) -> PyTorchObs:
@@ -157,23 +157,11 @@ class CRRPolicy(GaussianActorCriticPolicy):
         return CategoricalCritic(**critic_kwargs, n_atoms=self.n_atoms, v_min=self.v_min, v_max=self.v_max).to(self.device)
 
 
-class MultiInputPolicy(CRRPolicy):
+class MultiInputPolicy(DictObservationsMixin, CRRPolicy):
     """
     CRR policy for Dict observation spaces (``CombinedExtractor`` by default).
     See :class:`CRRPolicy` for the parameters.
     """
-
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
-        **kwargs: Any,
-    ):
-        super().__init__(
-            observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
-        )
 
 
 MlpPolicy = CRRPolicy

@@ -1,12 +1,6 @@
 """Policies of MPO: the shared Gaussian actor-critic."""
 
-from typing import Any
-
-from gymnasium import spaces
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
-from stable_baselines3.common.type_aliases import Schedule
-
-from sb3_lifelong.common.policies import GaussianActorCriticPolicy
+from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActorCriticPolicy
 
 
 class MPOPolicy(GaussianActorCriticPolicy):
@@ -16,22 +10,10 @@ class MPOPolicy(GaussianActorCriticPolicy):
     """
 
 
-class MultiInputPolicy(MPOPolicy):
+class MultiInputPolicy(DictObservationsMixin, MPOPolicy):
     """
     MPO policy for Dict observation spaces (``CombinedExtractor`` by default). See :class:`MPOPolicy`.
     """
-
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
-        **kwargs: Any,
-    ):
-        super().__init__(
-            observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
-        )
 
 
 MlpPolicy = MPOPolicy
