@@ -1,7 +1,10 @@
 """The low-precision (bfloat16) scoring pass: accuracy against float32, synchronisation, the "auto" rule, resume."""
 
+import gymnasium as gym
 import pytest
 import torch as th
+from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import utils
@@ -152,3 +155,25 @@ def test_relu_in_place_matches_relu(dtype):
     assert out is x and out.dtype == dtype
     assert th.equal(out, expected) and not (out < 0).any()
     assert (out == 0).sum() == (expected == 0).sum()
+
+
+def test_split_first_layer_for_wide_observations(monkeypatch):
+    """OP3-sized inputs (68 + 20): the bf16 pass computes the state's part of the first layer once per state."""
+    obs_space, act_space = gym.spaces.Box(-1, 1, (68,)), gym.spaces.Box(-1, 1, (20,))
+    critic = ContinuousCritic(obs_space, act_space, [256, 256], FlattenExtractor(obs_space), 68, n_critics=2)
+    copy = LowPrecisionCopy(critic)
+    th.manual_seed(0)
+    obs, actions = th.rand(64, 68) * 2 - 1, th.rand(20, 64, 20) * 2 - 1
+    with th.no_grad():
+        exact = score_actions(critic, obs, actions)
+        split = score_actions(critic, obs, actions, copy)
+        monkeypatch.setattr(utils, "SPLIT_MIN_FEATURES", 10_000)  # the stacked bf16 product, for comparison
+        stacked = score_actions(critic, obs, actions, copy)
+    spread = exact.std(dim=0).mean()
+    assert not th.equal(split, stacked)  # the split path ran
+    assert (split - exact).abs().mean() <= Q_MEAN_ERROR_OF_SPREAD * spread
+    assert (split - exact).abs().mean() <= 2 * (stacked - exact).abs().mean()
+    monkeypatch.undo()
+    assert utils._splits_first_layer(critic.q_networks[0], 68, 20, copy)
+    assert not utils._splits_first_layer(critic.q_networks[0], 11, 3, copy)  # Hopper-sized: one product is faster
+    assert not utils._splits_first_layer(critic.q_networks[0], 68, 20, None)  # float32: the exact stacked pass

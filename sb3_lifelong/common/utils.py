@@ -156,19 +156,28 @@ def relu_in_place(x: th.Tensor) -> th.Tensor:
 
 
 def _run_mlp_no_grad(
-    critic: nn.Module, index: int, mlp: nn.Module, inputs: th.Tensor, low_precision: Optional[LowPrecisionCopy] = None
+    critic: nn.Module,
+    index: int,
+    mlp: nn.Module,
+    inputs: th.Tensor,
+    low_precision: Optional[LowPrecisionCopy] = None,
+    first: int = 0,
+    owned: bool = False,
 ) -> th.Tensor:
     """
     Evaluate a ``Linear``/activation stack without autograd, writing every ``Linear`` output into a buffer kept
     on the critic (reused across gradient steps) and applying ReLUs in place. Same result, bit for bit, as
     ``mlp(inputs)``, without allocating (and page-faulting in) several ``[num_samples * batch, 256]``
     temporaries per call. With ``low_precision`` the layers use its weights (``inputs`` must have its dtype).
+    ``first``: start at this module of ``mlp`` (the earlier ones were applied by the caller, into ``inputs``, which
+    it owns when ``owned``: activations then run in place on it).
     """
     buffers: dict[tuple[int, int, int], th.Tensor] = critic.__dict__.setdefault("_no_grad_buffers", {})
     x = inputs
-    owned = False
     module: nn.Module
     for position, module in enumerate(mlp):  # type: ignore[arg-type]
+        if position < first:
+            continue
         if isinstance(module, nn.Linear):
             if low_precision is not None and id(module) in low_precision.weights:
                 weight_t, bias = low_precision.weights[id(module)]
@@ -195,6 +204,55 @@ def _run_mlp_no_grad(
     return x
 
 
+#: the first layer is split into a per-state and a per-sample product (:func:`_first_layer_split`) when the
+#: features are at least this wide and at least twice the action: measured on this CPU, 3x faster for OP3-sized
+#: inputs (68 + 20), and slower than one product for Hopper-sized ones (11 + 3)
+SPLIT_MIN_FEATURES = 32
+
+
+def _first_layer_split(
+    critic: nn.Module, index: int, q_net: nn.Module, features: th.Tensor, actions: th.Tensor, low_precision: LowPrecisionCopy
+) -> th.Tensor:
+    """
+    The first ``Linear`` + ReLU of a Q-network over ``num_samples`` actions per state, without repeating the
+    state's part: ``W [s; a] + b = (W_s s + b) + W_a a``, the first term once per state (``[batch, hidden]``) and
+    broadcast over the samples. Same values as the stacked product up to the summation order (a low-precision
+    pass only).
+
+    :param features: ``[batch, features_dim]``
+    :param actions: ``[num_samples * batch, action_dim]``, sample-major (row ``n * batch + b``)
+    :return: the ReLU output ``[num_samples * batch, hidden]`` (a reused buffer)
+    """
+    buffers: dict[tuple[int, int, int], th.Tensor] = critic.__dict__.setdefault("_no_grad_buffers", {})
+    weight_t, bias = low_precision.weights[id(q_net[0])]  # type: ignore[index]
+    width = features.shape[1]
+    per_state = th.mm(features.to(low_precision.dtype), weight_t[:width])
+    if bias is not None:
+        per_state.add_(bias)
+    rows, hidden = actions.shape[0], weight_t.shape[1]
+    key = (index, 0, rows)
+    out = buffers.get(key)
+    if out is None or out.dtype != low_precision.dtype or out.shape != (rows, hidden):
+        out = buffers[key] = actions.new_empty((rows, hidden), dtype=low_precision.dtype)
+    th.mm(actions.to(low_precision.dtype), weight_t[width:], out=out)
+    out.view(-1, features.shape[0], hidden).add_(per_state)
+    return relu_in_place(out)
+
+
+def _splits_first_layer(
+    q_net: nn.Module, features_dim: int, action_dim: int, low_precision: Optional[LowPrecisionCopy]
+) -> bool:
+    modules = list(q_net)  # type: ignore[call-overload]
+    return (
+        low_precision is not None
+        and features_dim >= max(SPLIT_MIN_FEATURES, 2 * action_dim)
+        and len(modules) > 2
+        and isinstance(modules[0], nn.Linear)
+        and isinstance(modules[1], nn.ReLU)
+        and id(modules[0]) in low_precision.weights
+    )
+
+
 def score_actions(
     critic: ContinuousCritic, obs: PyTorchObs, actions: th.Tensor, low_precision: Optional[LowPrecisionCopy] = None
 ) -> th.Tensor:
@@ -217,11 +275,18 @@ def score_actions(
     if th.is_grad_enabled() or not isinstance(critic, ContinuousCritic):
         return q_min(critic(tile_obs(obs, num_samples), flat_actions)).reshape(num_samples, batch_size)
     features = critic.extract_features(obs, critic.features_extractor)
-    q_input = th.cat([features.repeat(num_samples, 1), flat_actions], dim=1)
-    if low_precision is not None:
-        q_input = q_input.to(low_precision.dtype)
-    q_values = [
-        _run_mlp_no_grad(critic, index, q_net, q_input, low_precision) for index, q_net in enumerate(critic.q_networks)
-    ]
+    q_values = []
+    q_input = None
+    for index, q_net in enumerate(critic.q_networks):
+        if _splits_first_layer(q_net, features.shape[1], action_dim, low_precision):
+            assert low_precision is not None
+            hidden = _first_layer_split(critic, index, q_net, features, flat_actions, low_precision)
+            q_values.append(_run_mlp_no_grad(critic, index, q_net, hidden, low_precision, first=2, owned=True))
+            continue
+        if q_input is None:
+            q_input = th.cat([features.repeat(num_samples, 1), flat_actions], dim=1)
+            if low_precision is not None:
+                q_input = q_input.to(low_precision.dtype)
+        q_values.append(_run_mlp_no_grad(critic, index, q_net, q_input, low_precision))
     # copy out of the reused buffer (the result outlives the next call), in the critic's own precision
     return q_min(q_values).reshape(num_samples, batch_size).to(features.dtype, copy=True)
