@@ -20,7 +20,7 @@ from sb3_lifelong.common.datasets import import_minari, minari_columns
 if TYPE_CHECKING:
     from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
 
-#: rows checked for non-finite values at a time
+#: rows checked for non-finite values (and copied by merge_buffers) at a time
 _COPY_BLOCK = 1 << 16
 # Minari interop: per-step source ids (in the episodes' infos) and source names / metadata (in the dataset metadata)
 MINARI_SOURCE_INFO = "sb3_lifelong_source"
@@ -150,6 +150,19 @@ def export_columns(
         "streams": data["streams"][order].astype(np.int64),
     }
     return columns, open_end
+
+
+def to_d4rl(buffer: _LifelongSampler, by_episode: bool = True, normalized_actions: bool = False) -> dict[str, np.ndarray]:
+    """``buffer`` as a d4rl-style dict (in memory): see :meth:`LifelongReplayBuffer.to_d4rl`."""
+    columns, _ = export_columns(buffer, by_episode, normalized_actions)
+    del columns["streams"]
+    return columns
+
+
+def save_npz(buffer: _LifelongSampler, file: Union[str, os.PathLike]) -> None:
+    """Write :func:`to_d4rl` of ``buffer`` to a ``.npz`` file (no pickle inside): see :meth:`LifelongReplayBuffer.save_npz`."""
+    columns: dict[str, Any] = to_d4rl(buffer)  # (typed Any: numpy's stubs would match the arrays to savez's flags)
+    np.savez(file, **columns)
 
 
 def to_minari(

@@ -39,11 +39,7 @@ from sb3_lifelong.common.datasets import OfflineSamples
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongReplayBuffer"]
 
-_COPY_BLOCK = 1 << 16
 _Samples = Union[ReplayBufferSamples, DictReplayBufferSamples]
-# Minari interop: per-step source ids (in the episodes' infos) and source names / metadata (in the dataset metadata)
-MINARI_SOURCE_INFO = "sb3_lifelong_source"
-MINARI_SOURCES_METADATA = "sb3_lifelong_sources"
 
 
 _vdot = np.vdot
@@ -498,9 +494,7 @@ class _LifelongSampler(ReplayBuffer):
         :return: ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals`` (done and not a
             timeout), ``timeouts`` (time-limit truncations) and ``sources`` (source id of each transition)
         """
-        columns, _ = interop.export_columns(self, by_episode, normalized_actions)
-        del columns["streams"]
-        return columns
+        return interop.to_d4rl(self, by_episode, normalized_actions)
 
     def to_minari(
         self,
@@ -541,7 +535,7 @@ class _LifelongSampler(ReplayBuffer):
 
         :param file: Target file
         """
-        np.savez(file, **self.to_d4rl())  # type: ignore[arg-type]
+        interop.save_npz(self, file)
 
 
 BUFFER_MODES = ("new", "append", "overwrite")

@@ -1,5 +1,5 @@
 """
-On-disk / in-memory row store behind :class:`sb3_lifelong.common.buffers.LifelongReplayBuffer`.
+On-disk / in-memory row store behind :class:`sb3_lifelong.buffers.LifelongReplayBuffer`.
 
 This module only depends on numpy and the standard library (it can be loaded without torch), so that
 crash tests and tools can use it in light subprocesses.

@@ -10,7 +10,8 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.utils import get_device
 
-from sb3_lifelong.buffers.lifelong import _COPY_BLOCK, LifelongReplayBuffer, _LifelongSampler
+from sb3_lifelong.buffers.interop import _COPY_BLOCK
+from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
 
 
 class LifelongBufferView(_LifelongSampler):
