@@ -15,7 +15,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sb3_lifelong.buffers.storage import FLAG_DONE, FLAG_TIMEOUT, MAX_SOURCE_ID
-from sb3_lifelong.common.datasets import import_minari, minari_columns
+from sb3_lifelong.common.datasets import import_minari, minari_columns, read_npz
 
 if TYPE_CHECKING:
     from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
@@ -45,35 +45,6 @@ def raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset:
     raise ValueError(
         f"{what} {first + offset}{more} is not finite ({value}): NaN and infinite values are refused; {consequence}"
     )
-
-
-def _load_npz(file: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
-    """
-    The arrays of a ``.npz`` archive, read without pickle; a ValueError naming the file (and the array) for anything
-    else (a single ``np.save`` array, pickled content, object arrays).
-    """
-    name = os.fspath(file)
-    try:
-        loaded = np.load(name, allow_pickle=False)
-    except ValueError as error:  # pickled content, or not a numpy file at all
-        raise ValueError(
-            f"{name}: not a .npz archive of arrays that can be read without pickle (nothing pickled is loaded): {error}"
-        ) from None
-    if not hasattr(loaded, "files"):  # np.save wrote one array (a .npy file): no names
-        raise ValueError(
-            f"{name}: holds a single array (written by np.save), not a .npz archive of named arrays: write the data with "
-            "np.savez(file, observations=..., actions=..., rewards=..., next_observations=..., terminals=...)"
-        )
-    result = {}
-    with loaded as npz:
-        for key in npz.files:
-            try:
-                result[key] = npz[key]
-            except ValueError as error:  # object arrays need pickle
-                raise ValueError(
-                    f"{name}: array {key!r} is stored with pickle (object dtype), which is refused: {error}"
-                ) from None
-    return result
 
 
 def _check_finite_columns(columns: dict[str, Any], where: str) -> None:
@@ -250,7 +221,7 @@ def from_d4rl(
     where = "from_d4rl"
     if not isinstance(data, dict):
         where = f"from_d4rl({os.fspath(data)})"
-        data = _load_npz(data)
+        data = read_npz(data)
     for key in ("observations", "actions", "rewards", "next_observations", "terminals"):
         if key not in data:
             raise KeyError(f"d4rl data has no {key!r}")

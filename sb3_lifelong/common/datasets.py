@@ -37,6 +37,7 @@ __all__ = [
     "minari_columns",
     "minari_to_d4rl",
     "normalize_actions",
+    "read_npz",
     "replay_buffer_to_d4rl",
     "validate_d4rl",
 ]
@@ -177,18 +178,44 @@ def load_d4rl(data: Union[Mapping[str, Any], str, os.PathLike]) -> dict[str, np.
     :param data: the dict, or the path of a ``.npz`` file
     :return: the validated dict (see :func:`validate_d4rl`)
     """
-    if isinstance(data, (str, os.PathLike)):
-        path = os.fspath(data)
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"no offline data file at {path!r}")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                if not hasattr(npz, "files"):
-                    raise OfflineDataError(f"{path!r} holds a single array, not a d4rl-style .npz archive of named arrays")
-                data = {key: npz[key] for key in npz.files}
-        except ValueError as error:  # object arrays need pickle: refused
-            raise OfflineDataError(f"cannot read {path!r} without pickle: {error}") from error
-    return validate_d4rl(data)  # type: ignore[arg-type]
+    return validate_d4rl(read_npz(data) if isinstance(data, (str, os.PathLike)) else data)
+
+
+def read_npz(file: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
+    """
+    The arrays of a ``.npz`` archive, read without pickle (no validation: see :func:`validate_d4rl`).
+
+    :param file: the ``.npz`` file
+    :return: its arrays by name
+    :raises FileNotFoundError: if there is no such file
+    :raises OfflineDataError: naming the file (and the array) for anything else than named arrays readable without
+        pickle: a single ``np.save`` array, pickled content, object arrays
+    """
+    name = os.fspath(file)
+    if not os.path.isfile(name):
+        raise FileNotFoundError(f"no offline data file at {name!r}")
+    try:
+        loaded = np.load(name, allow_pickle=False)
+    except ValueError as error:  # pickled content, or not a numpy file at all
+        raise OfflineDataError(
+            f"{name}: not a .npz archive of arrays that can be read without pickle (nothing pickled is loaded): {error}"
+        ) from None
+    if not hasattr(loaded, "files"):  # np.save wrote one array (a .npy file): no names
+        raise OfflineDataError(
+            f"{name}: holds a single array (written by np.save), not a .npz archive of named arrays: write the data with "
+            "np.savez(file, observations=..., actions=..., rewards=..., next_observations=..., terminals=...)"
+        )
+    result = {}
+    with loaded as npz:
+        for key in npz.files:
+            try:
+                result[key] = npz[key]
+            except ValueError as error:  # object arrays need pickle
+                raise OfflineDataError(
+                    f"{name}: array {key!r} is stored with pickle (object dtype), which is refused (arrays are read "
+                    f"without pickle): {error}"
+                ) from None
+    return result
 
 
 def import_minari(purpose: str) -> Any:
