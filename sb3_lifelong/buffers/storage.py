@@ -33,7 +33,8 @@ import re
 import warnings
 import weakref
 import zlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 from typing import Any, Optional
 
 import numpy as np
@@ -514,6 +515,10 @@ def chunk_file_name(start: int) -> str:
     return f"chunk.{start:012d}.bin"
 
 
+#: RowStore attributes that pickles of in-memory stores written by earlier versions hold under these public names
+_PUBLIC_BEFORE = frozenset({"fields", "dtypes", "sources", "spaces", "next_stream_id"})
+
+
 class RowStore:
     """
     Append-only table of fixed-size rows (one array per field), in memory or in a buffer directory, optionally
@@ -529,6 +534,11 @@ class RowStore:
     (appended, fsync'd, manifest replaced atomically) when full or on ``flush()``. Without a capacity the directory
     has one append-only file per field (layout "single"); with one, a file per chunk (layout "chunked"), deleted
     once the committed manifest no longer lists it.
+
+    Besides the rows, the store owns what its manifest records about them: the stream ids (:meth:`reserve_streams`),
+    the source table (:meth:`source`, :meth:`set_source`, :meth:`source_table`) and the description of the spaces
+    (:meth:`describe_spaces`), saved with the next commit; :attr:`fields`, :attr:`dtypes`, :attr:`spaces` and
+    :attr:`next_stream_id` are read-only.
 
     :param fields: field name -> (dtype string, row shape)
     :param path: Buffer directory, or None for an in-memory store
@@ -574,9 +584,9 @@ class RowStore:
         self.chunk_size = chunk_size
         self.capacity = None if capacity is None else int(capacity)
         self.layout = "memory" if self.path is None else "single" if capacity is None else "chunked"
-        self.sources: dict[int, dict[str, Any]] = {}
-        self.spaces: dict[str, Any] = {}
-        self.next_stream_id = 0
+        self._sources: dict[int, dict[str, Any]] = {}
+        self._spaces: dict[str, Any] = {}
+        self._next_stream_id = 0
         self.chunks: list[dict[str, Any]] = []
         self.num_committed = 0  # global row after the last committed row
         self.committed_first = 0  # global row of the oldest retained committed row (the manifest's first_row)
@@ -606,7 +616,7 @@ class RowStore:
             stored = validate_fields(manifest["fields"])
             if fields is not None and dict(fields) != stored:
                 raise ValueError(f"{self.path}: stored fields {stored} do not match the requested {fields}")
-            self.fields = stored
+            self._fields = stored
             self.layout = manifest.get("layout", "single")
             stored_capacity = manifest.get("capacity")
             if capacity is not None and capacity != stored_capacity:
@@ -645,21 +655,21 @@ class RowStore:
             if read_only:
                 raise FileNotFoundError(f"no buffer at {self.path!r} to open read-only")
             given = {name: (np.dtype(dt).str, tuple(int(d) for d in shape)) for name, (dt, shape) in fields.items()}
-            self.fields = validate_fields({k: {"dtype": d, "shape": list(s)} for k, (d, s) in given.items()})
+            self._fields = validate_fields({k: {"dtype": d, "shape": list(s)} for k, (d, s) in given.items()})
             if self.path is not None:
                 os.makedirs(self.path, exist_ok=True)
                 self._take_lock()
                 if self.layout == "single":
-                    for name in self.fields:
+                    for name in self._fields:
                         open(self._file(name), "wb").close()
                 else:
                     self._remove_orphans()  # empty chunk files (non-empty ones without a manifest are refused above)
                 self._write_manifest()
-        self.dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
-        self.row_bytes = {name: self.dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
+        self._dtypes = {name: np.dtype(dt) for name, (dt, _) in self._fields.items()}
+        self.row_bytes = {name: self._dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self._fields.items()}
         self._tail_start = self.num_committed
-        tail_rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
-        self._tail = {name: np.empty((tail_rows, *shape), dtype=self.dtypes[name]) for name, (_, shape) in self.fields.items()}
+        rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
+        self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
         self.num_tail = 0
         self._maps_stale = False  # True while the maps (or read files) may not cover every committed row
         if self.path is not None and self.layout == "chunked" and not read_only:
@@ -697,6 +707,17 @@ class RowStore:
     def __len__(self) -> int:
         return self.end - self.first
 
+    # ------------------------------------------------------------------ what the rows are (read-only)
+    @property
+    def fields(self) -> Mapping[str, tuple[str, tuple[int, ...]]]:
+        """Field name -> (dtype string, row shape), fixed when the store is created (a read-only view)."""
+        return MappingProxyType(self._fields)
+
+    @property
+    def dtypes(self) -> Mapping[str, np.dtype]:
+        """Field name -> numpy dtype of its rows (a read-only view)."""
+        return MappingProxyType(self._dtypes)
+
     # ------------------------------------------------------------------ opening / recovery
     def _file(self, name: str) -> str:
         assert self.path is not None
@@ -710,9 +731,9 @@ class RowStore:
         self.chunks = manifest["chunks"]
         self.num_committed = manifest["num_transitions"]
         self.committed_first = manifest.get("first_row", 0)
-        self.sources = {int(k): v for k, v in manifest["sources"].items()}
-        self.spaces = manifest["spaces"]
-        self.next_stream_id = manifest["next_stream_id"]
+        self._sources = {int(k): v for k, v in manifest["sources"].items()}
+        self._spaces = manifest["spaces"]
+        self._next_stream_id = manifest["next_stream_id"]
 
     def _read_consistent_manifest(self) -> dict[str, Any]:
         """Read-only stores: a manifest whose chunk files all exist (a writer deletes evicted chunks after a commit)."""
@@ -743,7 +764,7 @@ class RowStore:
     def _field_offsets(self, rows: int) -> dict[str, int]:
         """Byte offset of each field's block in a chunk file of ``rows`` rows, and ``""`` -> the file size."""
         offsets, offset = {}, 0
-        for name, (dtype, shape) in self.fields.items():
+        for name, (dtype, shape) in self._fields.items():
             offsets[name] = offset
             offset += rows * np.dtype(dtype).itemsize * math.prod(shape)
         offsets[""] = offset
@@ -756,13 +777,13 @@ class RowStore:
         if self.layout == "chunked":
             self._open_chunked(verify)
             return
-        for name in self.fields:
+        for name in self._fields:
             file_name = self._file(name)
             if not os.path.isfile(file_name) or os.path.islink(file_name):
                 raise BufferFormatError(f"{self.path}: field file {name}.bin is missing or not a regular file")
-        dtypes = {name: np.dtype(dt) for name, (dt, _) in self.fields.items()}
-        sizes = {name: dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self.fields.items()}
-        for name in self.fields:
+        dtypes = {name: np.dtype(dt) for name, (dt, _) in self._fields.items()}
+        sizes = {name: dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self._fields.items()}
+        for name in self._fields:
             have = os.path.getsize(self._file(name))
             need = self.num_committed * sizes[name]
             if have < need:
@@ -778,7 +799,7 @@ class RowStore:
                 self.discarded_bytes += have - need
         checked = self.chunks if verify == "all" else self.chunks[-1:] if verify == "last" else []
         for chunk in checked:
-            for name in self.fields:
+            for name in self._fields:
                 with open(self._file(name), "rb") as file:
                     file.seek(chunk["start"] * sizes[name])
                     data = file.read(chunk["rows"] * sizes[name])
@@ -805,8 +826,8 @@ class RowStore:
             offsets = self._field_offsets(chunk["rows"])
             with open(self._chunk_file(chunk), "rb") as file:
                 data = file.read()
-            for k, name in enumerate(self.fields):
-                stop = offsets[list(self.fields)[k + 1]] if k + 1 < len(self.fields) else offsets[""]
+            for k, name in enumerate(self._fields):
+                stop = offsets[list(self._fields)[k + 1]] if k + 1 < len(self._fields) else offsets[""]
                 if zlib.crc32(data[offsets[name] : stop]) != chunk["crc32"][name]:
                     raise BufferFormatError(f"{self._chunk_file(chunk)}: checksum mismatch in field {name!r} (corrupted data)")
         if not self.read_only:
@@ -844,9 +865,9 @@ class RowStore:
         offsets = self._field_offsets(rows)
         mapped = self._map_file(self._chunk_file(chunk), offsets[""])
         arrays = {}
-        for name, (_, shape) in self.fields.items():
+        for name, (_, shape) in self._fields.items():
             count = rows * math.prod(shape)
-            array = np.frombuffer(mapped, dtype=self.dtypes[name], count=count, offset=offsets[name])  # type: ignore[arg-type]
+            array = np.frombuffer(mapped, dtype=self._dtypes[name], count=count, offset=offsets[name])  # type: ignore[arg-type]
             arrays[name] = array.reshape(rows, *shape)
         return arrays
 
@@ -866,9 +887,9 @@ class RowStore:
             return
         if self.num_committed == 0:
             return
-        for name, (_, shape) in self.fields.items():
+        for name, (_, shape) in self._fields.items():
             mapped = self._map_file(self._file(name), self.num_committed * self.row_bytes[name])
-            array = np.frombuffer(mapped, dtype=self.dtypes[name], count=self.num_committed * math.prod(shape))  # type: ignore[arg-type]
+            array = np.frombuffer(mapped, dtype=self._dtypes[name], count=self.num_committed * math.prod(shape))  # type: ignore[arg-type]
             self._maps[name] = array.reshape(self.num_committed, *shape)
 
     def _update_chunk_maps(self) -> None:
@@ -889,7 +910,7 @@ class RowStore:
         if not self.read_only or self.path is None:
             return len(self)
         manifest = self._read_consistent_manifest()
-        if validate_fields(manifest["fields"]) != self.fields or manifest.get("layout", "single") != self.layout:
+        if validate_fields(manifest["fields"]) != self._fields or manifest.get("layout", "single") != self.layout:
             raise BufferFormatError(f"{self.path}: fields or layout changed while open")
         if manifest["num_transitions"] < self.num_committed or manifest.get("first_row", 0) < self.committed_first:
             raise BufferFormatError(f"{self.path}: committed rows went down from {self.num_committed}")
@@ -924,7 +945,7 @@ class RowStore:
         if self.num_tail + count <= len(tail["rewards"]) and (self.path is None or self.num_tail + count < self.chunk_size):
             # fast path of add(): no growth, no flush
             start, stop = self.num_tail, self.num_tail + count
-            for name in self.fields:
+            for name in self._fields:
                 tail[name][start:stop] = rows[name]
             self.num_tail = stop
             return
@@ -934,7 +955,7 @@ class RowStore:
                 if self.num_tail == len(self._tail["rewards"]):
                     self._make_room(count - done)
                 take = min(len(self._tail["rewards"]) - self.num_tail, count - done)
-                for name in self.fields:
+                for name in self._fields:
                     self._tail[name][self.num_tail : self.num_tail + take] = rows[name][done : done + take]
                 self.num_tail += take
                 done += take
@@ -952,7 +973,7 @@ class RowStore:
                 f"stored and the manifest is unchanged; the {self.num_tail:,} transitions pending before it stay in memory. "
                 "Repeat the call once the cause is fixed (e.g. space freed)",
             ) from error
-        for name in self.fields:
+        for name in self._fields:
             self._tail[name][:keep] = rows[name][count - keep : count]
         self.num_tail = keep
         if not_durable is not None:
@@ -962,7 +983,7 @@ class RowStore:
         """In memory, the arrays are full: drop the evicted rows at their front (if that frees enough), else grow."""
         evicted = self.first - self._tail_start
         if evicted > 0 and evicted >= len(self._tail["rewards"]) // 4:
-            for name in self.fields:
+            for name in self._fields:
                 self._tail[name][: self.num_tail - evicted] = self._tail[name][evicted : self.num_tail]
             self._tail_start += evicted
             self.num_tail -= evicted
@@ -973,7 +994,7 @@ class RowStore:
         self._grow(target)
 
     def _grow(self, rows: int) -> None:
-        for name in self.fields:
+        for name in self._fields:
             new = np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype)
             new[: self.num_tail] = self._tail[name][: self.num_tail]
             self._tail[name] = new
@@ -1029,7 +1050,7 @@ class RowStore:
             block = self._tail[name][lo:hi]  # contiguous: no copy
         else:
             assert extra is not None
-            block = np.empty((hi - lo, *self._tail[name].shape[1:]), dtype=self.dtypes[name])
+            block = np.empty((hi - lo, *self._tail[name].shape[1:]), dtype=self._dtypes[name])
             split = max(pending - lo, 0)
             block[:split] = self._tail[name][lo:pending]
             block[split:] = extra[name][max(lo - pending, 0) : hi - pending]  # the tail's conversions (dtype, broadcast)
@@ -1062,7 +1083,7 @@ class RowStore:
                     fd = _open_for_writing(file_name, os.O_CREAT | os.O_TRUNC)
                     created.append(file_name)
                     try:
-                        for name in self.fields:
+                        for name in self._fields:
                             self._write_block(fd, name, chunk, lo, extra)
                         os.fsync(fd)
                     finally:
@@ -1077,7 +1098,7 @@ class RowStore:
             return
         written = []
         try:
-            for name in self.fields:
+            for name in self._fields:
                 committed_bytes = base * self.row_bytes[name]
                 fd = _open_for_writing(self._file(name))
                 written.append(name)
@@ -1165,16 +1186,16 @@ class RowStore:
     ) -> None:
         """Atomically replace the manifest: the committed state of this object, or the one given."""
         assert self.path is not None
-        plain = self.layout == "single" and obs_keys_of(self.fields) is None
+        plain = self.layout == "single" and obs_keys_of(self._fields) is None
         manifest: dict[str, Any] = {
             "format": FORMAT_NAME,
             "version": 1 if plain else 2,
-            "fields": {name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in self.fields.items()},
+            "fields": {name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in self._fields.items()},
             "num_transitions": self.num_committed if num_committed is None else num_committed,
             "chunks": self.chunks if chunks is None else chunks,
-            "sources": {str(k): v for k, v in sorted(self.sources.items())},
-            "next_stream_id": self.next_stream_id,
-            "spaces": self.spaces,
+            "sources": {str(k): v for k, v in sorted(self._sources.items())},
+            "next_stream_id": self._next_stream_id,
+            "spaces": self._spaces,
         }
         if not plain:
             first = self.committed_first if committed_first is None else committed_first
@@ -1209,12 +1230,13 @@ class RowStore:
         }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        if "fields" in state:
-            # in memory; pickles of earlier versions have no read mode
+        if "_fields" in state or "fields" in state:
+            # in memory; pickles of earlier versions have no read mode, and keep the attributes that are read-only
+            # properties now under their public names
             self.__dict__.update(
                 read_mode="mmap", _read_fds={}, _pread_table=None, _segment_starts=np.zeros(1, np.int64), _maps_stale=False
             )
-            self.__dict__.update(state)
+            self.__dict__.update({f"_{key}" if key in _PUBLIC_BEFORE else key: value for key, value in state.items()})
             return
         previous = _WRITERS.get(state["path"])
         if previous is not None and not state["read_only"]:
@@ -1256,7 +1278,7 @@ class RowStore:
         if self.layout == "chunked":
             names = [self._chunk_file(chunk) for chunk in self.chunks]
         else:
-            names = [self._file(name) for name in self.fields]
+            names = [self._file(name) for name in self._fields]
         for name in names:  # first, so that a file that cannot be opened leaves the current table working
             if name not in self._read_fds:
                 self._read_fds[name] = os.open(name, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
@@ -1264,12 +1286,12 @@ class RowStore:
         if self.layout == "chunked":
             fds = [self._read_fds[name] for name in names]
             offsets = [self._field_offsets(chunk["rows"]) for chunk in self.chunks]
-            for name in self.fields:
+            for name in self._fields:
                 table[name] = (fds, np.array([offset[name] for offset in offsets], dtype=np.int64))
             self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
             self._segment_starts = self._chunk_starts
         else:
-            for name in self.fields:
+            for name in self._fields:
                 table[name] = ([self._read_fds[self._file(name)]], np.zeros(1, dtype=np.int64))
             self._segment_starts = np.zeros(1, dtype=np.int64)
         self._pread_table = table
@@ -1331,14 +1353,14 @@ class RowStore:
                 data = b"".join(map(self._pread_exact, read_fds, sizes.tolist(), low.tolist()))
             run = np.cumsum(new_read) - 1
             position = ((np.cumsum(sizes) - sizes)[run] + offsets - low[run]) // size  # row of `data` of each row
-            rows_read = np.frombuffer(data, dtype=self.dtypes[name]).reshape(-1, *self.fields[name][1])
+            rows_read = np.frombuffer(data, dtype=self._dtypes[name]).reshape(-1, *self._fields[name][1])
             result[name] = rows_read[position[inverse]]
         return result
 
     def _pread_range(self, name: str, lo: int, hi: int) -> np.ndarray:
         """Committed rows ``lo:hi`` (global numbers) of a field, read into a new array."""
-        shape = self.fields[name][1]
-        out = np.empty((max(hi - lo, 0), *shape), dtype=self.dtypes[name])
+        shape = self._fields[name][1]
+        out = np.empty((max(hi - lo, 0), *shape), dtype=self._dtypes[name])
         if hi <= lo:
             return out
         fds, bases = self._read_table()[name]
@@ -1404,6 +1426,16 @@ class RowStore:
         return {name: np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype) for name in names}
 
     # ------------------------------------------------------------------ streams, sources and spaces
+    @property
+    def next_stream_id(self) -> int:
+        """The first stream id not reserved yet (every id below it is taken): see :meth:`reserve_streams`."""
+        return self._next_stream_id
+
+    @property
+    def spaces(self) -> Mapping[str, Any]:
+        """The JSON description of the observation and action spaces (``{}`` until :meth:`describe_spaces`), read-only."""
+        return MappingProxyType(self._spaces)
+
     def reserve_streams(self, count: int) -> int:
         """
         Reserve ``count`` new stream ids (a stream is one env's chain of transitions: n-step returns and next
@@ -1414,13 +1446,13 @@ class RowStore:
         """
         if count < 0:
             raise ValueError(f"count must be >= 0, got {count}")
-        first = self.next_stream_id
-        self.next_stream_id += int(count)
+        first = self._next_stream_id
+        self._next_stream_id += int(count)
         return first
 
     def source(self, source: int) -> Optional[dict[str, Any]]:
         """:return: ``{"name": str, "metadata": dict}`` of a source id (a copy), or None if it is not known"""
-        known = self.sources.get(source)
+        known = self._sources.get(source)
         return None if known is None else {"name": known["name"], "metadata": dict(known["metadata"])}
 
     def set_source(self, source: int, name: str, metadata: dict[str, Any]) -> None:
@@ -1433,11 +1465,11 @@ class RowStore:
         """
         if not 0 <= int(source) <= MAX_SOURCE_ID:
             raise ValueError(f"source ids are ints in [0, {MAX_SOURCE_ID}], got {source!r}")
-        self.sources[int(source)] = {"name": str(name), "metadata": dict(metadata)}
+        self._sources[int(source)] = {"name": str(name), "metadata": dict(metadata)}
 
     def source_table(self) -> dict[int, dict[str, Any]]:
         """:return: every source id -> ``{"name": str, "metadata": dict}`` (copies)"""
-        return {k: {"name": v["name"], "metadata": dict(v["metadata"])} for k, v in self.sources.items()}
+        return {k: {"name": v["name"], "metadata": dict(v["metadata"])} for k, v in self._sources.items()}
 
     def describe_spaces(self, spaces: dict[str, Any]) -> None:
         """
@@ -1445,8 +1477,8 @@ class RowStore:
 
         :param spaces: ``{"observation": ..., "action": ...}``
         """
-        if not self.spaces:
-            self.spaces = dict(spaces)
+        if not self._spaces:
+            self._spaces = dict(spaces)
 
     def gather(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, np.ndarray]:
         """
