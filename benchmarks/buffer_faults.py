@@ -58,7 +58,7 @@ import gymnasium as gym
 import numpy as np
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers import storage
 from sb3_lifelong.buffers.storage import FIELD_NAMES, BufferFormatError, CommitNotDurableError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
@@ -418,7 +418,7 @@ def file_size_limit_case(root: str, layout: str, tally: Tally, env: dict[str, st
     path = os.path.join(root, f"rlimit-{layout}")
     tally.runs += 1
     out = subprocess.run(
-        [sys.executable, "-c", RLIMIT_CHILD, buffer_storage.__file__, path, "none" if layout == "single" else "100000"],
+        [sys.executable, "-c", RLIMIT_CHILD, storage.__file__, path, "none" if layout == "single" else "100000"],
         capture_output=True,
         text=True,
         env=env,
@@ -508,7 +508,7 @@ def sigkill_loop(root: str, layout: str, kills: int, seed: int, tally: Tally, en
     for trial in range(kills):
         chunk = int(rng.integers(5, 200))
         child = subprocess.Popen(
-            [sys.executable, "-c", KILL_CHILD, buffer_storage.__file__, path, str(chunk), str(trial), capacity],
+            [sys.executable, "-c", KILL_CHILD, storage.__file__, path, str(chunk), str(trial), capacity],
             stdout=subprocess.PIPE,
             text=True,
             env=env,

@@ -14,13 +14,12 @@ import torch as th
 from stable_baselines3 import SAC
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
-from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers import LifelongBufferView, merge_buffers, storage
 from sb3_lifelong.buffers.storage import FIELD_NAMES, BufferFormatError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (1,), np.float32)
-STORAGE_FILE = buffer_storage.__file__
+STORAGE_FILE = storage.__file__
 
 
 def add_rows(buffer, start, count, n_envs=1, stage=None):
@@ -213,7 +212,7 @@ def test_capacity_reader_follows_evicting_writer(tmp_path):
 def test_capacity_crash_between_commit_and_delete(tmp_path, monkeypatch):
     path = tmp_path / "b"
     deleted = []
-    monkeypatch.setattr(buffer_storage, "_delete_file", deleted.append)  # the "crash": files are never deleted
+    monkeypatch.setattr(storage, "_delete_file", deleted.append)  # the "crash": files are never deleted
     writer = LifelongReplayBuffer(0, OBS, ACT, path=path, chunk_size=10, capacity=15)
     add_rows(writer, 0, 60)
     # the manifest no longer lists the evicted chunks, their files are still there

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers import storage
 from sb3_lifelong.buffers.storage import FIELD_NAMES, BufferFormatError, CommitNotDurableError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-STORAGE_FILE = buffer_storage.__file__
+STORAGE_FILE = storage.__file__
 needs_proc = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self/fd (Linux)")
 
 

@@ -13,8 +13,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
-from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers import LifelongBufferView, merge_buffers, storage
 from sb3_lifelong.buffers.storage import BufferFormatError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (5,), np.float32)
@@ -27,7 +26,7 @@ DICT_OBS = spaces.Dict(
     }
 )
 LAYOUTS = {"single": None, "chunked": 150}  # capacity of each layout
-STORAGE_FILE = buffer_storage.__file__
+STORAGE_FILE = storage.__file__
 linux_only = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self (Linux)")
 
 
@@ -201,7 +200,7 @@ def test_same_reads_as_mmap(tmp_path, layout, observation_space):
 @pytest.mark.parametrize("merge_gap", [0, 16384, 1 << 40])
 def test_merge_gap_and_short_reads(tmp_path, monkeypatch, merge_gap):
     """Rows read one call each, runs of nearby rows, or everything in one call; reads that return fewer bytes."""
-    monkeypatch.setattr(buffer_storage, "PREAD_MERGE_GAP", merge_gap)
+    monkeypatch.setattr(storage, "PREAD_MERGE_GAP", merge_gap)
     writers = make_pair(tmp_path, "chunked", chunk_size=30)
     fill(writers, 200, 1, seed=4)
     assert_same_gather(*writers, np.random.default_rng(1))
@@ -238,7 +237,7 @@ def test_followers_read_the_same_while_writer_appends(tmp_path, layout):
         if os.path.isdir("/proc/self/fd"):  # the pread follower keeps the files of the retained chunks open, no other
             store = followers[1].store
             opened = {os.readlink(f"/proc/self/fd/{fd}") for fd in store._read_fds.values()}
-            assert opened == {os.path.join(store.path, buffer_storage.chunk_file_name(c["start"])) for c in store.chunks}
+            assert opened == {os.path.join(store.path, storage.chunk_file_name(c["start"])) for c in store.chunks}
             assert not [fd for fd in open_files(tmp_path / "b") if fd.endswith("(deleted)")]
     writer.close()
 

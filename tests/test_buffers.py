@@ -16,13 +16,12 @@ from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
-from sb3_lifelong.buffers import storage as buffer_storage
+from sb3_lifelong.buffers import LifelongBufferView, merge_buffers, storage
 from sb3_lifelong.buffers.storage import BufferFormatError
 
 OBS = gym.spaces.Box(-10, 10, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-STORAGE_FILE = buffer_storage.__file__
+STORAGE_FILE = storage.__file__
 
 
 def fill(buffer, steps, n_envs, seed=0, start=0, stage=None, rng=None):
@@ -46,7 +45,7 @@ def fill(buffer, steps, n_envs, seed=0, start=0, stage=None, rng=None):
 
 
 def all_rows(buffer):
-    return {name: np.array(buffer.store.read_range(name, 0, buffer.size())) for name in buffer_storage.FIELD_NAMES}
+    return {name: np.array(buffer.store.read_range(name, 0, buffer.size())) for name in storage.FIELD_NAMES}
 
 
 # ---------------------------------------------------------------------------------------------- SB3 semantics
@@ -141,6 +140,38 @@ def test_in_memory_pickle_and_sources():
         LifelongReplayBuffer(10, OBS, gym.spaces.Dict({"a": ACT}))
     with pytest.raises(ValueError):
         buffer.set_source(70000)
+
+
+def test_store_owns_streams_sources_and_spaces():
+    buffer = LifelongReplayBuffer(10, OBS, ACT, device="cpu")
+    fill(buffer, 12, 2, stage=1)
+    store = buffer.store
+    # the buffer layer reads these; only the store's own methods change them
+    with pytest.raises(AttributeError):
+        store.next_stream_id = 0
+    with pytest.raises(TypeError):
+        store.fields["rewards"] = ("<f8", ())
+    with pytest.raises(TypeError):
+        store.spaces["action"] = {}
+    assert store.next_stream_id == 2 and store.reserve_streams(3) == 2 and store.next_stream_id == 5
+    store.set_source(4, "four", {"k": 1.0})
+    copy = store.source(4)
+    assert copy == {"name": "four", "metadata": {"k": 1.0}}
+    copy["metadata"]["k"] = 2.0  # copies: the table is unchanged
+    assert store.source_table()[4] == {"name": "four", "metadata": {"k": 1.0}} and store.source(9) is None
+    with pytest.raises(ValueError):
+        store.set_source(70000, "too large", {})
+    store.describe_spaces({"observation": {}, "action": {}})  # a store that has a description keeps it
+    assert store.spaces["action"]["type"] == "Box"
+    # an in-memory store pickled by an earlier version holds these attributes under their public names
+    public = ("fields", "dtypes", "sources", "spaces", "next_stream_id")
+    legacy = {key.lstrip("_") if key.lstrip("_") in public else key: value for key, value in store.__getstate__().items()}
+    assert set(public) <= set(legacy)
+    old = storage.RowStore.__new__(storage.RowStore)
+    old.__setstate__(legacy)
+    assert (dict(old.fields), old.next_stream_id, old.source_table()) == (dict(store.fields), 5, store.source_table())
+    for name in store.fields:
+        np.testing.assert_array_equal(old.read_range(name, 0, len(store)), store.read_range(name, 0, len(store)))
 
 
 # ---------------------------------------------------------------------------------------------- persistence
@@ -270,7 +301,7 @@ def test_crash_sigkill_loses_only_unflushed_tail(tmp_path):
             continue
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            store = buffer_storage.RowStore(path=path, verify="all")
+            store = storage.RowStore(path=path, verify="all")
         if store.discarded_bytes:  # reopening says how many transitions were recovered
             assert any(f"recovered {store.num_committed} transitions" in str(w.message) for w in caught)
         assert store.num_committed >= least and store.recovered == store.num_committed
