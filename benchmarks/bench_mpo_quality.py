@@ -28,6 +28,8 @@ import numpy as np
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 
+NOTES_MARK = "## Runs and notes"
+
 #: MPO variants by name: constructor settings, and whether observations are normalised (SB3's VecNormalize)
 MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
     "MPO": ({}, False),
@@ -119,8 +121,18 @@ def summarise() -> None:
         )
     table = "\n".join(lines)
     print(table)
-    (RESULTS / "mpo_quality.md").write_text(
-        "# MPO vs SAC: evaluation return (deterministic policy, 5 episodes per evaluation)\n\n" + table + "\n"
+    # the notes written under the table (how the runs were made, what they show) are kept when it is redrawn
+    path = RESULTS / "mpo_quality.md"
+    notes = path.read_text().split(NOTES_MARK, 1)[1] if path.exists() and NOTES_MARK in path.read_text() else ""
+    path.write_text(
+        "# MPO vs SAC: evaluation return (deterministic policy, 5 episodes per evaluation)\n\n"
+        "All runs: 256x256 networks, batch 256, one update per step, SB3 defaults otherwise (MPO: N=20, hard target "
+        "copy every 100 updates; its variants change only what their name says, see `MPO_VARIANTS`). Per-run curves: "
+        "`quality/`. Table redrawn by `python benchmarks/bench_mpo_quality.py --summarise`.\n\n"
+        + table
+        + "\n\n"
+        + NOTES_MARK
+        + notes
     )
     for env_id in sorted({env for env, _ in curves}):
         fig, ax = plt.subplots(figsize=(6, 4))
