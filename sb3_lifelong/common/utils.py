@@ -155,6 +155,29 @@ def relu_in_place(x: th.Tensor) -> th.Tensor:
     return x.relu_()
 
 
+def _reused_buffer(
+    critic: nn.Module, key: tuple[int, int, int], shape: tuple[int, ...], like: th.Tensor, dtype: Optional[th.dtype] = None
+) -> th.Tensor:
+    """
+    A tensor kept on the critic under ``key`` and reused across gradient steps (a fresh ``[num_samples * batch, 256]``
+    tensor per call costs more in page faults than the work written into it); made again when the shape, dtype or
+    device changes.
+
+    :param critic: the module that keeps the buffers
+    :param key: ``(q-network index, module position, rows)``
+    :param shape: the tensor's shape
+    :param like: a tensor of the device (and, unless ``dtype`` is given, the dtype) wanted
+    :param dtype: the dtype wanted
+    :return: the buffer (uninitialised when new)
+    """
+    buffers: dict[tuple[int, int, int], th.Tensor] = critic.__dict__.setdefault("_no_grad_buffers", {})
+    dtype = like.dtype if dtype is None else dtype
+    out = buffers.get(key)
+    if out is None or out.shape != shape or out.dtype != dtype or out.device != like.device:
+        out = buffers[key] = like.new_empty(shape, dtype=dtype)
+    return out
+
+
 def _run_mlp_no_grad(
     critic: nn.Module,
     index: int,
@@ -172,7 +195,6 @@ def _run_mlp_no_grad(
     ``first``: start at this module of ``mlp`` (the earlier ones were applied by the caller, into ``inputs``, which
     it owns when ``owned``: activations then run in place on it).
     """
-    buffers: dict[tuple[int, int, int], th.Tensor] = critic.__dict__.setdefault("_no_grad_buffers", {})
     x = inputs
     module: nn.Module
     for position, module in enumerate(mlp):  # type: ignore[arg-type]
@@ -184,14 +206,9 @@ def _run_mlp_no_grad(
             else:
                 weight_t, bias = module.weight.t(), module.bias
                 if x.dtype != module.weight.dtype:  # the output layer of a low-precision pass: back to float32
-                    converted = buffers.get((index, -position, x.shape[0]))
-                    if converted is None or converted.shape != x.shape or converted.dtype != module.weight.dtype:
-                        converted = buffers[(index, -position, x.shape[0])] = th.empty_like(x, dtype=module.weight.dtype)
-                    x = converted.copy_(x)  # into a reused buffer: a fresh one costs more in page faults than the copy
-            key = (index, position, x.shape[0])
-            out = buffers.get(key)
-            if out is None or out.dtype != x.dtype or out.device != x.device:
-                out = buffers[key] = x.new_empty((x.shape[0], module.out_features))
+                    key = (index, -position, x.shape[0])
+                    x = _reused_buffer(critic, key, tuple(x.shape), x, module.weight.dtype).copy_(x)
+            out = _reused_buffer(critic, (index, position, x.shape[0]), (x.shape[0], module.out_features), x)
             if bias is not None:
                 th.addmm(bias, x, weight_t, out=out)
             else:
@@ -205,8 +222,9 @@ def _run_mlp_no_grad(
 
 
 #: the first layer is split into a per-state and a per-sample product (:func:`_first_layer_split`) when the
-#: features are at least this wide and at least twice the action: measured on this CPU, 3x faster for OP3-sized
-#: inputs (68 + 20), and slower than one product for Hopper-sized ones (11 + 3)
+#: features are at least this wide and at least twice the action: measured on this CPU, the first layer 3x faster
+#: for OP3-sized inputs (68 + 20; the whole pass 1.18x, benchmarks/results/scoring_split.md), and slower than one
+#: product for Hopper-sized ones (11 + 3)
 SPLIT_MIN_FEATURES = 32
 
 
@@ -219,23 +237,18 @@ def _first_layer_split(
     broadcast over the samples. Same values as the stacked product up to the summation order (a low-precision
     pass only).
 
-    :param features: ``[batch, features_dim]``
-    :param actions: ``[num_samples * batch, action_dim]``, sample-major (row ``n * batch + b``)
+    :param features: ``[batch, features_dim]``, in the copy's dtype
+    :param actions: ``[num_samples * batch, action_dim]``, sample-major (row ``n * batch + b``), in the copy's dtype
     :return: the ReLU output ``[num_samples * batch, hidden]`` (a reused buffer)
     """
-    buffers: dict[tuple[int, int, int], th.Tensor] = critic.__dict__.setdefault("_no_grad_buffers", {})
     weight_t, bias = low_precision.weights[id(q_net[0])]  # type: ignore[index]
     width = features.shape[1]
-    per_state = th.mm(features.to(low_precision.dtype), weight_t[:width])
+    per_state = th.mm(features, weight_t[:width])
     if bias is not None:
         per_state.add_(bias)
-    rows, hidden = actions.shape[0], weight_t.shape[1]
-    key = (index, 0, rows)
-    out = buffers.get(key)
-    if out is None or out.dtype != low_precision.dtype or out.shape != (rows, hidden):
-        out = buffers[key] = actions.new_empty((rows, hidden), dtype=low_precision.dtype)
-    th.mm(actions.to(low_precision.dtype), weight_t[width:], out=out)
-    out.view(-1, features.shape[0], hidden).add_(per_state)
+    out = _reused_buffer(critic, (index, 0, actions.shape[0]), (actions.shape[0], weight_t.shape[1]), actions)
+    th.mm(actions, weight_t[width:], out=out)
+    out.view(-1, features.shape[0], out.shape[1]).add_(per_state)
     return relu_in_place(out)
 
 
@@ -276,11 +289,13 @@ def score_actions(
         return q_min(critic(tile_obs(obs, num_samples), flat_actions)).reshape(num_samples, batch_size)
     features = critic.extract_features(obs, critic.features_extractor)
     q_values = []
-    q_input = None
+    q_input = split_inputs = None
     for index, q_net in enumerate(critic.q_networks):
         if _splits_first_layer(q_net, features.shape[1], action_dim, low_precision):
             assert low_precision is not None
-            hidden = _first_layer_split(critic, index, q_net, features, flat_actions, low_precision)
+            if split_inputs is None:  # converted once for all the Q-networks
+                split_inputs = (features.to(low_precision.dtype), flat_actions.to(low_precision.dtype))
+            hidden = _first_layer_split(critic, index, q_net, *split_inputs, low_precision)
             q_values.append(_run_mlp_no_grad(critic, index, q_net, hidden, low_precision, first=2, owned=True))
             continue
         if q_input is None:
