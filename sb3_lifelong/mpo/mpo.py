@@ -452,10 +452,6 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.critic.optimizer.step()
         return CriticFit(critic_loss=critic_loss.detach(), q_mean=current_q_values[0].detach().mean())
 
-    @property
-    def _kl_bounds(self) -> dict[str, float]:
-        return {"epsilon_mean": self.epsilon_mean, "epsilon_stddev": self.epsilon_stddev}
-
     def _update_actor_and_duals(self, policy_obs: Any, targets: TargetSamples) -> PolicyImprovement:
         # E-step: weights of the sampled actions (one set per objective), temperature duals
         temperature = dual_value(self.log_temperature)
