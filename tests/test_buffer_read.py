@@ -236,7 +236,7 @@ def test_followers_read_the_same_while_writer_appends(tmp_path, layout):
         assert len(os.listdir(tmp_path / "b")) < 12  # chunk files were deleted
         if os.path.isdir("/proc/self/fd"):  # the pread follower keeps the files of the retained chunks open, no other
             store = followers[1].store
-            opened = {os.readlink(f"/proc/self/fd/{fd}") for fd in store._read_fds.values()}
+            opened = {os.readlink(f"/proc/self/fd/{fd}") for fd in store._reader.fds.values()}
             assert opened == {os.path.join(store.path, storage.chunk_file_name(c["start"])) for c in store.chunks}
             assert not [fd for fd in open_files(tmp_path / "b") if fd.endswith("(deleted)")]
     writer.close()

@@ -167,11 +167,16 @@ def test_store_owns_streams_sources_and_spaces():
     public = ("fields", "dtypes", "sources", "spaces", "next_stream_id")
     legacy = {key.lstrip("_") if key.lstrip("_") in public else key: value for key, value in store.__getstate__().items()}
     assert set(public) <= set(legacy)
+    # ... and the reading state of the time (empty in memory) instead of a reader
+    del legacy["_reader"]
+    legacy.update(_maps={}, _chunk_maps=[], _chunk_starts=np.zeros(0, np.int64), _read_fds={}, _pread_table=None)
+    legacy.update(_segment_starts=np.zeros(1, np.int64))
     old = storage.RowStore.__new__(storage.RowStore)
     old.__setstate__(legacy)
     assert (dict(old.fields), old.next_stream_id, old.source_table()) == (dict(store.fields), 5, store.source_table())
     for name in store.fields:
         np.testing.assert_array_equal(old.read_range(name, 0, len(store)), store.read_range(name, 0, len(store)))
+    assert not {"_maps", "_chunk_maps", "_read_fds", "_pread_table"} & set(vars(old))
 
 
 # ---------------------------------------------------------------------------------------------- persistence

@@ -7,7 +7,10 @@ crash tests and tools can use it in light subprocesses.
 Directory format (versions 1 and 2), see ``docs/modules/buffer.md``::
 
     <path>/manifest.json     committed state (JSON, rewritten atomically after each flushed chunk)
-    <path>/<field>.bin       one append-only file per field: raw little-endian C-order rows, no header
+    <path>/<field>.bin       layout "single" (no capacity): one append-only file per field, raw little-endian
+                             C-order rows, no header
+    <path>/chunk.<start>.bin layout "chunked" (with a capacity): one file per flushed chunk, each field's rows one
+                             field after the other; deleted once no committed manifest lists it
     <path>/writer.lock       advisory lock held by the (single) writer process
 
 Committed rows are read with memory maps (``read_mode="mmap"``, the default) or with positioned reads
@@ -35,7 +38,7 @@ import weakref
 import zlib
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
@@ -515,8 +518,415 @@ def chunk_file_name(start: int) -> str:
     return f"chunk.{start:012d}.bin"
 
 
+class _Segment(NamedTuple):
+    """Committed rows ``start:start + rows`` (global numbers) stored contiguously: each field's rows at a byte
+    offset of a data file."""
+
+    start: int
+    rows: int
+    places: dict[str, tuple[str, int]]  # field name -> (data file, byte offset of the segment's first row)
+
+
+# ---------------------------------------------------------------------------------------------- layouts
+class _SingleFileLayout:
+    """
+    Layout "single": one append-only file per field, ``<field>.bin``, row ``i`` at byte ``i * row_bytes``. Every
+    row is kept (no capacity), so the committed rows are one segment. A flush cuts each file back to its committed
+    length (bytes after it are left by a failed flush or a crash) and appends the new chunks to it.
+    """
+
+    name = "single"
+
+    @staticmethod
+    def field_file(store: RowStore, name: str) -> str:
+        assert store.path is not None
+        return os.path.join(store.path, name + ".bin")
+
+    def create(self, store: RowStore) -> None:
+        for name in store._fields:
+            open(self.field_file(store, name), "wb").close()
+
+    def open_existing(self, store: RowStore, verify: str) -> None:
+        for name in store._fields:
+            file_name = self.field_file(store, name)
+            if not os.path.isfile(file_name) or os.path.islink(file_name):
+                raise BufferFormatError(f"{store.path}: field file {name}.bin is missing or not a regular file")
+        for name in store._fields:
+            file_name, need = self.field_file(store, name), store.num_committed * store.row_bytes[name]
+            have = os.path.getsize(file_name)
+            if have < need:
+                raise BufferFormatError(
+                    f"{file_name}: {have} bytes but the manifest commits {store.num_committed} rows ({need} bytes); "
+                    "the file was truncated or replaced"
+                )
+            if have > need and not store.read_only:
+                # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
+                with open(file_name, "r+b") as file:
+                    file.truncate(need)
+                    os.fsync(file.fileno())
+                store.discarded_bytes += have - need
+        for chunk in _checked_chunks(store.chunks, verify):
+            for name in store._fields:
+                with open(self.field_file(store, name), "rb") as file:
+                    file.seek(chunk["start"] * store.row_bytes[name])
+                    data = file.read(chunk["rows"] * store.row_bytes[name])
+                if zlib.crc32(data) != chunk["crc32"][name]:
+                    raise BufferFormatError(
+                        f"{self.field_file(store, name)}: checksum mismatch in chunk starting at row {chunk['start']} "
+                        "(corrupted data)"
+                    )
+
+    def segments(self, store: RowStore) -> list[_Segment]:
+        if store.num_committed == 0:
+            return []
+        return [_Segment(0, store.num_committed, {name: (self.field_file(store, name), 0) for name in store._fields})]
+
+    def write(self, store: RowStore, chunks: list[dict[str, Any]], extra: Optional[dict[str, np.ndarray]]) -> None:
+        base = store.num_committed
+        for name in store._fields:
+            committed_bytes = base * store.row_bytes[name]
+            fd = _open_for_writing(self.field_file(store, name))
+            try:
+                # bytes after the committed rows are left by a failed flush: cut them off so that this one writes the
+                # same rows to the same place (the manifest's offsets)
+                os.ftruncate(fd, committed_bytes)
+                os.lseek(fd, committed_bytes, os.SEEK_SET)
+                for chunk in chunks:
+                    store._write_block(fd, name, chunk, chunk["start"] - base, extra)
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+    def discard(self, store: RowStore, chunks: list[dict[str, Any]]) -> None:
+        for name in store._fields:  # best effort: the bytes after the committed rows are ignored anyway
+            try:
+                os.truncate(self.field_file(store, name), store.num_committed * store.row_bytes[name])
+            except OSError:
+                pass
+
+    def retain(
+        self, store: RowStore, chunks: list[dict[str, Any]], num_committed: int
+    ) -> tuple[list[dict[str, Any]], int, list[dict[str, Any]]]:
+        return chunks, store.committed_first, []
+
+
+class _ChunkFileLayout:
+    """
+    Layout "chunked": one file per flushed chunk, ``chunk.<start>.bin``, holding each field's rows one field after
+    the other; each chunk is a segment. A commit keeps the last ``capacity`` committed rows: the files of the chunks
+    with none of them are deleted once the manifest that drops them is synced.
+    """
+
+    name = "chunked"
+
+    @staticmethod
+    def chunk_file(store: RowStore, chunk: dict[str, Any]) -> str:
+        assert store.path is not None
+        return os.path.join(store.path, chunk_file_name(chunk["start"]))
+
+    def create(self, store: RowStore) -> None:
+        self.remove_orphans(store)  # empty chunk files (non-empty ones without a manifest are refused before)
+
+    def open_existing(self, store: RowStore, verify: str) -> None:
+        for chunk in store.chunks:
+            file_name = self.chunk_file(store, chunk)
+            if not os.path.isfile(file_name) or os.path.islink(file_name):
+                raise BufferFormatError(f"{file_name}: chunk file is missing or not a regular file")
+            need = store._field_offsets(chunk["rows"])[""]
+            have = os.path.getsize(file_name)
+            if have != need:
+                raise BufferFormatError(
+                    f"{file_name}: {have} bytes but the manifest's chunk of {chunk['rows']} rows needs {need} bytes; "
+                    "the file was truncated or replaced"
+                )
+        names = list(store._fields)
+        for chunk in _checked_chunks(store.chunks, verify):
+            offsets = store._field_offsets(chunk["rows"])
+            with open(self.chunk_file(store, chunk), "rb") as file:
+                data = file.read()
+            for k, name in enumerate(names):
+                stop = offsets[names[k + 1]] if k + 1 < len(names) else offsets[""]
+                if zlib.crc32(data[offsets[name] : stop]) != chunk["crc32"][name]:
+                    raise BufferFormatError(
+                        f"{self.chunk_file(store, chunk)}: checksum mismatch in field {name!r} (corrupted data)"
+                    )
+        if not store.read_only:
+            self.remove_orphans(store)
+
+    def remove_orphans(self, store: RowStore) -> None:
+        """Delete the chunk files the manifest does not list: evicted ones left by a crash after a commit, or the
+        unflushed chunk of a crash before it (writer only)."""
+        assert store.path is not None
+        listed = {chunk_file_name(chunk["start"]) for chunk in store.chunks}
+        removed = False
+        for entry in sorted(os.listdir(store.path)):
+            if CHUNK_FILE_PATTERN.fullmatch(entry) and entry not in listed:
+                file_name = os.path.join(store.path, entry)
+                if os.path.islink(file_name) or not os.path.isfile(file_name):
+                    continue
+                store.discarded_bytes += os.path.getsize(file_name)
+                _delete_file(file_name)
+                store.removed_files.append(entry)
+                removed = True
+        if removed:
+            _fsync_dir(store.path)
+
+    def segments(self, store: RowStore) -> list[_Segment]:
+        segments = []
+        for chunk in store.chunks:
+            file_name, offsets = self.chunk_file(store, chunk), store._field_offsets(chunk["rows"])
+            places = {name: (file_name, offsets[name]) for name in store._fields}
+            segments.append(_Segment(chunk["start"], chunk["rows"], places))
+        return segments
+
+    def write(self, store: RowStore, chunks: list[dict[str, Any]], extra: Optional[dict[str, np.ndarray]]) -> None:
+        assert store.path is not None
+        base = store.num_committed
+        for chunk in chunks:
+            fd = _open_for_writing(self.chunk_file(store, chunk), os.O_CREAT | os.O_TRUNC)
+            try:
+                for name in store._fields:
+                    store._write_block(fd, name, chunk, chunk["start"] - base, extra)
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        _fsync_dir(store.path, strict=True)  # the new files' entries are durable before a manifest names them
+
+    def discard(self, store: RowStore, chunks: list[dict[str, Any]]) -> None:
+        for chunk in chunks:  # not committed: nothing refers to these files
+            _remove_quietly(self.chunk_file(store, chunk))
+
+    def retain(
+        self, store: RowStore, chunks: list[dict[str, Any]], num_committed: int
+    ) -> tuple[list[dict[str, Any]], int, list[dict[str, Any]]]:
+        # the manifest keeps the last ``capacity`` committed rows (rows still pending do not evict on disk)
+        committed_first = store.committed_first
+        if store.capacity is not None:
+            committed_first = max(committed_first, num_committed - store.capacity)
+        dropped = [chunk for chunk in chunks if chunk["start"] + chunk["rows"] <= committed_first]
+        return chunks[len(dropped) :], committed_first, dropped
+
+
+_LAYOUT_STRATEGIES: dict[str, Any] = {"single": _SingleFileLayout(), "chunked": _ChunkFileLayout()}
+
+
+def _checked_chunks(chunks: list[dict[str, Any]], verify: str) -> list[dict[str, Any]]:
+    """The chunks whose checksums ``verify`` ("all", "last" or "none") asks to check when opening."""
+    return chunks if verify == "all" else chunks[-1:] if verify == "last" else []
+
+
+# ---------------------------------------------------------------------------------------------- read modes
+class _RowFormat:
+    """What a reader needs to know of the rows: dtype and shape of each field."""
+
+    def __init__(self, dtypes: Mapping[str, np.dtype], shapes: Mapping[str, tuple[int, ...]]) -> None:
+        self.dtypes = dict(dtypes)
+        self.shapes = dict(shapes)
+        self.row_bytes = {name: self.dtypes[name].itemsize * math.prod(shape) for name, shape in self.shapes.items()}
+
+    def empty(self, names: tuple[str, ...], rows: int = 0) -> dict[str, np.ndarray]:
+        return {name: np.empty((rows, *self.shapes[name]), dtype=self.dtypes[name]) for name in names}
+
+
+class _MappedReader(_RowFormat):
+    """
+    ``read_mode="mmap"``: each segment's data files are memory-mapped read-only, its fields are arrays over the
+    maps. A sync maps the new segments and keeps the maps of those unchanged; ``fresh=True`` maps everything again,
+    which drops the pages touched so far from this process's RSS.
+    """
+
+    def __init__(self, dtypes: Mapping[str, np.dtype], shapes: Mapping[str, tuple[int, ...]]) -> None:
+        super().__init__(dtypes, shapes)
+        self._segments: list[_Segment] = []
+        self._arrays: list[dict[str, np.ndarray]] = []  # one dict per segment: field -> its committed rows
+        self._starts = np.zeros(0, dtype=np.int64)
+
+    def sync(self, segments: list[_Segment], fresh: bool = False, eager: bool = True) -> None:
+        known = {} if fresh else {(s.start, s.rows): arrays for s, arrays in zip(self._segments, self._arrays)}
+        self._arrays = [known.get((s.start, s.rows)) or self._map(s) for s in segments]
+        self._segments = list(segments)
+        self._starts = np.array([s.start for s in segments], dtype=np.int64)
+
+    def _map(self, segment: _Segment) -> dict[str, np.ndarray]:
+        lengths: dict[str, int] = {}
+        for name, (file_name, offset) in segment.places.items():
+            lengths[file_name] = max(lengths.get(file_name, 0), offset + segment.rows * self.row_bytes[name])
+        maps = {file_name: _map_file(file_name, length) for file_name, length in lengths.items()}
+        arrays = {}
+        for name, (file_name, offset) in segment.places.items():
+            count = segment.rows * math.prod(self.shapes[name])
+            array = np.frombuffer(maps[file_name], dtype=self.dtypes[name], count=count, offset=offset)  # type: ignore[arg-type]
+            arrays[name] = array.reshape(segment.rows, *self.shapes[name])
+        return arrays
+
+    def gather(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
+        if len(rows) == 0:
+            return self.empty(names)
+        if len(self._arrays) == 1:  # e.g. layout "single"
+            start, arrays = int(self._starts[0]), self._arrays[0]
+            local = rows - start if start else rows
+            return {name: arrays[name][local] for name in names}
+        owner = np.searchsorted(self._starts, rows, side="right") - 1
+        if owner[0] == owner[-1] and (owner == owner[0]).all():  # one segment (e.g. a single row)
+            k = int(owner[0])
+            local = rows - self._starts[k]
+            return {name: self._arrays[k][name][local] for name in names}
+        order = np.argsort(owner, kind="stable")
+        sorted_owner = owner[order]
+        bounds = np.concatenate([[0], np.flatnonzero(sorted_owner[1:] != sorted_owner[:-1]) + 1, [len(rows)]]).tolist()
+        result = self.empty(names, len(rows))
+        if 4 * (len(bounds) - 1) > len(rows):
+            # rows spread over many segments (random sampling): copying row by row is the fastest in numpy
+            pairs = list(zip(owner.tolist(), (rows - self._starts[owner]).tolist()))
+            for name in names:
+                out, maps = result[name], [arrays[name] for arrays in self._arrays]
+                for i, (k, j) in enumerate(pairs):
+                    out[i] = maps[k][j]
+            return result
+        local = rows[order] - self._starts[sorted_owner]
+        for name in names:  # one read per segment touched
+            ordered = np.empty_like(result[name])
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                ordered[a:b] = self._arrays[int(sorted_owner[a])][name][local[a:b]]
+            result[name][order] = ordered
+        return result
+
+    def pieces(self, name: str, lo: int, hi: int) -> list[np.ndarray]:
+        pieces = []
+        for segment, arrays in zip(self._segments, self._arrays):
+            a, b = max(lo, segment.start), min(hi, segment.start + segment.rows)
+            if a < b:
+                pieces.append(arrays[name][a - segment.start : b - segment.start])  # views of the maps
+        return pieces
+
+    def close(self) -> None:
+        """Nothing to release: the maps stay readable after the store is closed."""
+
+
+class _PositionedReader(_RowFormat):
+    """
+    ``read_mode="pread"``: the data files of the committed segments are kept open and rows are read with
+    positioned reads into fresh arrays (one call per run of nearby rows): no page of the files is mapped. Closing
+    closes the files; the next read opens them again.
+    """
+
+    def __init__(self, dtypes: Mapping[str, np.dtype], shapes: Mapping[str, tuple[int, ...]]) -> None:
+        super().__init__(dtypes, shapes)
+        self.fds: dict[str, int] = {}  # open descriptors by file name
+        self._segments: list[_Segment] = []
+        # per field: the descriptor and byte offset of each segment; None: closed (to open at the next read)
+        self._table: Optional[dict[str, tuple[list[int], np.ndarray]]] = None
+        self._starts = np.zeros(0, dtype=np.int64)
+
+    def sync(self, segments: list[_Segment], fresh: bool = False, eager: bool = True) -> None:
+        """
+        :param segments: The committed segments
+        :param fresh: Ignored (no map to drop)
+        :param eager: Open the files now even if the reader is closed (else, when closed, at the next read)
+        """
+        self._segments = list(segments)
+        if self._table is not None or eager:
+            self._open()
+
+    def _open(self) -> None:
+        names = list(dict.fromkeys(file_name for s in self._segments for file_name, _ in s.places.values()))
+        for name in names:  # first, so that a file that cannot be opened leaves the current table working
+            if name not in self.fds:
+                self.fds[name] = os.open(name, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        self._table = {
+            field: (
+                [self.fds[s.places[field][0]] for s in self._segments],
+                np.array([s.places[field][1] for s in self._segments], dtype=np.int64),
+            )
+            for field in self.shapes
+        }
+        self._starts = np.array([s.start for s in self._segments], dtype=np.int64)
+        for name in set(self.fds) - set(names):  # segments evicted (their files may be deleted already)
+            os.close(self.fds.pop(name))
+
+    def close(self) -> None:
+        while self.fds:
+            os.close(self.fds.popitem()[1])
+        self._table = None
+
+    def _read_table(self) -> dict[str, tuple[list[int], np.ndarray]]:
+        if self._table is None:  # closed: open the files again
+            self._open()
+            assert self._table is not None
+        return self._table
+
+    def gather(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Rows by global number (any order, repeats allowed): the distinct rows in file order, one call per run of
+        rows of a field whose bytes are at most ``PREAD_MERGE_GAP`` apart."""
+        if len(rows) == 0:
+            return self.empty(names)
+        table = self._read_table()
+        unique, inverse = np.unique(rows, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        starts = self._starts
+        segment = np.searchsorted(starts, unique, side="right") - 1 if len(starts) > 1 else np.zeros(len(unique), np.int64)
+        local = unique - starts[segment]
+        new_segment = np.ones(len(unique), dtype=bool)
+        new_segment[1:] = segment[1:] != segment[:-1]
+        result = {}
+        for name in names:
+            fds, bases = table[name]
+            size = self.row_bytes[name]
+            offsets = bases[segment] + local * size
+            new_read = new_segment.copy()
+            new_read[1:] |= offsets[1:] - offsets[:-1] > size + PREAD_MERGE_GAP
+            firsts = np.flatnonzero(new_read)
+            low = offsets[firsts]
+            sizes = offsets[np.append(firsts[1:], len(unique)) - 1] + size - low
+            read_fds = [fds[k] for k in segment[firsts].tolist()]
+            data = b"".join(map(os.pread, read_fds, sizes.tolist(), low.tolist()))
+            if len(data) != int(sizes.sum()):  # short reads (a run past 2 GiB): read again, in full
+                data = b"".join(map(_pread_exact, read_fds, sizes.tolist(), low.tolist()))
+            run = np.cumsum(new_read) - 1
+            position = ((np.cumsum(sizes) - sizes)[run] + offsets - low[run]) // size  # row of `data` of each row
+            rows_read = np.frombuffer(data, dtype=self.dtypes[name]).reshape(-1, *self.shapes[name])
+            result[name] = rows_read[position[inverse]]
+        return result
+
+    def pieces(self, name: str, lo: int, hi: int) -> list[np.ndarray]:
+        out = np.empty((max(hi - lo, 0), *self.shapes[name]), dtype=self.dtypes[name])
+        if hi <= lo:
+            return [out]
+        fds, bases = self._read_table()[name]
+        size = self.row_bytes[name]
+        view = memoryview(out.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
+        for k, segment in enumerate(self._segments):
+            a, b = max(lo, segment.start), min(hi, segment.start + segment.rows)
+            if a < b:
+                _read_into(fds[k], view[(a - lo) * size : (b - lo) * size], int(bases[k]) + (a - segment.start) * size)
+        return [out]
+
+
+_READERS: dict[str, Any] = {"mmap": _MappedReader, "pread": _PositionedReader}
+
+
+def _map_file(file_name: str, length: int) -> Optional[mmap.mmap]:
+    """A read-only map of the first ``length`` bytes of a file (None for none), advised for random reads."""
+    if length == 0:
+        return None
+    with open(file_name, "rb") as file:
+        mapped = mmap.mmap(file.fileno(), length, access=mmap.ACCESS_READ)
+    if hasattr(mapped, "madvise") and hasattr(mmap, "MADV_RANDOM"):
+        mapped.madvise(mmap.MADV_RANDOM)
+    return mapped
+
+
+def _pread_exact(fd: int, size: int, offset: int) -> bytes:
+    """``size`` bytes at ``offset`` (a single read may return fewer, e.g. past 2 GiB on Linux)."""
+    data = bytearray(size)
+    _read_into(fd, memoryview(data), offset)
+    return bytes(data)
+
+
 #: RowStore attributes that pickles of in-memory stores written by earlier versions hold under these public names
 _PUBLIC_BEFORE = frozenset({"fields", "dtypes", "sources", "spaces", "next_stream_id"})
+#: and the (empty) reading state they held before the read modes became reader objects
+_READER_BEFORE = frozenset({"_maps", "_chunk_maps", "_chunk_starts", "_read_fds", "_pread_table", "_segment_starts"})
 
 
 class RowStore:
@@ -534,6 +944,11 @@ class RowStore:
     (appended, fsync'd, manifest replaced atomically) when full or on ``flush()``. Without a capacity the directory
     has one append-only file per field (layout "single"); with one, a file per chunk (layout "chunked"), deleted
     once the committed manifest no longer lists it.
+
+    The store keeps the commit protocol (pending rows, manifest, eviction, recovery); two small strategies do the
+    rest: the directory's layout (``_SingleFileLayout``, ``_ChunkFileLayout``) creates, checks, writes and describes
+    the data files as segments of committed rows, and the read mode's reader (``_MappedReader``,
+    ``_PositionedReader``) reads rows from those segments.
 
     Besides the rows, the store owns what its manifest records about them: the stream ids (:meth:`reserve_streams`),
     the source table (:meth:`source`, :meth:`set_source`, :meth:`source_table`) and the description of the spaces
@@ -595,19 +1010,12 @@ class RowStore:
         self.removed_files: list[str] = []  # chunk files found unreferenced (and deleted) when opening
         self._tail_start = 0  # global row of the tail's first row
         self._lock_file: Any = None
-        self._maps: dict[str, np.ndarray] = {}  # layout "single": field -> committed rows
-        self._chunk_maps: list[dict[str, np.ndarray]] = []  # layout "chunked": one dict per entry of self.chunks
-        self._chunk_starts = np.zeros(0, dtype=np.int64)
+        self._reader: Any = None  # reads the committed rows (a directory store's read mode), set once the fields are known
         self._closed = False
         # chunk files dropped by a commit whose directory fsync failed: deleted once a later manifest is synced (the
         # previous manifest, which lists them, may be the one a power loss leaves)
         self._undeleted: list[str] = []
         self.read_mode = read_mode
-        # read_mode "pread": open read descriptors by file name, and per field the descriptor and byte offset of
-        # each segment of rows (layout "single": one segment from row 0; "chunked": one per chunk); None: to open
-        self._read_fds: dict[str, int] = {}
-        self._pread_table: Optional[dict[str, tuple[list[int], np.ndarray]]] = None
-        self._segment_starts = np.zeros(1, dtype=np.int64)
         self.max_resident_bytes = max_resident_bytes
         self.remaps = 0  # number of remaps done to bound the RSS
         self._baseline_file_bytes = 0
@@ -630,7 +1038,10 @@ class RowStore:
                     raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
             self.capacity = stored_capacity if capacity is None else int(capacity)
             self._load_manifest(manifest)
-            self._open_existing(verify)
+            self._set_row_format()
+            if not self.read_only:
+                self._take_lock()
+            self._layout.open_existing(self, verify)
         else:
             orphans = [] if self.path is None else orphaned_data_files(self.path)
             if orphans:
@@ -656,17 +1067,12 @@ class RowStore:
                 raise FileNotFoundError(f"no buffer at {self.path!r} to open read-only")
             given = {name: (np.dtype(dt).str, tuple(int(d) for d in shape)) for name, (dt, shape) in fields.items()}
             self._fields = validate_fields({k: {"dtype": d, "shape": list(s)} for k, (d, s) in given.items()})
+            self._set_row_format()
             if self.path is not None:
                 os.makedirs(self.path, exist_ok=True)
                 self._take_lock()
-                if self.layout == "single":
-                    for name in self._fields:
-                        open(self._file(name), "wb").close()
-                else:
-                    self._remove_orphans()  # empty chunk files (non-empty ones without a manifest are refused above)
+                self._layout.create(self)
                 self._write_manifest()
-        self._dtypes = {name: np.dtype(dt) for name, (dt, _) in self._fields.items()}
-        self.row_bytes = {name: self._dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self._fields.items()}
         self._tail_start = self.num_committed
         rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
         self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
@@ -674,8 +1080,8 @@ class RowStore:
         self._maps_stale = False  # True while the maps (or read files) may not cover every committed row
         if self.path is not None and self.layout == "chunked" and not read_only:
             self._commit(self.chunks, self.num_committed)  # a smaller capacity than the stored one evicts now; maps
-        else:
-            self._remap()
+        elif self.path is not None:
+            self._sync_maps()
         self.recovered = len(self)
         if self.max_resident_bytes is not None and self.path is not None:
             try:  # file-backed pages mapped before this store (python, numpy, torch libraries)
@@ -719,13 +1125,17 @@ class RowStore:
         return MappingProxyType(self._dtypes)
 
     # ------------------------------------------------------------------ opening / recovery
-    def _file(self, name: str) -> str:
-        assert self.path is not None
-        return os.path.join(self.path, name + ".bin")
+    @property
+    def _layout(self) -> Any:
+        """The strategy of this directory's layout ("single" or "chunked"; not for in-memory stores)."""
+        return _LAYOUT_STRATEGIES[self.layout]
 
-    def _chunk_file(self, chunk: dict[str, Any]) -> str:
-        assert self.path is not None
-        return os.path.join(self.path, chunk_file_name(chunk["start"]))
+    def _set_row_format(self) -> None:
+        """Dtypes and row sizes of the fields, and the reader of a directory store's committed rows."""
+        self._dtypes = {name: np.dtype(dt) for name, (dt, _) in self._fields.items()}
+        self.row_bytes = {name: self._dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self._fields.items()}
+        if self.path is not None:
+            self._reader = _READERS[self.read_mode](self._dtypes, {name: shape for name, (_, shape) in self._fields.items()})
 
     def _load_manifest(self, manifest: dict[str, Any]) -> None:
         self.chunks = manifest["chunks"]
@@ -744,7 +1154,7 @@ class RowStore:
                 return manifest
             if all(os.path.isfile(os.path.join(self.path, chunk_file_name(c["start"]))) for c in manifest["chunks"]):
                 return manifest
-        return manifest  # _open_existing names the missing file
+        return manifest  # opening it names the missing file
 
     def _take_lock(self) -> None:
         assert self.path is not None
@@ -769,137 +1179,6 @@ class RowStore:
             offset += rows * np.dtype(dtype).itemsize * math.prod(shape)
         offsets[""] = offset
         return offsets
-
-    def _open_existing(self, verify: str) -> None:
-        assert self.path is not None
-        if not self.read_only:
-            self._take_lock()
-        if self.layout == "chunked":
-            self._open_chunked(verify)
-            return
-        for name in self._fields:
-            file_name = self._file(name)
-            if not os.path.isfile(file_name) or os.path.islink(file_name):
-                raise BufferFormatError(f"{self.path}: field file {name}.bin is missing or not a regular file")
-        dtypes = {name: np.dtype(dt) for name, (dt, _) in self._fields.items()}
-        sizes = {name: dtypes[name].itemsize * math.prod(shape) for name, (_, shape) in self._fields.items()}
-        for name in self._fields:
-            have = os.path.getsize(self._file(name))
-            need = self.num_committed * sizes[name]
-            if have < need:
-                raise BufferFormatError(
-                    f"{self._file(name)}: {have} bytes but the manifest commits {self.num_committed} rows ({need} bytes); "
-                    "the file was truncated or replaced"
-                )
-            if have > need and not self.read_only:
-                # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
-                with open(self._file(name), "r+b") as file:
-                    file.truncate(need)
-                    os.fsync(file.fileno())
-                self.discarded_bytes += have - need
-        checked = self.chunks if verify == "all" else self.chunks[-1:] if verify == "last" else []
-        for chunk in checked:
-            for name in self._fields:
-                with open(self._file(name), "rb") as file:
-                    file.seek(chunk["start"] * sizes[name])
-                    data = file.read(chunk["rows"] * sizes[name])
-                if zlib.crc32(data) != chunk["crc32"][name]:
-                    raise BufferFormatError(
-                        f"{self._file(name)}: checksum mismatch in chunk starting at row {chunk['start']} (corrupted data)"
-                    )
-
-    def _open_chunked(self, verify: str) -> None:
-        assert self.path is not None
-        for chunk in self.chunks:
-            file_name = self._chunk_file(chunk)
-            if not os.path.isfile(file_name) or os.path.islink(file_name):
-                raise BufferFormatError(f"{file_name}: chunk file is missing or not a regular file")
-            need = self._field_offsets(chunk["rows"])[""]
-            have = os.path.getsize(file_name)
-            if have != need:
-                raise BufferFormatError(
-                    f"{file_name}: {have} bytes but the manifest's chunk of {chunk['rows']} rows needs {need} bytes; "
-                    "the file was truncated or replaced"
-                )
-        checked = self.chunks if verify == "all" else self.chunks[-1:] if verify == "last" else []
-        for chunk in checked:
-            offsets = self._field_offsets(chunk["rows"])
-            with open(self._chunk_file(chunk), "rb") as file:
-                data = file.read()
-            for k, name in enumerate(self._fields):
-                stop = offsets[list(self._fields)[k + 1]] if k + 1 < len(self._fields) else offsets[""]
-                if zlib.crc32(data[offsets[name] : stop]) != chunk["crc32"][name]:
-                    raise BufferFormatError(f"{self._chunk_file(chunk)}: checksum mismatch in field {name!r} (corrupted data)")
-        if not self.read_only:
-            self._remove_orphans()
-
-    def _remove_orphans(self) -> None:
-        """Delete the chunk files the manifest does not list: evicted ones left by a crash after a commit, or the
-        unflushed chunk of a crash before it (writer only)."""
-        assert self.path is not None
-        listed = {chunk_file_name(chunk["start"]) for chunk in self.chunks}
-        removed = False
-        for entry in sorted(os.listdir(self.path)):
-            if CHUNK_FILE_PATTERN.fullmatch(entry) and entry not in listed:
-                file_name = os.path.join(self.path, entry)
-                if os.path.islink(file_name) or not os.path.isfile(file_name):
-                    continue
-                self.discarded_bytes += os.path.getsize(file_name)
-                _delete_file(file_name)
-                self.removed_files.append(entry)
-                removed = True
-        if removed:
-            _fsync_dir(self.path)
-
-    def _map_file(self, file_name: str, length: int) -> Optional[mmap.mmap]:
-        if length == 0:
-            return None
-        with open(file_name, "rb") as file:
-            mapped = mmap.mmap(file.fileno(), length, access=mmap.ACCESS_READ)
-        if hasattr(mapped, "madvise") and hasattr(mmap, "MADV_RANDOM"):
-            mapped.madvise(mmap.MADV_RANDOM)
-        return mapped
-
-    def _map_chunk(self, chunk: dict[str, Any]) -> dict[str, np.ndarray]:
-        rows = chunk["rows"]
-        offsets = self._field_offsets(rows)
-        mapped = self._map_file(self._chunk_file(chunk), offsets[""])
-        arrays = {}
-        for name, (_, shape) in self._fields.items():
-            count = rows * math.prod(shape)
-            array = np.frombuffer(mapped, dtype=self._dtypes[name], count=count, offset=offsets[name])  # type: ignore[arg-type]
-            arrays[name] = array.reshape(rows, *shape)
-        return arrays
-
-    def _remap(self) -> None:
-        """(Re)create the read-only memory maps over the committed rows (drops their resident pages from this process);
-        with ``read_mode="pread"``, open the files to read instead."""
-        self._maps = {}
-        self._chunk_maps = []
-        if self.path is None:
-            return
-        if self.read_mode == "pread":
-            self._sync_read_files()
-            return
-        if self.layout == "chunked":
-            self._chunk_maps = [self._map_chunk(chunk) for chunk in self.chunks]
-            self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
-            return
-        if self.num_committed == 0:
-            return
-        for name, (_, shape) in self._fields.items():
-            mapped = self._map_file(self._file(name), self.num_committed * self.row_bytes[name])
-            array = np.frombuffer(mapped, dtype=self._dtypes[name], count=self.num_committed * math.prod(shape))  # type: ignore[arg-type]
-            self._maps[name] = array.reshape(self.num_committed, *shape)
-
-    def _update_chunk_maps(self) -> None:
-        """Layout "chunked": map the chunks listed since the last call, unmap those no longer listed."""
-        if self.read_mode == "pread":
-            self._remap()  # opens the new chunk files, closes those no longer listed
-            return
-        known = {int(start): maps for start, maps in zip(self._chunk_starts.tolist(), self._chunk_maps)}
-        self._chunk_maps = [known.get(chunk["start"]) or self._map_chunk(chunk) for chunk in self.chunks]
-        self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
 
     def refresh(self) -> int:
         """
@@ -1074,52 +1353,12 @@ class RowStore:
         chunks: list[dict[str, Any]] = [
             {"start": base + lo, "rows": hi - lo, "crc32": {}} for lo, hi in zip(bounds[:-1], bounds[1:])
         ]
-        if self.layout == "chunked":
-            created = []
-            try:
-                for chunk in chunks:
-                    lo = chunk["start"] - base
-                    file_name = self._chunk_file(chunk)
-                    fd = _open_for_writing(file_name, os.O_CREAT | os.O_TRUNC)
-                    created.append(file_name)
-                    try:
-                        for name in self._fields:
-                            self._write_block(fd, name, chunk, lo, extra)
-                        os.fsync(fd)
-                    finally:
-                        os.close(fd)
-                _fsync_dir(self.path, strict=True)  # the new files' entries are durable before a manifest names them
-                self._commit([*self.chunks, *chunks], base + total)
-            except BaseException:
-                if self.num_committed == base:  # not committed: nothing refers to these files
-                    for file_name in created:
-                        _remove_quietly(file_name)
-                raise
-            return
-        written = []
         try:
-            for name in self._fields:
-                committed_bytes = base * self.row_bytes[name]
-                fd = _open_for_writing(self._file(name))
-                written.append(name)
-                try:
-                    # bytes after the committed rows are left by a failed flush: cut them off so that this one
-                    # writes the same rows to the same place (the manifest's offsets)
-                    os.ftruncate(fd, committed_bytes)
-                    os.lseek(fd, committed_bytes, os.SEEK_SET)
-                    for chunk in chunks:
-                        self._write_block(fd, name, chunk, chunk["start"] - base, extra)
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
+            self._layout.write(self, chunks, extra)
             self._commit([*self.chunks, *chunks], base + total)
         except BaseException:
             if self.num_committed == base:  # not committed: give the space back (best effort)
-                for name in written:
-                    try:
-                        os.truncate(self._file(name), base * self.row_bytes[name])
-                    except OSError:
-                        pass
+                self._layout.discard(self, chunks)
             raise
 
     def _commit(self, chunks: list[dict[str, Any]], num_committed: int) -> None:
@@ -1134,14 +1373,7 @@ class RowStore:
         :param chunks: The chunks of the new manifest
         :param num_committed: Global row after the last committed row
         """
-        committed_first = self.committed_first
-        dropped: list[dict[str, Any]] = []
-        if self.layout == "chunked":
-            # the manifest keeps the last ``capacity`` committed rows (rows still pending do not evict on disk)
-            if self.capacity is not None:
-                committed_first = max(committed_first, num_committed - self.capacity)
-            dropped = [chunk for chunk in chunks if chunk["start"] + chunk["rows"] <= committed_first]
-            chunks = chunks[len(dropped) :]
+        chunks, committed_first, dropped = self._layout.retain(self, chunks, num_committed)
         not_durable: Optional[CommitNotDurableError] = None
         try:
             self._write_manifest(chunks, num_committed, committed_first)
@@ -1152,7 +1384,7 @@ class RowStore:
         self.num_committed = self._tail_start = num_committed
         self.num_tail = 0
         self._maps_stale = True  # until the maps (or read files) follow: reads map again first
-        self._undeleted.extend(self._chunk_file(chunk) for chunk in dropped)
+        self._undeleted.extend(_ChunkFileLayout.chunk_file(self, chunk) for chunk in dropped)
         if not_durable is None:
             self._delete_undeleted()
         self._sync_maps()
@@ -1169,13 +1401,15 @@ class RowStore:
             assert self.path is not None
             _fsync_dir(self.path)
 
-    def _sync_maps(self) -> None:
-        """Map the committed rows (or, with ``read_mode="pread"``, open their files) after a commit or a refresh."""
+    def _sync_maps(self, fresh: bool = False) -> None:
+        """
+        Let the reader follow the committed rows after a commit or a refresh: map the new segments (or, with
+        ``read_mode="pread"``, open their files) and drop those no longer committed.
+
+        :param fresh: Map every segment again (drops the pages touched so far from this process's RSS)
+        """
         self._maps_stale = True
-        if self.layout == "chunked":
-            self._update_chunk_maps()
-        else:
-            self._remap()
+        self._reader.sync(self._layout.segments(self), fresh=fresh, eager=not self._closed)
         self._maps_stale = False
 
     def _write_manifest(
@@ -1233,10 +1467,10 @@ class RowStore:
         if "_fields" in state or "fields" in state:
             # in memory; pickles of earlier versions have no read mode, and keep the attributes that are read-only
             # properties now under their public names
-            self.__dict__.update(
-                read_mode="mmap", _read_fds={}, _pread_table=None, _segment_starts=np.zeros(1, np.int64), _maps_stale=False
-            )
-            self.__dict__.update({f"_{key}" if key in _PUBLIC_BEFORE else key: value for key, value in state.items()})
+            self.__dict__.update(read_mode="mmap", _maps_stale=False)
+            kept = {key: value for key, value in state.items() if key not in _READER_BEFORE}
+            self.__dict__.update({f"_{key}" if key in _PUBLIC_BEFORE else key: value for key, value in kept.items()})
+            self._reader = None  # an in-memory store reads no file
             return
         previous = _WRITERS.get(state["path"])
         if previous is not None and not state["read_only"]:
@@ -1263,117 +1497,9 @@ class RowStore:
             if self._lock_file is not None:
                 self._lock_file.close()
                 self._lock_file = None
-        self._close_read_files()
-
-    # ------------------------------------------------------------------ read_mode "pread": files
-    def _sync_read_files(self, reopen: bool = False) -> None:
-        """
-        Open the files of the committed rows that are not open yet, close those no longer needed, and index them.
-
-        :param reopen: Also when the store was closed and its files are not open (otherwise left to the next read)
-        """
-        if self._closed and self._pread_table is None and not reopen:
-            return
-        assert self.path is not None
-        if self.layout == "chunked":
-            names = [self._chunk_file(chunk) for chunk in self.chunks]
-        else:
-            names = [self._file(name) for name in self._fields]
-        for name in names:  # first, so that a file that cannot be opened leaves the current table working
-            if name not in self._read_fds:
-                self._read_fds[name] = os.open(name, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
-        table: dict[str, tuple[list[int], np.ndarray]] = {}
-        if self.layout == "chunked":
-            fds = [self._read_fds[name] for name in names]
-            offsets = [self._field_offsets(chunk["rows"]) for chunk in self.chunks]
-            for name in self._fields:
-                table[name] = (fds, np.array([offset[name] for offset in offsets], dtype=np.int64))
-            self._chunk_starts = np.array([chunk["start"] for chunk in self.chunks], dtype=np.int64)
-            self._segment_starts = self._chunk_starts
-        else:
-            for name in self._fields:
-                table[name] = ([self._read_fds[self._file(name)]], np.zeros(1, dtype=np.int64))
-            self._segment_starts = np.zeros(1, dtype=np.int64)
-        self._pread_table = table
-        for name in set(self._read_fds) - set(names):  # chunks evicted (their files may be deleted already)
-            os.close(self._read_fds.pop(name))
-
-    def _close_read_files(self) -> None:
-        """Close the read file descriptors (``read_mode="pread"``)."""
-        fds = getattr(self, "_read_fds", None)
-        while fds:
-            os.close(fds.popitem()[1])
-        self._pread_table = None
-
-    def _read_table(self) -> dict[str, tuple[list[int], np.ndarray]]:
-        if self._pread_table is None:  # closed: open the files again
-            self._sync_read_files(reopen=True)
-            assert self._pread_table is not None
-        return self._pread_table
-
-    @staticmethod
-    def _pread_exact(fd: int, size: int, offset: int) -> bytes:
-        """``size`` bytes at ``offset`` (a single read may return fewer, e.g. past 2 GiB on Linux)."""
-        data = bytearray(size)
-        _read_into(fd, memoryview(data), offset)
-        return bytes(data)
-
-    def _pread_gather(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
-        """
-        Committed rows by global number (any order, repeats allowed), read with positioned reads: the distinct rows
-        in file order, one call per run of rows of a field whose bytes are at most ``PREAD_MERGE_GAP`` apart.
-
-        :param names: Fields to read
-        :param rows: Global row numbers, all committed and retained
-        :return: field name -> array of shape (len(rows), *row_shape)
-        """
-        if len(rows) == 0:
-            return self._empty(names)
-        table = self._read_table()
-        unique, inverse = np.unique(rows, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        starts = self._segment_starts
-        segment = np.searchsorted(starts, unique, side="right") - 1 if len(starts) > 1 else np.zeros(len(unique), np.int64)
-        local = unique - starts[segment]
-        new_segment = np.ones(len(unique), dtype=bool)
-        new_segment[1:] = segment[1:] != segment[:-1]
-        result = {}
-        for name in names:
-            fds, bases = table[name]
-            size = self.row_bytes[name]
-            offsets = bases[segment] + local * size
-            new_read = new_segment.copy()
-            new_read[1:] |= offsets[1:] - offsets[:-1] > size + PREAD_MERGE_GAP
-            firsts = np.flatnonzero(new_read)
-            low = offsets[firsts]
-            sizes = offsets[np.append(firsts[1:], len(unique)) - 1] + size - low
-            read_fds = [fds[k] for k in segment[firsts].tolist()]
-            data = b"".join(map(os.pread, read_fds, sizes.tolist(), low.tolist()))
-            if len(data) != int(sizes.sum()):  # short reads (a run past 2 GiB): read again, in full
-                data = b"".join(map(self._pread_exact, read_fds, sizes.tolist(), low.tolist()))
-            run = np.cumsum(new_read) - 1
-            position = ((np.cumsum(sizes) - sizes)[run] + offsets - low[run]) // size  # row of `data` of each row
-            rows_read = np.frombuffer(data, dtype=self._dtypes[name]).reshape(-1, *self._fields[name][1])
-            result[name] = rows_read[position[inverse]]
-        return result
-
-    def _pread_range(self, name: str, lo: int, hi: int) -> np.ndarray:
-        """Committed rows ``lo:hi`` (global numbers) of a field, read into a new array."""
-        shape = self._fields[name][1]
-        out = np.empty((max(hi - lo, 0), *shape), dtype=self._dtypes[name])
-        if hi <= lo:
-            return out
-        fds, bases = self._read_table()[name]
-        size = self.row_bytes[name]
-        view = memoryview(out.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
-        starts = self._segment_starts.tolist()
-        ends = [*starts[1:], self.num_committed]
-        for k, (start, end) in enumerate(zip(starts, ends)):
-            a, b = max(lo, start), min(hi, end)
-            if a >= b:
-                continue
-            _read_into(fds[k], view[(a - lo) * size : (b - lo) * size], int(bases[k]) + (a - start) * size)
-        return out
+        reader = getattr(self, "_reader", None)
+        if reader is not None:
+            reader.close()
 
     # ------------------------------------------------------------------ reading
     def _limit_resident(self) -> None:
@@ -1386,44 +1512,8 @@ class RowStore:
             return
         assert self.max_resident_bytes is not None
         if mapped_file_pages * mmap.PAGESIZE > self.max_resident_bytes + self._baseline_file_bytes:
-            self._remap()
+            self._sync_maps(fresh=True)
             self.remaps += 1
-
-    def _gather_committed(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
-        """Committed rows by global number."""
-        if self.read_mode == "pread":
-            return self._pread_gather(names, rows)
-        if self.layout != "chunked":
-            return {name: self._maps[name][rows] for name in names}
-        owner = np.searchsorted(self._chunk_starts, rows, side="right") - 1
-        if len(rows) == 0:
-            return self._empty(names)
-        if owner[0] == owner[-1] and (owner == owner[0]).all():  # one chunk (e.g. a single row)
-            k = int(owner[0])
-            local = rows - self._chunk_starts[k]
-            return {name: self._chunk_maps[k][name][local] for name in names}
-        order = np.argsort(owner, kind="stable")
-        sorted_owner = owner[order]
-        bounds = np.concatenate([[0], np.flatnonzero(sorted_owner[1:] != sorted_owner[:-1]) + 1, [len(rows)]]).tolist()
-        result = self._empty(names, len(rows))
-        if 4 * (len(bounds) - 1) > len(rows):
-            # rows spread over many chunks (random sampling): copying row by row is the fastest in numpy
-            pairs = list(zip(owner.tolist(), (rows - self._chunk_starts[owner]).tolist()))
-            for name in names:
-                out, maps = result[name], [chunk[name] for chunk in self._chunk_maps]
-                for i, (k, j) in enumerate(pairs):
-                    out[i] = maps[k][j]
-            return result
-        local = rows[order] - self._chunk_starts[sorted_owner]
-        for name in names:  # one read per chunk touched
-            ordered = np.empty_like(result[name])
-            for a, b in zip(bounds[:-1], bounds[1:]):
-                ordered[a:b] = self._chunk_maps[int(sorted_owner[a])][name][local[a:b]]
-            result[name][order] = ordered
-        return result
-
-    def _empty(self, names: tuple[str, ...], rows: int = 0) -> dict[str, np.ndarray]:
-        return {name: np.empty((rows, *self._tail[name].shape[1:]), dtype=self._tail[name].dtype) for name in names}
 
     # ------------------------------------------------------------------ streams, sources and spaces
     @property
@@ -1499,9 +1589,9 @@ class RowStore:
         if self.max_resident_bytes is not None:
             self._limit_resident()
         if len(rows) == 0 or rows.max() < committed:
-            return self._gather_committed(names, rows)
+            return self._reader.gather(names, rows)
         in_tail = rows >= committed
-        from_maps = self._gather_committed(names, rows[~in_tail])
+        from_maps = self._reader.gather(names, rows[~in_tail])
         tail_idx = rows[in_tail] - committed
         result = {}
         for name in names:
@@ -1528,15 +1618,7 @@ class RowStore:
         committed = self._tail_start
         pieces = []
         if lo < committed and self.path is not None:
-            if self.read_mode == "pread":
-                pieces.append(self._pread_range(name, lo, min(hi, committed)))
-            elif self.layout == "chunked":
-                for k, chunk in enumerate(self.chunks):
-                    a, b = max(lo, chunk["start"]), min(hi, committed, chunk["start"] + chunk["rows"])
-                    if a < b:
-                        pieces.append(self._chunk_maps[k][name][a - chunk["start"] : b - chunk["start"]])
-            else:
-                pieces.append(self._maps[name][lo : min(hi, committed)])
+            pieces.extend(self._reader.pieces(name, lo, min(hi, committed)))
         if hi > committed:
             pieces.append(self._tail[name][max(lo, committed) - committed : hi - committed])
         if len(pieces) == 1:
