@@ -3,7 +3,7 @@ Can the pipeline's student be made stable? Variants of the exp beta=1 CRR studen
 
 The ``cpu`` studies' students swing by hundreds between evaluations (``results/student_updates.md``). This trains
 the study's own student and variants of it (lower learning rate, Polyak-averaged targets, advantages normalised
-by their batch std, a larger temperature) on the same lifetime buffer, each also on Env-A data alone (the C4b
+by their batch std, a larger temperature; round 2: an averaged actor for evaluation) on the same lifetime buffer, each also on Env-A data alone (the C4b
 comparison), with the preset's number of updates, evaluated every ``--eval-freq`` updates with the preset's
 episodes. ``--report`` applies the criteria written in ``results/student_stability.md`` before the runs.
 
@@ -34,6 +34,9 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "polyak": ({**EXP, "tau": 0.005, "target_update_interval": 1}, {}),
     "norm_adv": ({**EXP, "normalize_advantages": True}, {}),
     "beta_5": ({"advantage_transform": "exp", "beta": 5.0}, {}),
+    # round 2: the same training as the baseline, evaluated with a moving average of the actor's weights
+    "avg_1e-3": ({**EXP, "actor_averaging": 1e-3}, {}),
+    "avg_3e-4": ({**EXP, "actor_averaging": 3e-4}, {}),
 }
 #: evaluations averaged at the end of a run (the last ``LAST`` evaluation points)
 LAST = 5

@@ -305,8 +305,53 @@ def test_bad_hyperparameters():
         (dict(max_weight=0.5), "max_weight"),
         (dict(critic_target="q"), "critic_target"),
         (dict(tau=0.0), "tau"),
+        (dict(actor_averaging=0.0), "actor_averaging"),
+        (dict(actor_averaging=1.5), "actor_averaging"),
     ):
         with pytest.raises(ValueError, match=match):
             CRR("MlpPolicy", "Pendulum-v1", **kwargs)
     with pytest.raises(AssertionError, match="Box"):
         CRR("MlpPolicy", "CartPole-v1")
+
+
+def test_actor_averaging_is_an_average_of_the_iterates_and_leaves_training_alone(data, tmp_path):
+    plain = offline_model(data, seed=4)
+    plain.learn_offline(30, log_interval=0)  # (the seed sets the global generators: one model at a time)
+    averaged = offline_model(data, seed=4, actor_averaging=0.1)
+    assert plain.policy.actor_average is None and averaged.policy.actor_average is not None
+    # by hand: the average after each actor update, from the actor's weights after that update
+    expected = [p.detach().clone() for p in averaged.actor.parameters()]
+
+    class Follow(BaseCallback):
+        def _on_step(self) -> bool:
+            for mean, p in zip(expected, averaged.actor.parameters()):
+                mean.mul_(0.9).add_(p.detach(), alpha=0.1)
+            return True
+
+    averaged.learn_offline(30, log_interval=0, callback=Follow())  # one update per step
+    # the online networks are those of the same run without averaging, bit for bit
+    for name in ("actor", "critic", "actor_target", "critic_target"):
+        th.testing.assert_close(
+            th.cat([p.flatten() for p in getattr(plain.policy, name).parameters()]),
+            th.cat([p.flatten() for p in getattr(averaged.policy, name).parameters()]),
+            rtol=0,
+            atol=0,
+        )
+    for mean, p in zip(expected, averaged.policy.actor_average.parameters()):
+        th.testing.assert_close(p, mean, rtol=1e-5, atol=1e-6)
+    # predict uses the averaged actor, which differs from the actor after 30 updates
+    obs = np.random.default_rng(1).normal(size=(8, 3)).astype(np.float32)
+    tensor = th.as_tensor(obs)
+    with th.no_grad():
+        want = averaged.policy.actor_average(tensor, deterministic=True).numpy()
+        online = averaged.actor(tensor, deterministic=True).numpy()
+    assert not np.allclose(want, online)
+    np.testing.assert_allclose(averaged.policy.unscale_action(want), averaged.predict(obs, deterministic=True)[0], rtol=1e-6)
+    # saved and loaded exactly, and training resumes with it
+    averaged.save(tmp_path / "crr.zip")
+    loaded = CRR.load(tmp_path / "crr.zip")
+    assert loaded.actor_averaging == 0.1 and loaded.policy.actor_average is not None
+    th.testing.assert_close(flat_params(loaded), flat_params(averaged), rtol=0, atol=0)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], averaged.predict(obs, deterministic=True)[0])
+    loaded.set_offline_data(data)
+    loaded.learn_offline(5, reset_num_timesteps=False, log_interval=0)

@@ -45,14 +45,17 @@ def mean_action(model: CRR, n: int = 50) -> float:
     return float(model.predict(obs, deterministic=True)[0].mean())
 
 
-def test_each_actor_learns_its_own_source():
+@pytest.mark.parametrize("actor_averaging", [None, 0.05])
+def test_each_actor_learns_its_own_source(actor_averaging):
     buffer = two_source_buffer()
-    model = per_source_model(buffer)
+    model = per_source_model(buffer, actor_averaging=actor_averaging)
     assert model.source_ids == [0, 2]
     assert isinstance(model.actor, PerSourceActor) and model.actor.n_heads == 2
     model.learn_offline(400)
     assert mean_action(model.select_source(0)) == pytest.approx(0.6, abs=0.1)
     assert mean_action(model.select_source(2)) == pytest.approx(-0.6, abs=0.1)
+    if actor_averaging is not None:  # predict used the averaged actors, each following its own source's actor
+        assert isinstance(model.policy.actor_average, PerSourceActor) and model.policy.actor_average.active_head == 1
     # one actor for everything regresses onto both sources at once: it lands between them
     shared = CRR.from_offline_data(buffer, policy_kwargs=dict(net_arch=[32, 32]), batch_size=64, beta=100.0, seed=0)
     shared.learn_offline(400)

@@ -272,6 +272,9 @@ class CRR(LifelongOfflineAlgorithm):
         model is set up fix the actors (``source_ids``). ``select_source(s)`` chooses the actor that ``predict``
         uses (default: the first source).
     :param max_grad_norm: maximum norm of the actor's and the critic's gradients (None: no clipping)
+    :param actor_averaging: Polyak coefficient of an exponential moving average of the actor's weights, updated
+        after every actor update (e.g. ``1e-3``: an average over about the last 1,000 updates); ``predict`` and
+        evaluation then use the averaged actor (``policy.actor_average``), while training is unchanged. None: off
     :param scoring_dtype: precision of the no-grad critic passes over sampled actions (advantage baseline, TD
         target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; categorical critics
         always score in float32)
@@ -321,6 +324,7 @@ class CRR(LifelongOfflineAlgorithm):
         target_update_interval: int = 100,
         actor_per_source: bool = False,
         max_grad_norm: Optional[float] = None,
+        actor_averaging: Optional[float] = None,
         scoring_dtype: str = "auto",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
@@ -374,6 +378,7 @@ class CRR(LifelongOfflineAlgorithm):
         self.source_ids: Optional[list[int]] = None
         self._head_of_source: Optional[np.ndarray] = None
         self.max_grad_norm = max_grad_norm
+        self.actor_averaging = actor_averaging
         self.scoring_dtype = scoring_dtype
         self._check_hyperparameters()
         if _init_setup_model:
@@ -391,6 +396,7 @@ class CRR(LifelongOfflineAlgorithm):
             "target_update_interval": self.target_update_interval >= 1,
             "tau": 0.0 < self.tau <= 1.0,
             "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
+            "actor_averaging": self.actor_averaging is None or 0.0 < self.actor_averaging <= 1.0,
             "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
         }
         bad = [name for name, ok in checks.items() if not ok]
@@ -399,8 +405,8 @@ class CRR(LifelongOfflineAlgorithm):
             values = ", ".join(f"{name}={getattr(self, attributes.get(name, name))!r}" for name in bad)
             raise ValueError(
                 f"Invalid CRR hyperparameters: {values} (num_samples, n_target_samples and target_update_interval must "
-                f"be >= 1, beta > 0, max_weight >= 1, tau in (0, 1], advantage_baseline in {ADVANTAGE_BASELINES}, "
-                f"advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS}, "
+                f"be >= 1, beta > 0, max_weight >= 1, tau and actor_averaging in (0, 1], advantage_baseline in "
+                f"{ADVANTAGE_BASELINES}, advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS}, "
                 f"scoring_dtype in {SCORING_DTYPES})"
             )
 
@@ -408,7 +414,9 @@ class CRR(LifelongOfflineAlgorithm):
         if self.actor_per_source:
             if self.source_ids is None:
                 self.source_ids = self._sources_of_data()
-            self.policy_kwargs["n_actors"] = len(self.source_ids)
+            self.policy_kwargs = {**self.policy_kwargs, "n_actors": len(self.source_ids)}  # the caller's dict unchanged
+        if self.actor_averaging is not None:
+            self.policy_kwargs = {**self.policy_kwargs, "averaged_actor": True}
         super()._setup_model()
         self._create_aliases()
         # low-precision copies of the target critic (TD targets) and the online critic (advantage baselines)
@@ -441,6 +449,8 @@ class CRR(LifelongOfflineAlgorithm):
         if source not in self.source_ids:
             raise ValueError(f"source {source!r} has no actor; this model has actors for sources {self.source_ids}")
         self.actor.active_head = self.source_ids.index(source)
+        if isinstance(self.policy.actor_average, PerSourceActor):
+            self.policy.actor_average.active_head = self.actor.active_head
         return self
 
     @property
@@ -516,6 +526,8 @@ class CRR(LifelongOfflineAlgorithm):
             self._gradient_step(self.critic, fit.loss)
             regression_loss = actor_loss(actions, mean, std, advantage.weights)
             self._gradient_step(self.actor, regression_loss)
+            if self.actor_averaging is not None:
+                self._update_actor_average()
             if self._n_updates % self.target_update_interval == 0:
                 self._update_targets()
             steps.append(CRRStepStats.of(fit, regression_loss, advantage))
@@ -562,6 +574,10 @@ class CRR(LifelongOfflineAlgorithm):
         if self.max_grad_norm is not None:
             th.nn.utils.clip_grad_norm_(module.parameters(), self.max_grad_norm, foreach=True)
         module.optimizer.step()
+
+    def _update_actor_average(self) -> None:
+        assert self.policy.actor_average is not None and self.actor_averaging is not None
+        polyak_update(self.actor.parameters(), self.policy.actor_average.parameters(), self.actor_averaging)
 
     def _update_targets(self) -> None:
         polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)

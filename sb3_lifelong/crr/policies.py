@@ -1,5 +1,6 @@
 """Policies of CRR: the shared Gaussian actor-critic, with an optional categorical (distributional) critic."""
 
+import copy
 from typing import Any, Optional, Union
 
 import torch as th
@@ -94,6 +95,8 @@ class CRRPolicy(GaussianActorCriticPolicy):
     :param v_max: largest return of the categorical critic's support
     :param n_actors: number of independent actors (:class:`PerSourceActor` when > 1, sharing the one critic):
         CRR sets it from its data's sources with ``actor_per_source=True``
+    :param averaged_actor: keep a copy of the actor, ``actor_average``, that CRR updates as a moving average of the
+        actor's weights (``actor_averaging``); ``predict`` uses it. CRR sets it
     :param kwargs: the actor-critic's other settings, see
         :class:`sb3_lifelong.common.policies.GaussianActorCriticPolicy`
     """
@@ -102,6 +105,7 @@ class CRRPolicy(GaussianActorCriticPolicy):
     critic_target: Union[ContinuousCritic, CategoricalCritic]  # type: ignore[assignment]
     actor: Union[GaussianActor, PerSourceActor]  # type: ignore[assignment]
     actor_target: Union[GaussianActor, PerSourceActor]  # type: ignore[assignment]
+    actor_average: Optional[Union[GaussianActor, PerSourceActor]]
 
     def __init__(
         self,
@@ -113,6 +117,7 @@ class CRRPolicy(GaussianActorCriticPolicy):
         v_min: float = -150.0,
         v_max: float = 150.0,
         n_actors: int = 1,
+        averaged_actor: bool = False,
         **kwargs: Any,
     ):
         if n_actors < 1:
@@ -125,7 +130,17 @@ class CRRPolicy(GaussianActorCriticPolicy):
         self.n_atoms = n_atoms
         self.v_min = v_min
         self.v_max = v_max
+        self.averaged_actor = averaged_actor
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)
+        # like the target actor: never trained by gradient, always in evaluation mode
+        self.actor_average = copy.deepcopy(self.actor_target) if self.averaged_actor else None
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        actor = self.actor if self.actor_average is None else self.actor_average
+        return actor(observation, deterministic)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -136,6 +151,7 @@ class CRRPolicy(GaussianActorCriticPolicy):
                 v_min=self.v_min,
                 v_max=self.v_max,
                 n_actors=self.n_actors,
+                averaged_actor=self.averaged_actor,
             )
         )
         return data
