@@ -2,10 +2,11 @@
 Can the pipeline's student be made stable? Variants of the exp beta=1 CRR student on one finished seed's buffer.
 
 The ``cpu`` studies' students swing by hundreds between evaluations (``results/student_updates.md``). This trains
-the study's own student and variants of it (lower learning rate, Polyak-averaged targets, advantages normalised
-by their batch std, a larger temperature; round 2: an averaged actor for evaluation) on the same lifetime buffer, each also on Env-A data alone (the C4b
-comparison), with the preset's number of updates, evaluated every ``--eval-freq`` updates with the preset's
-episodes. ``--report`` applies the criteria written in ``results/student_stability.md`` before the runs.
+the study's own student and variants of it (round 1: lower learning rate, Polyak-averaged targets, advantages
+normalised by their batch std, a larger temperature; round 2: an averaged actor for evaluation) on the same
+lifetime buffer, each also on Env-A data alone (the C4b comparison), with the preset's number of updates, evaluated
+every ``--eval-freq`` updates with the preset's episodes. ``--report`` applies the criteria written in
+``results/student_stability.md`` before the runs.
 
 Usage::
 
@@ -92,9 +93,11 @@ def report(output: pathlib.Path) -> str:
     data = summary(output)
     lines = [
         f"| seed | student | Env-A: mean of last {LAST} | Env-A: std of last {LAST} | Env-B: mean | Env-B: std | "
-        "Env-A / its A-only student | stable (both stds <= 0.5 x baseline) | C4b (ratio >= 0.9) |",
-        "| --- " * 9 + "|",
+        "Env-A / its A-only student | stable (both stds <= 0.5 x baseline) | C4b (ratio >= 0.9) | (A + B) / 2 | "
+        "/ baseline's |",
+        "| --- " * 11 + "|",
     ]
+    mean_ab: dict[str, list[float]] = {}  # job -> (A + B) / 2 on each seed buffer that has the baseline too
     for seed, part in data.groupby("seed"):
         table = part.set_index(["job", "env"])
         base_std = {env: table.loc[("baseline", env), "last_std"] for env in ("Env-A", "Env-B")}
@@ -103,6 +106,9 @@ def report(output: pathlib.Path) -> str:
             a_only = table.loc[(f"{job}_A_only", "Env-A"), "last_mean"] if (f"{job}_A_only", "Env-A") in table.index else None
             ratio = a["last_mean"] / a_only if a_only and a_only > 0 else None
             stable = a["last_std"] <= 0.5 * base_std["Env-A"] and b["last_std"] <= 0.5 * base_std["Env-B"]
+            both = (a["last_mean"] + b["last_mean"]) / 2
+            base_both = (table.loc[("baseline", "Env-A"), "last_mean"] + table.loc[("baseline", "Env-B"), "last_mean"]) / 2
+            mean_ab.setdefault(job, []).append(both)
             lines.append(
                 f"| {seed} | {job} | {a['last_mean']:.0f} | {a['last_std']:.0f} | "
                 f"{b['last_mean']:.0f} | {b['last_std']:.0f} | "
@@ -110,8 +116,18 @@ def report(output: pathlib.Path) -> str:
                 + ("-" if job == "baseline" else ("yes" if stable else "no"))
                 + " | "
                 + ("-" if ratio is None else ("yes" if ratio >= 0.9 else "no"))
-                + " |"
+                + f" | {both:.0f} | {both / base_both:.2f} |"
             )
+    seeds = len(mean_ab.get("baseline", []))
+    lines += [
+        "",
+        f"Mean over the {seeds} seed buffers of (A + B) / 2, and its ratio to the baseline's (round 2's criterion 2):",
+        "",
+    ]
+    for job, values in sorted(mean_ab.items()):
+        if len(values) == seeds:
+            ratio = np.mean(values) / np.mean(mean_ab["baseline"])
+            lines.append(f"- {job}: {np.mean(values):.0f} ({ratio:.2f} x baseline)")
     return "\n".join(lines)
 
 
