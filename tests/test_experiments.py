@@ -9,7 +9,7 @@ import pytest
 from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import CLAIMS, PRESETS, STUDENTS, job_names, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
-from sb3_lifelong.experiments.protocol import sampling_weights
+from sb3_lifelong.experiments.protocol import job_lock, sampling_weights
 from sb3_lifelong.experiments.report import bootstrap_ci, evaluate_claims
 
 JOBS = [
@@ -68,6 +68,28 @@ def test_finished_jobs_are_skipped_and_a_lost_job_reruns(study):
     assert any("already done" in m for m in messages)
     (output / "seed_0" / "distill_BC" / "done.json").unlink()  # as if the job had crashed
     assert run_seed(PRESETS["tiny"], 0, output, jobs=JOBS, log=messages.append) == ["distill_BC"]
+
+
+def test_a_job_another_process_runs_is_skipped(study):
+    output, _ = study
+    run_dir = output / "seed_1"
+    (run_dir / "distill_BC" / "done.json").unlink()
+    messages: list[str] = []
+    with job_lock(run_dir, "distill_BC") as ours:  # as if another command of this seed were running the job
+        assert ours
+        with job_lock(run_dir, "distill_BC") as again:  # a second open file, as another process would have
+            assert not again
+        assert run_seed(PRESETS["tiny"], 1, output, jobs=["distill_BC"], log=messages.append) == []
+    assert any("distill_BC is running in another process" in m for m in messages)
+    assert not (run_dir / "distill_BC" / "done.json").exists()  # its directory was left alone
+    with job_lock(run_dir, "collect"):
+        (run_dir / "collect" / "done.json").rename(run_dir / "collect" / "done.bak")
+        try:
+            with pytest.raises(RuntimeError, match="collect job"):
+                run_seed(PRESETS["tiny"], 1, output, jobs=["distill_BC"], log=messages.append)
+        finally:
+            (run_dir / "collect" / "done.bak").rename(run_dir / "collect" / "done.json")
+    assert run_seed(PRESETS["tiny"], 1, output, jobs=["distill_BC"], log=messages.append) == ["distill_BC"]
 
 
 def test_report_claims_and_figures(study):

@@ -14,7 +14,8 @@ A seed's jobs, in the order they depend on each other:
 
 Every job evaluates its policy on every environment periodically (``eval.csv``) and, when it has a critic, the
 average Q-value per source (``q_sources.csv``); a finished job writes ``done.json`` and is skipped when the command
-is run again, so a crashed or stopped seed continues where it was.
+is run again, so a crashed or stopped seed continues where it was; a job that another process is running is
+skipped (:func:`job_lock`).
 
 Layout of ``<output>/seed_<k>/``::
 
@@ -25,17 +26,23 @@ Layout of ``<output>/seed_<k>/``::
     <job>/done.json             wall time and the job's settings
 """
 
+import contextlib
 import dataclasses
 import json
 import pathlib
 import shutil
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Union
 
 import gymnasium as gym
 import numpy as np
+
+try:  # POSIX: the job locks are advisory and simply skipped elsewhere
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None  # type: ignore[assignment]
 
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
@@ -443,6 +450,31 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
         settings.write_text(json.dumps(described, indent=1))
 
 
+@contextlib.contextmanager
+def job_lock(run_dir: pathlib.Path, job: str) -> Iterator[bool]:
+    """
+    Hold a seed's job for this process, so that two commands of the same seed (two terminals, a runner beside a
+    command) never run one job at once: the second would delete the first one's directory and mix their files.
+
+    :param run_dir: the seed's directory
+    :param job: the job's name
+    :return: (as a context manager) True if this process holds the job, False if another process does
+    """
+    if fcntl is None:  # pragma: no cover
+        yield True
+        return
+    with open(run_dir / f".{job}.lock", "a") as file:  # beside the job's directory, which a job deletes first
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
+
+
 def run_seed(
     preset: Preset,
     seed: int,
@@ -452,7 +484,8 @@ def run_seed(
     log: Callable = print,
 ) -> list[str]:
     """
-    Run the jobs of one seed that have not finished yet (each writes ``done.json`` when it finishes).
+    Run the jobs of one seed that have not finished yet (each writes ``done.json`` when it finishes). A job that
+    another process is running (see :func:`job_lock`) is skipped; ``collect``, which the other jobs need, raises.
 
     :param preset: the protocol's settings
     :param seed: the seed
@@ -477,19 +510,31 @@ def run_seed(
     if skipped:
         log(f"seed {seed}: {len(skipped)} job(s) already done, skipped: {', '.join(skipped)}")
     for position, job in enumerate(todo):
-        log(f"seed {seed}: job {position + 1}/{len(todo)} {job} ...")
-        start = time.perf_counter()
-        if job == "collect":
-            collect(preset, seed, run_dir, progress_bar, log)
-        elif job.startswith("online_"):
-            online(job[len("online_") :], preset, seed, run_dir, progress_bar)
-        else:
-            distill_student(job[len("distill_") :], preset, seed, run_dir, progress_bar)
-        seconds = time.perf_counter() - start
-        done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
-        if job.startswith("distill_"):
-            done["student"] = dataclasses.asdict(STUDENTS[job[len("distill_") :]])
-        (run_dir / job / "done.json").write_text(json.dumps(done, indent=1))
-        log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
-        ran.append(job)
+        with job_lock(run_dir, job) as ours:
+            if not ours:
+                if job == "collect":
+                    raise RuntimeError(
+                        f"seed {seed}: another process is running this seed's collect job ({run_dir}); run this command "
+                        "again once it has finished"
+                    )
+                log(f"seed {seed}: job {job} is running in another process: skipped")
+                continue
+            if (run_dir / job / "done.json").exists():  # finished by another process since the list was made
+                log(f"seed {seed}: job {job} was finished by another process: skipped")
+                continue
+            log(f"seed {seed}: job {position + 1}/{len(todo)} {job} ...")
+            start = time.perf_counter()
+            if job == "collect":
+                collect(preset, seed, run_dir, progress_bar, log)
+            elif job.startswith("online_"):
+                online(job[len("online_") :], preset, seed, run_dir, progress_bar)
+            else:
+                distill_student(job[len("distill_") :], preset, seed, run_dir, progress_bar)
+            seconds = time.perf_counter() - start
+            done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
+            if job.startswith("distill_"):
+                done["student"] = dataclasses.asdict(STUDENTS[job[len("distill_") :]])
+            (run_dir / job / "done.json").write_text(json.dumps(done, indent=1))
+            log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
+            ran.append(job)
     return ran
