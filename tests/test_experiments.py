@@ -187,3 +187,11 @@ def test_cli_list_and_errors(capsys, tmp_path):
         run_seed(PRESETS["tiny"], 0, tmp_path, jobs=["distill_nothing"])
     with pytest.raises(SystemExit):
         main(["run", "--preset", "tiny", "--output", str(tmp_path)])  # --seed is required
+
+
+def test_a_ratio_with_a_non_positive_denominator_is_left_out():
+    from sb3_lifelong.experiments.report import _ratio, undefined_ratios
+
+    numerator, denominator = {0: 180.0, 1: 630.0, 2: 360.0}, {0: 480.0, 1: 0.0, 2: -2.3}
+    assert _ratio(numerator, denominator) == {0: 0.375}  # not 360 / -2.3 = -157, which would swamp the mean
+    assert undefined_ratios(numerator, denominator) == {1: 0.0, 2: -2.3}

@@ -156,7 +156,17 @@ def _mean(series: dict[int, float]) -> float:
 
 
 def _ratio(numerator: dict[int, float], denominator: dict[int, float]) -> dict[int, float]:
-    return {s: numerator[s] / denominator[s] for s in numerator if s in denominator and denominator[s] != 0}
+    """
+    Per-seed ratios of two returns. A seed whose denominator is not positive has no ratio ("reaches 80 % of a
+    return of -2" means nothing, and such a ratio flips sign and swamps the mean): it is left out, and
+    :func:`undefined_ratios` names it in the report.
+    """
+    return {s: numerator[s] / denominator[s] for s in numerator if s in denominator and denominator[s] > 0}
+
+
+def undefined_ratios(numerator: dict[int, float], denominator: dict[int, float]) -> dict[int, float]:
+    """:return: seed -> denominator, for the seeds :func:`_ratio` leaves out (denominator <= 0)"""
+    return {s: denominator[s] for s in numerator if s in denominator and not denominator[s] > 0}
 
 
 def _mean_over_envs(study: Study, method: str) -> dict[int, float]:
@@ -266,7 +276,13 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
         verdict = ("reproduced" if claim.test(means) else "not reproduced") if complete else "no data"
         details = []
         for name, values in series.items():
-            per_seed = ", ".join(f"s{s}: {v:.2f}" if abs(v) < 10 else f"s{s}: {v:.0f}" for s, v in sorted(values.items()))
+            # a seed without a value has no score yet, or no ratio (its denominator is not positive, see _ratio)
+            per_seed = ", ".join(
+                "s{}: {}".format(
+                    s, "n/a" if s not in values else f"{values[s]:.2f}" if abs(values[s]) < 10 else f"{values[s]:.0f}"
+                )
+                for s in sorted(set(study.seeds) | set(values))
+            )
             low, high = bootstrap_ci(list(values.values()))
             fmt = "{:.2f}" if abs(means[name]) < 10 else "{:.0f}"
             details.append(
