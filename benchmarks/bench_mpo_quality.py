@@ -3,8 +3,10 @@ Learning curves of MPO vs SB3's SAC on MuJoCo locomotion (Gymnasium v5 tasks).
 
 Each (env, algorithm, seed) run trains with one gradient step per environment step, evaluates the deterministic
 policy every ``--eval-freq`` steps on a separate environment, and appends a row to
-``benchmarks/results/quality/<env>__<algo>__s<seed>.csv`` after every evaluation (a stopped run keeps its curve).
-``--summarise`` turns the CSV files into a table (markdown) and one plot per environment.
+``benchmarks/results/quality/<budget>/<env>__<algo>__s<seed>.csv`` after every evaluation (a stopped run keeps its
+curve; ``<budget>`` is the step budget, e.g. ``30k``, so runs of different lengths never overwrite each other).
+``--summarise`` turns the CSV files into a table (markdown, one block of rows per budget) and one plot per
+environment and budget.
 
 Usage::
 
@@ -41,6 +43,11 @@ MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
 CURVES = RESULTS / "quality"
 
 
+def budget_name(steps: int) -> str:
+    """The folder of a step budget's curves: ``30000`` -> ``"30k"``."""
+    return f"{steps // 1000}k" if steps % 1000 == 0 else str(steps)
+
+
 def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
     env_id, algo, seed, steps, eval_freq, eval_episodes, learning_starts = config
     import gymnasium as gym
@@ -53,8 +60,9 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
     from sb3_lifelong import MPO
 
     th.set_num_threads(1)
-    CURVES.mkdir(parents=True, exist_ok=True)
-    path = CURVES / f"{env_id}__{algo}__s{seed}.csv"
+    folder = CURVES / budget_name(steps)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{env_id}__{algo}__s{seed}.csv"
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     common: dict[str, Any] = dict(batch_size=256, learning_starts=learning_starts, seed=seed, verbose=0)
@@ -99,24 +107,24 @@ def summarise() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    curves: dict[tuple[str, str], list[np.ndarray]] = {}
-    for path in sorted(CURVES.glob("*.csv")):
+    curves: dict[tuple[str, str, str], list[np.ndarray]] = {}
+    for path in sorted(CURVES.glob("*/*.csv"), key=lambda p: (int(p.parent.name.rstrip("k")), p.name)):
         env_id, algo, _ = path.stem.split("__")
         data = np.genfromtxt(path, delimiter=",", skip_header=1, ndmin=2)
         if data.size:
-            curves.setdefault((env_id, algo), []).append(data)
+            curves.setdefault((path.parent.name, env_id, algo), []).append(data)
     lines = [
-        "| env | algorithm | seeds | steps reached | final return (mean +- std over seeds) | 95 % bootstrap CI | per seed "
-        "| best eval (mean over seeds) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| budget | env | algorithm | seeds | steps reached | final return (mean +- std over seeds) | 95 % bootstrap CI "
+        "| per seed | best eval (mean over seeds) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
-    for (env_id, algo), runs in sorted(curves.items()):
+    for (budget, env_id, algo), runs in curves.items():
         reached = min(int(run[-1, 0]) for run in runs)
         finals = [run[run[:, 0] <= reached][-1, 1] for run in runs]
         bests = [run[:, 1].max() for run in runs]
         low, high = bootstrap_ci(finals)
         lines.append(
-            f"| {env_id} | {algo} | {len(runs)} | {reached} | {np.mean(finals):.0f} +- {np.std(finals):.0f} | "
+            f"| {budget} | {env_id} | {algo} | {len(runs)} | {reached} | {np.mean(finals):.0f} +- {np.std(finals):.0f} | "
             f"[{low:.0f}, {high:.0f}] | {', '.join(f'{value:.0f}' for value in finals)} | {np.mean(bests):.0f} |"
         )
     table = "\n".join(lines)
@@ -134,10 +142,10 @@ def summarise() -> None:
         + NOTES_MARK
         + notes
     )
-    for env_id in sorted({env for env, _ in curves}):
+    for budget, env_id in dict.fromkeys((budget, env) for budget, env, _ in curves):
         fig, ax = plt.subplots(figsize=(6, 4))
-        for (env, algo), runs in sorted(curves.items()):
-            if env != env_id:
+        for (run_budget, env, algo), runs in sorted(curves.items()):
+            if (run_budget, env) != (budget, env_id):
                 continue
             length = min(len(run) for run in runs)
             steps = runs[0][:length, 0]
@@ -146,10 +154,10 @@ def summarise() -> None:
             ax.fill_between(steps, returns.min(0), returns.max(0), alpha=0.2)
         ax.set_xlabel("environment steps")
         ax.set_ylabel("evaluation return")
-        ax.set_title(env_id)
-        ax.legend()
+        ax.set_title(f"{env_id}, {budget} steps")
+        ax.legend(title="line: mean; band: min to max over seeds", fontsize=8, title_fontsize=8)
         fig.tight_layout()
-        fig.savefig(RESULTS / f"mpo_quality_{env_id}.png", dpi=100)
+        fig.savefig(RESULTS / f"mpo_quality_{env_id}_{budget}.png", dpi=100)
         plt.close(fig)
 
 
