@@ -16,6 +16,7 @@ Cases, for each layout:
   fsync, ENOSPC from its rename.
 - ``directory fsync``: the fsync of the directory after the manifest's rename fails (EIO): ``CommitNotDurableError``;
   a copy of the directory with the previous manifest (what a power loss may leave) is opened too.
+- ``Ctrl-C after the rename``, ``reader fails after a commit``, ``second writer, first closes``: see ``NOTES``.
 - ``file size limit``: a real short write past ``RLIMIT_FSIZE`` (EFBIG) in a child, then a retry.
 - ``lost manifest``: ``manifest.json`` deleted; creating or opening a buffer there (5 ways) must refuse and change no
   file; the manifest is then put back.
@@ -82,6 +83,16 @@ SIGKILL loop, 100,000 elsewhere):
 - *directory fsync*: the fsync of the directory after the manifest's rename fails with EIO (`CommitNotDurableError`);
   a copy of the directory with the previous manifest put back (what a power loss may leave) is opened too; then
   `flush()` again.
+- *Ctrl-C after the rename*: `KeyboardInterrupt` right after the manifest's rename (before the directory's fsync),
+  in a `flush()` of 20 pending rows and in an `add()` of 130 envs; the commit happened, so every row of the call
+  must be stored (committed, or pending after the commit) and none of their bytes given back.
+- *reader fails after a commit*: mapping (`read_mode="mmap"`) or opening (`"pread"`) the new rows fails with ENOMEM
+  after an `add()` of 133 envs committed 250 rows (3 left pending): the add returns (its rows are stored), the next
+  read raises (the report), and every row is there once the reader can follow.
+- *second writer, first closes*: a second writer opens the directory while the first one commits its last rows
+  and closes (injected just before the second one takes the lock); it must see those rows, not cut them off.
+  These three cases came with their fixes (2026-11-24); the store before them lost 130, 6 and 60 of their
+  transitions per layout (392 in all) and served 496 wrong rows.
 - *file size limit*: a real short write past `RLIMIT_FSIZE` (EFBIG) in a child during a flush, then a retry.
 - *lost manifest*: `manifest.json` deleted; creating or opening a buffer there in 5 ways must raise
   `BufferFormatError` and change no file; then the manifest is put back and the directory opened.
@@ -339,6 +350,114 @@ def directory_fsync_case(root: str, layout: str, tally: Tally) -> None:
     reopen_and_check(path, 120, tally)
 
 
+@contextlib.contextmanager
+def interrupted_after_the_rename() -> Iterator[dict[str, int]]:
+    """The next rename of a manifest happens, then raises KeyboardInterrupt (Ctrl-C before the directory's fsync)."""
+    real_replace = os.replace
+    state = {"failures": 0}
+
+    def replace(source: Any, target: Any, *args: Any, **kwargs: Any) -> None:
+        real_replace(source, target, *args, **kwargs)
+        if os.path.basename(os.fspath(target)) == "manifest.json" and not state["failures"]:
+            state["failures"] += 1
+            raise KeyboardInterrupt
+
+    os.replace = replace  # type: ignore[assignment]
+    try:
+        yield state
+    finally:
+        os.replace = real_replace  # type: ignore[assignment]
+
+
+def interrupt_case(root: str, layout: str, tally: Tally, operation: str) -> None:
+    """Ctrl-C after the manifest's rename, in a ``flush()`` of 20 pending rows or an ``add()`` of 130 envs."""
+    path = os.path.join(root, f"interrupt-{layout}-{operation}")
+    tally.runs += 1
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)
+    count = 120 if operation == "flush" else 250
+    reported = False
+    with interrupted_after_the_rename() as fault:
+        try:
+            if operation == "flush":
+                buffer.flush()
+            else:
+                buffer.add(*transition(120, 130))
+        except KeyboardInterrupt:
+            reported = True
+    tally.faults += fault["failures"]
+    tally.unreported += int(not reported)
+    tally.wrong += served_wrong(buffer, count)  # the commit happened: every row of the call is stored
+    buffer.close()
+    reopen_and_check(path, count, tally)
+
+
+def reader_fails_case(root: str, layout: str, tally: Tally, read_mode: str) -> None:
+    """
+    The reader cannot follow a commit (ENOMEM from mapping, or opening, the new rows) in an ``add()`` of 133 envs:
+    the add is committed and returns; the next read raises; once the reader can follow, every row is served.
+    """
+    path = os.path.join(root, f"reader-{layout}-{read_mode}")
+    tally.runs += 1
+    buffer = LifelongReplayBuffer(
+        0, OBS, ACT, device="cpu", path=path, chunk_size=CHUNK, read_mode=read_mode,
+        capacity=None if layout == "single" else 100_000,
+    )  # fmt: skip
+    add_rows(buffer, 0, 120)
+    reader = type(buffer.store._reader)
+    real_sync = reader.sync
+    state = {"failing": 1}
+
+    def sync(self: Any, *args: Any, **kwargs: Any) -> None:
+        if state["failing"]:
+            raise OSError(errno.ENOMEM, "Cannot allocate memory (injected)")
+        real_sync(self, *args, **kwargs)
+
+    reader.sync = sync  # type: ignore[method-assign]
+    tally.faults += 1
+    try:
+        buffer.add(*transition(120, 133))  # commits 250 rows and leaves 3 pending
+        try:
+            buffer.store.read_range("rewards", 0, 253)
+            tally.unreported += 1  # served rows the reader does not map
+        except OSError:
+            pass
+    except OSError as error:  # an add that calls committed rows "not stored" shows as lost rows below
+        print(f"  {tally.case} {layout}: {type(error).__name__}: {error}", file=sys.stderr)
+    finally:
+        reader.sync = real_sync  # type: ignore[method-assign]
+    buffer.close()
+    reopen_and_check(path, 253, tally)
+
+
+def writer_race_case(root: str, layout: str, tally: Tally) -> None:
+    """A second writer opens the directory while the first one commits its last rows and closes."""
+    path = os.path.join(root, f"race-{layout}")
+    tally.runs += 1
+    first = make_buffer(path, layout)
+    add_rows(first, 0, 120)
+    real_take_lock = RowStore._take_lock
+
+    def take_lock(self: RowStore) -> None:
+        RowStore._take_lock = real_take_lock  # type: ignore[method-assign]
+        add_rows(first, 120, 130)  # the first writer's last rows, committed by its close()
+        first.close()
+        tally.faults += 1
+        real_take_lock(self)
+
+    RowStore._take_lock = take_lock  # type: ignore[method-assign]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            second = LifelongReplayBuffer.open(path, device="cpu")
+    finally:
+        RowStore._take_lock = real_take_lock  # type: ignore[method-assign]
+    tally.wrong += served_wrong(second, 130)
+    add_rows(second, 130, 160)
+    second.close()
+    reopen_and_check(path, 160, tally)
+
+
 RLIMIT_CHILD = r"""
 import importlib.util, resource, signal, sys
 import numpy as np
@@ -575,6 +694,20 @@ def run(kills: int, seed: int) -> list[Tally]:
 
             tally = Tally("directory fsync", layout)
             directory_fsync_case(root, layout, tally)
+            tallies.append(tally)
+
+            tally = Tally("Ctrl-C after the rename", layout)
+            for operation in ("flush", "add"):
+                interrupt_case(root, layout, tally, operation)
+            tallies.append(tally)
+
+            tally = Tally("reader fails after a commit", layout)
+            for read_mode in ("mmap", "pread"):
+                reader_fails_case(root, layout, tally, read_mode)
+            tallies.append(tally)
+
+            tally = Tally("second writer, first closes", layout)
+            writer_race_case(root, layout, tally)
             tallies.append(tally)
 
             tally = Tally("file size limit", layout)

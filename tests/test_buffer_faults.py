@@ -496,6 +496,123 @@ def test_directory_fsync_fails_before_the_manifest(tmp_path, monkeypatch):
     check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 120)
 
 
+# ------------------------------------------------------------------------------- failures after the manifest's rename
+@contextlib.contextmanager
+def interrupted_after_the_rename(monkeypatch):
+    """The first rename of a manifest happens, then raises KeyboardInterrupt (Ctrl-C before the directory's fsync)."""
+    real_replace = os.replace
+    state = {"interrupts": 0}
+
+    def replace(source, target, *args, **kwargs):
+        real_replace(source, target, *args, **kwargs)
+        if os.path.basename(os.fspath(target)) == "manifest.json" and not state["interrupts"]:
+            state["interrupts"] += 1
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", replace)
+    try:
+        yield state
+    finally:
+        monkeypatch.setattr(os, "replace", real_replace)
+
+
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+def test_interrupt_after_the_manifest_rename_keeps_the_commit(tmp_path, monkeypatch, layout):
+    """
+    Ctrl-C after the new manifest's rename (in the directory's fsync): the rows are committed, so none of their bytes
+    may be given back as if the commit had failed; the object counts them and goes on.
+    """
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)
+    with interrupted_after_the_rename(monkeypatch) as fault:
+        with pytest.raises(KeyboardInterrupt):
+            buffer.flush()
+    assert fault["interrupts"] == 1
+    assert buffer.store.num_committed == 120 and buffer.store.num_tail == 0
+    check_rows(buffer, 120)
+    check_rows(LifelongReplayBuffer.open(path, read_only=True, device="cpu", verify="all"), 120)
+    add_rows(buffer, 120, 160)
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 160)
+
+
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+def test_interrupt_after_the_manifest_rename_in_add_keeps_every_row(tmp_path, monkeypatch, layout):
+    """The same in an add() of three envs whose rows complete a chunk: the committed rows and the call's rows after
+    them (pending) are all stored."""
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout, n_envs=3)
+    add_rows(buffer, 0, 48, n_envs=3)  # 48 pending; the next add completes the chunk of 50 and leaves 1 pending
+    with interrupted_after_the_rename(monkeypatch):
+        with pytest.raises(KeyboardInterrupt):
+            buffer.add(*transition(48, 3))
+    assert buffer.store.num_committed == 50 and buffer.store.num_tail == 1
+    check_rows(buffer, 51)
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 51)
+
+
+@pytest.mark.parametrize("read_mode", ["mmap", "pread"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+def test_reader_that_cannot_follow_a_commit_does_not_undo_it(tmp_path, monkeypatch, layout, read_mode):
+    """
+    Mapping (or opening) the new rows fails after the commit (ENOMEM, EMFILE): add() does not report the call as not
+    stored, no row of it is lost, and reads map again once they can (raising while they cannot).
+    """
+    path = tmp_path / "b"
+    buffer = make_buffer(path, layout, n_envs=3, read_mode=read_mode)
+    add_rows(buffer, 0, 48, n_envs=3)
+    reader = type(buffer.store._reader)
+    real_sync = reader.sync
+    state = {"failing": True}
+
+    def sync(self, *args, **kwargs):
+        if state["failing"]:
+            raise OSError(errno.ENOMEM, "Cannot allocate memory (injected)")
+        return real_sync(self, *args, **kwargs)
+
+    monkeypatch.setattr(reader, "sync", sync)
+    buffer.add(*transition(48, 3))  # commits rows 0-49, row 50 pending: no error
+    assert buffer.store.num_committed == 50 and buffer.store.num_tail == 1
+    with pytest.raises(OSError, match="injected"):
+        buffer.store.read_range("rewards", 0, 51)
+    state["failing"] = False
+    check_rows(buffer, 51)
+    buffer.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 51)
+
+
+@pytest.mark.parametrize("layout", ["single", "chunked"])
+def test_writer_takes_the_lock_before_reading_the_manifest(tmp_path, monkeypatch, layout):
+    """
+    A second writer opens the directory while the first one commits and closes: it reads the manifest only once it
+    holds the lock, so it sees the first writer's last rows instead of cutting them off as unflushed bytes.
+    """
+    path = tmp_path / "b"
+    first = make_buffer(path, layout)
+    add_rows(first, 0, 120)  # 100 committed, 20 pending
+    real_take_lock = RowStore._take_lock
+    state = {"raced": False}
+
+    def take_lock(self):
+        if not state["raced"]:  # the first writer commits and closes just before the second one locks
+            state["raced"] = True
+            add_rows(first, 120, 130)
+            first.close()
+        return real_take_lock(self)
+
+    monkeypatch.setattr(RowStore, "_take_lock", take_lock)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "discarded bytes of unflushed rows"
+        second = LifelongReplayBuffer.open(path, device="cpu")
+    assert state["raced"]
+    check_rows(second, 130)
+    add_rows(second, 130, 160)
+    second.close()
+    check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 160)
+
+
 # ---------------------------------------------------------------------------------------------- a large append fails
 @needs_proc
 @pytest.mark.parametrize("layout", ["single", "chunked"])

@@ -308,6 +308,15 @@ def validate_fields(fields: Any) -> dict[str, tuple[str, tuple[int, ...]]]:
     return result
 
 
+def _validated_fields(fields: Mapping[str, tuple[Any, Sequence[int]]]) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """
+    :param fields: field name -> (dtype, row shape), as a caller gives them
+    :return: The same in the manifest's form, validated (see :func:`validate_fields`)
+    """
+    given = {name: (np.dtype(dt).str, tuple(int(d) for d in shape)) for name, (dt, shape) in fields.items()}
+    return validate_fields({name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in given.items()})
+
+
 def _validate_chunks(chunks: Any, names: Sequence[str], start: Optional[int] = 0) -> int:
     """
     :param chunks: The ``chunks`` entry of a manifest
@@ -1019,60 +1028,15 @@ class RowStore:
         self.max_resident_bytes = max_resident_bytes
         self.remaps = 0  # number of remaps done to bound the RSS
         self._baseline_file_bytes = 0
-        if self.path is not None and os.path.isfile(os.path.join(self.path, MANIFEST_NAME)):
-            manifest = self._read_consistent_manifest() if read_only else read_manifest(self.path)
-            stored = validate_fields(manifest["fields"])
-            if fields is not None and dict(fields) != stored:
-                raise ValueError(f"{self.path}: stored fields {stored} do not match the requested {fields}")
-            self._fields = stored
-            self.layout = manifest.get("layout", "single")
-            stored_capacity = manifest.get("capacity")
-            if capacity is not None and capacity != stored_capacity:
-                if self.layout == "single":
-                    raise ValueError(
-                        f"{self.path} keeps every transition in one file per field (it was created without a capacity) "
-                        "and cannot evict: copy it into a new directory with a capacity, e.g. "
-                        "merge_buffers([LifelongReplayBuffer.open(old, read_only=True)], path=new, capacity=N)"
-                    )
-                if read_only:
-                    raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
-            self.capacity = stored_capacity if capacity is None else int(capacity)
-            self._load_manifest(manifest)
-            self._set_row_format()
-            if not self.read_only:
-                self._take_lock()
-            self._layout.open_existing(self, verify)
-        else:
-            orphans = [] if self.path is None else orphaned_data_files(self.path)
-            if orphans:
-                assert self.path is not None
-                listed = ", ".join(
-                    (
-                        f"{name} ({os.path.getsize(os.path.join(self.path, name))} bytes)"
-                        if os.path.isfile(os.path.join(self.path, name))
-                        else name
-                    )
-                    for name in orphans[:8]
-                )
-                more = f" and {len(orphans) - 8} more" if len(orphans) > 8 else ""
-                raise BufferFormatError(
-                    f"{self.path} has no {MANIFEST_NAME} but holds buffer data files: {listed}{more}. Its manifest was "
-                    "lost (or removed), so these rows cannot be read, and creating a buffer there would overwrite them: "
-                    "refusing. Move these files (or the whole directory) away, to keep them, or delete them if their data "
-                    "is not needed, then create the buffer again; or pass another path"
-                )
-            if fields is None:
-                raise FileNotFoundError(f"no buffer at {self.path!r} and no field specification to create one")
-            if read_only:
-                raise FileNotFoundError(f"no buffer at {self.path!r} to open read-only")
-            given = {name: (np.dtype(dt).str, tuple(int(d) for d in shape)) for name, (dt, shape) in fields.items()}
-            self._fields = validate_fields({k: {"dtype": d, "shape": list(s)} for k, (d, s) in given.items()})
-            self._set_row_format()
-            if self.path is not None:
-                os.makedirs(self.path, exist_ok=True)
-                self._take_lock()
-                self._layout.create(self)
-                self._write_manifest()
+        if self.path is not None and not read_only and os.path.isdir(self.path):
+            # the writer lock first, then everything else: a manifest read before taking it could be replaced by a
+            # writer that commits and closes in between, and this writer would then cut that writer's rows off
+            self._take_lock()
+        try:
+            self._open_or_create(fields, capacity, verify)
+        except BaseException:
+            self._release_lock()
+            raise
         self._tail_start = self.num_committed
         rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
         self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
@@ -1095,6 +1059,75 @@ class RowStore:
                 f"{self.path}: recovered {self.recovered} transitions; discarded {self.discarded_bytes} bytes of "
                 f"unflushed rows left by a writer that did not close the buffer{removed}"
             )
+
+    def _open_or_create(
+        self, fields: Optional[dict[str, tuple[str, tuple[int, ...]]]], capacity: Optional[int], verify: str
+    ) -> None:
+        """
+        Read the committed state of the directory, or create the buffer. A writer holds the directory's lock
+        before it reads anything there; one that creates the directory takes the lock, then looks again.
+
+        :param fields: As for the constructor
+        :param capacity: As for the constructor
+        :param verify: As for the constructor
+        """
+        if self.path is not None and os.path.isfile(os.path.join(self.path, MANIFEST_NAME)):
+            manifest = self._read_consistent_manifest() if self.read_only else read_manifest(self.path)
+            stored = validate_fields(manifest["fields"])
+            if fields is not None and dict(fields) != stored:
+                raise ValueError(f"{self.path}: stored fields {stored} do not match the requested {fields}")
+            self._fields = stored
+            self.layout = manifest.get("layout", "single")
+            stored_capacity = manifest.get("capacity")
+            if capacity is not None and capacity != stored_capacity:
+                if self.layout == "single":
+                    raise ValueError(
+                        f"{self.path} keeps every transition in one file per field (it was created without a capacity) "
+                        "and cannot evict: copy it into a new directory with a capacity, e.g. "
+                        "merge_buffers([LifelongReplayBuffer.open(old, read_only=True)], path=new, capacity=N)"
+                    )
+                if self.read_only:
+                    raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
+            self.capacity = stored_capacity if capacity is None else int(capacity)
+            self._load_manifest(manifest)
+            self._set_row_format()
+            self._layout.open_existing(self, verify)
+        else:
+            orphans = [] if self.path is None else orphaned_data_files(self.path)
+            if orphans:
+                assert self.path is not None
+                listed = ", ".join(
+                    (
+                        f"{name} ({os.path.getsize(os.path.join(self.path, name))} bytes)"
+                        if os.path.isfile(os.path.join(self.path, name))
+                        else name
+                    )
+                    for name in orphans[:8]
+                )
+                more = f" and {len(orphans) - 8} more" if len(orphans) > 8 else ""
+                raise BufferFormatError(
+                    f"{self.path} has no {MANIFEST_NAME} but holds buffer data files: {listed}{more}. Its manifest was "
+                    "lost (or removed), so these rows cannot be read, and creating a buffer there would overwrite them: "
+                    "refusing. Move these files (or the whole directory) away, to keep them, or delete them if their data "
+                    "is not needed, then create the buffer again; or pass another path"
+                )
+            if fields is None:
+                raise FileNotFoundError(f"no buffer at {self.path!r} and no field specification to create one")
+            if self.read_only:
+                raise FileNotFoundError(f"no buffer at {self.path!r} to open read-only")
+            self._fields = _validated_fields(fields)
+            self._set_row_format()
+            if self.path is not None and self._lock_file is None and fcntl is not None:
+                # the directory did not exist: create it, lock it, and look again (another writer may have created
+                # the buffer meanwhile)
+                os.makedirs(self.path, exist_ok=True)
+                self._take_lock()
+                self._open_or_create(fields, capacity, verify)
+                return
+            if self.path is not None:
+                os.makedirs(self.path, exist_ok=True)
+                self._layout.create(self)
+                self._write_manifest()
 
     # ------------------------------------------------------------------ positions
     @property
@@ -1171,6 +1204,13 @@ class RowStore:
             ) from None
         _WRITERS[self.path] = self
 
+    def _release_lock(self) -> None:
+        if self._lock_file is not None:
+            self._lock_file.close()
+            self._lock_file = None
+            if _WRITERS.get(self.path or "") is self:
+                del _WRITERS[self.path or ""]
+
     def _field_offsets(self, rows: int) -> dict[str, int]:
         """Byte offset of each field's block in a chunk file of ``rows`` rows, and ``""`` -> the file size."""
         offsets, offset = {}, 0
@@ -1240,23 +1280,30 @@ class RowStore:
                 done += take
             return
         keep = (self.num_tail + count) % self.chunk_size  # rows of this call left pending
-        not_durable: Optional[CommitNotDurableError] = None
+        committed_before = self.num_committed
         try:
             self._write_chunks(rows, count - keep)
-        except CommitNotDurableError as error:  # committed: the call's rows are stored
-            not_durable = error
-        except OSError as error:
-            raise _explained(
-                error,
-                f"{self.path}: writing failed before the commit, so none of the {count:,} transitions of this call was "
-                f"stored and the manifest is unchanged; the {self.num_tail:,} transitions pending before it stay in memory. "
-                "Repeat the call once the cause is fixed (e.g. space freed)",
-            ) from error
+        except BaseException as error:
+            if self.num_committed == committed_before:  # nothing of this call is stored
+                if isinstance(error, OSError):
+                    raise _explained(
+                        error,
+                        f"{self.path}: writing failed before the commit, so none of the {count:,} transitions of this "
+                        f"call was stored and the manifest is unchanged; the {self.num_tail:,} transitions pending before "
+                        "it stay in memory. Repeat the call once the cause is fixed (e.g. space freed)",
+                    ) from error
+                raise
+            # committed all the same (CommitNotDurableError; an interruption after the manifest's rename): the
+            # call's last rows stay pending, as after a clean commit, so every row of the call is stored
+            self._keep_pending(rows, count, keep)
+            raise
+        self._keep_pending(rows, count, keep)
+
+    def _keep_pending(self, rows: dict[str, np.ndarray], count: int, keep: int) -> None:
+        """After a commit, the last ``keep`` of the ``count`` rows of an append become the pending rows."""
         for name in self._fields:
             self._tail[name][:keep] = rows[name][count - keep : count]
         self.num_tail = keep
-        if not_durable is not None:
-            raise not_durable
 
     def _make_room(self, need: int) -> None:
         """In memory, the arrays are full: drop the evicted rows at their front (if that frees enough), else grow."""
@@ -1357,8 +1404,8 @@ class RowStore:
             self._layout.write(self, chunks, extra)
             self._commit([*self.chunks, *chunks], base + total)
         except BaseException:
-            if self.num_committed == base:  # not committed: give the space back (best effort)
-                self._layout.discard(self, chunks)
+            if self.num_committed == base and self._committed_on_disk(base + total) is False:
+                self._layout.discard(self, chunks)  # not committed: give the space back (best effort)
             raise
 
     def _commit(self, chunks: list[dict[str, Any]], num_committed: int) -> None:
@@ -1374,30 +1421,69 @@ class RowStore:
         :param num_committed: Global row after the last committed row
         """
         chunks, committed_first, dropped = self._layout.retain(self, chunks, num_committed)
-        not_durable: Optional[CommitNotDurableError] = None
         try:
             self._write_manifest(chunks, num_committed, committed_first)
-        except CommitNotDurableError as error:
-            not_durable = error
+        except CommitNotDurableError:
+            self._adopt_commit(chunks, committed_first, num_committed, dropped, synced=False)
+            raise
+        except BaseException:
+            # e.g. KeyboardInterrupt during the directory's fsync: the new manifest may be in place all the same,
+            # and then its rows are committed; the pending rows must not be discarded as if they were not
+            if num_committed > self.num_committed and self._committed_on_disk(num_committed):
+                self._adopt_commit(chunks, committed_first, num_committed, dropped, synced=False)
+            raise
+        self._adopt_commit(chunks, committed_first, num_committed, dropped, synced=True)
+
+    def _adopt_commit(
+        self,
+        chunks: list[dict[str, Any]],
+        committed_first: int,
+        num_committed: int,
+        dropped: list[dict[str, Any]],
+        synced: bool,
+    ) -> None:
+        """
+        The manifest in place is the new one: move this object's committed state to it (the tail is emptied), delete
+        the files of the dropped chunks if the manifest is synced (else keep them until a later one is) and let the
+        reader follow. A reader that cannot follow now (e.g. ENOMEM or EMFILE from ``mmap``/``open``) does not undo
+        the commit: it stays marked stale and the next read tries again (and raises, if it still cannot).
+        """
         # committed: from here on, no committed state refers to the dropped chunks
         self.chunks, self.committed_first = chunks, committed_first
         self.num_committed = self._tail_start = num_committed
         self.num_tail = 0
         self._maps_stale = True  # until the maps (or read files) follow: reads map again first
         self._undeleted.extend(_ChunkFileLayout.chunk_file(self, chunk) for chunk in dropped)
-        if not_durable is None:
+        if synced:
             self._delete_undeleted()
-        self._sync_maps()
-        if not_durable is not None:
-            raise not_durable
+        try:
+            self._sync_maps()
+        except (OSError, MemoryError):
+            pass
+
+    def _committed_on_disk(self, num_committed: int) -> Optional[bool]:
+        """
+        Whether the manifest in place commits the rows up to global row ``num_committed`` (this writer holds the
+        lock: no other writer replaces it). None when it cannot be read: then nothing may be discarded.
+        """
+        assert self.path is not None
+        try:
+            with open(os.path.join(self.path, MANIFEST_NAME), "rb") as file:
+                return int(json.loads(file.read())["num_transitions"]) >= num_committed
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
 
     def _delete_undeleted(self) -> None:
         """Delete the files of chunks dropped by commits, once the manifest in place (which does not list them) is
         synced."""
         if self._undeleted:
+            kept = []
             for file_name in self._undeleted:
-                _delete_file(file_name)
-            self._undeleted = []
+                try:
+                    _delete_file(file_name)
+                except OSError:  # e.g. EIO: the rows are committed all the same; the next commit tries again
+                    kept.append(file_name)
+            self._undeleted = kept
             assert self.path is not None
             _fsync_dir(self.path)
 
@@ -1494,9 +1580,7 @@ class RowStore:
         if not getattr(self, "_closed", True):
             self.flush()
             self._closed = True
-            if self._lock_file is not None:
-                self._lock_file.close()
-                self._lock_file = None
+            self._release_lock()
         reader = getattr(self, "_reader", None)
         if reader is not None:
             reader.close()
