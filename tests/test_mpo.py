@@ -17,7 +17,7 @@ from sb3_lifelong import MPO, LifelongReplayBuffer
 from sb3_lifelong.common.base import EpisodeRngRecorder
 from sb3_lifelong.common.policies import gaussian_kl_per_dim, gaussian_log_prob
 from sb3_lifelong.common.utils import q_min, sample_gaussian, score_actions, tile_obs
-from sb3_lifelong.mpo.mpo import dual_value, inverse_softplus, temperature_loss_and_weights
+from sb3_lifelong.mpo.mpo import dual_value, inverse_softplus, m_step_loss, temperature_loss_and_weights
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50, num_samples=8)
 
@@ -95,6 +95,33 @@ def test_kl_and_log_prob_hand_computed():
     actions = th.tensor([[0.1, 0.7]])
     expected = th.distributions.Normal(mean, std).log_prob(actions).sum(-1)
     assert gaussian_log_prob(actions, mean, std).item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+@pytest.mark.parametrize("objectives", [1, 2])
+def test_m_step_from_moments_equals_the_weighted_log_likelihood(objectives):
+    """The M-step computed from weighted moments is the weighted log-likelihood of the samples, value and gradients."""
+    generator = th.Generator().manual_seed(objectives)
+    num_samples, batch, action_dim = 20, 32, 5
+    target_mean = 0.5 * th.randn(batch, action_dim, generator=generator, dtype=th.float64)
+    target_std = 0.05 + 0.3 * th.rand(batch, action_dim, generator=generator, dtype=th.float64)
+    actions = target_mean + 1.3 * target_std * th.randn(num_samples, batch, action_dim, generator=generator, dtype=th.float64)
+    weights = [
+        th.softmax(3 * th.randn(num_samples, batch, generator=generator, dtype=th.float64), 0) for _ in range(objectives)
+    ]
+    online_mean = (target_mean + 0.1 * th.randn(batch, action_dim, generator=generator, dtype=th.float64)).requires_grad_()
+    online_std = (1.2 * target_std).requires_grad_()
+    direct = sum(
+        -(w * (gaussian_log_prob(actions, online_mean, target_std) + gaussian_log_prob(actions, target_mean, online_std)))
+        .sum(dim=0)
+        .mean()
+        for w in weights
+    )
+    moments = m_step_loss(actions, weights, online_mean, online_std, target_mean, target_std)
+    assert th.allclose(moments, direct, rtol=1e-12, atol=0)
+    for got, want in zip(
+        th.autograd.grad(moments, [online_mean, online_std]), th.autograd.grad(direct, [online_mean, online_std])
+    ):
+        assert th.allclose(got, want, rtol=1e-10, atol=1e-14)
 
 
 def test_dual_parametrisation():

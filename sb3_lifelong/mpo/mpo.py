@@ -13,7 +13,7 @@ from torch.nn import functional as F
 from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
-from sb3_lifelong.common.policies import GaussianActor, gaussian_kl_per_dim, gaussian_log_prob
+from sb3_lifelong.common.policies import LOG_SQRT_2PI, GaussianActor, gaussian_kl_per_dim
 from sb3_lifelong.common.utils import SCORING_DTYPES, sample_gaussian, score_actions, with_fast_optimizer
 from sb3_lifelong.mpo.policies import MlpPolicy, MPOPolicy, MultiInputPolicy
 
@@ -78,19 +78,31 @@ def m_step_loss(
     Decoupled M-step: weighted maximum likelihood of the sampled actions, the mean fitted with the target's std
     and the std with the target's mean.
 
+    ``-mean_B sum_N w * (log N(a; mu, sigma_target) + log N(a; mu_target, sigma))``, computed exactly from the
+    weighted moments of the samples around the target mean (the log-density is quadratic in the action), so that
+    the graph autograd differentiates holds ``[batch, action_dim]`` tensors, not ``[num_samples, batch,
+    action_dim]`` ones.
+
     :param sampled_actions: ``[num_samples, batch, action_dim]``
-    :param all_weights: the E-step weights of each objective, ``[num_samples, batch]`` each
+    :param all_weights: the E-step weights of each objective, ``[num_samples, batch]`` each (no gradient)
     :param online_mean: the online policy's mean ``[batch, action_dim]`` (with gradient)
     :param online_std: the online policy's std ``[batch, action_dim]`` (with gradient)
     :param target_mean: the target policy's mean ``[batch, action_dim]``
     :param target_std: the target policy's std ``[batch, action_dim]``
     :return: the policy loss (scalar), summed over the objectives
     """
-    log_prob_mean = gaussian_log_prob(sampled_actions, online_mean.unsqueeze(0), target_std.unsqueeze(0))
-    log_prob_std = gaussian_log_prob(sampled_actions, target_mean.unsqueeze(0), online_std.unsqueeze(0))
-    policy_loss = sum(-(w * (log_prob_mean + log_prob_std)).sum(dim=0).mean() for w in all_weights)
-    assert isinstance(policy_loss, th.Tensor)
-    return policy_loss
+    with th.no_grad():  # the loss is linear in the weights: the objectives' weights add up
+        weights = all_weights[0] if len(all_weights) == 1 else th.stack(all_weights).sum(dim=0)
+        offsets = sampled_actions - target_mean.unsqueeze(0)  # [N, B, A]
+        weighted = weights.unsqueeze(-1) * offsets
+        total = weights.sum(dim=0).unsqueeze(-1)  # [B, 1]: sum_N w (1 per objective)
+        first = weighted.sum(dim=0)  # [B, A]: sum_N w (a - mu_target)
+        second = (weighted * offsets).sum(dim=0)  # [B, A]: sum_N w (a - mu_target)^2
+    shift = online_mean - target_mean  # sum_N w (a - mu)^2 = second - 2 shift first + total shift^2
+    fit_mean = -0.5 * (second - 2.0 * shift * first + total * shift.square()) / target_std.square()
+    fit_mean = fit_mean - total * (th.log(target_std) + LOG_SQRT_2PI)
+    fit_std = -0.5 * second / online_std.square() - total * (th.log(online_std) + LOG_SQRT_2PI)
+    return -(fit_mean + fit_std).sum(dim=-1).mean()
 
 
 class TrustRegion(NamedTuple):
