@@ -36,9 +36,9 @@ import re
 import warnings
 import weakref
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from types import MappingProxyType
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple, Optional, Protocol
 
 import numpy as np
 
@@ -537,14 +537,39 @@ class _Segment(NamedTuple):
 
 
 # ---------------------------------------------------------------------------------------------- layouts
+class _Layout(Protocol):
+    """
+    Where a directory store's rows live on disk ("single" or "chunked"): every method takes the store, whose
+    committed state (``chunks``, ``num_committed``, ...) it reads; only :class:`RowStore` changes that state.
+    """
+
+    def create(self, store: RowStore) -> None:
+        """Make the data files of a new, empty buffer."""
+
+    def open_existing(self, store: RowStore, verify: str) -> None:
+        """Check the data files against the manifest just read (sizes, checksums); a writer cleans up after a crash."""
+
+    def segments(self, store: RowStore) -> list[_Segment]:
+        """:return: the committed rows as segments (where each field's rows are)"""
+
+    def write(self, store: RowStore, chunks: list[dict[str, Any]], extra: Optional[dict[str, np.ndarray]]) -> None:
+        """Write and fsync the rows of ``chunks`` (not committed yet: the manifest does not name them)."""
+
+    def discard(self, store: RowStore, chunks: list[dict[str, Any]]) -> None:
+        """Give back the space of written chunks that were not committed (best effort)."""
+
+    def retain(
+        self, store: RowStore, chunks: list[dict[str, Any]], num_committed: int
+    ) -> tuple[list[dict[str, Any]], int, list[str]]:
+        """:return: the chunks a commit keeps, its first retained row, the files it drops (to delete once synced)"""
+
+
 class _SingleFileLayout:
     """
     Layout "single": one append-only file per field, ``<field>.bin``, row ``i`` at byte ``i * row_bytes``. Every
     row is kept (no capacity), so the committed rows are one segment. A flush cuts each file back to its committed
     length (bytes after it are left by a failed flush or a crash) and appends the new chunks to it.
     """
-
-    name = "single"
 
     @staticmethod
     def field_file(store: RowStore, name: str) -> str:
@@ -615,7 +640,7 @@ class _SingleFileLayout:
 
     def retain(
         self, store: RowStore, chunks: list[dict[str, Any]], num_committed: int
-    ) -> tuple[list[dict[str, Any]], int, list[dict[str, Any]]]:
+    ) -> tuple[list[dict[str, Any]], int, list[str]]:
         return chunks, store.committed_first, []
 
 
@@ -625,8 +650,6 @@ class _ChunkFileLayout:
     the other; each chunk is a segment. A commit keeps the last ``capacity`` committed rows: the files of the chunks
     with none of them are deleted once the manifest that drops them is synced.
     """
-
-    name = "chunked"
 
     @staticmethod
     def chunk_file(store: RowStore, chunk: dict[str, Any]) -> str:
@@ -707,16 +730,16 @@ class _ChunkFileLayout:
 
     def retain(
         self, store: RowStore, chunks: list[dict[str, Any]], num_committed: int
-    ) -> tuple[list[dict[str, Any]], int, list[dict[str, Any]]]:
+    ) -> tuple[list[dict[str, Any]], int, list[str]]:
         # the manifest keeps the last ``capacity`` committed rows (rows still pending do not evict on disk)
         committed_first = store.committed_first
         if store.capacity is not None:
             committed_first = max(committed_first, num_committed - store.capacity)
         dropped = [chunk for chunk in chunks if chunk["start"] + chunk["rows"] <= committed_first]
-        return chunks[len(dropped) :], committed_first, dropped
+        return chunks[len(dropped) :], committed_first, [self.chunk_file(store, chunk) for chunk in dropped]
 
 
-_LAYOUT_STRATEGIES: dict[str, Any] = {"single": _SingleFileLayout(), "chunked": _ChunkFileLayout()}
+_LAYOUT_STRATEGIES: dict[str, _Layout] = {"single": _SingleFileLayout(), "chunked": _ChunkFileLayout()}
 
 
 def _checked_chunks(chunks: list[dict[str, Any]], verify: str) -> list[dict[str, Any]]:
@@ -735,6 +758,22 @@ class _RowFormat:
 
     def empty(self, names: tuple[str, ...], rows: int = 0) -> dict[str, np.ndarray]:
         return {name: np.empty((rows, *self.shapes[name]), dtype=self.dtypes[name]) for name in names}
+
+
+class _Reader(Protocol):
+    """How a directory store reads its committed rows (``read_mode``): memory maps or positioned reads."""
+
+    def sync(self, segments: list[_Segment], fresh: bool = False, eager: bool = True) -> None:
+        """Follow the committed segments after a commit, an eviction or a refresh."""
+
+    def gather(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
+        """:return: the given global rows of the given fields (copies)"""
+
+    def pieces(self, name: str, lo: int, hi: int) -> list[np.ndarray]:
+        """:return: the global rows ``lo:hi`` of a field, one array per segment touched"""
+
+    def close(self) -> None:
+        """Release what the reader holds open (the next read opens it again)."""
 
 
 class _MappedReader(_RowFormat):
@@ -911,7 +950,10 @@ class _PositionedReader(_RowFormat):
         return [out]
 
 
-_READERS: dict[str, Any] = {"mmap": _MappedReader, "pread": _PositionedReader}
+_READERS: dict[str, Callable[[Mapping[str, np.dtype], Mapping[str, tuple[int, ...]]], _Reader]] = {
+    "mmap": _MappedReader,
+    "pread": _PositionedReader,
+}
 
 
 def _map_file(file_name: str, length: int) -> Optional[mmap.mmap]:
@@ -935,7 +977,9 @@ def _pread_exact(fd: int, size: int, offset: int) -> bytes:
 #: RowStore attributes that pickles of in-memory stores written by earlier versions hold under these public names
 _PUBLIC_BEFORE = frozenset({"fields", "dtypes", "sources", "spaces", "next_stream_id"})
 #: and the (empty) reading state they held before the read modes became reader objects
-_READER_BEFORE = frozenset({"_maps", "_chunk_maps", "_chunk_starts", "_read_fds", "_pread_table", "_segment_starts"})
+_READER_BEFORE = frozenset(
+    {"_maps", "_chunk_maps", "_chunk_starts", "_read_fds", "_pread_table", "_segment_starts", "_maps_stale"}
+)
 
 
 class RowStore:
@@ -955,9 +999,9 @@ class RowStore:
     once the committed manifest no longer lists it.
 
     The store keeps the commit protocol (pending rows, manifest, eviction, recovery); two small strategies do the
-    rest: the directory's layout (``_SingleFileLayout``, ``_ChunkFileLayout``) creates, checks, writes and describes
-    the data files as segments of committed rows, and the read mode's reader (``_MappedReader``,
-    ``_PositionedReader``) reads rows from those segments.
+    rest: the directory's layout (a ``_Layout``: ``_SingleFileLayout``, ``_ChunkFileLayout``) creates, checks, writes
+    and describes the data files as segments of committed rows, and the read mode's reader (a ``_Reader``:
+    ``_MappedReader``, ``_PositionedReader``) reads rows from those segments.
 
     Besides the rows, the store owns what its manifest records about them: the stream ids (:meth:`reserve_streams`),
     the source table (:meth:`source`, :meth:`set_source`, :meth:`source_table`) and the description of the spaces
@@ -1019,7 +1063,8 @@ class RowStore:
         self.removed_files: list[str] = []  # chunk files found unreferenced (and deleted) when opening
         self._tail_start = 0  # global row of the tail's first row
         self._lock_file: Any = None
-        self._reader: Any = None  # reads the committed rows (a directory store's read mode), set once the fields are known
+        # the _Reader of a directory store's read mode (None in memory), set once the fields are known
+        self._reader: Any = None
         self._closed = False
         # chunk files dropped by a commit whose directory fsync failed: deleted once a later manifest is synced (the
         # previous manifest, which lists them, may be the one a power loss leaves)
@@ -1041,7 +1086,7 @@ class RowStore:
         rows = self.chunk_size if self.path is not None else 1024 if self.capacity is None else min(1024, self.capacity)
         self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
         self.num_tail = 0
-        self._maps_stale = False  # True while the maps (or read files) may not cover every committed row
+        self._reader_stale = False  # True while the maps (or read files) may not cover every committed row
         if self.path is not None and self.layout == "chunked" and not read_only:
             self._commit(self.chunks, self.num_committed)  # a smaller capacity than the stored one evicts now; maps
         elif self.path is not None:
@@ -1159,7 +1204,7 @@ class RowStore:
 
     # ------------------------------------------------------------------ opening / recovery
     @property
-    def _layout(self) -> Any:
+    def _layout(self) -> _Layout:
         """The strategy of this directory's layout ("single" or "chunked"; not for in-memory stores)."""
         return _LAYOUT_STRATEGIES[self.layout]
 
@@ -1439,7 +1484,7 @@ class RowStore:
         chunks: list[dict[str, Any]],
         committed_first: int,
         num_committed: int,
-        dropped: list[dict[str, Any]],
+        dropped: list[str],
         synced: bool,
     ) -> None:
         """
@@ -1452,8 +1497,8 @@ class RowStore:
         self.chunks, self.committed_first = chunks, committed_first
         self.num_committed = self._tail_start = num_committed
         self.num_tail = 0
-        self._maps_stale = True  # until the maps (or read files) follow: reads map again first
-        self._undeleted.extend(_ChunkFileLayout.chunk_file(self, chunk) for chunk in dropped)
+        self._reader_stale = True  # until the maps (or read files) follow: reads map again first
+        self._undeleted.extend(dropped)
         if synced:
             self._delete_undeleted()
         try:
@@ -1494,9 +1539,9 @@ class RowStore:
 
         :param fresh: Map every segment again (drops the pages touched so far from this process's RSS)
         """
-        self._maps_stale = True
+        self._reader_stale = True
         self._reader.sync(self._layout.segments(self), fresh=fresh, eager=not self._closed)
-        self._maps_stale = False
+        self._reader_stale = False
 
     def _write_manifest(
         self,
@@ -1553,7 +1598,7 @@ class RowStore:
         if "_fields" in state or "fields" in state:
             # in memory; pickles of earlier versions have no read mode, and keep the attributes that are read-only
             # properties now under their public names
-            self.__dict__.update(read_mode="mmap", _maps_stale=False)
+            self.__dict__.update(read_mode="mmap", _reader_stale=False)
             kept = {key: value for key, value in state.items() if key not in _READER_BEFORE}
             self.__dict__.update({f"_{key}" if key in _PUBLIC_BEFORE else key: value for key, value in kept.items()})
             self._reader = None  # an in-memory store reads no file
@@ -1662,7 +1707,7 @@ class RowStore:
         :param indices: Row indices
         :return: field name -> array of shape (len(indices), *row_shape)
         """
-        if self._maps_stale:
+        if self._reader_stale:
             self._sync_maps()
         first = self.first
         rows = indices + first if first else indices
@@ -1695,7 +1740,7 @@ class RowStore:
         :param stop: One past the last row
         :return: Array of shape (stop - start, *row_shape)
         """
-        if self._maps_stale:
+        if self._reader_stale:
             self._sync_maps()
         first = self.first
         lo, hi = start + first, max(start, stop) + first
