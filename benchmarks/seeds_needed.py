@@ -1,0 +1,148 @@
+"""
+How many seeds would the paper study's comparisons need? From a study's per-seed scores (the ``scores.csv`` and
+``extras.csv`` that ``python -m sb3_lifelong.experiments report --export`` writes), for each comparison behind a
+pre-registered claim: the per-seed paired difference (first minus second, in return units, both from the same
+seed's run), its mean and standard deviation, and the number of seeds a one-sided paired test (level 0.05, power
+0.8, normal approximation: ``n = ((1.645 + 0.842) * sd / delta)^2``) needs to detect
+
+- a difference of 10 % of the second quantity's mean (the smallest margin the claims use: C4b's 90 %), and
+- the difference observed so far (how many seeds would confirm what the seeds show now, if it is real).
+
+This is an analysis of the seeds run, written after them; it changes no claim or criterion.
+
+Usage::
+
+    python benchmarks/seeds_needed.py benchmarks/results/paper_cpu_foot
+"""
+
+import argparse
+import csv
+import math
+import pathlib
+from collections import defaultdict
+from typing import Callable, Optional
+
+import numpy as np
+
+Z_LEVEL, Z_POWER = 1.6449, 0.8416  # one-sided 5 % level, 80 % power
+
+Scores = dict[int, dict[str, float]]  # seed -> "method|env" (scores) or metric (extras) -> value
+
+
+def load(folder: pathlib.Path) -> Scores:
+    """:return: per seed, every score (``"<method>|<env>"``) and extra metric of the study"""
+    values: Scores = defaultdict(dict)
+    with open(folder / "scores.csv", newline="") as handle:
+        for row in csv.DictReader(handle):
+            values[int(row["seed"])][f"{row['method']}|{row['env']}"] = float(row["score"])
+    extras = folder / "extras.csv"
+    if extras.exists():
+        with open(extras, newline="") as handle:
+            for row in csv.DictReader(handle):
+                values[int(row["seed"])][row["metric"]] = float(row["value"])
+    return dict(values)
+
+
+def mean_over_envs(method: str) -> Callable[[dict[str, float]], Optional[float]]:
+    def value(seed: dict[str, float]) -> Optional[float]:
+        pair = [seed.get(f"{method}|Env-A"), seed.get(f"{method}|Env-B")]
+        return None if None in pair else float(np.mean(pair))  # type: ignore[arg-type]
+
+    return value
+
+
+def key(name: str) -> Callable[[dict[str, float]], Optional[float]]:
+    return lambda seed: seed.get(name)
+
+
+#: (claim, what is compared, first, second): the claim holds in the direction "first > second"
+COMPARISONS: list[tuple[str, str, Callable, Callable]] = [
+    ("C2a", "online CRR beta=1 vs MPO, final Env-A", key("online CRR_exp_beta1|Env-A"), key("MPO|Env-A")),
+    (
+        "C2b",
+        "MPO vs online CRR beta=1, mean Env-B over Stage 2",
+        key("MPO|stage2_area|Env-B"),
+        key("online CRR_exp_beta1|stage2_area|Env-B"),
+    ),
+    ("C3", "exp beta=1 student vs MPO, mean of Env-A and Env-B", mean_over_envs("CRR_exp_beta1"), mean_over_envs("MPO")),
+    (
+        "C3",
+        "exp beta=1 student vs indicator student, mean of Env-A and Env-B",
+        mean_over_envs("CRR_exp_beta1"),
+        mean_over_envs("CRR_indicator"),
+    ),
+    (
+        "C4a",
+        "Env-A-only indicator student vs indicator student, Env-A",
+        key("CRR_indicator_A_only|Env-A"),
+        key("CRR_indicator|Env-A"),
+    ),
+    ("C4b", "exp beta=1 student vs indicator student, Env-A", key("CRR_exp_beta1|Env-A"), key("CRR_indicator|Env-A")),
+    (
+        "C5a",
+        "Env-B rewards x 0.5 vs indicator student, Env-A",
+        key("CRR_indicator_scale_rwd_B|Env-A"),
+        key("CRR_indicator|Env-A"),
+    ),
+    ("C5b", "two actors vs indicator student, Env-A", key("CRR_indicator_two_actors|Env-A"), key("CRR_indicator|Env-A")),
+    ("C5c", "BC vs indicator student, Env-A", key("BC|Env-A"), key("CRR_indicator|Env-A")),
+    (
+        "C5d",
+        "indicator student sampled 1:1 vs 1:10, Env-A",
+        key("CRR_indicator_ratio_1to1|Env-A"),
+        key("CRR_indicator_ratio_1to10|Env-A"),
+    ),
+]
+
+
+def seeds_for(sd: float, delta: float) -> float:
+    """:return: seeds a one-sided paired test needs to detect ``delta`` (inf when ``delta`` is 0)"""
+    if delta <= 0:
+        return math.inf
+    return max(2.0, ((Z_LEVEL + Z_POWER) * sd / delta) ** 2)
+
+
+def table(values: Scores) -> list[str]:
+    lines = [
+        "| claim | comparison (first vs second) | seeds | per-seed difference | mean | sd | seeds for 10 % of second "
+        "| seeds for the observed difference |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for claim, what, first, second in COMPARISONS:
+        pairs = [(first(seed), second(seed)) for _, seed in sorted(values.items())]
+        pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
+        if len(pairs) < 2:
+            continue
+        differences = np.array([a - b for a, b in pairs])
+        sd = float(differences.std(ddof=1))
+        ten_percent = 0.1 * abs(float(np.mean([b for _, b in pairs])))
+        observed = float(differences.mean())
+        lines.append(
+            f"| {claim} | {what} | {len(pairs)} | {', '.join(f'{d:+.0f}' for d in differences)} | {observed:+.0f} | "
+            f"{sd:.0f} | {seeds_for(sd, ten_percent):.0f} | "
+            + (f"{seeds_for(sd, abs(observed)):.0f}" + (" (reverse direction)" if observed < 0 else ""))
+            + " |"
+        )
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("study", type=pathlib.Path, help="a folder with the study's scores.csv (and extras.csv)")
+    parser.add_argument("--output", type=pathlib.Path, help="markdown file (default: <study>/seeds_needed.md)")
+    args = parser.parse_args()
+    values = load(args.study)
+    lines = table(values)
+    print("\n".join(lines))
+    output = args.output or args.study / "seeds_needed.md"
+    output.write_text(
+        "# Seeds needed for the study's comparisons\n\n"
+        f"`python benchmarks/seeds_needed.py {args.study}` on seeds {sorted(values)}. Paired per seed; one-sided test, "
+        "level 0.05, power 0.8, normal approximation (at least 2). An analysis of the seeds run, written after them: "
+        "it changes no claim or criterion.\n\n" + "\n".join(lines) + "\n"
+    )
+    print(f"written to {output}")
+
+
+if __name__ == "__main__":
+    main()
