@@ -15,7 +15,8 @@ Usage::
     python benchmarks/bench_mpo_quality.py --summarise
 
 ``--algos`` takes SAC and the MPO variants of :data:`MPO_VARIANTS` (the reference MPOs' options: n-step returns,
-the action penalty, observation normalisation), each with the same networks, batch and update rate.
+the action penalty, observation normalisation, Acme's LayerNorm torso), each with the same networks, batch and
+update rate.
 """
 
 import argparse
@@ -39,6 +40,7 @@ MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
     "MPO_penalty": ({"action_penalty": True}, False),
     "MPO_n5_penalty": ({"n_steps": 5, "action_penalty": True}, False),
     "MPO_obsnorm": ({}, True),
+    "MPO_layernorm": ({"policy_kwargs": {"layer_norm": True}}, False),
 }
 CURVES = RESULTS / "quality"
 
@@ -75,10 +77,13 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
         env = VecNormalize(DummyVecEnv([lambda: gym.make(env_id)]), norm_reward=False)
         eval_env = VecNormalize(DummyVecEnv([lambda: Monitor(gym.make(env_id))]), norm_reward=False, training=False)
         eval_env.seed(10_000 + seed)
+    model: Any
     if algo == "SAC":
         model = SAC("MlpPolicy", env, policy_kwargs=policy_kwargs, **common)
     else:
-        model = MPO("MlpPolicy", env, policy_kwargs=policy_kwargs, **settings, **common)
+        settings = dict(settings)
+        network = {**policy_kwargs, **settings.pop("policy_kwargs", {})}  # same sizes, the variant's options
+        model = MPO("MlpPolicy", env, policy_kwargs=network, **settings, **common)
     start = time.perf_counter()
 
     with open(path, "w", newline="") as handle:

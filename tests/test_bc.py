@@ -38,6 +38,14 @@ def test_policy_has_only_an_actor():
     assert set(model.policy.state_dict()) == {f"actor.{key}" for key in model.actor.state_dict()}
 
 
+def test_layer_norm_actor_learns():
+    model = bc_model(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True))
+    assert [type(m) for m in model.actor.latent_pi][:3] == [th.nn.Linear, th.nn.LayerNorm, th.nn.Tanh]
+    before = [p.clone() for p in model.actor.parameters()]
+    model.learn_offline(20, log_interval=0)
+    assert any(not th.equal(a, b) for a, b in zip(before, model.actor.parameters()))
+
+
 @pytest.mark.parametrize("loss", ["nll", "mse"])
 def test_clones_a_linear_policy(loss):
     model = bc_model(loss=loss, learning_rate=3e-3)

@@ -217,6 +217,30 @@ def test_save_load_round_trip(tmp_path):
     assert not th.equal(before, loaded.log_temperature)
 
 
+def test_layer_norm_networks_and_round_trip(tmp_path):
+    """``layer_norm=True``: Acme's LayerNormMLP torso (Linear, LayerNorm, tanh, then the usual layers) in the actor
+    and every Q-network and their targets; saved and loaded with it."""
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **{**SMALL, "policy_kwargs": dict(net_arch=[32, 32], layer_norm=True)})
+    for network in (
+        model.actor.latent_pi,
+        model.actor_target.latent_pi,
+        *model.critic.q_networks,
+        *model.critic_target.q_networks,
+    ):
+        kinds = [type(module) for module in network]
+        assert kinds[:5] == [th.nn.Linear, th.nn.LayerNorm, th.nn.Tanh, th.nn.Linear, th.nn.ReLU], kinds
+    model.learn(200)
+    path = tmp_path / "mpo.zip"
+    model.save(path)
+    loaded = MPO.load(path)
+    assert isinstance(loaded.actor.latent_pi[1], th.nn.LayerNorm) and isinstance(
+        loaded.critic.q_networks[0][1], th.nn.LayerNorm
+    )
+    th.testing.assert_close(flat_params(model), flat_params(loaded), rtol=0, atol=0)
+    obs = np.random.uniform(-1, 1, size=(4, 3)).astype(np.float32)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+
+
 def _line_model(seed: int, **kwargs) -> MPO:
     return MPO("MlpPolicy", LineEnv(episode_length=50), seed=seed, **{**SMALL, **kwargs})
 
@@ -447,6 +471,7 @@ def test_dict_observations():
         dict(policy_on_next_obs=False),
         dict(action_penalty=True, policy_kwargs=dict(net_arch=[32, 32], squash_mean=False)),
         dict(tau=0.005, target_update_interval=1, policy_kwargs=dict(net_arch=[32, 32], n_critics=2)),
+        dict(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True, n_critics=2), scoring_dtype="bfloat16"),
     ],
 )
 def test_variants_train(kwargs):

@@ -21,12 +21,12 @@ Q_MAX_ERROR_OF_SCALE = 0.01
 WEIGHT_ERROR = 0.01
 
 
-@pytest.fixture(scope="module")
-def trained_mpo():
+@pytest.fixture(scope="module", params=[False, True], ids=["plain", "layer_norm"])
+def trained_mpo(request):
     model = MPO(
         "MlpPolicy",
         "Pendulum-v1",
-        policy_kwargs=dict(net_arch=[256, 256]),
+        policy_kwargs=dict(net_arch=[256, 256], layer_norm=request.param),
         learning_starts=200,
         scoring_dtype="float32",
         seed=0,

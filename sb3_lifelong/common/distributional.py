@@ -7,12 +7,12 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, create_mlp
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_lifelong.common.utils import tile_obs
+from sb3_lifelong.common.utils import mlp_layers, tile_obs
 
 __all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection", "sum_of"]
 
@@ -83,6 +83,7 @@ class CategoricalCritic(BaseModel):
     :param n_atoms: number of atoms of the distribution
     :param v_min: smallest return of the support
     :param v_max: largest return of the support
+    :param layer_norm: LayerNorm and tanh after the first hidden layer (see :func:`sb3_lifelong.common.utils.mlp_layers`)
     """
 
     support: th.Tensor
@@ -101,6 +102,7 @@ class CategoricalCritic(BaseModel):
         n_atoms: int = 51,
         v_min: float = -150.0,
         v_max: float = 150.0,
+        layer_norm: bool = False,
     ):
         super().__init__(
             observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
@@ -113,9 +115,10 @@ class CategoricalCritic(BaseModel):
         self.n_atoms = n_atoms
         self.v_min = float(v_min)
         self.v_max = float(v_max)
+        self.layer_norm = layer_norm
         self.q_networks: list[nn.Module] = []
         for idx in range(n_critics):
-            q_net = nn.Sequential(*create_mlp(features_dim + action_dim, n_atoms, net_arch, activation_fn))
+            q_net = nn.Sequential(*mlp_layers(features_dim + action_dim, n_atoms, net_arch, activation_fn, layer_norm))
             self.add_module(f"qf{idx}", q_net)
             self.q_networks.append(q_net)
         self.register_buffer("support", th.linspace(self.v_min, self.v_max, n_atoms))

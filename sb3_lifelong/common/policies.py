@@ -12,14 +12,13 @@ from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     CombinedExtractor,
     FlattenExtractor,
-    create_mlp,
     get_actor_critic_arch,
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_lifelong.common.utils import with_fast_optimizer
+from sb3_lifelong.common.utils import mlp_layers, with_fast_optimizer
 
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -87,6 +86,8 @@ class GaussianActor(BasePolicy):
     :param squash_mean: Whether to squash the mean with ``tanh`` into ``[-1, 1]``
     :param init_std: Standard deviation of the initial policy (normalised action units)
     :param min_std: Lower bound of the standard deviation
+    :param layer_norm: LayerNorm and tanh after the first hidden layer, as Acme's ``LayerNormMLP`` (see
+        :func:`sb3_lifelong.common.utils.mlp_layers`)
     """
 
     def __init__(
@@ -101,6 +102,7 @@ class GaussianActor(BasePolicy):
         squash_mean: bool = True,
         init_std: float = 0.7,
         min_std: float = 1e-4,
+        layer_norm: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -117,8 +119,9 @@ class GaussianActor(BasePolicy):
         self.squash_mean = squash_mean
         self.init_std = init_std
         self.min_std = min_std
+        self.layer_norm = layer_norm
         action_dim = get_action_dim(self.action_space)
-        self.latent_pi = nn.Sequential(*create_mlp(features_dim, -1, net_arch, activation_fn))
+        self.latent_pi = nn.Sequential(*mlp_layers(features_dim, -1, net_arch, activation_fn, layer_norm))
         last_layer_dim = net_arch[-1] if len(net_arch) > 0 else features_dim
         self.mu = nn.Linear(last_layer_dim, action_dim)
         self.std_head = nn.Linear(last_layer_dim, action_dim)
@@ -135,6 +138,7 @@ class GaussianActor(BasePolicy):
                 squash_mean=self.squash_mean,
                 init_std=self.init_std,
                 min_std=self.min_std,
+                layer_norm=self.layer_norm,
             )
         )
         return data
@@ -185,6 +189,8 @@ class GaussianPolicy(BasePolicy):
     :param squash_mean: Whether the actor's mean is squashed by ``tanh``
     :param init_std: Standard deviation of the initial policy (normalised action units)
     :param min_std: Lower bound of the policy's standard deviation
+    :param layer_norm: LayerNorm and tanh after the first hidden layer of every network (actor and critics), as
+        Acme's ``LayerNormMLP`` (see :func:`sb3_lifelong.common.utils.mlp_layers`)
     :param features_extractor_class: Features extractor to use
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
     :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
@@ -202,6 +208,7 @@ class GaussianPolicy(BasePolicy):
         squash_mean: bool = True,
         init_std: float = 0.7,
         min_std: float = 1e-4,
+        layer_norm: bool = False,
         features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
         features_extractor_kwargs: Optional[dict[str, Any]] = None,
         normalize_images: bool = True,
@@ -225,6 +232,7 @@ class GaussianPolicy(BasePolicy):
         self.squash_mean = squash_mean
         self.init_std = init_std
         self.min_std = min_std
+        self.layer_norm = layer_norm
         self.actor_kwargs: dict[str, Any] = {
             "observation_space": self.observation_space,
             "action_space": self.action_space,
@@ -234,6 +242,7 @@ class GaussianPolicy(BasePolicy):
             "squash_mean": squash_mean,
             "init_std": init_std,
             "min_std": min_std,
+            "layer_norm": layer_norm,
         }
 
     actor: GaussianActor
@@ -247,6 +256,7 @@ class GaussianPolicy(BasePolicy):
                 squash_mean=self.squash_mean,
                 init_std=self.init_std,
                 min_std=self.min_std,
+                layer_norm=self.layer_norm,
                 lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
@@ -265,6 +275,48 @@ class GaussianPolicy(BasePolicy):
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self.actor(observation, deterministic)
+
+
+class QCritic(ContinuousCritic):
+    """
+    SB3's ``ContinuousCritic`` (Q-networks on the features and the action), with the option of a LayerNorm first
+    layer. The parameters are ``ContinuousCritic``'s, and:
+
+    :param layer_norm: LayerNorm and tanh after the first hidden layer of each Q-network (see
+        :func:`sb3_lifelong.common.utils.mlp_layers`)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = True,
+        layer_norm: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            net_arch,
+            features_extractor,
+            features_dim,
+            activation_fn=activation_fn,
+            normalize_images=normalize_images,
+            n_critics=n_critics,
+            share_features_extractor=share_features_extractor,
+        )
+        self.layer_norm = layer_norm
+        if layer_norm:  # the Q-networks again, with the LayerNorm first layer
+            q_input = features_dim + get_action_dim(action_space)
+            for index in range(n_critics):
+                q_net = nn.Sequential(*mlp_layers(q_input, 1, net_arch, activation_fn, layer_norm=True))
+                self.add_module(f"qf{index}", q_net)
+                self.q_networks[index] = q_net
 
 
 class GaussianActorCriticPolicy(GaussianPolicy):
@@ -305,6 +357,7 @@ class GaussianActorCriticPolicy(GaussianPolicy):
             "normalize_images": self.normalize_images,
             "n_critics": n_critics,
             "share_features_extractor": share_features_extractor,
+            "layer_norm": self.layer_norm,
         }
         self._build(lr_schedule)
 
@@ -337,7 +390,7 @@ class GaussianActorCriticPolicy(GaussianPolicy):
 
     def make_critic(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> ContinuousCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return ContinuousCritic(**critic_kwargs).to(self.device)
+        return QCritic(**critic_kwargs).to(self.device)
 
     def set_training_mode(self, mode: bool) -> None:
         """

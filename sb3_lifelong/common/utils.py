@@ -6,6 +6,7 @@ from typing import Optional, Union
 
 import torch as th
 from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.torch_layers import create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
@@ -43,6 +44,26 @@ def q_min(q_values: Union[tuple[th.Tensor, ...], list[th.Tensor]]) -> th.Tensor:
     if len(q_values) == 1:
         return q_values[0]
     return th.min(th.cat(list(q_values), dim=1), dim=1, keepdim=True)[0]
+
+
+def mlp_layers(
+    input_dim: int, output_dim: int, net_arch: list[int], activation_fn: type[nn.Module], layer_norm: bool = False
+) -> list[nn.Module]:
+    """
+    SB3's ``create_mlp``, or with ``layer_norm`` the torso of Acme's ``LayerNormMLP`` (its MPO's actor and critic
+    networks): the first hidden layer is ``Linear -> LayerNorm -> tanh``, the others ``Linear -> activation_fn``.
+
+    :param input_dim: Input features
+    :param output_dim: Output units of a last ``Linear`` without activation (none if <= 0)
+    :param net_arch: Hidden layer widths
+    :param activation_fn: Activation of the hidden layers (all of them without ``layer_norm``; the later ones with)
+    :param layer_norm: LayerNorm and tanh after the first hidden layer
+    :return: the modules, for ``nn.Sequential``
+    """
+    if not layer_norm or not net_arch:
+        return create_mlp(input_dim, output_dim, net_arch, activation_fn)
+    first = [nn.Linear(input_dim, net_arch[0]), nn.LayerNorm(net_arch[0]), nn.Tanh()]
+    return first + create_mlp(net_arch[0], output_dim, net_arch[1:], activation_fn)
 
 
 def with_fast_optimizer(optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: Optional[dict]) -> dict:
@@ -216,6 +237,9 @@ def _run_mlp_no_grad(
             x, owned = out, True
         elif isinstance(module, nn.ReLU) and owned:
             relu_in_place(x)
+        elif isinstance(module, nn.LayerNorm) and low_precision is not None and x.dtype == low_precision.dtype:
+            # normalised in the layer's own precision (its statistics over a row need more than bf16's 8 bits)
+            x, owned = module(x.float()).to(low_precision.dtype), True
         else:
             x, owned = module(x), False
     return x
