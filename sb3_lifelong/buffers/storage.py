@@ -1253,8 +1253,8 @@ class RowStore:
         if self._lock_file is not None:
             self._lock_file.close()
             self._lock_file = None
-            if _WRITERS.get(self.path or "") is self:
-                del _WRITERS[self.path or ""]
+            if self.path is not None and _WRITERS.get(self.path) is self:
+                del _WRITERS[self.path]
 
     def _field_offsets(self, rows: int) -> dict[str, int]:
         """Byte offset of each field's block in a chunk file of ``rows`` rows, and ``""`` -> the file size."""
@@ -1461,6 +1461,8 @@ class RowStore:
         rows. If the manifest cannot be written, this raises and nothing changed. If it was replaced but the
         directory's fsync failed, the state moves all the same (the manifest in place is the new one) but the files
         of the dropped chunks are kept until a later manifest is synced, and :class:`CommitNotDurableError` is raised.
+        Any other exception after the rename (e.g. ``KeyboardInterrupt`` in that fsync) moves the state the same way
+        before it goes through: the manifest on disk decides whether the rows are committed.
 
         :param chunks: The chunks of the new manifest
         :param num_committed: Global row after the last committed row
