@@ -195,3 +195,48 @@ def test_a_ratio_with_a_non_positive_denominator_is_left_out():
     numerator, denominator = {0: 180.0, 1: 630.0, 2: 360.0}, {0: 480.0, 1: 0.0, 2: -2.3}
     assert _ratio(numerator, denominator) == {0: 0.375}  # not 360 / -2.3 = -157, which would swamp the mean
     assert undefined_ratios(numerator, denominator) == {1: 0.0, 2: -2.3}
+
+
+def test_three_stage_study_end_to_end(tmp_path):
+    """The three-stage preset's shape at a tiny budget: one buffer of three sources, switch scores, its own claims."""
+    import dataclasses
+
+    from sb3_lifelong.experiments import THREE_STAGE_CLAIMS, claims_of
+
+    three = PRESETS["cpu_three"]
+    assert three.stages[0] == {} and len(three.stages) == len(three.stage_steps) == len(three.env_names) == 3
+    assert three.stage_steps[0] == three.stage_steps[1] and three.stage_steps[2] == 5 * three.stage_steps[0]  # 0.2:0.2:1
+    assert three.jobs() == ["collect", "distill_CRR_exp_beta1", "distill_CRR_indicator", "distill_BC"]
+    tiny = dataclasses.replace(
+        PRESETS["tiny"],
+        stages=three.stages,
+        stage_steps=(200, 200, 400),
+        env_names=three.env_names,
+        students=three.students,
+        online=False,
+    )
+    output = tmp_path / "three"
+    assert run_seed(tiny, 0, output, log=lambda message: None) == tiny.jobs()
+    run_dir = output / "seed_0"
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        assert buffer.size() == 800
+        assert {v["name"] for v in buffer.sources.values()} == {"Env-A", "Env-B", "Env-C"}
+        counts = buffer.source_counts()
+        assert set(counts) == {0, 1, 2} and 200 <= counts[0] < 250 and counts[2] > 300
+    evals = pd.read_csv(run_dir / "distill_CRR_exp_beta1" / "eval.csv")
+    assert set(evals["env"]) == {"Env-A", "Env-B", "Env-C"}
+    write_report(output)
+    study = load_study(output)
+    assert set(study.extra("MPO|switch|Env-A")) == {0} and set(study.extra("MPO|switch|Env-B")) == {0}
+    assert not study.extra("MPO|switch|Env-C")  # MPO never leaves the last environment
+    collect = pd.read_csv(run_dir / "collect" / "eval.csv")
+    at_switch_b = collect[(collect["env"] == "Env-B") & (collect["timesteps"] <= 400)].sort_values("timesteps")
+    assert study.extra("MPO|switch|Env-B")[0] == pytest.approx(at_switch_b["mean_reward"].tail(2).mean())
+    claims = pd.read_csv(output / "claims.csv")
+    assert list(claims["claim"]) == [claim.name for claim in THREE_STAGE_CLAIMS]
+    assert "no data" not in set(claims["verdict"])  # every student and score these claims need ran
+    assert (output / "fig_online.png").stat().st_size > 0
+    assert not (output / "fig_sampling_ratio.png").exists()  # Env-A : Env-B ratios mean nothing here
+    assert claims_of(dict(env_names=["Env-A", "Env-B"])) is CLAIMS
+    with pytest.raises(ValueError, match="a study of 4 environments"):
+        claims_of(dict(env_names=["a", "b", "c", "d"]))

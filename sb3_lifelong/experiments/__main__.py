@@ -1,5 +1,5 @@
 """
-Command line of the paper's two-stage protocol.
+Command line of the paper's two-stage protocol (and its three-stage variant, preset ``cpu_three``).
 
 Run one seed (every job of it that has not finished yet)::
 
@@ -39,7 +39,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True)
 
-    run = commands.add_parser("run", help="run one seed of the two-stage protocol")
+    run = commands.add_parser("run", help="run one seed of the protocol")
     run.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="the protocol's settings (default: cpu)")
     run.add_argument("--seed", type=int, required=True, help="the seed: one seed is one self-contained command")
     run.add_argument("--output", required=True, help="the study's directory (seeds go into seed_<k>/ inside it)")
@@ -135,7 +135,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     online = sum(job.startswith("online_") for job in jobs)
     steps = sum(preset.stage_steps) + online * sum(preset.stage_steps[1:])
     print(
-        f"Two-stage protocol, preset {args.preset}: {preset.env_id}, {' -> '.join(preset.env_names)}, "
+        f"{len(preset.env_names)}-stage protocol, preset {args.preset}: {preset.env_id}, {' -> '.join(preset.env_names)}, "
         f"steps {list(preset.stage_steps)}, {len(jobs)} jobs for seed {args.seed} "
         f"({steps:,} environment steps online, {preset.distill_steps:,} updates per student)"
     )

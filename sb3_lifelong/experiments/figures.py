@@ -1,6 +1,6 @@
 """
-The paper's figures from a two-stage study (matplotlib's Agg backend, chosen when a figure is drawn: no display
-needed). The helpers (a curve with its band over seeds, a labelled change of environment, grouped bars, saving)
+The paper's figures from a two-stage (or three-stage) study (matplotlib's Agg backend, chosen when a figure is drawn:
+no display needed). The helpers (a curve with its band over seeds, a labelled change of environment, grouped bars, saving)
 also draw the figures of the sequential examples (:mod:`sb3_lifelong.experiments.plots`).
 """
 
@@ -76,18 +76,19 @@ def _band(ax: Any, frame: pd.DataFrame, env: Optional[str], label: str, color: s
     ax.fill_between(mean.index, (mean - std).values, (mean + std).values, color=color, alpha=0.15, linewidth=0)
 
 
-def _switch(ax: Any, timestep: float, label: str) -> None:
+def _switch(ax: Any, timestep: float, label: str, row: int = 0) -> None:
     """
     A change of environment: a dashed vertical line, labelled (e.g. ``"Env-A -> Env-B"``) at the top of the axes.
 
     :param ax: the matplotlib axes
     :param timestep: where the change happens, in the x-axis' units
     :param label: what changes
+    :param row: the label's line from the top (successive changes close together would overlap on one line)
     """
     ax.axvline(timestep, color="black", linestyle="--", linewidth=1)
     ax.annotate(
         label,
-        xy=(timestep, 0.97),
+        xy=(timestep, 0.97 - 0.07 * row),
         xycoords=("data", "axes fraction"),
         ha="left",
         va="top",
@@ -129,10 +130,10 @@ def _bars(
 
 
 def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
-    """Paper Fig. 2: online curves per environment, the switch labelled, the distilled students dotted."""
+    """Paper Fig. 2: online curves per environment, each switch labelled, the distilled students dotted."""
     plt = _pyplot()
     envs = study.preset["env_names"]
-    switch = int(study.preset["stage_steps"][0])
+    ends = [int(t) for t in np.cumsum(study.preset["stage_steps"])[:-1]]  # one switch per change of environment
     fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.2), squeeze=False)
     jobs = {"MPO": "collect", "online CRR_indicator": "online_CRR_indicator", "online CRR_exp_beta1": "online_CRR_exp_beta1"}
     for ax, env in zip(axes[0], envs):
@@ -144,14 +145,16 @@ def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
             values = list(study.score(method, env).values())
             if values:
                 ax.axhline(np.mean(values), color=COLORS[method], linestyle=":", linewidth=2, label=f"distilled {method}")
-        _switch(ax, switch, f"{envs[0]} -> {envs[1]}")
+        for index, end in enumerate(ends):
+            _switch(ax, end, f"{envs[index]} -> {envs[index + 1]}", row=index)
         ax.set_title(f"Evaluated in {env}")
         ax.set_xlabel("environment steps")
         ax.set_ylabel("return (deterministic policy)")
         ax.margins(y=0.08)
         ax.grid(alpha=0.3)
     axes[0][-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the axes: no curve hidden
-    fig.suptitle(f"{study.preset['env_id']}: online learning through the change (mean +- std over seeds)")
+    change = "change" if len(ends) == 1 else "changes"
+    fig.suptitle(f"{study.preset['env_id']}: online learning through the {change} (mean +- std over seeds)")
     return [_save(plt, fig, directory / "fig_online.png")]
 
 
@@ -211,9 +214,13 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
 
 def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     """Paper Fig. 6: Env-A return against the Env-A : Env-B sampling ratio."""
-    plt = _pyplot()
     env = study.preset["env_names"][0]
     ratios = [("1:1", "_ratio_1to1"), ("1:5 (raw)", ""), ("1:10", "_ratio_1to10")]
+    if len(study.preset["env_names"]) != 2 or not any(
+        study.score(base + suffix, env) for base in ("CRR_indicator", "CRR_exp_beta1") for _, suffix in ratios if suffix
+    ):
+        return []  # the ratios are Env-A : Env-B of a two-stage study; without a re-weighted student there is no curve
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 4.2))
     drawn = False
     for base, label in (("CRR_indicator", "indicator"), ("CRR_exp_beta1", "exp, beta=1")):

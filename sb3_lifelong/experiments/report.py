@@ -1,10 +1,11 @@
 """
-Gather the seeds of a two-stage study into tables, the pre-registered claims and the paper's figures.
+Gather the seeds of a two-stage (or three-stage) study into tables, the pre-registered claims and the paper's figures.
 
 Scores (each seed's, then mean +- std over seeds and a 95 % percentile-bootstrap interval of the mean):
 
 * an online method's final return in an environment: the mean of its last ``ONLINE_LAST`` evaluations;
-* MPO's Env-A return *at the switch*: the mean of its last ``ONLINE_LAST_STAGE1`` evaluations of Stage 1;
+* MPO's return in an environment *at the switch* (when it leaves that environment): the mean of its last
+  ``ONLINE_LAST_STAGE1`` evaluations of that environment's stage;
 * Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
 * a student's final return: the mean of its last ``STUDENT_LAST`` evaluations;
 * Q per source: the student's last average Q-value over each environment's data.
@@ -12,7 +13,7 @@ Scores (each seed's, then mean +- std over seeds and a 95 % percentile-bootstrap
 
 import json
 import pathlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
@@ -96,7 +97,8 @@ def load_study(output: pathlib.Path) -> Study:
     """Read every finished job of every seed of ``output``."""
     preset = json.loads((output / "preset.json").read_text())
     envs = preset["env_names"]
-    switch = int(preset["stage_steps"][0])
+    ends = [int(t) for t in np.cumsum(preset["stage_steps"])]  # the end of each stage
+    switch = ends[0]
     seeds = seeds_of(output)
     finals, extras = [], []
     for seed in seeds:
@@ -115,14 +117,10 @@ def load_study(output: pathlib.Path) -> Study:
                     extras.append(
                         dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=last_mean(frame, env, 10**9, after=switch))
                     )
-                if job == "collect":
-                    extras.append(
-                        dict(
-                            seed=seed,
-                            metric="MPO|switch|Env-A",
-                            value=last_mean(frame, envs[0], ONLINE_LAST_STAGE1, until=switch),
-                        )
-                    )
+                if job == "collect":  # each environment's return when MPO leaves it (the end of its stage)
+                    for env, end in zip(envs[:-1], ends[:-1]):
+                        value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
+                        extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
             elif job.startswith("distill_"):
                 method = job[len("distill_") :]
                 for env in envs:
@@ -169,10 +167,14 @@ def undefined_ratios(numerator: dict[int, float], denominator: dict[int, float])
     return {s: denominator[s] for s in numerator if s in denominator and not denominator[s] > 0}
 
 
-def _mean_over_envs(study: Study, method: str) -> dict[int, float]:
-    per_env = [study.score(method, env) for env in study.preset["env_names"]]
+def _mean_over(study: Study, method: str, envs: Sequence[str]) -> dict[int, float]:
+    per_env = [study.score(method, env) for env in envs]
     seeds = set.intersection(*(set(s) for s in per_env)) if per_env else set()
     return {s: float(np.mean([series[s] for series in per_env])) for s in seeds}
+
+
+def _mean_over_envs(study: Study, method: str) -> dict[int, float]:
+    return _mean_over(study, method, study.preset["env_names"])
 
 
 #: the methods that need no task boundaries, compared by claim C3
@@ -266,10 +268,65 @@ CLAIMS: list[Claim] = [
 ]
 
 
+#: the claims of the three-stage set-up (Env-A, Env-B, Env-C; the paper's appendix), pre-registered in
+#: benchmarks/results/paper_cpu_three/README.md before any seed ran
+THREE_STAGE_CLAIMS: list[Claim] = [
+    Claim(
+        "T1a forgetting Env-A",
+        "MPO's Env-A return at the end of Stage 3 is <= 70 % of its Env-A return at the end of Stage 1",
+        lambda s: {"end / switch": _ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
+        lambda m: m["end / switch"] <= 0.7,
+    ),
+    Claim(
+        "T1b forgetting Env-B",
+        "MPO's Env-B return at the end of Stage 3 is <= 70 % of its Env-B return at the end of Stage 2",
+        lambda s: {"end / switch": _ratio(s.score("MPO", "Env-B"), s.extra("MPO|switch|Env-B"))},
+        lambda m: m["end / switch"] <= 0.7,
+    ),
+    Claim(
+        "T2a distillation recovers the earlier environments",
+        "the CRR exp beta=1 student's mean return over Env-A and Env-B is above MPO's final one",
+        lambda s: {
+            "exp beta=1": _mean_over(s, "CRR_exp_beta1", ("Env-A", "Env-B")),
+            "MPO": _mean_over(s, "MPO", ("Env-A", "Env-B")),
+        },
+        lambda m: m["exp beta=1"] > m["MPO"],
+    ),
+    Claim(
+        "T2b distillation keeps the last environment",
+        "the CRR exp beta=1 student's Env-C return is >= 80 % of MPO's final Env-C return",
+        lambda s: {"student / MPO": _ratio(s.score("CRR_exp_beta1", "Env-C"), s.score("MPO", "Env-C"))},
+        lambda m: m["student / MPO"] >= 0.8,
+    ),
+    Claim(
+        "T3a the imbalance drop",
+        "the indicator student's Env-A return is <= 80 % of the exp beta=1 student's",
+        lambda s: {"indicator / exp beta=1": _ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_exp_beta1", "Env-A"))},
+        lambda m: m["indicator / exp beta=1"] <= 0.8,
+    ),
+    Claim(
+        "T3b exp beta=1 is the more reliable student",
+        "the exp beta=1 student's mean return over the three environments is >= the indicator student's",
+        lambda s: {"exp beta=1": _mean_over_envs(s, "CRR_exp_beta1"), "indicator": _mean_over_envs(s, "CRR_indicator")},
+        lambda m: m["exp beta=1"] >= m["indicator"],
+    ),
+]
+
+
+def claims_of(preset: Mapping[str, Any]) -> list[Claim]:
+    """:return: the pre-registered claims of a study's set-up: :data:`CLAIMS` for two stages, else the three-stage ones"""
+    stages = len(preset["env_names"])
+    if stages == 2:
+        return CLAIMS
+    if stages == 3:
+        return THREE_STAGE_CLAIMS
+    raise ValueError(f"no pre-registered claims for a study of {stages} environments (two or three)")
+
+
 def evaluate_claims(study: Study) -> list[dict[str, Any]]:
     """:return: one row per claim: the series (per seed, mean, CI), and reproduced / not reproduced / no data"""
     rows = []
-    for claim in CLAIMS:
+    for claim in claims_of(study.preset):
         series = claim.values(study)
         means = {name: _mean(values) for name, values in series.items()}
         complete = all(np.isfinite(v) for v in means.values()) and all(series.values())
@@ -331,7 +388,7 @@ def write_report(output: pathlib.Path, plots: bool = True) -> str:
     claims = evaluate_claims(study)
     pd.DataFrame(claims).to_csv(output / "claims.csv", index=False)
     text = (
-        f"# Two-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
+        f"# {len(study.preset['env_names'])}-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
         f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
         f"{study.preset['distill_steps']:,} updates per student.\n\n"
         + (f"{study.preset['note']}\n\n" if study.preset.get("note") else "")
