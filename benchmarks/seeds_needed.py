@@ -126,6 +126,49 @@ def table(values: Scores) -> list[str]:
     return lines
 
 
+def student_scores(folder: pathlib.Path, last: int) -> Scores:
+    """
+    :return: per seed, every student's score as the mean of its last ``last`` evaluations (read from the students'
+        ``eval.csv``; the study's own score is the mean of the last two), and every other score as in :func:`load`
+    """
+    values = load(folder)
+    for path in sorted(folder.glob("seed_*/distill_*/eval.csv")):
+        seed, method = int(path.parent.parent.name.split("_")[1]), path.parent.name[len("distill_") :]
+        rows: dict[str, list[tuple[int, float]]] = defaultdict(list)
+        with open(path, newline="") as handle:
+            for row in csv.DictReader(handle):
+                rows[row["env"]].append((int(row["timesteps"]), float(row["mean_reward"])))
+        for env, curve in rows.items():
+            values.setdefault(seed, {})[f"{method}|{env}"] = float(np.mean([r for _, r in sorted(curve)[-last:]]))
+    return values
+
+
+#: the comparisons whose both sides are students (their scores depend on how many evaluations are averaged)
+STUDENT_CLAIMS = ("C4a", "C4b", "C5a", "C5b", "C5c", "C5d")
+
+
+def scoring_table(folder: pathlib.Path, lasts: tuple[int, ...] = (1, 2, 3, 4, 6)) -> list[str]:
+    """:return: for each student comparison, the sd of its per-seed differences and the seeds for a 10 % effect when
+    a student's score averages its last K evaluations, for each K of ``lasts``"""
+    header = " | ".join(f"K={k}: sd / seeds" for k in lasts)
+    lines = [f"| claim | comparison (first vs second) | {header} |", "| --- | --- |" + " --- |" * len(lasts)]
+    scored = {k: student_scores(folder, k) for k in lasts}
+    for claim, what, first, second in COMPARISONS:
+        if claim not in STUDENT_CLAIMS:
+            continue
+        cells = []
+        for k in lasts:
+            pairs = [(first(seed), second(seed)) for _, seed in sorted(scored[k].items())]
+            pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
+            if len(pairs) < 2:
+                cells.append("-")
+                continue
+            sd = float(np.std([a - b for a, b in pairs], ddof=1))
+            cells.append(f"{sd:.0f} / {seeds_for(sd, 0.1 * abs(float(np.mean([b for _, b in pairs])))):.0f}")
+        lines.append(f"| {claim} | {what} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("study", type=pathlib.Path, help="a folder with the study's scores.csv (and extras.csv)")
@@ -141,6 +184,17 @@ def main() -> None:
         "level 0.05, power 0.8, normal approximation (at least 2). An analysis of the seeds run, written after them: "
         "it changes no claim or criterion.\n\n" + "\n".join(lines) + "\n"
     )
+    if any(args.study.glob("seed_*/distill_*/eval.csv")):
+        scoring = scoring_table(args.study)
+        print("\n".join(scoring))
+        with open(output, "a") as handle:
+            handle.write(
+                "\n## The student comparisons when a student's score averages more evaluations\n\n"
+                "The study scores a student by the mean of its last two evaluations (K=2). Below, the same per-seed "
+                "differences with K = 1 to all of them (the earlier ones are taken before the student has converged, so "
+                "a large K also scores learning speed): the sd of the differences and the seeds a paired test needs for "
+                "a 10 % effect. For designing the next study; no verdict is read from it.\n\n" + "\n".join(scoring) + "\n"
+            )
     print(f"written to {output}")
 
 
