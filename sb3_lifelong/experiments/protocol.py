@@ -199,6 +199,25 @@ PRESETS["cpu_three"] = dataclasses.replace(
     ),
 )
 
+# the same at the paper's scale, one preset per environment combination of its appendix (OP3; a GPU machine)
+for _number, _stages in enumerate(
+    (
+        ("default", "hip_0.2", "hip_0.2+foot_1.6"),
+        ("default", "hip_0.3", "hip_0.3+foot_1.6"),
+        ("default", "foot_1.2", "foot_1.2+ground_0.1"),
+    ),
+    start=1,
+):
+    PRESETS[f"paper_three_{_number}"] = dataclasses.replace(
+        PRESETS["paper"],
+        stages=_stages,
+        stage_steps=(200_000, 200_000, 1_000_000),
+        env_names=("Env-A", "Env-B", "Env-C"),
+        students=PRESETS["cpu_three"].students,
+        online=False,
+        note=f"The paper's three-stage set-up, its environment combination {_number}, at its scale (a GPU machine).",
+    )
+
 # `make demo`: the cpu preset, shortened to minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
 PRESETS["demo"] = dataclasses.replace(
     PRESETS["cpu"],
