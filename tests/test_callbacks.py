@@ -30,6 +30,21 @@ def test_evaluates_every_env_on_schedule(tmp_path):
         assert [int(row["timesteps"]) for row in csv.DictReader(handle)] == [100, 100, 200, 200, 300, 300, 400, 400]
 
 
+def test_seeded_evaluations_are_reproducible():
+    """With ``seed``, the same policy gets the same evaluations from fresh environments; another seed, others."""
+
+    def evaluations(seed: int) -> list[float]:
+        envs = {"env_a": gym.make("Pendulum-v1"), "env_b": gym.make("Pendulum-v1", g=5.0)}
+        callback = MultiEnvEvalCallback(envs, eval_freq=100, n_eval_episodes=2, seed=seed)
+        model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
+        model.learn(200, callback=callback)  # two evaluations: the second goes on from the first's episodes
+        return [row["mean_reward"] for row in callback.results]
+
+    first = evaluations(3)
+    assert len(first) == 4 and first == evaluations(3)
+    assert first != evaluations(4)
+
+
 def test_logged_to_tensorboard(tmp_path):
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

@@ -244,3 +244,29 @@ def test_three_stage_study_end_to_end(tmp_path):
     assert claims_of(dict(env_names=["Env-A", "Env-B"])) is CLAIMS
     with pytest.raises(ValueError, match="a study of 4 environments"):
         claims_of(dict(env_names=["a", "b", "c", "d"]))
+
+
+def test_student_spread_on_one_buffer(study, tmp_path):
+    """benchmarks/student_spread.py: the same students, several seeds, one buffer; the spread against the study's."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "student_spread.py"
+    spec = importlib.util.spec_from_file_location("student_spread", path)
+    assert spec is not None and spec.loader is not None
+    spread = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(spread)
+    output, _ = study
+    write_report(output, plots=False)  # the study's scores.csv: the between-seed reference
+    runs = tmp_path / "spread"
+    students = ["CRR_exp_beta1", "CRR_indicator"]
+    spread.train(output, "tiny", 0, students, [0, 5], runs)
+    data = spread.scores(runs)
+    assert len(data) == 4 and set(data["student_seed"]) == {0, 5} and set(data["buffer_seed"]) == {0}
+    # student seed 0 on buffer 0 is the study's own student: same data, same seed, same scores
+    own = load_study(output).score("CRR_exp_beta1", "Env-A")[0]
+    assert data[(data["student"] == "CRR_exp_beta1") & (data["student_seed"] == 0)]["score"].iloc[0] == own  # evaluations seeded
+    text = spread.report(runs, output)
+    assert "CRR_exp_beta1 - CRR_indicator" in text and "ratio" in text
+    with pytest.raises(FileNotFoundError, match="finished seed's buffer"):
+        spread.train(output, "tiny", 7, students, [0], runs)

@@ -81,6 +81,8 @@ class MultiEnvEvalCallback(BaseCallback):
     :param sources: for models with one actor per source (CRR's ``actor_per_source=True`` diagnostic): the source
         id whose actor acts in each environment, by environment name (``{"Env-A": 0, "Env-B": 1}``); the model's
         ``select_source`` is called before each of these environments and the model's own selection is restored after
+    :param seed: seed of the evaluation environments: the k-th is seeded with ``seed + k`` before the first
+        evaluation and its episodes follow from there, so that a run's evaluations are reproducible (None: not seeded)
     :param verbose: 1 prints each evaluation
     """
 
@@ -93,6 +95,7 @@ class MultiEnvEvalCallback(BaseCallback):
         log_path: Optional[Union[str, os.PathLike]] = None,
         eval_at_start: bool = False,
         sources: Optional[Mapping[str, int]] = None,
+        seed: Optional[int] = None,
         verbose: int = 0,
     ):
         super().__init__(verbose)
@@ -117,12 +120,18 @@ class MultiEnvEvalCallback(BaseCallback):
                 raise ValueError(f"sources names environments {unknown} that are not evaluated ({list(self.eval_envs)})")
         self.results: list[dict[str, Any]] = []
         self._next_eval = 0
+        self.seed = seed
+        self._seeded = False
 
     def _init_callback(self) -> None:
         if self.sources is not None and not hasattr(self.model, "active_source"):
             raise TypeError(
                 f"MultiEnvEvalCallback(sources=...) needs a model with one actor per source, got {type(self.model).__name__}"
             )
+        if self.seed is not None and not self._seeded:  # once: a callback reused by several learn() calls goes on
+            for index, env in enumerate(self.eval_envs.values()):
+                env.seed(self.seed + index)  # applied at the next reset, the first evaluation's
+            self._seeded = True
         # first evaluation at the next multiple of eval_freq (learn may resume at any timestep)
         self._next_eval = (self.model.num_timesteps // self.eval_freq + 1) * self.eval_freq
         if self.log_path is not None:

@@ -331,12 +331,28 @@ def _common(preset: Preset, seed: int) -> dict[str, Any]:
     return dict(policy_kwargs=dict(net_arch=list(preset.net_arch)), seed=seed)
 
 
+#: the evaluation environments of a job with seed ``s`` are seeded from ``EVAL_SEED_OFFSET + s`` (apart from the
+#: training environment's ``s``), so that a job's evaluations are reproducible
+EVAL_SEED_OFFSET = 10_000
+
+
 def _callbacks(
-    preset: Preset, directory: pathlib.Path, eval_freq: int, data: Optional[Any] = None, q: bool = True, **eval_kwargs: Any
+    preset: Preset,
+    directory: pathlib.Path,
+    eval_freq: int,
+    seed: int,
+    data: Optional[Any] = None,
+    q: bool = True,
+    **eval_kwargs: Any,
 ) -> list[Any]:
     callbacks: list[Any] = [
         MultiEnvEvalCallback(
-            make_eval_envs(preset), eval_freq, preset.eval_episodes, log_path=directory / "eval.csv", **eval_kwargs
+            make_eval_envs(preset),
+            eval_freq,
+            preset.eval_episodes,
+            log_path=directory / "eval.csv",
+            seed=EVAL_SEED_OFFSET + seed,
+            **eval_kwargs,
         )
     ]
     if q:
@@ -364,7 +380,7 @@ def collect(preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool
     buffer: Any = model.replay_buffer
     for index in reversed(range(len(preset.env_names))):  # names in the manifest; transitions carry their stage
         buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=_describe(preset.stages[index])))
-    callbacks = _callbacks(preset, directory, preset.eval_freq)
+    callbacks = _callbacks(preset, directory, preset.eval_freq, seed)
     for stage, steps in enumerate(preset.stage_steps):
         log(f"  stage {stage + 1}/{len(preset.stage_steps)}: {preset.env_names[stage]}, {steps:,} steps of MPO")
         model.learn(steps, callback=callbacks, reset_num_timesteps=stage == 0, progress_bar=progress_bar)
@@ -398,7 +414,7 @@ def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress
     with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1_buffer:
         model.replay_buffer = merge_buffers([stage1_buffer])  # a private copy in memory, which this agent extends
     model.num_timesteps = start
-    model.learn(sum(preset.stage_steps[1:]), callback=_callbacks(preset, directory, preset.eval_freq),
+    model.learn(sum(preset.stage_steps[1:]), callback=_callbacks(preset, directory, preset.eval_freq, seed),
                 reset_num_timesteps=False, progress_bar=progress_bar)  # fmt: skip
 
 
@@ -426,6 +442,7 @@ def distill_student(
     run_dir: pathlib.Path,
     progress_bar: bool = False,
     student: Optional[Student] = None,
+    student_seed: Optional[int] = None,
 ) -> None:
     """
     Train one offline student on the lifetime buffer (opened read-only) and save it in ``run_dir/distill_<name>``.
@@ -436,6 +453,8 @@ def distill_student(
     :param run_dir: the seed's directory (holds ``buffer``)
     :param progress_bar: show a progress bar
     :param student: settings of a student that is not in :data:`STUDENTS` (e.g. a benchmark's variant)
+    :param student_seed: the seed of the student's own training (default: ``seed``), to train the same student
+        several times on one buffer
     """
     student = STUDENTS[name] if student is None else student
     directory = run_dir / f"distill_{name}"
@@ -452,7 +471,10 @@ def distill_student(
     if kwargs.get("actor_per_source"):
         sources = {env_name: index for index, env_name in enumerate(preset.env_names)}
     algorithm = BC if student.algorithm == "BC" else CRR
-    callbacks = _callbacks(preset, directory, preset.distill_eval_freq, data=everything, q=algorithm is CRR, sources=sources)
+    seed = seed if student_seed is None else student_seed
+    callbacks = _callbacks(
+        preset, directory, preset.distill_eval_freq, seed, data=everything, q=algorithm is CRR, sources=sources
+    )
     model = distill(
         data,
         student_class=algorithm,
