@@ -24,7 +24,6 @@ import json
 import pathlib
 import time
 
-import numpy as np
 import pandas as pd
 import torch as th
 
@@ -118,9 +117,10 @@ def report(output: pathlib.Path, between: pathlib.Path) -> str:
         within = float(difference.std(ddof=1))
         across, n_seeds = between_seed_sd(between, first, second)
         ratio = within / across
-        verdict = (
-            "student training dominates: average repeats" if ratio >= 0.7 else "the buffer dominates" if ratio <= 0.5 else "mixed"
-        )
+        if ratio >= 0.7:
+            verdict = "student training dominates: average repeats"
+        else:
+            verdict = "the buffer dominates" if ratio <= 0.5 else "mixed"
         lines.append(
             f"| {buffer_seed} | {first} - {second} | "
             + ", ".join(f"s{k}: {v:+.0f}" for k, v in difference.items())
@@ -130,7 +130,7 @@ def report(output: pathlib.Path, between: pathlib.Path) -> str:
             f"- buffer {buffer_seed}: sd of `{first} - {second}` over {len(difference)} student seeds on one buffer "
             f"{within:.0f}; over the study's {n_seeds} seeds {across:.0f}; ratio {ratio:.2f}: **{verdict}**"
         )
-    return "\n".join(lines + [""] + verdicts)
+    return "\n".join([*lines, "", *verdicts])
 
 
 def main() -> None:

@@ -265,7 +265,8 @@ def test_student_spread_on_one_buffer(study, tmp_path):
     assert len(data) == 4 and set(data["student_seed"]) == {0, 5} and set(data["buffer_seed"]) == {0}
     # student seed 0 on buffer 0 is the study's own student: same data, same seed, same scores
     own = load_study(output).score("CRR_exp_beta1", "Env-A")[0]
-    assert data[(data["student"] == "CRR_exp_beta1") & (data["student_seed"] == 0)]["score"].iloc[0] == own  # evaluations seeded
+    mine = data[(data["student"] == "CRR_exp_beta1") & (data["student_seed"] == 0)]["score"].iloc[0]
+    assert mine == own  # the evaluations are seeded
     text = spread.report(runs, output)
     assert "CRR_exp_beta1 - CRR_indicator" in text and "ratio" in text
     with pytest.raises(FileNotFoundError, match="finished seed's buffer"):

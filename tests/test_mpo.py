@@ -241,6 +241,32 @@ def test_layer_norm_networks_and_round_trip(tmp_path):
     np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
 
 
+def test_plain_critic_is_sb3s_weight_for_weight():
+    """Without ``layer_norm``, the critic is SB3's ``ContinuousCritic``: same modules, names and initial weights."""
+    from stable_baselines3.common.policies import ContinuousCritic
+    from stable_baselines3.common.torch_layers import FlattenExtractor
+
+    from sb3_lifelong.common.policies import QCritic
+
+    env = gym.make("Pendulum-v1")
+    kwargs = dict(
+        observation_space=env.observation_space,
+        action_space=env.action_space,
+        net_arch=[32, 32],
+        features_extractor=FlattenExtractor(env.observation_space),
+        features_dim=3,
+        n_critics=2,
+    )
+    th.manual_seed(0)
+    ours = QCritic(**kwargs)
+    th.manual_seed(0)
+    theirs = ContinuousCritic(**kwargs)
+    assert ours.n_critics == 2 and len(ours.q_networks) == 2 and ours.q_networks[1] is ours.qf1
+    assert list(ours.state_dict()) == list(theirs.state_dict())
+    for name, value in theirs.state_dict().items():
+        th.testing.assert_close(ours.state_dict()[name], value, rtol=0, atol=0)
+
+
 def _line_model(seed: int, **kwargs) -> MPO:
     return MPO("MlpPolicy", LineEnv(episode_length=50), seed=seed, **{**SMALL, **kwargs})
 

@@ -307,16 +307,16 @@ class QCritic(ContinuousCritic):
             features_dim,
             activation_fn=activation_fn,
             normalize_images=normalize_images,
-            n_critics=n_critics,
+            n_critics=0,  # the Q-networks are built here, once: SB3's (same modules, same order) or with the LayerNorm
             share_features_extractor=share_features_extractor,
         )
+        self.n_critics = n_critics
         self.layer_norm = layer_norm
-        if layer_norm:  # the Q-networks again, with the LayerNorm first layer
-            q_input = features_dim + get_action_dim(action_space)
-            for index in range(n_critics):
-                q_net = nn.Sequential(*mlp_layers(q_input, 1, net_arch, activation_fn, layer_norm=True))
-                self.add_module(f"qf{index}", q_net)
-                self.q_networks[index] = q_net
+        q_input = features_dim + get_action_dim(action_space)
+        for index in range(n_critics):
+            q_net = nn.Sequential(*mlp_layers(q_input, 1, net_arch, activation_fn, layer_norm=layer_norm))
+            self.add_module(f"qf{index}", q_net)
+            self.q_networks.append(q_net)
 
 
 class GaussianActorCriticPolicy(GaussianPolicy):
