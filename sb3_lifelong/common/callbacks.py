@@ -17,6 +17,10 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
 
+#: the experiments seed the evaluation environments of a run with seed ``s`` from ``EVAL_SEED_OFFSET + s`` (apart
+#: from the training environment's ``s``), so that a run's evaluations are reproducible
+EVAL_SEED_OFFSET = 10_000
+
 
 EvalEnvs = Union[GymEnv, str, Sequence[Union[GymEnv, str]], Mapping[str, Union[GymEnv, str]]]
 

@@ -47,7 +47,7 @@ except ImportError:  # pragma: no cover
 
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.common.callbacks import MultiEnvEvalCallback, SourceQCallback
+from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.envs import DynamicsSchedule
@@ -329,11 +329,6 @@ def switch_points(preset: Preset) -> list[int]:
 # ------------------------------------------------------------------------------------------------- the jobs
 def _common(preset: Preset, seed: int) -> dict[str, Any]:
     return dict(policy_kwargs=dict(net_arch=list(preset.net_arch)), seed=seed)
-
-
-#: the evaluation environments of a job with seed ``s`` are seeded from ``EVAL_SEED_OFFSET + s`` (apart from the
-#: training environment's ``s``), so that a job's evaluations are reproducible
-EVAL_SEED_OFFSET = 10_000
 
 
 def _callbacks(

@@ -39,7 +39,7 @@ import torch as th
 
 import sb3_lifelong.envs  # noqa: F401  (registers the OP3 task)
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
-from sb3_lifelong.common.callbacks import MultiEnvEvalCallback, SourceQCallback
+from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 from sb3_lifelong.envs import DynamicsSchedule
 
 Stage = Union[str, Mapping[str, float]]
@@ -274,6 +274,7 @@ def eval_callbacks(
     source_q: bool = True,
     sources: Optional[dict[str, int]] = None,
     offline: bool = False,
+    seed: Optional[int] = None,
 ) -> list[Any]:
     """
     The evaluation (``eval.csv``) and Q-per-source (``q_sources.csv``) callbacks of one method.
@@ -284,6 +285,8 @@ def eval_callbacks(
     :param source_q: also log the critic's average Q on each source of the buffer
     :param sources: the source whose actor acts in each environment (one actor per source), or None
     :param offline: a distillation: evaluate every ``distill_eval_freq`` updates and before the first one
+    :param seed: the run's seed: the evaluation environments are seeded from ``EVAL_SEED_OFFSET + seed`` (None:
+        unseeded)
     :return: the callbacks
     """
     directory.mkdir(parents=True, exist_ok=True)
@@ -299,6 +302,7 @@ def eval_callbacks(
             log_path=directory / "eval.csv",
             eval_at_start=offline,
             sources=sources,
+            seed=None if seed is None else EVAL_SEED_OFFSET + seed,
         )
     ]
     if source_q:
@@ -458,7 +462,7 @@ def run_sequential(
         # Online: MPO through every stage, one buffer for the whole life
         env = make_schedule(config["env_id"], stages, switch_at, episode_steps)
         mpo = make_collector(env, config, seed, tensorboard_log)
-        mpo_callbacks = eval_callbacks(run_dir / "MPO", eval_envs, config)
+        mpo_callbacks = eval_callbacks(run_dir / "MPO", eval_envs, config, seed=seed)
         mpo.learn(steps[0], callback=mpo_callbacks, tb_log_name=f"MPO_s{seed}")
         stage1_agent = copy.deepcopy(mpo.policy.state_dict()), copy.deepcopy(mpo.replay_buffer), mpo.num_timesteps
         for stage_steps in steps[1:]:
@@ -473,7 +477,7 @@ def run_sequential(
             ):
                 crr_env = make_schedule(config["env_id"], stages, switch_at, episode_steps, start_timestep=steps[0])
                 crr = continue_with_crr(*stage1_agent, crr_env, config, seed, tensorboard_log, **crr_kwargs)
-                callbacks = eval_callbacks(run_dir / method, eval_envs, config)
+                callbacks = eval_callbacks(run_dir / method, eval_envs, config, seed=seed)
                 crr.learn(sum(steps[1:]), callback=callbacks, tb_log_name=f"{method}_s{seed}", reset_num_timesteps=False)
                 rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
 
@@ -487,7 +491,7 @@ def run_sequential(
             students.append(("distilled_per_source", dict(advantage_transform="exp", beta=1.0, actor_per_source=True)))
         for method, distill_kwargs in students:
             sources = {name: index for index, name in enumerate(env_names)} if "actor_per_source" in distill_kwargs else None
-            callbacks = eval_callbacks(run_dir / method, eval_envs, config, sources=sources, offline=True)
+            callbacks = eval_callbacks(run_dir / method, eval_envs, config, sources=sources, offline=True, seed=seed)
             mpo.distill(
                 CRR,
                 gradient_steps=config["distill_steps"],

@@ -87,7 +87,7 @@ def collect(
         env.reset(seed=seed)
         model.learning_starts = 0
     eval_envs = make_eval_envs(config["env_id"], stages, NAMES[: len(stages)], config.get("max_episode_steps"))
-    callbacks = eval_callbacks(pathlib.Path(method_dir), eval_envs, config)
+    callbacks = eval_callbacks(pathlib.Path(method_dir), eval_envs, config, seed=seed)
     model.learn(steps, callback=callbacks, reset_num_timesteps=model_path is None, tb_log_name=tb_log_name)
     if save_path is not None:
         model.save(save_path)
@@ -166,7 +166,7 @@ def run_sharing(
             for method, kwargs in students:
                 log(f"seed {seed}: distilling {config['distill_steps']:,} updates: {method}")
                 eval_envs = make_eval_envs(config["env_id"], stages, NAMES, config.get("max_episode_steps"))
-                callbacks = eval_callbacks(run_dir / method, eval_envs, config, source_q=True, offline=True)
+                callbacks = eval_callbacks(run_dir / method, eval_envs, config, source_q=True, offline=True, seed=seed)
                 distill(data, CRR, gradient_steps=config["distill_steps"], callback=callbacks,
                         tensorboard_log=tensorboard_log, tb_log_name=f"{method}_s{seed}",
                         observation_space=opened[0].observation_space, action_space=opened[0].action_space,
