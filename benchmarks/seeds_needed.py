@@ -133,6 +133,8 @@ def student_scores(folder: pathlib.Path, last: int) -> Scores:
     """
     values = load(folder)
     for path in sorted(folder.glob("seed_*/distill_*/eval.csv")):
+        if not (path.parent / "done.json").exists():  # a student still training (as :func:`load`, finished jobs only)
+            continue
         seed, method = int(path.parent.parent.name.split("_")[1]), path.parent.name[len("distill_") :]
         rows: dict[str, list[tuple[int, float]]] = defaultdict(list)
         with open(path, newline="") as handle:
@@ -191,9 +193,11 @@ def main() -> None:
             handle.write(
                 "\n## The student comparisons when a student's score averages more evaluations\n\n"
                 "The study scores a student by the mean of its last two evaluations (K=2). Below, the same per-seed "
-                "differences with K = 1 to all of them (the earlier ones are taken before the student has converged, so "
-                "a large K also scores learning speed): the sd of the differences and the seeds a paired test needs for "
-                "a 10 % effect. For designing the next study; no verdict is read from it.\n\n" + "\n".join(scoring) + "\n"
+                "differences with K = 1, 2, 3, 4 and 6 of a student's 7 evaluations (the earlier ones are taken before "
+                "the student has converged, so a large K also scores learning speed): the sd of the differences and the "
+                "seeds a paired test needs for a 10 % effect. For designing the next study; no verdict is read from it.\n\n"
+                + "\n".join(scoring)
+                + "\n"
             )
     print(f"written to {output}")
 

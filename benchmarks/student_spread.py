@@ -24,9 +24,11 @@ import json
 import pathlib
 import time
 
+import numpy as np
 import pandas as pd
 import torch as th
 
+from sb3_lifelong.buffers.storage import write_json_atomic
 from sb3_lifelong.experiments.protocol import PRESETS, STUDENTS, distill_student
 from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean
 
@@ -34,6 +36,7 @@ ENV = "Env-A"
 
 
 def job_name(student: str, student_seed: int) -> str:
+    """:return: the job folder's name (after ``distill_``) of ``student`` trained with ``student_seed``"""
     return f"{student}__s{student_seed}"
 
 
@@ -60,7 +63,7 @@ def train(
             distill_student(job, preset, seed, run_dir, student=STUDENTS[student], student_seed=student_seed)
             seconds = time.perf_counter() - start
             done = dict(seconds=seconds, preset=preset_name, student=student, student_seed=student_seed, buffer_seed=seed)
-            (run_dir / f"distill_{job}" / "done.json").write_text(json.dumps(done, indent=1))
+            write_json_atomic(str(run_dir / f"distill_{job}" / "done.json"), done)
             print(f"buffer {seed}: {job} done in {seconds / 60:.1f} min", flush=True)
 
 
@@ -91,6 +94,12 @@ def between_seed_sd(study: pathlib.Path, first: str, second: str) -> tuple[float
 
 
 def report(output: pathlib.Path, between: pathlib.Path) -> str:
+    """
+    :param output: the folder :func:`train` wrote
+    :param between: the reference study (its ``scores.csv`` gives the between-seed spread)
+    :return: a markdown table of every student seed's score and, per buffer, the within / between spread ratio
+    :raises ValueError: the reference study has no between-seed spread of the two students compared
+    """
     data = scores(output)
     if data.empty:
         raise FileNotFoundError(f"no finished student in {output}")
@@ -116,6 +125,11 @@ def report(output: pathlib.Path, between: pathlib.Path) -> str:
             continue
         within = float(difference.std(ddof=1))
         across, n_seeds = between_seed_sd(between, first, second)
+        if not np.isfinite(across) or across <= 0:
+            raise ValueError(
+                f"no between-seed spread of `{first} - {second}` in {between / 'scores.csv'}: it needs both students "
+                f"on at least 2 seeds with different differences, found {n_seeds} seed(s), sd {across}"
+            )
         ratio = within / across
         if ratio >= 0.7:
             verdict = "student training dominates: average repeats"

@@ -17,7 +17,6 @@ Usage::
 
 import argparse
 import dataclasses
-import json
 import pathlib
 import time
 from typing import Any
@@ -26,6 +25,7 @@ import numpy as np
 import pandas as pd
 import torch as th
 
+from sb3_lifelong.buffers.storage import write_json_atomic
 from sb3_lifelong.experiments.protocol import EXP, PRESETS, Student, distill_student
 
 #: variant name -> (the student's CRR settings, the preset's fields changed)
@@ -65,7 +65,7 @@ def train(study: pathlib.Path, preset_name: str, seed: int, jobs: list[str], eva
         distill_student(job, preset, seed, run_dir, student=student)
         seconds = time.perf_counter() - start
         done = dict(seconds=seconds, preset=preset_name, changes=changes, kwargs=kwargs, ratio=student.ratio)
-        (run_dir / f"distill_{job}" / "done.json").write_text(json.dumps(done, indent=1))
+        write_json_atomic(str(run_dir / f"distill_{job}" / "done.json"), done)
         print(f"seed {seed}: {job} done in {seconds / 60:.1f} min", flush=True)
 
 

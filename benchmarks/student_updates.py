@@ -15,13 +15,13 @@ Usage::
 
 import argparse
 import dataclasses
-import json
 import pathlib
 import time
 
 import pandas as pd
 import torch as th
 
+from sb3_lifelong.buffers.storage import write_json_atomic
 from sb3_lifelong.experiments.protocol import PRESETS, distill_student
 
 
@@ -39,7 +39,7 @@ def train(study: pathlib.Path, seed: int, students: list[str], updates: int, eva
         print(f"seed {seed}: {name}, {updates:,} updates", flush=True)
         distill_student(name, preset, seed, run_dir)
         seconds = time.perf_counter() - start
-        (run_dir / f"distill_{name}" / "done.json").write_text(json.dumps(dict(seconds=seconds, updates=updates)))
+        write_json_atomic(str(run_dir / f"distill_{name}" / "done.json"), dict(seconds=seconds, updates=updates))
         print(f"seed {seed}: {name} done in {seconds / 60:.1f} min", flush=True)
 
 

@@ -236,6 +236,8 @@ def test_three_stage_study_end_to_end(tmp_path):
     collect = pd.read_csv(run_dir / "collect" / "eval.csv")
     at_switch_b = collect[(collect["env"] == "Env-B") & (collect["timesteps"] <= 400)].sort_values("timesteps")
     assert study.extra("MPO|switch|Env-B")[0] == pytest.approx(at_switch_b["mean_reward"].tail(2).mean())
+    stage2_b = collect[(collect["env"] == "Env-B") & (collect["timesteps"] > 200) & (collect["timesteps"] <= 400)]
+    assert study.extra("MPO|stage2_area|Env-B")[0] == pytest.approx(stage2_b["mean_reward"].mean())  # not Stage 3's
     claims = pd.read_csv(output / "claims.csv")
     assert list(claims["claim"]) == [claim.name for claim in THREE_STAGE_CLAIMS]
     assert "no data" not in set(claims["verdict"])  # every student and score these claims need ran
@@ -268,6 +270,14 @@ def test_student_spread_on_one_buffer(study, tmp_path):
     mine = data[(data["student"] == "CRR_exp_beta1") & (data["student_seed"] == 0)]["score"].iloc[0]
     assert mine == own  # the evaluations are seeded
     text = spread.report(runs, output)
-    assert "CRR_exp_beta1 - CRR_indicator" in text and "ratio" in text
+    assert "CRR_exp_beta1 - CRR_indicator" in text
+    ratio = float(text.split("ratio ")[1].split(":")[0])
+    assert np.isfinite(ratio) and ratio >= 0
+    one_seed = tmp_path / "one_seed"  # a reference study of one seed has no between-seed spread: a clear error
+    one_seed.mkdir()
+    finals = pd.read_csv(output / "scores.csv")
+    finals[finals["seed"] == 0].to_csv(one_seed / "scores.csv", index=False)
+    with pytest.raises(ValueError, match=r"at least 2 seeds.*found 1 seed"):
+        spread.report(runs, one_seed)
     with pytest.raises(FileNotFoundError, match="finished seed's buffer"):
         spread.train(output, "tiny", 7, students, [0], runs)

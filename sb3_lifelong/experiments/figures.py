@@ -11,6 +11,8 @@ from typing import Any, Optional
 import numpy as np
 import pandas as pd
 
+from sb3_lifelong.experiments.report import stage_ends
+
 COLORS = {
     "MPO": "tab:blue",
     "online CRR_indicator": "tab:orange",
@@ -133,7 +135,7 @@ def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     """Paper Fig. 2: online curves per environment, each switch labelled, the distilled students dotted."""
     plt = _pyplot()
     envs = study.preset["env_names"]
-    ends = [int(t) for t in np.cumsum(study.preset["stage_steps"])[:-1]]  # one switch per change of environment
+    ends = stage_ends(study.preset["stage_steps"])[:-1]  # one switch per change of environment
     fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.2), squeeze=False)
     jobs = {"MPO": "collect", "online CRR_indicator": "online_CRR_indicator", "online CRR_exp_beta1": "online_CRR_exp_beta1"}
     for ax, env in zip(axes[0], envs):

@@ -38,7 +38,6 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Union
 
 import gymnasium as gym
-import numpy as np
 
 try:  # POSIX: the job locks are advisory and simply skipped elsewhere
     import fcntl
@@ -47,10 +46,12 @@ except ImportError:  # pragma: no cover
 
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
+from sb3_lifelong.buffers.storage import write_json_atomic
 from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.envs import DynamicsSchedule
+from sb3_lifelong.experiments.report import stage_ends
 from sb3_lifelong.mpo import MPO
 
 Stage = Union[str, Mapping[str, float]]
@@ -323,7 +324,8 @@ def _describe(stage: Stage) -> Any:
 
 
 def switch_points(preset: Preset) -> list[int]:
-    return [int(t) for t in np.cumsum(preset.stage_steps)[:-1]]
+    """:return: the timesteps at which the collector's environment changes"""
+    return stage_ends(preset.stage_steps)[:-1]
 
 
 # ------------------------------------------------------------------------------------------------- the jobs
@@ -448,8 +450,8 @@ def distill_student(
     :param run_dir: the seed's directory (holds ``buffer``)
     :param progress_bar: show a progress bar
     :param student: settings of a student that is not in :data:`STUDENTS` (e.g. a benchmark's variant)
-    :param student_seed: the seed of the student's own training (default: ``seed``), to train the same student
-        several times on one buffer
+    :param student_seed: the seed of the student's own training and of its evaluation environments (default:
+        ``seed``), to train the same student several times on one buffer
     """
     student = STUDENTS[name] if student is None else student
     directory = run_dir / f"distill_{name}"
@@ -589,7 +591,7 @@ def run_seed(
             done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
             if job.startswith("distill_"):
                 done["student"] = dataclasses.asdict(STUDENTS[job[len("distill_") :]])
-            (run_dir / job / "done.json").write_text(json.dumps(done, indent=1))
+            write_json_atomic(str(run_dir / job / "done.json"), done)  # never a half-written "done"
             log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
             ran.append(job)
     return ran

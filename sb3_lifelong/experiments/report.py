@@ -64,6 +64,14 @@ def read_eval(output: pathlib.Path, seed: int, job: str) -> Optional[pd.DataFram
     return pd.read_csv(path)
 
 
+def stage_ends(stage_steps: Sequence[int]) -> list[int]:
+    """
+    :param stage_steps: the environment steps of each stage
+    :return: the timestep at which each stage ends (all but the last are the switches to the next environment)
+    """
+    return [int(t) for t in np.cumsum(stage_steps)]
+
+
 def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = None, after: Optional[int] = None) -> float:
     rows = frame[frame["env"] == env]
     if until is not None:
@@ -97,7 +105,7 @@ def load_study(output: pathlib.Path) -> Study:
     """Read every finished job of every seed of ``output``."""
     preset = json.loads((output / "preset.json").read_text())
     envs = preset["env_names"]
-    ends = [int(t) for t in np.cumsum(preset["stage_steps"])]  # the end of each stage
+    ends = stage_ends(preset["stage_steps"])
     switch = ends[0]
     seeds = seeds_of(output)
     finals, extras = [], []
@@ -114,9 +122,8 @@ def load_study(output: pathlib.Path) -> Study:
                     finals.append(
                         dict(seed=seed, method=method, kind="online", env=env, score=last_mean(frame, env, ONLINE_LAST))
                     )
-                    extras.append(
-                        dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=last_mean(frame, env, 10**9, after=switch))
-                    )
+                    area = last_mean(frame, env, 10**9, after=switch, until=ends[1])  # Stage 2 only (of 2 or 3)
+                    extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
                 if job == "collect":  # each environment's return when MPO leaves it (the end of its stage)
                     for env, end in zip(envs[:-1], ends[:-1]):
                         value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
