@@ -16,7 +16,8 @@ Usage::
 
 ``--algos`` takes SAC and the MPO variants of :data:`MPO_VARIANTS` (the reference MPOs' options: n-step returns,
 the action penalty, observation normalisation, Acme's LayerNorm torso), each with the same networks, batch and
-update rate.
+update rate. Each evaluation also records the collecting policy's exploration std on its latest 1,024 states
+(percentiles 10 / 50 / 90 of the std averaged over the action dimensions; runs from 2026-11-25 on).
 """
 
 import argparse
@@ -48,6 +49,32 @@ CURVES = RESULTS / "quality"
 def budget_name(steps: int) -> str:
     """The folder of a step budget's curves: ``30000`` -> ``"30k"``."""
     return f"{steps // 1000}k" if steps % 1000 == 0 else str(steps)
+
+
+def policy_std(model: Any, count: int = 1024) -> np.ndarray:
+    """
+    The exploration noise of the collecting policy on the latest ``count`` observations of its replay buffer (read in
+    place: no random number is drawn, so a run is the same with or without this probe).
+
+    :param model: an MPO (its Gaussian's std, in action units) or a SAC (the std before its tanh squashing)
+    :param count: how many of the latest observations
+    :return: the 10th, 50th and 90th percentiles over those states of the std averaged over the action dimensions
+    """
+    import torch as th
+
+    buffer = model.replay_buffer
+    end = buffer.pos if buffer.pos > 0 else buffer.buffer_size  # the latest rows are just before the write position
+    observations = buffer.observations[max(0, end - count) : end].reshape(-1, *buffer.obs_shape)
+    if model.get_vec_normalize_env() is not None:
+        observations = model.get_vec_normalize_env().normalize_obs(observations)
+    with th.no_grad():
+        obs = th.as_tensor(observations, dtype=th.float32, device=model.device)
+        if hasattr(model.actor, "distribution_params"):
+            _, std = model.actor.distribution_params(obs)
+        else:
+            _, log_std, _ = model.actor.get_action_dist_params(obs)
+            std = log_std.exp()
+    return np.percentile(std.mean(dim=-1).cpu().numpy(), [10, 50, 90])
 
 
 def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
@@ -88,7 +115,9 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
 
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["timesteps", "mean_return", "std_return", "wall_s"])
+        writer.writerow(
+            ["timesteps", "mean_return", "std_return", "wall_s", "policy_std_p10", "policy_std_median", "policy_std_p90"]
+        )
 
         class Evaluate(BaseCallback):
             def _on_step(self) -> bool:
@@ -96,7 +125,9 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
                     if normalise:
                         eval_env.obs_rms = model.get_vec_normalize_env().obs_rms  # type: ignore[union-attr]
                     mean, std = evaluate_policy(self.model, eval_env, n_eval_episodes=eval_episodes, deterministic=True)
-                    writer.writerow([self.num_timesteps, f"{mean:.2f}", f"{std:.2f}", f"{time.perf_counter() - start:.1f}"])
+                    spread = [f"{value:.3f}" for value in policy_std(model)]
+                    wall = f"{time.perf_counter() - start:.1f}"
+                    writer.writerow([self.num_timesteps, f"{mean:.2f}", f"{std:.2f}", wall, *spread])
                     handle.flush()
                 return True
 
