@@ -22,14 +22,12 @@ Usage::
 import argparse
 import json
 import pathlib
-import time
 
 import numpy as np
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.buffers.storage import write_json_atomic
-from sb3_lifelong.experiments.protocol import PRESETS, STUDENTS, distill_student
+from sb3_lifelong.experiments.protocol import PRESETS, STUDENTS, distill_on_study
 from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean
 
 ENV = "Env-A"
@@ -43,28 +41,22 @@ def job_name(student: str, student_seed: int) -> str:
 def train(
     study: pathlib.Path, preset_name: str, seed: int, students: list[str], student_seeds: list[int], output: pathlib.Path
 ) -> None:
-    """Train every (student, student seed) not trained yet on seed ``seed``'s buffer of ``study``."""
-    run_dir = output / f"seed_{seed}"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    link = run_dir / "buffer"  # the study's buffer, read-only
-    if not link.exists():
-        source = study / f"seed_{seed}" / "buffer"
-        if not source.is_dir():
-            raise FileNotFoundError(f"{source} is not a finished seed's buffer (run the study's collect job first)")
-        link.symlink_to(source.resolve())
+    """
+    Train every (student, student seed) not trained yet on seed ``seed``'s buffer of ``study``.
+
+    :param study: the study's output directory
+    :param preset_name: its preset
+    :param seed: the seed whose buffer is distilled
+    :param students: names of :data:`STUDENTS`
+    :param student_seeds: the seeds of the students' own training
+    :param output: where the students go
+    """
     preset = PRESETS[preset_name]
     for student_seed in student_seeds:  # the students of one student seed together: a stopped run stays paired
         for student in students:
-            job = job_name(student, student_seed)
-            if (run_dir / f"distill_{job}" / "done.json").exists():
-                continue
-            start = time.perf_counter()
-            print(f"buffer {seed}: {student}, student seed {student_seed}, {preset.distill_steps:,} updates", flush=True)
-            distill_student(job, preset, seed, run_dir, student=STUDENTS[student], student_seed=student_seed)
-            seconds = time.perf_counter() - start
-            done = dict(seconds=seconds, preset=preset_name, student=student, student_seed=student_seed, buffer_seed=seed)
-            write_json_atomic(str(run_dir / f"distill_{job}" / "done.json"), done)
-            print(f"buffer {seed}: {job} done in {seconds / 60:.1f} min", flush=True)
+            about = dict(preset=preset_name, student=student)
+            jobs = {job_name(student, student_seed): STUDENTS[student]}
+            distill_on_study(study, seed, output, jobs, preset, student_seed=student_seed, about=about)
 
 
 def scores(output: pathlib.Path) -> pd.DataFrame:

@@ -18,15 +18,13 @@ Usage::
 import argparse
 import dataclasses
 import pathlib
-import time
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.buffers.storage import write_json_atomic
-from sb3_lifelong.experiments.protocol import EXP, PRESETS, Student, distill_student
+from sb3_lifelong.experiments.protocol import EXP, PRESETS, Student, distill_on_study
 
 #: variant name -> (the student's CRR settings, the preset's fields changed)
 VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
@@ -48,25 +46,14 @@ def job_names(variants: list[str], a_only: bool) -> list[str]:
 
 
 def train(study: pathlib.Path, preset_name: str, seed: int, jobs: list[str], eval_freq: int, output: pathlib.Path) -> None:
-    run_dir = output / f"seed_{seed}"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    link = run_dir / "buffer"  # the study's buffer, read-only
-    if not link.exists():
-        link.symlink_to((study / f"seed_{seed}" / "buffer").resolve())
+    """Train the variants ``jobs`` (names of :func:`job_names`) not trained yet on seed ``seed``'s buffer of ``study``."""
     for job in jobs:
-        if (run_dir / f"distill_{job}" / "done.json").exists():
-            continue
         variant = job.removesuffix("_A_only")
         kwargs, changes = VARIANTS[variant]
         preset = dataclasses.replace(PRESETS[preset_name], distill_eval_freq=eval_freq, **changes)
         student = Student("CRR", dict(kwargs), ratio=(1, 0) if job.endswith("_A_only") else None, about=job)
-        start = time.perf_counter()
-        print(f"seed {seed}: {job}, {preset.distill_steps:,} updates", flush=True)
-        distill_student(job, preset, seed, run_dir, student=student)
-        seconds = time.perf_counter() - start
-        done = dict(seconds=seconds, preset=preset_name, changes=changes, kwargs=kwargs, ratio=student.ratio)
-        write_json_atomic(str(run_dir / f"distill_{job}" / "done.json"), done)
-        print(f"seed {seed}: {job} done in {seconds / 60:.1f} min", flush=True)
+        about = dict(preset=preset_name, changes=changes, kwargs=kwargs, ratio=student.ratio)
+        distill_on_study(study, seed, output, {job: student}, preset, about=about)
 
 
 def summary(output: pathlib.Path) -> pd.DataFrame:

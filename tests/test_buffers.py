@@ -405,6 +405,18 @@ def test_corrupted_files(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------- sampling options
+def test_reward_range_reads_every_block():
+    buffer = LifelongReplayBuffer(0, OBS, ACT)
+    with pytest.raises(ValueError, match="empty buffer"):
+        buffer.reward_range()
+    fill(buffer, 250, 1, stage=0)
+    rewards = all_rows(buffer)["rewards"]
+    expected = (float(rewards.min()), float(rewards.max()))
+    assert buffer.reward_range() == expected == buffer.reward_range(block=7)  # blocks that do not divide the size
+    buffer.set_reward_scale({0: 10.0})
+    assert buffer.reward_range() == expected  # as stored, whatever is applied at sampling time
+
+
 def test_sampling_weights_and_reward_scale():
     np.random.seed(0)
     buffer = LifelongReplayBuffer(0, OBS, ACT)

@@ -281,3 +281,55 @@ def test_student_spread_on_one_buffer(study, tmp_path):
         spread.report(runs, one_seed)
     with pytest.raises(FileNotFoundError, match="finished seed's buffer"):
         spread.train(output, "tiny", 7, students, [0], runs)
+
+
+def test_value_support_holds_every_return():
+    from sb3_lifelong.experiments.protocol import value_support
+
+    support = value_support((-2.0, 5.0), 0.9)
+    assert support == pytest.approx(dict(v_min=-20.0, v_max=50.0))
+    assert value_support((1.0, 3.0), 0.5) == pytest.approx(dict(v_min=0.0, v_max=6.0))  # 0 always inside
+    assert value_support((-1.0, 3.0), 0.5, scales=[0.5, 4.0]) == pytest.approx(dict(v_min=-8.0, v_max=24.0))
+    assert value_support((0.0, 0.0), 0.9)["v_max"] > 0  # never an empty support
+    with pytest.raises(ValueError, match="gamma"):
+        value_support((0.0, 1.0), 1.0)
+
+
+def test_bounded_critic_diagnostic(study, tmp_path):
+    """benchmarks/bounded_critic.py: the study's CRR students with a categorical critic on the data's bounds."""
+    import importlib.util
+    import pathlib
+
+    from sb3_lifelong import CRR
+    from sb3_lifelong.experiments.protocol import value_support
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "bounded_critic.py"
+    spec = importlib.util.spec_from_file_location("bounded_critic", path)
+    assert spec is not None and spec.loader is not None
+    bounded = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bounded)
+    output, _ = study
+    name, preset = bounded.study_preset(output)
+    assert name == "tiny"
+    crr = bounded.crr_students(preset)
+    assert "CRR_exp_beta1" in crr and "BC" not in crr
+    runs = tmp_path / "c51"
+    bounded.train(output, 0, runs)
+    run_dir = runs / "seed_0"
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        support = value_support(buffer.reward_range(), 0.99)
+    model = CRR.load(run_dir / "distill_CRR_exp_beta1" / "student.zip")
+    critic = model.critic
+    assert critic.v_min == pytest.approx(support["v_min"]) and critic.v_max == pytest.approx(support["v_max"])
+    done = json.loads((run_dir / "distill_CRR_exp_beta1" / "done.json").read_text())
+    assert done["settings"]["kwargs"]["policy_kwargs"] == {"distributional_critic": True} and done["buffer_seed"] == 0
+    assert (run_dir / "collect").is_symlink() and (run_dir / "distill_BC").is_symlink()  # the study's own
+    text = bounded.report(output, runs, tmp_path / "export")
+    table = pd.read_csv(runs / "comparison.csv")
+    assert set(table["critic"]) == {"MSE", "categorical"} and set(table["seed"]) == {0}
+    categorical = table[table["critic"] == "categorical"]
+    assert (categorical["q_final_max"] <= categorical["q_bound"] + 1e-3).all()  # the support bounds every Q
+    assert "categorical" in text and (tmp_path / "export" / "claims.csv").exists()
+    assert load_study(runs).seeds == [0]
+    with pytest.raises(FileNotFoundError, match="finished seed's buffer"):
+        bounded.train(output, 7, runs)

@@ -291,6 +291,26 @@ class _LifelongSampler(ReplayBuffer):
         counts = np.bincount(run_sources, weights=lengths, minlength=1) if len(run_sources) else np.zeros(0)
         return {int(s): int(c) for s, c in enumerate(counts) if c > 0}
 
+    def reward_range(self, block: int = 1 << 20) -> tuple[float, float]:
+        """
+        The smallest and largest stored reward (as stored: per-source reward scales are not applied), read in blocks
+        of rows. With the discount ``gamma``, every policy's return on this data lies in
+        ``[min(0, low) / (1 - gamma), max(0, high) / (1 - gamma)]``: the support of a categorical critic that cannot
+        diverge.
+
+        :param block: rows read at a time (bounds the memory used)
+        :return: ``(low, high)``
+        :raises ValueError: the buffer is empty
+        """
+        total = self.size()
+        if total == 0:
+            raise ValueError("reward_range() of an empty buffer")
+        low, high = np.inf, -np.inf
+        for start in range(0, total, block):
+            rewards = np.asarray(self._read_range("rewards", start, min(total, start + block)))
+            low, high = min(low, float(rewards.min())), max(high, float(rewards.max()))
+        return low, high
+
     def set_sampling_weights(self, weights: Optional[dict[int, float]]) -> None:
         """
         Per-source sampling weights. A transition of source ``s`` is drawn with a probability proportional

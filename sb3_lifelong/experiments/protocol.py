@@ -333,6 +333,26 @@ def _common(preset: Preset, seed: int) -> dict[str, Any]:
     return dict(policy_kwargs=dict(net_arch=list(preset.net_arch)), seed=seed)
 
 
+def value_support(reward_range: tuple[float, float], gamma: float, scales: Sequence[float] = ()) -> dict[str, float]:
+    """
+    The support of a categorical critic that holds every return of the data: no value outside it can be learnt, so
+    the critic cannot diverge (the paper's critic is distributional).
+
+    :param reward_range: the smallest and largest stored reward (:meth:`LifelongReplayBuffer.reward_range`)
+    :param gamma: the discount factor
+    :param scales: per-source reward scales applied at sampling time (the bounds cover each of them)
+    :return: ``v_min`` and ``v_max`` (policy kwargs)
+    """
+    if not 0 <= gamma < 1:
+        raise ValueError(f"a bounded value support needs 0 <= gamma < 1, got {gamma}")
+    factors = [1.0, *scales]
+    low = min(0.0, *(reward_range[0] * f for f in factors), *(reward_range[1] * f for f in factors))
+    high = max(0.0, *(reward_range[0] * f for f in factors), *(reward_range[1] * f for f in factors))
+    if low == high:
+        high = low + 1.0  # all rewards 0: any non-empty support
+    return dict(v_min=low / (1 - gamma), v_max=high / (1 - gamma))
+
+
 def _callbacks(
     preset: Preset,
     directory: pathlib.Path,
@@ -469,6 +489,11 @@ def distill_student(
         sources = {env_name: index for index, env_name in enumerate(preset.env_names)}
     algorithm = BC if student.algorithm == "BC" else CRR
     seed = seed if student_seed is None else student_seed
+    common = _common(preset, seed)
+    common["policy_kwargs"].update(kwargs.pop("policy_kwargs", {}))  # the student's own network options
+    if common["policy_kwargs"].get("distributional_critic") and "v_min" not in common["policy_kwargs"]:
+        scales = list((student.reward_scale or {}).values())
+        common["policy_kwargs"].update(value_support(data.reward_range(), kwargs.get("gamma", 0.99), scales))
     callbacks = _callbacks(
         preset, directory, preset.distill_eval_freq, seed, data=everything, q=algorithm is CRR, sources=sources
     )
@@ -481,11 +506,63 @@ def distill_student(
         batch_size=preset.student_batch_size,
         learning_rate=preset.student_learning_rate,
         **kwargs,
-        **_common(preset, seed),
+        **common,
     )
     model.save(directory / "student.zip")
     data.close()
     everything.close()
+
+
+def distill_on_study(
+    study: pathlib.Path,
+    seed: int,
+    output: pathlib.Path,
+    students: Mapping[str, Student],
+    preset: Preset,
+    student_seed: Optional[int] = None,
+    about: Optional[Mapping[str, Any]] = None,
+    log: Callable[[str], None] = print,
+) -> list[str]:
+    """
+    Train students that are not the study's own on one finished seed's lifetime buffer of ``study`` (linked,
+    read-only), each in ``output/seed_<seed>/distill_<name>``; a finished one (``done.json``) is skipped, so a
+    stopped command is simply run again. For the benchmarks that vary the students of a study.
+
+    :param study: the study's output directory
+    :param seed: the seed whose buffer is distilled
+    :param output: where the students go
+    :param students: the students by job name
+    :param preset: the protocol's settings (budgets, evaluations)
+    :param student_seed: the seed of the students' own training and evaluations (default: ``seed``)
+    :param about: extra entries of each ``done.json`` (beside ``seconds``, ``buffer_seed``, ``student_seed`` and the
+        student's ``settings``)
+    :param log: where progress messages go
+    :return: the names of the students trained by this call
+    :raises FileNotFoundError: the study has no finished buffer for ``seed``
+    """
+    run_dir = output / f"seed_{seed}"
+    source = study / f"seed_{seed}" / "buffer"
+    if not (study / f"seed_{seed}" / "collect" / "done.json").exists() or not source.is_dir():
+        raise FileNotFoundError(f"{source} is not a finished seed's buffer (run the study's collect job first)")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    link = run_dir / "buffer"
+    if not link.exists():
+        link.symlink_to(source.resolve())
+    trained = []
+    for name, student in students.items():
+        if (run_dir / f"distill_{name}" / "done.json").exists():
+            continue
+        start = time.perf_counter()
+        log(f"buffer {seed}: {name}, {preset.distill_steps:,} updates")
+        distill_student(name, preset, seed, run_dir, student=student, student_seed=student_seed)
+        seconds = time.perf_counter() - start
+        done: dict[str, Any] = dict(seconds=seconds, buffer_seed=seed)
+        done.update(student_seed=seed if student_seed is None else student_seed, settings=dataclasses.asdict(student))
+        done.update(about or {})
+        write_json_atomic(str(run_dir / f"distill_{name}" / "done.json"), done)
+        log(f"buffer {seed}: {name} done in {seconds / 60:.1f} min")
+        trained.append(name)
+    return trained
 
 
 # ------------------------------------------------------------------------------------------------- one seed
