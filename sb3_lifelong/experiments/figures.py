@@ -203,9 +203,13 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
                 drawn = True
         ax.set_title(f"Average Q over {env} data")
         ax.set_xlabel("distillation updates")
-        # symmetric log: a diverging critic (e.g. a student that never saw this data) would flatten the others
-        ax.set_yscale("symlog", linthresh=100)
-        ax.set_ylabel("Q (symmetric log scale)")
+        low, high = ax.get_ylim()
+        if low < 0 or high > 10 * max(low, 1.0):
+            # symmetric log: a diverging critic (e.g. a student that never saw this data) would flatten the others
+            ax.set_yscale("symlog", linthresh=100)
+            ax.set_ylabel("Q (symmetric log scale)")
+        else:  # within one decade a log axis has no labelled tick: linear
+            ax.set_ylabel("Q")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     if not drawn:
