@@ -8,8 +8,9 @@ most of that spread is the student's training, training each student a few times
 (cheap: a student costs a few minutes, a buffer half an hour) shrinks it; if most of it is the buffer, only more
 collection seeds do. This script measures the first part: it trains the students named by ``--students`` with every
 seed of ``--student-seeds`` on the buffer of seed ``--seed`` of a study (the preset's updates, evaluations and
-episodes), and ``--report`` sets the spread of the difference of the first two students (their Env-A scores, paired
-by student seed, scored as the study scores them) against the study's between-seed spread of the same difference.
+episodes), and ``--report`` sets the spread of the difference of the pair ``--pair`` (default: exp beta=1 minus
+indicator; their Env-A scores, paired by student seed, scored as the study scores them) against the study's
+between-seed spread of the same difference.
 The criteria are in ``results/student_spread.md``, written before the runs.
 
 Usage::
@@ -31,6 +32,8 @@ from sb3_lifelong.experiments.protocol import PRESETS, STUDENTS, distill_on_stud
 from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean
 
 ENV = "Env-A"
+#: the difference whose spread the criteria of ``results/student_spread.md`` judge
+PAIR = ("CRR_exp_beta1", "CRR_indicator")
 
 
 def job_name(student: str, student_seed: int) -> str:
@@ -85,10 +88,11 @@ def between_seed_sd(study: pathlib.Path, first: str, second: str) -> tuple[float
     return float(difference.std(ddof=1)), len(difference)
 
 
-def report(output: pathlib.Path, between: pathlib.Path) -> str:
+def report(output: pathlib.Path, between: pathlib.Path, pair: tuple[str, str] = PAIR) -> str:
     """
     :param output: the folder :func:`train` wrote
     :param between: the reference study (its ``scores.csv`` gives the between-seed spread)
+    :param pair: the two students whose difference (first minus second) is compared
     :return: a markdown table of every student seed's score and, per buffer, the within / between spread ratio
     :raises ValueError: the reference study has no between-seed spread of the two students compared
     """
@@ -109,9 +113,9 @@ def report(output: pathlib.Path, between: pathlib.Path) -> str:
                 f"| {buffer_seed} | {student} | {cells} | {values.mean():.0f} | "
                 + (f"{values.std(ddof=1):.0f} |" if len(values) > 1 else "- |")
             )
-        if len(students) < 2:
+        first, second = pair
+        if first not in per_student or second not in per_student:
             continue
-        first, second = students[:2]
         difference = (per_student[first] - per_student[second]).dropna()
         if len(difference) < 2:
             continue
@@ -150,11 +154,12 @@ def main() -> None:
     parser.add_argument("--report", type=pathlib.Path, default=None, help="print the table of this output directory")
     parser.add_argument("--between", type=pathlib.Path, default=None, help="with --report: the study's exported results")
     parser.add_argument("--to", type=pathlib.Path, default=None, help="with --report: also write the table here")
+    parser.add_argument("--pair", nargs=2, default=list(PAIR), choices=list(STUDENTS), help="with --report: first - second")
     args = parser.parse_args()
     if args.report is not None:
         if args.between is None:
             parser.error("--report needs --between (the study whose between-seed spread is the reference)")
-        table = report(args.report, args.between)
+        table = report(args.report, args.between, tuple(args.pair))
         print(table)
         if args.to is not None:
             args.to.write_text(table + "\n")

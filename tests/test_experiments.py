@@ -273,6 +273,8 @@ def test_student_spread_on_one_buffer(study, tmp_path):
     assert "CRR_exp_beta1 - CRR_indicator" in text
     ratio = float(text.split("ratio ")[1].split(":")[0])
     assert np.isfinite(ratio) and ratio >= 0
+    reverse = spread.report(runs, output, pair=("CRR_indicator", "CRR_exp_beta1"))  # the pair names the order
+    assert "CRR_indicator - CRR_exp_beta1" in reverse and float(reverse.split("ratio ")[1].split(":")[0]) == ratio
     one_seed = tmp_path / "one_seed"  # a reference study of one seed has no between-seed spread: a clear error
     one_seed.mkdir()
     finals = pd.read_csv(output / "scores.csv")
