@@ -147,21 +147,25 @@ def summarise() -> None:
     for path in sorted(CURVES.glob("*/*.csv"), key=lambda p: (int(p.parent.name.rstrip("k")), p.name)):
         env_id, algo, _ = path.stem.split("__")
         data = np.genfromtxt(path, delimiter=",", skip_header=1, ndmin=2)
-        if data.size:
-            curves.setdefault((path.parent.name, env_id, algo), []).append(data)
+        budget = path.parent.name
+        steps = int(budget[:-1]) * 1000 if budget.endswith("k") else int(budget)
+        if data.size and data[-1, 0] >= steps:  # a run still going (or stopped) is left out of the table
+            curves.setdefault((budget, env_id, algo), []).append(data)
     lines = [
-        "| budget | env | algorithm | seeds | steps reached | final return (mean +- std over seeds) | 95 % bootstrap CI "
-        "| per seed | best eval (mean over seeds) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| budget | env | algorithm | seeds | steps reached | final return (mean +- std over seeds, ddof=0) | 95 % bootstrap CI "
+        "| per seed | last 3 evals (mean +- std over seeds) | best eval (mean over seeds) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for (budget, env_id, algo), runs in curves.items():
         reached = min(int(run[-1, 0]) for run in runs)
         finals = [run[run[:, 0] <= reached][-1, 1] for run in runs]
         bests = [run[:, 1].max() for run in runs]
+        lasts = [run[run[:, 0] <= reached][-3:, 1].mean() for run in runs]  # one evaluation swings; three less
         low, high = bootstrap_ci(finals)
         lines.append(
             f"| {budget} | {env_id} | {algo} | {len(runs)} | {reached} | {np.mean(finals):.0f} +- {np.std(finals):.0f} | "
-            f"[{low:.0f}, {high:.0f}] | {', '.join(f'{value:.0f}' for value in finals)} | {np.mean(bests):.0f} |"
+            f"[{low:.0f}, {high:.0f}] | {', '.join(f'{value:.0f}' for value in finals)} | "
+            f"{np.mean(lasts):.0f} +- {np.std(lasts):.0f} | {np.mean(bests):.0f} |"
         )
     table = "\n".join(lines)
     print(table)
