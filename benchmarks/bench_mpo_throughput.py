@@ -4,7 +4,8 @@ Throughput of MPO vs SB3's SAC: environment steps per second with one gradient u
 Both use the same networks (256x256 actor and critic), batch size 256 and the same environment. Runs are
 interleaved (SAC, MPO, SAC, MPO, ...) in one process so that both see the same machine load; the table reports
 medians over rounds and the MPO/SAC ratio. MPO is timed with each scoring precision asked for (float32: exact;
-auto: bfloat16 where the CPU has it). A torch profile of each MPO variant's update says where the time goes.
+auto: bfloat16 where the CPU has it) and each torso asked for (``--layer-norms off on``: with and without Acme's
+LayerNorm after the first hidden layer). A torch profile of each MPO variant's update says where the time goes.
 
 Usage::
 
@@ -29,14 +30,14 @@ from sb3_lifelong import MPO
 RESULTS = pathlib.Path(__file__).parent / "results"
 
 
-def make(algo: str, env_id: str, num_samples: int, scoring_dtype: str = "auto") -> Any:
+def make(algo: str, env_id: str, num_samples: int, scoring_dtype: str = "auto", layer_norm: bool = False) -> Any:
     common = dict(batch_size=256, learning_starts=1000, train_freq=1, gradient_steps=1, seed=0, verbose=0)
     if algo == "SAC":
         return SAC("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[256, 256]), **common)
     return MPO(
         "MlpPolicy",
         env_id,
-        policy_kwargs=dict(net_arch=[256, 256]),
+        policy_kwargs=dict(net_arch=[256, 256], layer_norm=layer_norm),
         num_samples=num_samples,
         scoring_dtype=scoring_dtype,
         **common,
@@ -66,7 +67,9 @@ def run_env(env_id: str, args: argparse.Namespace) -> tuple[list[str], dict[str,
     models = {"SAC": make("SAC", env_id, 0)}
     for n in args.num_samples:
         for dtype in args.scoring_dtypes:
-            models[f"MPO (N={n}, {dtype})"] = make("MPO", env_id, n, dtype)
+            for layer_norm in args.layer_norms:
+                name = f"MPO (N={n}, {dtype}" + (", LayerNorm)" if layer_norm == "on" else ")")
+                models[name] = make("MPO", env_id, n, dtype, layer_norm == "on")
     for model in models.values():  # warm-up: fill learning_starts and run some updates
         model.learn(1200)
     speeds: dict[str, list[float]] = {name: [] for name in models}
@@ -103,6 +106,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000, help="environment steps per timed round")
     parser.add_argument("--num-samples", type=int, nargs="+", default=[20], help="MPO num_samples values to time")
     parser.add_argument("--scoring-dtypes", nargs="+", default=["float32", "auto"], help="MPO scoring precisions to time")
+    parser.add_argument("--layer-norms", nargs="+", default=["off"], choices=["off", "on"], help="MPO torsos to time")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a 2-core machine)")
     parser.add_argument("--output", default=str(RESULTS / "mpo_throughput"))
     args = parser.parse_args()
@@ -123,7 +127,8 @@ def main() -> None:
         "command": "OMP_NUM_THREADS=1 python benchmarks/bench_mpo_throughput.py "
         + f"--envs {' '.join(args.envs)} --rounds {args.rounds} --steps {args.steps} --num-samples "
         + " ".join(map(str, args.num_samples))
-        + f" --scoring-dtypes {' '.join(args.scoring_dtypes)} --threads {args.threads}",
+        + f" --scoring-dtypes {' '.join(args.scoring_dtypes)} --layer-norms {' '.join(args.layer_norms)}"
+        + f" --threads {args.threads}",
         "machine": f"{platform.processor() or platform.machine()}, torch {th.__version__}, {th.get_num_threads()} thread(s)",
     }
     out.with_suffix(".json").write_text(json.dumps({**meta, "envs": per_env}, indent=2))
