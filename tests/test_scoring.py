@@ -177,3 +177,31 @@ def test_split_first_layer_for_wide_observations(monkeypatch):
     assert utils._splits_first_layer(critic.q_networks[0], 68, 20, copy)
     assert not utils._splits_first_layer(critic.q_networks[0], 11, 3, copy)  # Hopper-sized: one product is faster
     assert not utils._splits_first_layer(critic.q_networks[0], 68, 20, None)  # float32: the exact stacked pass
+
+
+def test_tanh_in_place_matches_tanh():
+    x = th.linspace(-12.0, 12.0, 100_001)
+    expected = th.tanh(x)
+    assert utils.tanh_in_place(x.clone()).sub(expected).abs().max() <= 2e-7
+    small = th.tensor([1e-3, -1e-2, 0.0, 0.5])
+    th.testing.assert_close(utils.tanh_in_place(small.clone()), th.tanh(small), rtol=1e-3, atol=1e-7)
+    double = x.double()  # other dtypes take torch's own tanh
+    assert th.equal(utils.tanh_in_place(double.clone()), th.tanh(double))
+
+
+def test_layer_norm_torso_in_low_precision_matches_its_modules():
+    """The fused LayerNorm -> tanh of a bf16 pass: the modules' own float32 result, rounded to bf16 once."""
+    th.manual_seed(0)
+    torso = th.nn.Sequential(*utils.mlp_layers(23, 1, [256, 256], th.nn.ReLU, layer_norm=True))
+    with th.no_grad():
+        torso[1].weight.uniform_(0.5, 1.5)  # a LayerNorm with its own scale and shift
+        torso[1].bias.uniform_(-0.5, 0.5)
+    hidden = (th.randn(64, 256) * 3).to(th.bfloat16)  # the first Linear's output in a bf16 pass
+    holder = th.nn.Module()
+    fused = utils._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True)
+    expected = th.tanh(torso[1](hidden.float())).to(th.bfloat16)
+    assert fused.dtype == th.bfloat16 and fused.shape == (64, 256)
+    # at most one bf16 rounding step apart (both round the same float32 value up to ~1e-7)
+    assert (fused.float() - expected.float()).abs().max() <= 2 ** -8
+    plain = utils._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=False)
+    assert th.equal(plain, torso[1](hidden.float()).to(th.bfloat16))
