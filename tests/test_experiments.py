@@ -335,3 +335,52 @@ def test_bounded_critic_diagnostic(study, tmp_path):
     assert load_study(runs).seeds == [0]
     with pytest.raises(FileNotFoundError, match="finished seed's buffer"):
         bounded.train(output, 7, runs)
+
+
+def test_job_names_with_student_repeats():
+    from sb3_lifelong.experiments.report import split_repeat
+
+    jobs = job_names(["CRR_exp_beta1", "BC"], online=False, student_repeats=3)
+    assert jobs == [
+        "collect",
+        "distill_CRR_exp_beta1",
+        "distill_BC",
+        "distill_CRR_exp_beta1__r1",
+        "distill_BC__r1",
+        "distill_CRR_exp_beta1__r2",
+        "distill_BC__r2",
+    ]
+    assert job_names(["BC"], online=False) == ["collect", "distill_BC"]
+    assert split_repeat("CRR_exp_beta1__r2") == ("CRR_exp_beta1", 2)
+    assert split_repeat("CRR_indicator_ratio_1to10") == ("CRR_indicator_ratio_1to10", 0)
+    assert split_repeat("BC__rx") == ("BC__rx", 0)
+    with pytest.raises(ValueError, match="student_repeats"):
+        job_names(student_repeats=0)
+
+
+def test_student_repeats_are_scored_by_their_mean(study, tmp_path):
+    """A preset with ``student_repeats``: each repeat its own student seed, the report scores their mean."""
+    import dataclasses
+    import shutil
+
+    from sb3_lifelong.experiments.protocol import REPEAT_SEED_STRIDE
+    from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean
+
+    source, _ = study
+    preset = dataclasses.replace(PRESETS["tiny"], students=("CRR_exp_beta1",), online=False, student_repeats=2)
+    output = tmp_path / "repeats"
+    for part in ("collect", "buffer"):  # the fixture's finished collection: no need to collect again
+        shutil.copytree(source / "seed_0" / part, output / "seed_0" / part)
+    assert preset.jobs() == ["collect", "distill_CRR_exp_beta1", "distill_CRR_exp_beta1__r1"]
+    assert run_seed(preset, 0, output, log=lambda line: None) == preset.jobs()[1:]
+    scores = []
+    for job, repeat in (("distill_CRR_exp_beta1", 0), ("distill_CRR_exp_beta1__r1", 1)):
+        done = json.loads((output / "seed_0" / job / "done.json").read_text())
+        assert done["repeat"] == repeat and done["student_seed"] == repeat * REPEAT_SEED_STRIDE
+        scores.append(last_mean(pd.read_csv(output / "seed_0" / job / "eval.csv"), "Env-A", STUDENT_LAST))
+    assert scores[0] == load_study(source).score("CRR_exp_beta1", "Env-A")[0]  # repeat 0 is the plain study's student
+    loaded = load_study(output)
+    assert loaded.score("CRR_exp_beta1", "Env-A") == {0: pytest.approx(np.mean(scores))}
+    assert len(loaded.finals[loaded.finals["method"] == "CRR_exp_beta1"]) == 2  # one row per environment, not per repeat
+    with pytest.raises(ValueError, match="unknown jobs"):  # a preset without repeats has no repeat jobs
+        run_seed(PRESETS["tiny"], 0, tmp_path / "plain", jobs=["distill_CRR_exp_beta1__r1"], log=lambda line: None)

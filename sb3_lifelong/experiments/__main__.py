@@ -29,7 +29,7 @@ from typing import Any, Optional
 import torch as th
 
 from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, run_seed
-from sb3_lifelong.experiments.report import export_results, write_report
+from sb3_lifelong.experiments.report import export_results, split_repeat, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
 
@@ -87,7 +87,11 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(f"preset {args.preset}: {preset.env_id}, stages {list(preset.stages)}, steps {list(preset.stage_steps)}")
         for job in preset.jobs():
             name = job.split("_", 1)[-1]
-            about = STUDENTS[name].about if job.startswith("distill_") else ONLINE.get(name, "MPO through every stage")
+            if job.startswith("distill_"):
+                name, repeat = split_repeat(name)
+                about = STUDENTS[name].about + (f" (repeat {repeat}, its own student seed)" if repeat else "")
+            else:
+                about = str(ONLINE.get(name, "MPO through every stage"))
             print(f"  {job:<34} {about}")
         if preset.minutes_per_seed is not None:
             print(f"one seed took {preset.minutes_per_seed:.0f} min on one core of the reference machine")

@@ -11,7 +11,7 @@ from typing import Any, Optional
 import numpy as np
 import pandas as pd
 
-from sb3_lifelong.experiments.report import stage_ends
+from sb3_lifelong.experiments.report import split_repeat, stage_ends
 
 COLORS = {
     "MPO": "tab:blue",
@@ -192,9 +192,10 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
         for index, method in enumerate(methods):
             frames = []
             for seed in study.seeds:
-                path = study.output / f"seed_{seed}" / f"distill_{method}" / "q_sources.csv"
-                if path.exists():
-                    frames.append(pd.read_csv(path).assign(seed=seed))
+                run_dir = study.output / f"seed_{seed}"
+                for path in sorted(run_dir.glob(f"distill_{method}*/q_sources.csv")):  # with the student's repeats
+                    if split_repeat(path.parent.name[len("distill_") :])[0] == method:
+                        frames.append(pd.read_csv(path).assign(seed=seed))
             if not frames:
                 continue
             frame = pd.concat(frames).rename(columns={"name": "env"})

@@ -51,7 +51,7 @@ from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.envs import DynamicsSchedule
-from sb3_lifelong.experiments.report import stage_ends
+from sb3_lifelong.experiments.report import REPEAT_MARK, split_repeat, stage_ends
 from sb3_lifelong.mpo import MPO
 
 Stage = Union[str, Mapping[str, float]]
@@ -82,6 +82,9 @@ class Preset:
         not measured), for the estimate printed before a run
     :param students: the students a seed trains (None: every one of :data:`STUDENTS`)
     :param online: whether a seed runs the online CRR baselines
+    :param student_repeats: how many times each student is trained on a seed's buffer (each with its own student
+        seed); the report scores a student by the mean of its repeats (``benchmarks/results/student_spread.md``: most
+        of a student's seed-to-seed spread is its own training)
     :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
@@ -104,11 +107,12 @@ class Preset:
     minutes_per_seed: Optional[float] = None
     students: Optional[tuple[str, ...]] = None
     online: bool = True
+    student_repeats: int = 1
     note: str = ""
 
     def jobs(self) -> list[str]:
         """:return: the jobs of one seed of this preset, in the order they run"""
-        return job_names(self.students, self.online)
+        return job_names(self.students, self.online, self.student_repeats)
 
     def describe(self) -> dict[str, Any]:
         """:return: the settings as JSON-friendly values"""
@@ -288,10 +292,24 @@ STUDENTS: dict[str, Student] = {
 ONLINE: dict[str, dict[str, Any]] = {"CRR_indicator": INDICATOR, "CRR_exp_beta1": EXP}
 
 
-def job_names(students: Optional[Sequence[str]] = None, online: bool = True) -> list[str]:
-    """:return: the jobs of one seed, in the order they run"""
+#: repeat ``k`` of a student of seed ``s`` trains and evaluates with the student seed ``s + k * REPEAT_SEED_STRIDE``
+#: (repeat 0 with ``s`` itself, as a study without repeats), far from the seeds of other buffers
+REPEAT_SEED_STRIDE = 1000
+
+
+def job_names(students: Optional[Sequence[str]] = None, online: bool = True, student_repeats: int = 1) -> list[str]:
+    """
+    :param students: the students (default: every one of :data:`STUDENTS`)
+    :param online: with the online CRR baselines
+    :param student_repeats: how many times each student is trained on the seed's buffer
+    :return: the jobs of one seed, in the order they run (a student's repeats after all the first trainings)
+    """
+    if student_repeats < 1:
+        raise ValueError(f"student_repeats must be >= 1, got {student_repeats}")
+    names = list(students if students is not None else STUDENTS)
     jobs = ["collect"]
-    jobs += [f"distill_{name}" for name in (students if students is not None else STUDENTS)]
+    jobs += [f"distill_{name}" for name in names]
+    jobs += [f"distill_{name}{REPEAT_MARK}{k}" for k in range(1, student_repeats) for name in names]
     jobs += [f"online_{name}" for name in ONLINE] if online else []
     return jobs
 
@@ -633,13 +651,14 @@ def run_seed(
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     wanted = list(jobs) if jobs is not None else preset.jobs()
-    unknown = sorted(set(wanted) - set(job_names()))
+    known = job_names(student_repeats=preset.student_repeats)
+    unknown = sorted(set(wanted) - set(known))
     if unknown:
-        raise ValueError(f"unknown jobs {unknown}; the jobs are {job_names()}")
+        raise ValueError(f"unknown jobs {unknown}; the jobs are {known}")
     if "collect" not in wanted and not (run_dir / "collect" / "done.json").exists():
         wanted.insert(0, "collect")
     ran = []
-    todo = [job for job in job_names() if job in wanted and not (run_dir / job / "done.json").exists()]
+    todo = [job for job in known if job in wanted and not (run_dir / job / "done.json").exists()]
     skipped = [job for job in wanted if job not in todo]
     if skipped:
         log(f"seed {seed}: {len(skipped)} job(s) already done, skipped: {', '.join(skipped)}")
@@ -663,11 +682,13 @@ def run_seed(
             elif job.startswith("online_"):
                 online(job[len("online_") :], preset, seed, run_dir, progress_bar)
             else:
-                distill_student(job[len("distill_") :], preset, seed, run_dir, progress_bar)
+                name, repeat = split_repeat(job[len("distill_") :])
+                student_seed = seed + repeat * REPEAT_SEED_STRIDE
+                distill_student(job[len("distill_") :], preset, seed, run_dir, progress_bar, STUDENTS[name], student_seed)
             seconds = time.perf_counter() - start
             done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
             if job.startswith("distill_"):
-                done["student"] = dataclasses.asdict(STUDENTS[job[len("distill_") :]])
+                done.update(student=dataclasses.asdict(STUDENTS[name]), repeat=repeat, student_seed=student_seed)
             write_json_atomic(str(run_dir / job / "done.json"), done)  # never a half-written "done"
             log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
             ran.append(job)

@@ -82,6 +82,21 @@ def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = 
     return float(rows["mean_reward"].tail(count).mean()) if len(rows) else float("nan")
 
 
+#: a student's repeat ``k >= 1`` on the same buffer is the job ``distill_<student>__r<k>``
+REPEAT_MARK = "__r"
+
+
+def split_repeat(student_job: str) -> tuple[str, int]:
+    """
+    :param student_job: a distillation job's name without ``distill_``, e.g. ``"CRR_exp_beta1__r2"``
+    :return: the student's name and the repeat (0 for the first training), e.g. ``("CRR_exp_beta1", 2)``
+    """
+    name, mark, repeat = student_job.rpartition(REPEAT_MARK)
+    if mark and name and repeat.isdigit():
+        return name, int(repeat)
+    return student_job, 0
+
+
 @dataclass
 class Study:
     """The scores of every seed of a study, as long tables."""
@@ -129,7 +144,7 @@ def load_study(output: pathlib.Path) -> Study:
                         value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
                         extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
             elif job.startswith("distill_"):
-                method = job[len("distill_") :]
+                method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
                 for env in envs:
                     finals.append(
                         dict(seed=seed, method=method, kind="student", env=env, score=last_mean(frame, env, STUDENT_LAST))
@@ -141,7 +156,12 @@ def load_study(output: pathlib.Path) -> Study:
                         last = q[q["timesteps"] == q["timesteps"].max()]
                         for row in last.itertuples():
                             extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
-    return Study(output, preset, seeds, pd.DataFrame(finals), pd.DataFrame(extras))
+    finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
+    if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
+        finals_frame = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"].mean()
+    if len(extras_frame):
+        extras_frame = extras_frame.groupby(["seed", "metric"], as_index=False, sort=False)["value"].mean()
+    return Study(output, preset, seeds, finals_frame, extras_frame)
 
 
 # ------------------------------------------------------------------------------------------------- claims
@@ -397,7 +417,12 @@ def write_report(output: pathlib.Path, plots: bool = True) -> str:
     text = (
         f"# {len(study.preset['env_names'])}-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
         f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
-        f"{study.preset['distill_steps']:,} updates per student.\n\n"
+        f"{study.preset['distill_steps']:,} updates per student"
+        + (
+            f", each student trained {study.preset['student_repeats']} times per seed and scored by the mean.\n\n"
+            if study.preset.get("student_repeats", 1) > 1
+            else ".\n\n"
+        )
         + (f"{study.preset['note']}\n\n" if study.preset.get("note") else "")
         + "## Final returns\n\nmean +- std over seeds [95 % bootstrap CI of the mean]; online methods: mean of the last "
         + f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
