@@ -202,6 +202,6 @@ def test_layer_norm_torso_in_low_precision_matches_its_modules():
     expected = th.tanh(torso[1](hidden.float())).to(th.bfloat16)
     assert fused.dtype == th.bfloat16 and fused.shape == (64, 256)
     # at most one bf16 rounding step apart (both round the same float32 value up to ~1e-7)
-    assert (fused.float() - expected.float()).abs().max() <= 2 ** -8
+    assert (fused.float() - expected.float()).abs().max() <= 2**-8
     plain = utils._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=False)
     assert th.equal(plain, torso[1](hidden.float()).to(th.bfloat16))

@@ -32,6 +32,8 @@ from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, run_see
 from sb3_lifelong.experiments.report import export_results, split_repeat, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
+REPEATS_HELP = "train each student this many times per seed (its own student seed each); the report scores the mean"
+
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -52,6 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--no-online", action="store_true", help="skip the online CRR baselines")
     run.add_argument("--stage-steps", type=int, nargs="+", default=None, help="override the environment steps of each stage")
     run.add_argument("--distill-steps", type=int, default=None, help="override the updates of every student")
+    run.add_argument("--student-repeats", type=int, default=None, help=REPEATS_HELP)
     run.add_argument("--progress-bar", action="store_true", help="a progress bar for every job (needs tqdm and rich)")
     run.add_argument("--threads", type=int, default=1, help="torch threads (default 1: more only slows small networks down)")
 
@@ -66,6 +69,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     study.add_argument("--jobs", nargs="+", default=None, help="only these jobs of each seed (collect runs first)")
     study.add_argument("--no-online", action="store_true", help="skip the online CRR baselines")
+    study.add_argument("--student-repeats", type=int, default=None, help=REPEATS_HELP)
     study.add_argument("--no-report", action="store_true", help="do not write the report at the end")
 
     report = commands.add_parser("report", help="tables, claims and figures of every finished seed in a study")
@@ -108,6 +112,8 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     if args.command == "study":
         preset = PRESETS[args.preset]
+        if args.student_repeats is not None:
+            preset = dataclasses.replace(preset, student_repeats=args.student_repeats)
         jobs = args.jobs or [j for j in preset.jobs() if not (args.no_online and j.startswith("online_"))]
         start = time.perf_counter()
         results = run_study(preset, args.seeds, args.output, args.workers, args.address, args.backend, jobs)
@@ -130,6 +136,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         changes["stage_steps"] = tuple(args.stage_steps)
     if args.distill_steps is not None:
         changes["distill_steps"] = args.distill_steps
+    if args.student_repeats is not None:
+        changes["student_repeats"] = args.student_repeats
     if changes:
         preset = dataclasses.replace(preset, **changes)
     jobs = (

@@ -110,6 +110,10 @@ class Preset:
     student_repeats: int = 1
     note: str = ""
 
+    def __post_init__(self) -> None:
+        if self.student_repeats < 1:
+            raise ValueError(f"student_repeats must be >= 1, got {self.student_repeats}")
+
     def jobs(self) -> list[str]:
         """:return: the jobs of one seed of this preset, in the order they run"""
         return job_names(self.students, self.online, self.student_repeats)
