@@ -45,7 +45,9 @@ def main() -> None:
     th.set_num_threads(1)
     models = {}
     for name in ("float32", "autocast bf16"):
-        model = MPO("MlpPolicy", gym.make(args.env), learning_starts=0, batch_size=256, seed=0)
+        model = MPO(
+            "MlpPolicy", gym.make(args.env), learning_starts=0, batch_size=256, seed=0, policy_kwargs=dict(layer_norm=False)
+        )
         model.learn(600)  # some data to sample
         if name != "float32":
             with_autocast(model)

@@ -47,7 +47,14 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- |")
     for env_id in args.envs:
         env = gym.make(env_id)
-        model = MPO("MlpPolicy", env, learning_starts=0, batch_size=256, seed=0, policy_kwargs=dict(net_arch=[256, 256]))
+        model = MPO(
+            "MlpPolicy",
+            env,
+            learning_starts=0,
+            batch_size=256,
+            seed=0,
+            policy_kwargs=dict(net_arch=[256, 256], layer_norm=False),
+        )
         model.learn(600)  # some data to sample
         times: dict[str, list[float]] = {name: [] for name in variants}
         for round_ in range(args.rounds):

@@ -109,7 +109,8 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
         model = SAC("MlpPolicy", env, policy_kwargs=policy_kwargs, **common)
     else:
         settings = dict(settings)
-        network = {**policy_kwargs, **settings.pop("policy_kwargs", {})}  # same sizes, the variant's options
+        # same sizes, the variant's options; every variant but MPO_layernorm without LayerNorm (as they ran)
+        network = {**policy_kwargs, "layer_norm": False, **settings.pop("policy_kwargs", {})}
         model = MPO("MlpPolicy", env, policy_kwargs=network, **settings, **common)
     start = time.perf_counter()
 
@@ -152,8 +153,8 @@ def summarise() -> None:
         if data.size and data[-1, 0] >= steps:  # a run still going (or stopped) is left out of the table
             curves.setdefault((budget, env_id, algo), []).append(data)
     lines = [
-        "| budget | env | algorithm | seeds | steps reached | final return (mean +- std over seeds, ddof=0) | 95 % bootstrap CI "
-        "| per seed | last 3 evals (mean +- std over seeds) | best eval (mean over seeds) |",
+        "| budget | env | algorithm | seeds | steps reached | final return (mean +- std over seeds, ddof=0) "
+        "| 95 % bootstrap CI | per seed | last 3 evals (mean +- std over seeds) | best eval (mean over seeds) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for (budget, env_id, algo), runs in curves.items():

@@ -241,6 +241,30 @@ def test_layer_norm_networks_and_round_trip(tmp_path):
     np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
 
 
+def test_layer_norm_is_mpos_default_and_can_be_turned_off(tmp_path):
+    """MPO's policies default to the LayerNorm torso (measured: benchmarks/results/mpo_quality.md); ``False`` is
+    SB3's plain MLP, kept through save and load; CRR keeps the plain default."""
+    from gymnasium import spaces
+
+    from sb3_lifelong import CRR
+
+    def torso(model):
+        return [type(module) for module in model.critic.q_networks[0]][:3], [type(m) for m in model.actor.latent_pi][:3]
+
+    default = MPO("MlpPolicy", "Pendulum-v1", seed=0, **{**SMALL, "policy_kwargs": dict(net_arch=[32, 32])})
+    assert default.policy.layer_norm is True
+    assert torso(default) == ([th.nn.Linear, th.nn.LayerNorm, th.nn.Tanh],) * 2
+    plain = MPO("MlpPolicy", "Pendulum-v1", seed=0, **{**SMALL, "policy_kwargs": dict(net_arch=[32, 32], layer_norm=False)})
+    assert torso(plain) == ([th.nn.Linear, th.nn.ReLU, th.nn.Linear],) * 2
+    plain.save(tmp_path / "plain.zip")
+    assert MPO.load(tmp_path / "plain.zip").policy.layer_norm is False  # a saved setting wins over the default
+    env = gym.make("Pendulum-v1")
+    dict_space = spaces.Dict({"obs": env.observation_space})
+    multi = MPO.policy_aliases["MultiInputPolicy"](dict_space, env.action_space, lambda _: 1e-3, net_arch=[32, 32])
+    assert multi.layer_norm is True
+    assert CRR("MlpPolicy", "Pendulum-v1", seed=0).policy.layer_norm is False
+
+
 def test_plain_critic_is_sb3s_weight_for_weight():
     """Without ``layer_norm``, the critic is SB3's ``ContinuousCritic``: same modules, names and initial weights."""
     from stable_baselines3.common.policies import ContinuousCritic

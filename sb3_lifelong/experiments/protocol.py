@@ -82,6 +82,8 @@ class Preset:
         not measured), for the estimate printed before a run
     :param students: the students a seed trains (None: every one of :data:`STUDENTS`)
     :param online: whether a seed runs the online CRR baselines
+    :param layer_norm: the LayerNorm torso for every network of the study (collector, students, online
+        baselines); the presets run before MPO's default changed keep ``False``, the setting they ran with
     :param student_repeats: how many times each student is trained on a seed's buffer (each with its own student
         seed); the report scores a student by the mean of its repeats (``benchmarks/results/student_spread.md``: most
         of a student's seed-to-seed spread is its own training)
@@ -107,6 +109,7 @@ class Preset:
     minutes_per_seed: Optional[float] = None
     students: Optional[tuple[str, ...]] = None
     online: bool = True
+    layer_norm: bool = False
     student_repeats: int = 1
     note: str = ""
 
@@ -305,6 +308,8 @@ def job_names(students: Optional[Sequence[str]] = None, online: bool = True, stu
     """
     :param students: the students (default: every one of :data:`STUDENTS`)
     :param online: with the online CRR baselines
+    :param layer_norm: the LayerNorm torso for every network of the study (collector, students, online
+        baselines); the presets run before MPO's default changed keep ``False``, the setting they ran with
     :param student_repeats: how many times each student is trained on the seed's buffer
     :return: the jobs of one seed, in the order they run (a student's repeats after all the first trainings)
     """
@@ -352,7 +357,7 @@ def switch_points(preset: Preset) -> list[int]:
 
 # ------------------------------------------------------------------------------------------------- the jobs
 def _common(preset: Preset, seed: int) -> dict[str, Any]:
-    return dict(policy_kwargs=dict(net_arch=list(preset.net_arch)), seed=seed)
+    return dict(policy_kwargs=dict(net_arch=list(preset.net_arch), layer_norm=preset.layer_norm), seed=seed)
 
 
 def value_support(reward_range: tuple[float, float], gamma: float, scales: Sequence[float] = ()) -> dict[str, float]:

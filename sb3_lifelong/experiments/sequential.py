@@ -260,7 +260,8 @@ def make_eval_envs(
 
 def algo_kwargs(config: dict[str, Any], seed: int) -> dict[str, Any]:
     return dict(
-        policy_kwargs=dict(net_arch=list(config["net_arch"])),
+        # the same torso for MPO and CRR (the online CRR starts from MPO's weights); the configs ran without LayerNorm
+        policy_kwargs=dict(net_arch=list(config["net_arch"]), layer_norm=config.get("layer_norm", False)),
         batch_size=config["batch_size"],
         learning_rate=config["learning_rate"],
         seed=seed,
