@@ -23,7 +23,15 @@ import shutil
 
 import pandas as pd
 
-from sb3_lifelong.experiments.protocol import PRESETS, STUDENTS, Preset, Student, distill_on_study, value_support
+from sb3_lifelong.experiments.protocol import (
+    PRESETS,
+    STUDENTS,
+    Preset,
+    Student,
+    distill_on_study,
+    same_settings,
+    value_support,
+)
 from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean, write_report
 
 #: the study's CRR students, by their job names there, and what this script replaces them with
@@ -45,7 +53,7 @@ def study_preset(study: pathlib.Path) -> tuple[str, Preset]:
     """:return: the name and settings of the preset ``study`` was run with (its ``preset.json``)"""
     recorded = json.loads((study / "preset.json").read_text())
     for name, preset in PRESETS.items():
-        if json.loads(json.dumps(preset.describe())) == recorded:
+        if same_settings(recorded, json.loads(json.dumps(preset.describe()))):
             return name, preset
     raise ValueError(f"{study / 'preset.json'} matches no preset of this version of sb3_lifelong")
 

@@ -36,7 +36,11 @@ RESULTS = pathlib.Path(__file__).parent / "results" / "env_pairs"
 
 # the collector of the CPU protocol (sb3_lifelong.experiments, preset "cpu")
 COLLECTOR = dict(
-    policy_kwargs=dict(net_arch=[128, 128]), num_samples=10, batch_size=128, learning_rate=1e-3, learning_starts=2000
+    policy_kwargs=dict(net_arch=[128, 128], layer_norm=False),
+    num_samples=10,
+    batch_size=128,
+    learning_rate=1e-3,
+    learning_starts=2000,
 )
 
 

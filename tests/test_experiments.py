@@ -386,3 +386,25 @@ def test_student_repeats_are_scored_by_their_mean(study, tmp_path):
     assert len(loaded.finals[loaded.finals["method"] == "CRR_exp_beta1"]) == 2  # one row per environment, not per repeat
     with pytest.raises(ValueError, match="unknown jobs"):  # a preset without repeats has no repeat jobs
         run_seed(PRESETS["tiny"], 0, tmp_path / "plain", jobs=["distill_CRR_exp_beta1__r1"], log=lambda line: None)
+
+
+def test_recorded_settings_predating_new_preset_fields(tmp_path):
+    """A study recorded before a Preset field existed resumes; more student repeats may be added; nothing else."""
+    import dataclasses
+
+    from sb3_lifelong.experiments.protocol import LATER_SETTINGS, record_settings
+
+    preset = PRESETS["tiny"]
+    old = json.loads(json.dumps(preset.describe()))
+    for key in LATER_SETTINGS:
+        old.pop(key)
+    (tmp_path / "preset.json").write_text(json.dumps(old))
+    record_settings(preset, tmp_path)  # the defaults are what the old study ran with
+    assert json.loads((tmp_path / "preset.json").read_text()) == old  # left as it was
+    record_settings(dataclasses.replace(preset, student_repeats=3), tmp_path)  # repeats added on the same buffers
+    assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
+    record_settings(preset, tmp_path)  # fewer repeats asked: the record keeps 3
+    assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
+    for changed in (dict(layer_norm=True), dict(distill_steps=7)):
+        with pytest.raises(ValueError, match="other settings"):
+            record_settings(dataclasses.replace(preset, **changed), tmp_path)

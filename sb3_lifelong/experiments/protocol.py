@@ -308,8 +308,6 @@ def job_names(students: Optional[Sequence[str]] = None, online: bool = True, stu
     """
     :param students: the students (default: every one of :data:`STUDENTS`)
     :param online: with the online CRR baselines
-    :param layer_norm: the LayerNorm torso for every network of the study (collector, students, online
-        baselines); the presets run before MPO's default changed keep ``False``, the setting they ran with
     :param student_repeats: how many times each student is trained on the seed's buffer
     :return: the jobs of one seed, in the order they run (a student's repeats after all the first trainings)
     """
@@ -601,14 +599,39 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
     """
     settings = output / "preset.json"
     described = json.loads(json.dumps(preset.describe()))
-    if settings.exists() and json.loads(settings.read_text()) != described:
-        raise ValueError(
-            f"{output} holds a study run with other settings ({settings}); its seeds cannot be mixed with these. "
-            "Choose another --output, or delete that directory to start again."
-        )
+    if settings.exists():
+        recorded = json.loads(settings.read_text())
+        if same_settings(recorded, described):
+            if recorded.get("student_repeats", 1) >= described["student_repeats"]:
+                return
+            # more repeats of the students on the same buffers: the study's other settings are unchanged
+        else:
+            raise ValueError(
+                f"{output} holds a study run with other settings ({settings}); its seeds cannot be mixed with these. "
+                "Choose another --output, or delete that directory to start again."
+            )
     output.mkdir(parents=True, exist_ok=True)
-    if not settings.exists():
-        settings.write_text(json.dumps(described, indent=1))
+    write_json_atomic(str(settings), described)
+
+
+#: settings added to :class:`Preset` after studies were recorded, with the value those studies ran with
+LATER_SETTINGS: dict[str, Any] = {"layer_norm": False, "student_repeats": 1}
+
+
+def same_settings(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> bool:
+    """
+    :param recorded: a study's ``preset.json``
+    :param described: :meth:`Preset.describe` of a preset, through JSON
+    :return: whether they are one study's settings: equal but for the number of student repeats, with settings
+        that a recorded file predates read as the value it ran with (:data:`LATER_SETTINGS`)
+    """
+
+    def comparable(data: Mapping[str, Any]) -> dict[str, Any]:
+        filled = {**LATER_SETTINGS, **data}
+        filled.pop("student_repeats")
+        return filled
+
+    return comparable(recorded) == comparable(described)
 
 
 @contextlib.contextmanager

@@ -331,6 +331,9 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.policy_on_next_obs = policy_on_next_obs
         self.scoring_dtype = scoring_dtype
+        if isinstance(self.policy_class, type) and issubclass(self.policy_class, MPOPolicy):
+            # the torso is written into policy_kwargs, so that every save says which one it has (see _setup_model)
+            self.policy_kwargs = {"layer_norm": True, **self.policy_kwargs}
         self._check_hyperparameters()
         if _init_setup_model:
             self._setup_model()
@@ -356,6 +359,10 @@ class MPO(LifelongOffPolicyAlgorithm):
             )
 
     def _setup_model(self) -> None:
+        if isinstance(self.policy_class, type) and issubclass(self.policy_class, MPOPolicy):
+            # a model saved before LayerNorm became MPO's default (2026-11-25) has no "layer_norm" in its
+            # policy_kwargs: it was built, and is loaded, without it
+            self.policy_kwargs = {"layer_norm": False, **self.policy_kwargs}
         super()._setup_model()
         self._create_aliases()
         action_dim = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
