@@ -1,6 +1,9 @@
 """The paper's protocol as jobs: one seed end to end at a tiny budget, skip-finished, re-run, report, claims."""
 
+import importlib.util
 import json
+import pathlib
+import types
 
 import numpy as np
 import pandas as pd
@@ -22,6 +25,16 @@ JOBS = [
     "distill_CRR_indicator_ratio_1to10",
     "online_CRR_exp_beta1",
 ]
+
+
+def benchmark_module(name: str) -> types.ModuleType:
+    """:return: the script ``benchmarks/<name>.py``, imported"""
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture(scope="module")
@@ -250,14 +263,7 @@ def test_three_stage_study_end_to_end(tmp_path):
 
 def test_student_spread_on_one_buffer(study, tmp_path):
     """benchmarks/student_spread.py: the same students, several seeds, one buffer; the spread against the study's."""
-    import importlib.util
-    import pathlib
-
-    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "student_spread.py"
-    spec = importlib.util.spec_from_file_location("student_spread", path)
-    assert spec is not None and spec.loader is not None
-    spread = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(spread)
+    spread = benchmark_module("student_spread")
     output, _ = study
     write_report(output, plots=False)  # the study's scores.csv: the between-seed reference
     runs = tmp_path / "spread"
@@ -299,17 +305,10 @@ def test_value_support_holds_every_return():
 
 def test_bounded_critic_diagnostic(study, tmp_path):
     """benchmarks/bounded_critic.py: the study's CRR students with a categorical critic on the data's bounds."""
-    import importlib.util
-    import pathlib
-
     from sb3_lifelong import CRR
     from sb3_lifelong.experiments.protocol import value_support
 
-    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "bounded_critic.py"
-    spec = importlib.util.spec_from_file_location("bounded_critic", path)
-    assert spec is not None and spec.loader is not None
-    bounded = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bounded)
+    bounded = benchmark_module("bounded_critic")
     output, _ = study
     name, preset = bounded.study_preset(output)
     assert name == "tiny"

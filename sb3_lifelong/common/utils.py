@@ -218,8 +218,7 @@ def _run_mlp_no_grad(
     """
     x = inputs
     module: nn.Module
-    modules = list(mlp)  # type: ignore[call-overload]
-    for position, module in enumerate(modules):
+    for position, module in enumerate(mlp):  # type: ignore[arg-type]
         if position < first:
             continue
         if isinstance(module, nn.Linear):
@@ -241,7 +240,8 @@ def _run_mlp_no_grad(
         elif isinstance(module, nn.LayerNorm) and low_precision is not None and x.dtype == low_precision.dtype:
             # normalised in the layer's own precision (its statistics over a row need more than bf16's 8 bits); with
             # the tanh that follows it in a LayerNorm torso, both in float32 on reused buffers, then one conversion
-            followed_by_tanh = position + 1 < len(modules) and isinstance(modules[position + 1], nn.Tanh)
+            after = mlp[position + 1] if position + 1 < len(mlp) else None  # type: ignore[arg-type,index]
+            followed_by_tanh = isinstance(after, nn.Tanh)
             x, owned = _layer_norm_no_grad(critic, (index, position), module, x, followed_by_tanh), True
             if followed_by_tanh:
                 first = position + 2  # the tanh is applied

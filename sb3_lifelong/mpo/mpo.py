@@ -331,7 +331,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.policy_on_next_obs = policy_on_next_obs
         self.scoring_dtype = scoring_dtype
-        if isinstance(self.policy_class, type) and issubclass(self.policy_class, MPOPolicy):
+        if self._policy_has_torso_choice():
             # the torso is written into policy_kwargs, so that every save says which one it has (see _setup_model)
             self.policy_kwargs = {"layer_norm": True, **self.policy_kwargs}
         self._check_hyperparameters()
@@ -358,8 +358,12 @@ class MPO(LifelongOffPolicyAlgorithm):
                 f"epsilons and dual_learning_rate > 0, tau in (0, 1], scoring_dtype in {SCORING_DTYPES})"
             )
 
+    def _policy_has_torso_choice(self) -> bool:
+        """:return: whether the policy class is one of MPO's (whose ``layer_norm`` defaults to ``True``)"""
+        return isinstance(self.policy_class, type) and issubclass(self.policy_class, MPOPolicy)
+
     def _setup_model(self) -> None:
-        if isinstance(self.policy_class, type) and issubclass(self.policy_class, MPOPolicy):
+        if self._policy_has_torso_choice():
             # a model saved before LayerNorm became MPO's default (2026-11-25) has no "layer_norm" in its
             # policy_kwargs: it was built, and is loaded, without it
             self.policy_kwargs = {"layer_norm": False, **self.policy_kwargs}
