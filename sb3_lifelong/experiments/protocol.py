@@ -56,6 +56,9 @@ from sb3_lifelong.mpo import MPO
 
 Stage = Union[str, Mapping[str, float]]
 
+#: the critics a preset's CRR students can have
+STUDENT_CRITICS = ("mse", "categorical")
+
 
 @dataclass(frozen=True)
 class Preset:
@@ -87,6 +90,9 @@ class Preset:
     :param student_repeats: how many times each student is trained on a seed's buffer (each with its own student
         seed); the report scores a student by the mean of its repeats (``benchmarks/results/student_spread.md``: most
         of a student's seed-to-seed spread is its own training)
+    :param student_critic: the CRR students' critic: ``"mse"`` (regression on the TD target) or ``"categorical"``
+        (the paper's kind: 51 atoms on a support that holds every return of the seed's buffer, :func:`value_support`,
+        so it cannot diverge; ``benchmarks/results/paper_cpu_three/bounded_critic``)
     :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
@@ -111,11 +117,14 @@ class Preset:
     online: bool = True
     layer_norm: bool = False
     student_repeats: int = 1
+    student_critic: str = "mse"
     note: str = ""
 
     def __post_init__(self) -> None:
         if self.student_repeats < 1:
             raise ValueError(f"student_repeats must be >= 1, got {self.student_repeats}")
+        if self.student_critic not in STUDENT_CRITICS:
+            raise ValueError(f"student_critic must be one of {STUDENT_CRITICS}, got {self.student_critic!r}")
 
     def jobs(self) -> list[str]:
         """:return: the jobs of one seed of this preset, in the order they run"""
@@ -208,6 +217,20 @@ PRESETS["cpu_three"] = dataclasses.replace(
         "Three stages (the paper's appendix): default robot, then the floor's friction 0.2, then the foot twice as long, "
         "in the proportions 0.2 : 0.2 : 1; the students that need no task boundaries only, no online baselines. Claims "
         "pre-registered in benchmarks/results/paper_cpu_three/README.md before any seed ran."
+    ),
+)
+
+# cpu_three again with what its first study asked for: the paper's kind of critic for the CRR students (a categorical
+# one on the data's return bounds: no student diverged with it, benchmarks/results/paper_cpu_three/bounded_critic) and
+# every student trained three times per buffer and scored by the mean (most of a student's spread is its own training,
+# benchmarks/results/student_spread.md); its collection is cpu_three's, so cpu_three's buffers can be reused
+PRESETS["cpu_three_c51"] = dataclasses.replace(
+    PRESETS["cpu_three"],
+    student_critic="categorical",
+    student_repeats=3,
+    note=(
+        "cpu_three's set-up and claims, with categorical-critic CRR students each trained three times per buffer and "
+        "scored by the mean. Pre-registered in benchmarks/results/paper_cpu_three_c51/README.md before any seed ran."
     ),
 )
 
@@ -515,6 +538,8 @@ def distill_student(
     algorithm = BC if student.algorithm == "BC" else CRR
     seed = seed if student_seed is None else student_seed
     common = _common(preset, seed)
+    if algorithm is CRR and preset.student_critic == "categorical":
+        common["policy_kwargs"]["distributional_critic"] = True
     common["policy_kwargs"].update(kwargs.pop("policy_kwargs", {}))  # the student's own network options
     if common["policy_kwargs"].get("distributional_critic") and "v_min" not in common["policy_kwargs"]:
         scales = list((student.reward_scale or {}).values())
@@ -615,7 +640,7 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
 
 
 #: settings added to :class:`Preset` after studies were recorded, with the value those studies ran with
-LATER_SETTINGS: dict[str, Any] = {"layer_norm": False, "student_repeats": 1}
+LATER_SETTINGS: dict[str, Any] = {"layer_norm": False, "student_repeats": 1, "student_critic": "mse"}
 
 
 def same_settings(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> bool:
