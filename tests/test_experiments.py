@@ -407,3 +407,47 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
     for changed in (dict(layer_norm=True), dict(distill_steps=7)):
         with pytest.raises(ValueError, match="other settings"):
             record_settings(dataclasses.replace(preset, **changed), tmp_path)
+
+
+def test_collection_reused_by_a_study_of_other_students(study, tmp_path):
+    """``--collection-from``: another study's buffers, linked; only the students run, with a categorical critic."""
+    import dataclasses
+
+    from sb3_lifelong import CRR
+    from sb3_lifelong.experiments.protocol import Preset, value_support
+    from sb3_lifelong.experiments.report import incomplete_repeats
+
+    source, _ = study
+    preset = dataclasses.replace(
+        PRESETS["tiny"], students=("CRR_indicator",), online=False, student_critic="categorical", student_repeats=2
+    )
+    output = tmp_path / "c51"
+    lines: list[str] = []
+    assert run_seed(preset, 0, output, log=lines.append, collection_from=source) == preset.jobs()[1:]  # no collect
+    run_dir = output / "seed_0"
+    assert (run_dir / "buffer").is_symlink() and (run_dir / "buffer").resolve() == (source / "seed_0" / "buffer").resolve()
+    done = json.loads((run_dir / "collect" / "done.json").read_text())
+    assert done["adopted_from"] == str((source / "seed_0").resolve()) and any("reused" in line for line in lines)
+    assert (run_dir / "collect" / "eval.csv").read_bytes() == (source / "seed_0" / "collect" / "eval.csv").read_bytes()
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        support = value_support(buffer.reward_range(), 0.99)
+    critic = CRR.load(run_dir / "distill_CRR_indicator__r1" / "student.zip").critic
+    assert type(critic).__name__ == "CategoricalCritic" and critic.v_max == pytest.approx(support["v_max"])
+    assert run_seed(preset, 0, output, log=lambda line: None, collection_from=source) == []  # all done: nothing again
+    # the MPO scores are the source study's; a student still running is named in the report
+    assert load_study(output).score("MPO", "Env-A") == load_study(source, seeds=[0]).score("MPO", "Env-A")
+    (run_dir / "distill_CRR_indicator__r1" / "done.json").unlink()
+    assert incomplete_repeats(load_study(output)) == ["seed 0: CRR_indicator on 1 of 2 repeats"]
+    assert "1 of 2 repeats" in write_report(output, plots=False, seeds=[0])
+    assert (output / "report_seeds_0.md").exists() and (output / "claims_seeds_0.csv").exists()
+    with pytest.raises(ValueError, match=r"seeds \[5\]"):
+        load_study(output, seeds=[5])
+    # what cannot be reused, named
+    with pytest.raises(ValueError, match="other settings \\(stage_steps\\)"):
+        run_seed(dataclasses.replace(preset, stage_steps=(300, 400)), 0, tmp_path / "other", collection_from=source)
+    with pytest.raises(ValueError, match="no finished collection"):
+        run_seed(preset, 7, output, collection_from=source)
+    with pytest.raises(ValueError, match="not a study"):
+        run_seed(preset, 1, output, collection_from=tmp_path)
+    with pytest.raises(ValueError, match="student_critic must be one of"):
+        Preset(**{**PRESETS["tiny"].__dict__, "student_critic": "huber"})

@@ -135,3 +135,24 @@ def test_a_shared_buffer_that_lost_transitions_is_refused():
     check_shared(Counts({0: 10, 1: 20, 2: 20}), {0: 10, 1: 20, 2: 20})
     with pytest.raises(RuntimeError, match="collectors collected"):
         check_shared(Counts({0: 20, 1: 20, 2: 20}), {0: 10, 1: 20, 2: 20})
+
+
+def test_study_reusing_another_study_collection(tmp_path):
+    """``study --collection-from``: every seed's buffers come from the other study; only the students run."""
+    import dataclasses
+
+    from sb3_lifelong.experiments.__main__ import main
+
+    source = tmp_path / "source"
+    run_study(TINY, [0, 1], str(source), workers=2, backend="process", jobs=JOBS[:1], log=lambda line: None)
+    argv = ["study", "--preset", "tiny", "--seeds", "0", "1", "--output", str(tmp_path / "c51"), "--workers", "2"]
+    argv += ["--backend", "process", "--jobs", "distill_BC", "--collection-from", str(source), "--no-report"]
+    assert main(argv) == 0
+    for seed in (0, 1):
+        run_dir = tmp_path / "c51" / f"seed_{seed}"
+        assert (run_dir / "buffer").is_symlink() and (run_dir / "distill_BC" / "done.json").exists()
+        assert os.path.getmtime(run_dir / "collect" / "stage1.zip") == os.path.getmtime(
+            source / f"seed_{seed}" / "collect" / "stage1.zip"
+        )  # copied, not collected again
+    with pytest.raises(ValueError, match="other settings"):
+        run_study(dataclasses.replace(TINY, learning_rate=0.5), [0], str(tmp_path / "lr"), collection_from=str(source))

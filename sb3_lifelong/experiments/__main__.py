@@ -33,6 +33,7 @@ from sb3_lifelong.experiments.report import export_results, split_repeat, write_
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
 REPEATS_HELP = "train each student this many times per seed (its own student seed each); the report scores the mean"
+REUSE_HELP = "reuse this study's collection of the seed (same collection settings): its buffers are linked, only students run"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -55,6 +56,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--stage-steps", type=int, nargs="+", default=None, help="override the environment steps of each stage")
     run.add_argument("--distill-steps", type=int, default=None, help="override the updates of every student")
     run.add_argument("--student-repeats", type=int, default=None, help=REPEATS_HELP)
+    run.add_argument("--collection-from", default=None, metavar="STUDY", help=REUSE_HELP)
     run.add_argument("--progress-bar", action="store_true", help="a progress bar for every job (needs tqdm and rich)")
     run.add_argument("--threads", type=int, default=1, help="torch threads (default 1: more only slows small networks down)")
 
@@ -70,11 +72,15 @@ def _parser() -> argparse.ArgumentParser:
     study.add_argument("--jobs", nargs="+", default=None, help="only these jobs of each seed (collect runs first)")
     study.add_argument("--no-online", action="store_true", help="skip the online CRR baselines")
     study.add_argument("--student-repeats", type=int, default=None, help=REPEATS_HELP)
+    study.add_argument("--collection-from", default=None, metavar="STUDY", help=REUSE_HELP)
     study.add_argument("--no-report", action="store_true", help="do not write the report at the end")
 
     report = commands.add_parser("report", help="tables, claims and figures of every finished seed in a study")
     report.add_argument("output", help="the study's directory")
     report.add_argument("--no-plots", action="store_true", help="tables only")
+    report.add_argument(
+        "--seeds", type=int, nargs="+", default=None, help="only these seeds, into report_seeds_<k>_<l>.md (no figures)"
+    )
     report.add_argument(
         "--export", default=None, help="also copy the small result files (CSV, JSON, MD, PNG; no buffers) into this directory"
     )
@@ -103,8 +109,11 @@ def main(argv: Optional[list[str]] = None) -> int:
             print(preset.note)
         return 0
     if args.command == "report":
-        print(write_report(pathlib.Path(args.output), plots=not args.no_plots))
-        print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
+        print(write_report(pathlib.Path(args.output), plots=not args.no_plots, seeds=args.seeds))
+        if args.seeds is None:
+            print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
+        else:
+            print(f"wrote {args.output}/report_seeds_*.md, scores_seeds_*.csv, claims_seeds_*.csv (seeds {args.seeds})")
         if args.export:
             copied = export_results(pathlib.Path(args.output), pathlib.Path(args.export))
             print(f"copied {len(copied)} result files into {args.export}")
@@ -116,7 +125,10 @@ def main(argv: Optional[list[str]] = None) -> int:
             preset = dataclasses.replace(preset, student_repeats=args.student_repeats)
         jobs = args.jobs or [j for j in preset.jobs() if not (args.no_online and j.startswith("online_"))]
         start = time.perf_counter()
-        results = run_study(preset, args.seeds, args.output, args.workers, args.address, args.backend, jobs)
+        reuse = args.collection_from
+        results = run_study(
+            preset, args.seeds, args.output, args.workers, args.address, args.backend, jobs, collection_from=reuse
+        )
         failed = sorted(key for key, result in results.items() if result["error"])
         ran = sum(result["ran"] for result in results.values())
         minutes = (time.perf_counter() - start) / 60
@@ -156,7 +168,15 @@ def main(argv: Optional[list[str]] = None) -> int:
     if preset.minutes_per_seed is not None and not changes:
         print(f"expect about {preset.minutes_per_seed:.0f} min on one core (measured on a 2-core AMD EPYC machine)")
     start = time.perf_counter()
-    ran = run_seed(preset, args.seed, output, jobs=jobs, progress_bar=args.progress_bar, log=lambda m: print(m, flush=True))
+    ran = run_seed(
+        preset,
+        args.seed,
+        output,
+        jobs=jobs,
+        progress_bar=args.progress_bar,
+        log=lambda m: print(m, flush=True),
+        collection_from=None if args.collection_from is None else pathlib.Path(args.collection_from),
+    )
     run_dir = output / f"seed_{args.seed}"
     minutes = (time.perf_counter() - start) / 60
     print(f"Seed {args.seed}: {len(ran)} job(s) finished in {minutes:.1f} min; results in {run_dir}")

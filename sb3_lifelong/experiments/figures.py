@@ -199,6 +199,7 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
             if not frames:
                 continue
             frame = pd.concat(frames).rename(columns={"name": "env"})
+            frame = frame.groupby(["seed", "timesteps", "env"], as_index=False)["q_mean"].mean()  # repeats: one per seed
             if len(frame[frame["env"] == env]):
                 _band(ax, frame, env, method, f"C{index}", y="q_mean")
                 drawn = True

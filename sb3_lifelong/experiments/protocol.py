@@ -428,8 +428,11 @@ def _callbacks(
 def collect(preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False, log: Callable = print) -> None:
     """MPO through both stages into one lifetime buffer on disk; keeps the Stage-1 agent and buffer."""
     directory = run_dir / "collect"
-    for stale in (directory, run_dir / "buffer", run_dir / "buffer_stage1"):
-        shutil.rmtree(stale, ignore_errors=True)  # an unfinished earlier attempt: start this job again
+    for stale in (directory, run_dir / "buffer", run_dir / "buffer_stage1"):  # an unfinished attempt: start again
+        if stale.is_symlink():  # a link to another study's buffer (an unfinished adopt_collection): not ours to delete
+            stale.unlink()
+        else:
+            shutil.rmtree(stale, ignore_errors=True)
     directory.mkdir(parents=True)
     model = MPO(
         "MlpPolicy",
@@ -659,6 +662,78 @@ def same_settings(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> 
     return comparable(recorded) == comparable(described)
 
 
+#: the settings that only the students and the report read: two studies that differ in nothing else collect alike
+STUDENT_SETTINGS = (
+    "distill_steps",
+    "distill_eval_freq",
+    "student_batch_size",
+    "student_learning_rate",
+    "students",
+    "online",
+    "student_repeats",
+    "student_critic",
+    "note",
+    "minutes_per_seed",
+)
+
+
+def collection_differences(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> list[str]:
+    """
+    :param recorded: a study's ``preset.json``
+    :param described: :meth:`Preset.describe` of a preset, through JSON
+    :return: the settings of the collection (everything but :data:`STUDENT_SETTINGS`) in which they differ
+    """
+    filled = {**LATER_SETTINGS, **recorded}, {**LATER_SETTINGS, **described}
+    keys = sorted((set(filled[0]) | set(filled[1])) - set(STUDENT_SETTINGS))
+    return [key for key in keys if filled[0].get(key) != filled[1].get(key)]
+
+
+def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pathlib.Path, log: Callable = print) -> bool:
+    """
+    Reuse seed ``seed``'s finished collection of the study ``source`` in the study ``output``, to train other
+    students on the same buffers: its ``collect`` job (curves, agents) is copied, its buffers are linked (students and
+    online baselines open them read-only). Nothing is done when ``output`` has this seed's collection already.
+
+    :param preset: the settings of the study in ``output``
+    :param seed: the seed
+    :param source: a study whose collection settings are ``preset``'s (only :data:`STUDENT_SETTINGS` may differ)
+    :param output: the study that reuses it
+    :param log: where the one-line messages go
+    :return: whether the collection was adopted now
+    :raises ValueError: when ``source`` is not a study, collected with other settings, or this seed's collection
+        there has not finished
+    """
+    source, run_dir = pathlib.Path(source).resolve(), output / f"seed_{seed}"
+    if (run_dir / "collect" / "done.json").exists():
+        return False
+    if not (source / "preset.json").exists():
+        raise ValueError(f"{source} is not a study (no preset.json): nothing to reuse")
+    recorded = json.loads((source / "preset.json").read_text())
+    differences = collection_differences(recorded, json.loads(json.dumps(preset.describe())))
+    if differences:
+        raise ValueError(f"{source} collected with other settings ({', '.join(differences)}): its buffers are not this one's")
+    origin = source / f"seed_{seed}"
+    if not (origin / "collect" / "done.json").exists():
+        raise ValueError(f"seed {seed} of {source} has no finished collection ({origin / 'collect' / 'done.json'})")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for name in ("buffer", "buffer_stage1"):
+        link = run_dir / name
+        if link.is_symlink():
+            link.unlink()
+        elif link.exists():
+            shutil.rmtree(link)  # an unfinished collection of this study's own
+        link.symlink_to(origin / name, target_is_directory=True)
+    staging = run_dir / ".collect.adopting"
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.copytree(origin / "collect", staging, ignore=shutil.ignore_patterns("done.json"))
+    done = {**json.loads((origin / "collect" / "done.json").read_text()), "adopted_from": str(origin)}
+    write_json_atomic(str(staging / "done.json"), done)
+    shutil.rmtree(run_dir / "collect", ignore_errors=True)
+    staging.rename(run_dir / "collect")  # done.json appears with the whole directory
+    log(f"seed {seed}: collection reused from {origin} (buffers linked, not copied)")
+    return True
+
+
 @contextlib.contextmanager
 def job_lock(run_dir: pathlib.Path, job: str) -> Iterator[bool]:
     """
@@ -691,6 +766,7 @@ def run_seed(
     jobs: Optional[Sequence[str]] = None,
     progress_bar: bool = False,
     log: Callable = print,
+    collection_from: Optional[pathlib.Path] = None,
 ) -> list[str]:
     """
     Run the jobs of one seed that have not finished yet (each writes ``done.json`` when it finishes). A job that
@@ -702,11 +778,17 @@ def run_seed(
     :param jobs: the jobs to run (default: the preset's, :meth:`Preset.jobs`), always after ``collect``
     :param progress_bar: show a progress bar per job
     :param log: where the one-line messages go
+    :param collection_from: another study whose collection of this seed to reuse (:func:`adopt_collection`)
     :return: the jobs that ran
     """
     record_settings(preset, output)
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
+    if collection_from is not None:
+        with job_lock(run_dir, "collect") as ours:
+            if not ours:
+                raise RuntimeError(f"seed {seed}: another process is running this seed's collect job ({run_dir})")
+            adopt_collection(preset, seed, collection_from, output, log)
     wanted = list(jobs) if jobs is not None else preset.jobs()
     known = job_names(student_repeats=preset.student_repeats)
     unknown = sorted(set(wanted) - set(known))

@@ -116,13 +116,25 @@ class Study:
         return {int(r.seed): float(r.value) for r in rows.itertuples()}
 
 
-def load_study(output: pathlib.Path) -> Study:
-    """Read every finished job of every seed of ``output``."""
+def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> Study:
+    """
+    Read every finished job of every seed of ``output``.
+
+    :param output: the study's directory
+    :param seeds: only these seeds (default: every seed whose collection has finished)
+    :return: the scores; a student's score on a seed is the mean over its finished repeats, and ``finals`` counts
+        them in its column ``repeats``
+    """
     preset = json.loads((output / "preset.json").read_text())
     envs = preset["env_names"]
     ends = stage_ends(preset["stage_steps"])
     switch = ends[0]
-    seeds = seeds_of(output)
+    finished = seeds_of(output)
+    if seeds is not None:
+        missing = sorted(set(seeds) - set(finished))
+        if missing:
+            raise ValueError(f"seeds {missing} of {output} have no finished collection (finished: {finished})")
+    seeds = finished if seeds is None else sorted(seeds)
     finals, extras = [], []
     for seed in seeds:
         run_dir = output / f"seed_{seed}"
@@ -146,9 +158,8 @@ def load_study(output: pathlib.Path) -> Study:
             elif job.startswith("distill_"):
                 method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
                 for env in envs:
-                    finals.append(
-                        dict(seed=seed, method=method, kind="student", env=env, score=last_mean(frame, env, STUDENT_LAST))
-                    )
+                    score = last_mean(frame, env, STUDENT_LAST)
+                    finals.append(dict(seed=seed, method=method, kind="student", env=env, score=score))
                 q_path = job_dir / "q_sources.csv"
                 if q_path.exists():
                     q = pd.read_csv(q_path)
@@ -158,7 +169,8 @@ def load_study(output: pathlib.Path) -> Study:
                             extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
     finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
     if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
-        finals_frame = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"].mean()
+        groups = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"]
+        finals_frame = groups.agg(score="mean", repeats="count")
     if len(extras_frame):
         extras_frame = extras_frame.groupby(["seed", "metric"], as_index=False, sort=False)["value"].mean()
     return Study(output, preset, seeds, finals_frame, extras_frame)
@@ -401,19 +413,37 @@ def claims_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def write_report(output: pathlib.Path, plots: bool = True) -> str:
+def incomplete_repeats(study: Study) -> list[str]:
+    """:return: one line per seed and student scored on fewer repeats than the study trains (some still running)"""
+    wanted = int(study.preset.get("student_repeats", 1))
+    students = study.finals[study.finals["kind"] == "student"].drop_duplicates(["seed", "method"])
+    return [
+        f"seed {row.seed}: {row.method} on {row.repeats} of {wanted} repeats"
+        for row in students.itertuples()
+        if row.repeats < wanted
+    ]
+
+
+def write_report(output: pathlib.Path, plots: bool = True, seeds: Optional[Sequence[int]] = None) -> str:
     """
     Write ``scores.csv``, ``claims.csv``, ``report.md`` and the figures into ``output``.
 
+    :param output: the study's directory
+    :param plots: draw the figures
+    :param seeds: report these seeds only, into ``report_seeds_<k>_<l>.md`` (and the CSV files of the same suffix;
+        no figures), beside the report of every seed
     :return: the markdown report
     """
-    study = load_study(output)
+    study = load_study(output, seeds)
     if not study.seeds:
         raise FileNotFoundError(f"no finished seed in {output} (a seed counts once its collect job is done)")
-    study.finals.to_csv(output / "scores.csv", index=False)
-    study.extras.to_csv(output / "extras.csv", index=False)
+    suffix = "" if seeds is None else "_seeds_" + "_".join(str(seed) for seed in study.seeds)
+    plots = plots and seeds is None
+    study.finals.to_csv(output / f"scores{suffix}.csv", index=False)
+    study.extras.to_csv(output / f"extras{suffix}.csv", index=False)
     claims = evaluate_claims(study)
-    pd.DataFrame(claims).to_csv(output / "claims.csv", index=False)
+    pd.DataFrame(claims).to_csv(output / f"claims{suffix}.csv", index=False)
+    partial = incomplete_repeats(study)
     text = (
         f"# {len(study.preset['env_names'])}-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
         f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
@@ -424,6 +454,13 @@ def write_report(output: pathlib.Path, plots: bool = True) -> str:
             else ".\n\n"
         )
         + (f"{study.preset['note']}\n\n" if study.preset.get("note") else "")
+        + (
+            "**Not every repeat has finished**; these students are scored on the repeats that have: "
+            + "; ".join(partial)
+            + ".\n\n"
+            if partial
+            else ""
+        )
         + "## Final returns\n\nmean +- std over seeds [95 % bootstrap CI of the mean]; online methods: mean of the last "
         + f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
         + score_table(study)
@@ -436,7 +473,7 @@ def write_report(output: pathlib.Path, plots: bool = True) -> str:
 
         paths = plot_study(study)
         text += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in paths) + "\n"
-    (output / "report.md").write_text(text)
+    (output / f"report{suffix}.md").write_text(text)
     return text
 
 

@@ -21,7 +21,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
-from sb3_lifelong.experiments.protocol import Preset, record_settings, run_seed
+from sb3_lifelong.experiments.protocol import Preset, adopt_collection, record_settings, run_seed
 
 BACKENDS = ("auto", "ray", "process")
 
@@ -89,6 +89,7 @@ def run_study(
     backend: str = "auto",
     jobs: Optional[Sequence[str]] = None,
     log: Callable[[str], None] = print,
+    collection_from: Optional[str] = None,
 ) -> dict[str, dict[str, Any]]:
     """
     Run every job of a study, ``workers`` at a time (one torch thread each).
@@ -101,6 +102,8 @@ def run_study(
     :param backend: ``"ray"``, ``"process"`` (a local process pool) or ``"auto"`` (Ray when installed)
     :param jobs: the jobs of each seed (default: the preset's)
     :param log: where the progress lines go
+    :param collection_from: another study whose collections of these seeds to reuse (only the students run), see
+        :func:`~sb3_lifelong.experiments.protocol.adopt_collection`
     :return: the result of every job by key (``seed_<k>/<job>``): ran, seconds, error
     """
     if backend not in BACKENDS:
@@ -114,6 +117,9 @@ def run_study(
     if address and not use_ray:
         raise ValueError("--address submits to a Ray cluster: install Ray (sb3_lifelong[cluster]) or drop --address")
     record_settings(preset, pathlib.Path(output))  # checked and recorded once, before any worker starts
+    if collection_from is not None:
+        for seed in seeds:
+            adopt_collection(preset, seed, pathlib.Path(collection_from), pathlib.Path(output), log)
     graph = job_graph(preset, seeds, jobs)
     if use_ray:
         where = f"the Ray cluster at {address}" if address else f"Ray on this machine, {workers} worker(s)"
