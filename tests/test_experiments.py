@@ -451,3 +451,30 @@ def test_collection_reused_by_a_study_of_other_students(study, tmp_path):
         run_seed(preset, 1, output, collection_from=tmp_path)
     with pytest.raises(ValueError, match="student_critic must be one of"):
         Preset(**{**PRESETS["tiny"].__dict__, "student_critic": "huber"})
+
+
+def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
+    """benchmarks/repeat_spread.py: per-seed spread over repeats, and repeat 0 against the study without repeats."""
+    import dataclasses
+
+    spread = benchmark_module("repeat_spread")
+    source, _ = study
+    preset = dataclasses.replace(PRESETS["tiny"], students=("CRR_exp_beta1", "CRR_indicator"), online=False, student_repeats=2)
+    output = tmp_path / "repeats"
+    for seed in (0, 1):
+        run_seed(preset, seed, output, log=lambda line: None, collection_from=source)
+    data = spread.repeat_scores(output)
+    assert len(data) == 2 * 2 * 2 * 2  # seeds x students x repeats x environments
+    per_seed, summary = spread.spread(data)
+    assert summary["seeds"] == 2 and summary["repeats"] == 2
+    for seed in (0, 1):
+        a = data[(data.seed == seed) & (data.env == "Env-A") & (data.student == "CRR_indicator")].set_index("repeat")
+        b = data[(data.seed == seed) & (data.env == "Env-A") & (data.student == "CRR_exp_beta1")].set_index("repeat")
+        assert per_seed.loc[seed, "list"] == pytest.approx(list(a["score"] - b["score"]))
+    assert summary["between"] == pytest.approx(np.std(per_seed["mean"], ddof=1))
+    table = spread.reproduction(data, source)  # the fixture trained the same students with the same seeds
+    assert len(table) == 2 * 2 * 2 and (table["difference"] == 0).all()
+    text = spread.report(output, source, spread.PAIR, "Env-A")
+    assert "largest absolute difference 0.0" in text
+    with pytest.raises(ValueError, match="no finished"):
+        spread.spread(data, pair=("BC", "CRR_exp_beta1"))
