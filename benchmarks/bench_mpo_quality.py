@@ -42,6 +42,7 @@ MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
     "MPO_n5_penalty": ({"n_steps": 5, "action_penalty": True}, False),
     "MPO_obsnorm": ({}, True),
     "MPO_layernorm": ({"policy_kwargs": {"layer_norm": True}}, False),
+    "MPO_layernorm_obsnorm": ({"policy_kwargs": {"layer_norm": True}}, True),  # MPO's default since 2026-11-25, normalised
 }
 CURVES = RESULTS / "quality"
 
@@ -109,7 +110,7 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
         model = SAC("MlpPolicy", env, policy_kwargs=policy_kwargs, **common)
     else:
         settings = dict(settings)
-        # same sizes, the variant's options; every variant but MPO_layernorm without LayerNorm (as they ran)
+        # same sizes, the variant's options; the variants without "layernorm" in their name without it (as they ran)
         network = {**policy_kwargs, "layer_norm": False, **settings.pop("policy_kwargs", {})}
         model = MPO("MlpPolicy", env, policy_kwargs=network, **settings, **common)
     start = time.perf_counter()
