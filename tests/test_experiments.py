@@ -404,7 +404,7 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
     assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
     record_settings(preset, tmp_path)  # fewer repeats asked: the record keeps 3
     assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
-    for changed in (dict(layer_norm=True), dict(distill_steps=7)):
+    for changed in (dict(layer_norm=True), dict(distill_steps=7), dict(student_critic="categorical")):
         with pytest.raises(ValueError, match="other settings"):
             record_settings(dataclasses.replace(preset, **changed), tmp_path)
 
@@ -439,6 +439,8 @@ def test_collection_reused_by_a_study_of_other_students(study, tmp_path):
     (run_dir / "distill_CRR_indicator__r1" / "done.json").unlink()
     assert incomplete_repeats(load_study(output)) == ["seed 0: CRR_indicator on 1 of 2 repeats"]
     assert "1 of 2 repeats" in write_report(output, plots=False, seeds=[0])
+    (run_dir / "distill_CRR_indicator" / "done.json").unlink()
+    assert incomplete_repeats(load_study(output)) == ["seed 0: CRR_indicator on 0 of 2 repeats"]
     assert (output / "report_seeds_0.md").exists() and (output / "claims_seeds_0.csv").exists()
     with pytest.raises(ValueError, match=r"seeds \[5\]"):
         load_study(output, seeds=[5])
@@ -451,6 +453,46 @@ def test_collection_reused_by_a_study_of_other_students(study, tmp_path):
         run_seed(preset, 1, output, collection_from=tmp_path)
     with pytest.raises(ValueError, match="student_critic must be one of"):
         Preset(**{**PRESETS["tiny"].__dict__, "student_critic": "huber"})
+    assert load_study(output, seeds=[0, 0]).seeds == [0]
+
+
+def _tree_digest(folder: pathlib.Path) -> dict[str, bytes]:
+    return {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+
+def test_a_reused_collection_never_touches_its_source(study, tmp_path):
+    """Linked buffers: collecting again unlinks them; a source moved away is named; another source is refused."""
+    import dataclasses
+    import shutil
+
+    source, _ = study
+    copy = tmp_path / "source"  # a study of our own to move and delete
+    shutil.copytree(source, copy, symlinks=True)
+    before = {name: _tree_digest(copy / "seed_0" / name) for name in ("buffer", "buffer_stage1")}
+    preset = dataclasses.replace(PRESETS["tiny"], students=("BC",), online=False)
+    output = tmp_path / "reuse"
+    run_seed(preset, 0, output, log=lambda line: None, collection_from=copy)
+    for name in ("buffer", "buffer_stage1"):
+        assert (output / "seed_0" / name).resolve() == (copy / "seed_0" / name).resolve()
+    with pytest.raises(ValueError, match="reuses the collection of"):  # one seed, one collection
+        run_seed(preset, 0, output, log=lambda line: None, collection_from=source)
+    # the source moved: the next student names what is gone and what to do
+    copy.rename(tmp_path / "moved")
+    (output / "seed_0" / "distill_BC" / "done.json").unlink()
+    with pytest.raises(FileNotFoundError, match="which is gone"):
+        run_seed(preset, 0, output, log=lambda line: None)
+    (tmp_path / "moved").rename(copy)
+    # collecting again in the reusing study replaces the links by buffers of its own; the source's stay as they were
+    (output / "seed_0" / "collect" / "done.json").unlink()
+    run_seed(preset, 0, output, jobs=["collect"], log=lambda line: None)
+    assert not (output / "seed_0" / "buffer").is_symlink() and (output / "seed_0" / "buffer" / "manifest.json").exists()
+    assert {name: _tree_digest(copy / "seed_0" / name) for name in before} == before
+    with pytest.raises(ValueError, match="has a collection of its own"):
+        run_seed(preset, 0, output, log=lambda line: None, collection_from=copy)
+    # a source seed without its Stage-1 buffer is not a collection to reuse
+    shutil.rmtree(copy / "seed_1" / "buffer_stage1")
+    with pytest.raises(ValueError, match="not a whole collection"):
+        run_seed(preset, 1, output, log=lambda line: None, collection_from=copy)
 
 
 def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
@@ -471,7 +513,9 @@ def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
         a = data[(data.seed == seed) & (data.env == "Env-A") & (data.student == "CRR_indicator")].set_index("repeat")
         b = data[(data.seed == seed) & (data.env == "Env-A") & (data.student == "CRR_exp_beta1")].set_index("repeat")
         assert per_seed.loc[seed, "list"] == pytest.approx(list(a["score"] - b["score"]))
-    assert summary["between"] == pytest.approx(np.std(per_seed["mean"], ddof=1))
+    means = [np.mean(per_seed.loc[seed, "list"]) for seed in (0, 1)]
+    assert summary["between"] == pytest.approx(abs(means[0] - means[1]) / np.sqrt(2))  # the sd of two values
+    assert summary["within"] == pytest.approx(np.mean([abs(a - b) / np.sqrt(2) for a, b in per_seed["list"]]))
     table = spread.reproduction(data, source)  # the fixture trained the same students with the same seeds
     assert len(table) == 2 * 2 * 2 and (table["difference"] == 0).all()
     text = spread.report(output, source, spread.PAIR, "Env-A")

@@ -194,7 +194,8 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
             for seed in study.seeds:
                 run_dir = study.output / f"seed_{seed}"
                 for path in sorted(run_dir.glob(f"distill_{method}*/q_sources.csv")):  # with the student's repeats
-                    if split_repeat(path.parent.name[len("distill_") :])[0] == method:
+                    finished = (path.parent / "done.json").exists()  # a repeat still running: not yet
+                    if finished and split_repeat(path.parent.name[len("distill_") :])[0] == method:
                         frames.append(pd.read_csv(path).assign(seed=seed))
             if not frames:
                 continue

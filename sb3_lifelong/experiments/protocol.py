@@ -688,11 +688,16 @@ def collection_differences(recorded: Mapping[str, Any], described: Mapping[str, 
     return [key for key in keys if filled[0].get(key) != filled[1].get(key)]
 
 
+#: the directories of a seed that a study reusing its collection links to (the lifetime and the Stage-1 buffers)
+COLLECTED_BUFFERS = ("buffer", "buffer_stage1")
+
+
 def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pathlib.Path, log: Callable = print) -> bool:
     """
     Reuse seed ``seed``'s finished collection of the study ``source`` in the study ``output``, to train other
-    students on the same buffers: its ``collect`` job (curves, agents) is copied, its buffers are linked (students and
-    online baselines open them read-only). Nothing is done when ``output`` has this seed's collection already.
+    students on the same buffers: its ``collect`` job (curves, agents) is copied, its buffers are linked by absolute
+    path (the jobs open them read-only), so ``source`` must stay where it is while ``output``'s students run. Holds
+    the seed's ``collect`` job lock. Nothing is done when the seed has adopted this collection already.
 
     :param preset: the settings of the study in ``output``
     :param seed: the seed
@@ -700,38 +705,73 @@ def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pa
     :param output: the study that reuses it
     :param log: where the one-line messages go
     :return: whether the collection was adopted now
-    :raises ValueError: when ``source`` is not a study, collected with other settings, or this seed's collection
-        there has not finished
+    :raises ValueError: when ``source`` is not a study, collected with other settings, this seed's collection there
+        has not finished or lacks a buffer, or ``output``'s seed has another collection (its own, or another study's)
+    :raises RuntimeError: when another process is running this seed's ``collect`` job in ``output``
     """
     source, run_dir = pathlib.Path(source).resolve(), output / f"seed_{seed}"
-    if (run_dir / "collect" / "done.json").exists():
-        return False
-    if not (source / "preset.json").exists():
-        raise ValueError(f"{source} is not a study (no preset.json): nothing to reuse")
-    recorded = json.loads((source / "preset.json").read_text())
-    differences = collection_differences(recorded, json.loads(json.dumps(preset.describe())))
-    if differences:
-        raise ValueError(f"{source} collected with other settings ({', '.join(differences)}): its buffers are not this one's")
     origin = source / f"seed_{seed}"
-    if not (origin / "collect" / "done.json").exists():
-        raise ValueError(f"seed {seed} of {source} has no finished collection ({origin / 'collect' / 'done.json'})")
     run_dir.mkdir(parents=True, exist_ok=True)
-    for name in ("buffer", "buffer_stage1"):
-        link = run_dir / name
-        if link.is_symlink():
-            link.unlink()
-        elif link.exists():
-            shutil.rmtree(link)  # an unfinished collection of this study's own
-        link.symlink_to(origin / name, target_is_directory=True)
-    staging = run_dir / ".collect.adopting"
-    shutil.rmtree(staging, ignore_errors=True)
-    shutil.copytree(origin / "collect", staging, ignore=shutil.ignore_patterns("done.json"))
-    done = {**json.loads((origin / "collect" / "done.json").read_text()), "adopted_from": str(origin)}
-    write_json_atomic(str(staging / "done.json"), done)
-    shutil.rmtree(run_dir / "collect", ignore_errors=True)
-    staging.rename(run_dir / "collect")  # done.json appears with the whole directory
+    with job_lock(run_dir, "collect") as ours:
+        if not ours:
+            raise RuntimeError(f"seed {seed}: another process is running this seed's collect job ({run_dir})")
+        done_path = run_dir / "collect" / "done.json"
+        if done_path.exists():
+            adopted = json.loads(done_path.read_text()).get("adopted_from")
+            if adopted is None:
+                raise ValueError(f"seed {seed} of {output} has a collection of its own: it cannot reuse {origin}")
+            if pathlib.Path(adopted) != origin:
+                raise ValueError(
+                    f"seed {seed} of {output} reuses the collection of {adopted}, not {origin}; delete "
+                    f"{run_dir / 'collect'} to reuse another one"
+                )
+            check_linked_buffers(run_dir)
+            return False
+        if not (source / "preset.json").exists():
+            raise ValueError(f"{source} is not a study (no preset.json): nothing to reuse")
+        recorded = json.loads((source / "preset.json").read_text())
+        differences = collection_differences(recorded, json.loads(json.dumps(preset.describe())))
+        if differences:
+            raise ValueError(
+                f"{source} collected with other settings ({', '.join(differences)}): its buffers are not this one's"
+            )
+        if not (origin / "collect" / "done.json").exists():
+            raise ValueError(f"seed {seed} of {source} has no finished collection ({origin / 'collect' / 'done.json'})")
+        targets = {name: (origin / name).resolve() for name in COLLECTED_BUFFERS}  # no chain of links
+        missing = [str(origin / name) for name, target in targets.items() if not (target / "manifest.json").exists()]
+        if missing:
+            raise ValueError(f"seed {seed} of {source} is not a whole collection: no buffer at {', '.join(missing)}")
+        for name, target in targets.items():
+            link = run_dir / name
+            if link.is_symlink():
+                link.unlink()
+            elif link.exists():
+                shutil.rmtree(link)  # an unfinished collection of this study's own
+            link.symlink_to(target, target_is_directory=True)
+        staging = run_dir / ".collect.adopting"
+        shutil.rmtree(staging, ignore_errors=True)
+        shutil.copytree(origin / "collect", staging, ignore=shutil.ignore_patterns("done.json"))
+        done = {**json.loads((origin / "collect" / "done.json").read_text()), "adopted_from": str(origin)}
+        write_json_atomic(str(staging / "done.json"), done)
+        shutil.rmtree(run_dir / "collect", ignore_errors=True)
+        staging.rename(run_dir / "collect")  # done.json appears with the whole directory
     log(f"seed {seed}: collection reused from {origin} (buffers linked, not copied)")
     return True
+
+
+def check_linked_buffers(run_dir: pathlib.Path) -> None:
+    """
+    :param run_dir: a seed's directory
+    :raises FileNotFoundError: when a buffer it links to (:func:`adopt_collection`) is gone, naming where it was
+    """
+    for name in COLLECTED_BUFFERS:
+        link = run_dir / name
+        if link.is_symlink() and not link.exists():
+            raise FileNotFoundError(
+                f"{link} links to {link.readlink()}, which is gone: this seed reuses another study's collection, which "
+                f"was moved or deleted. Delete {run_dir / 'collect'} and run again with --collection-from where that "
+                "study is now, or without it to collect this seed again"
+            )
 
 
 @contextlib.contextmanager
@@ -785,10 +825,8 @@ def run_seed(
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     if collection_from is not None:
-        with job_lock(run_dir, "collect") as ours:
-            if not ours:
-                raise RuntimeError(f"seed {seed}: another process is running this seed's collect job ({run_dir})")
-            adopt_collection(preset, seed, collection_from, output, log)
+        adopt_collection(preset, seed, collection_from, output, log)
+    check_linked_buffers(run_dir)
     wanted = list(jobs) if jobs is not None else preset.jobs()
     known = job_names(student_repeats=preset.student_repeats)
     unknown = sorted(set(wanted) - set(known))

@@ -134,7 +134,7 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
         missing = sorted(set(seeds) - set(finished))
         if missing:
             raise ValueError(f"seeds {missing} of {output} have no finished collection (finished: {finished})")
-    seeds = finished if seeds is None else sorted(seeds)
+    seeds = finished if seeds is None else sorted(set(seeds))
     finals, extras = [], []
     for seed in seeds:
         run_dir = output / f"seed_{seed}"
@@ -170,7 +170,7 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
     finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
     if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
         groups = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"]
-        finals_frame = groups.agg(score="mean", repeats="count")
+        finals_frame = groups.agg(score="mean", repeats="size")  # finished jobs, a NaN score (no evaluation) included
     if len(extras_frame):
         extras_frame = extras_frame.groupby(["seed", "metric"], as_index=False, sort=False)["value"].mean()
     return Study(output, preset, seeds, finals_frame, extras_frame)
@@ -417,11 +417,19 @@ def incomplete_repeats(study: Study) -> list[str]:
     """:return: one line per seed and student scored on fewer repeats than the study trains (some still running)"""
     wanted = int(study.preset.get("student_repeats", 1))
     students = study.finals[study.finals["kind"] == "student"].drop_duplicates(["seed", "method"])
-    return [
+    lines = [
         f"seed {row.seed}: {row.method} on {row.repeats} of {wanted} repeats"
         for row in students.itertuples()
         if row.repeats < wanted
     ]
+    for seed in study.seeds:  # the preset's students with no finished repeat on a seed
+        trained = set(students[students["seed"] == seed]["method"])
+        lines += [
+            f"seed {seed}: {name} on 0 of {wanted} repeats"
+            for name in study.preset.get("students") or ()
+            if name not in trained
+        ]
+    return lines
 
 
 def write_report(output: pathlib.Path, plots: bool = True, seeds: Optional[Sequence[int]] = None) -> str:
@@ -494,8 +502,8 @@ def export_results(output: pathlib.Path, destination: pathlib.Path) -> list[path
     for pattern in SMALL_FILES:
         for path in output.rglob(pattern):
             parts = path.relative_to(output).parts
-            if any(part.startswith("buffer") for part in parts):
-                continue
+            if any(part.startswith("buffer") or part.startswith(".") for part in parts):
+                continue  # buffers, and what a crash left half-made (e.g. an unfinished adopted collection)
             if len(parts) > 2 and parts[0].startswith("seed_") and not (output / parts[0] / parts[1] / "done.json").exists():
                 continue  # a job that has not finished: its partial curves would read as results
             target = destination / path.relative_to(output)
