@@ -16,7 +16,8 @@ sds use ddof=1 (sample sd), as ``student_spread.py``.
 
 Usage::
 
-    python benchmarks/repeat_spread.py runs/paper_cpu_three_c51r3 --reference runs/paper_cpu_three_c51 \\
+    python benchmarks/repeat_spread.py runs/paper_cpu_three_c51r3 \\
+        --reference benchmarks/results/paper_cpu_three/bounded_critic/comparison.csv --reference-where critic=categorical \\
         --output benchmarks/results/paper_cpu_three_c51/repeat_spread.md
 """
 
@@ -68,22 +69,61 @@ def spread(data: pd.DataFrame, pair: tuple[str, str] = PAIR, env: str = "Env-A")
     return per_seed, dict(within=within, between=between, seeds=len(per_seed), repeats=repeats)
 
 
-def reproduction(data: pd.DataFrame, reference: pathlib.Path) -> pd.DataFrame:
+def reference_scores(reference: pathlib.Path, envs: list[str], where: Optional[dict[str, str]] = None) -> pd.DataFrame:
+    """
+    The scores of another run of the same students, from its study directory or from a table of its scores.
+
+    :param reference: a study directory (its repeat 0 is read), or a CSV with columns ``seed`` and ``student`` and
+        either ``env`` and ``score`` (one row per environment) or one column per environment (as
+        ``bounded_critic.py``'s ``comparison.csv``)
+    :param envs: the study's environments (the columns of a wide table)
+    :param where: keep only the CSV rows whose column equals the value (e.g. ``{"critic": "categorical"}``)
+    :return: seed, student, env, score
+    """
+    if reference.is_dir():
+        if where:
+            raise ValueError(f"--reference-where filters a table of scores, and {reference} is a study directory")
+        theirs = repeat_scores(reference)
+        return theirs[theirs["repeat"] == 0][["seed", "student", "env", "score"]]
+    table = pd.read_csv(reference)
+    for column, value in (where or {}).items():
+        if column not in table:
+            raise ValueError(f"{reference} has no column {column!r} to filter on (it has {list(table)})")
+        table = table[table[column].astype(str) == value]
+    if {"env", "score"} <= set(table):
+        long = table
+    else:
+        missing = [env for env in envs if env not in table]
+        if missing:
+            raise ValueError(f"{reference} has neither env/score columns nor a column for each of {missing}")
+        long = table.melt(id_vars=["seed", "student"], value_vars=envs, var_name="env", value_name="score")
+    if long.duplicated(["seed", "student", "env"]).any():
+        raise ValueError(
+            f"{reference} has more than one score per seed, student and environment: choose rows (--reference-where)"
+        )
+    return long[["seed", "student", "env", "score"]]
+
+
+def reproduction(data: pd.DataFrame, theirs: pd.DataFrame) -> pd.DataFrame:
     """
     :param data: :func:`repeat_scores` of the study
-    :param reference: another run of the same students on the same buffers (repeat 0 only is compared)
+    :param theirs: :func:`reference_scores`: another run of the same students on the same buffers
     :return: seed, student, env, the study's repeat-0 score, the reference's, and their difference
     """
-    theirs = repeat_scores(reference)
-    theirs = theirs[theirs["repeat"] == 0]
     ours = data[data["repeat"] == 0]
     joined = ours.merge(theirs, on=["seed", "student", "env"], suffixes=("", "_reference"))
     joined["difference"] = joined["score"] - joined["score_reference"]
     return joined[["seed", "student", "env", "score", "score_reference", "difference"]]
 
 
-def report(study: pathlib.Path, reference: Optional[pathlib.Path], pair: tuple[str, str], env: str) -> str:
-    """:return: the markdown of both readings"""
+def report(
+    study: pathlib.Path,
+    reference: Optional[pathlib.Path],
+    pair: tuple[str, str],
+    env: str,
+    where: Optional[dict[str, str]] = None,
+) -> str:
+    """:return: the markdown of both readings (``where``: see :func:`reference_scores`)"""
     data = repeat_scores(study)
     per_seed, summary = spread(data, pair, env)
     lines = [
@@ -105,10 +145,12 @@ def report(study: pathlib.Path, reference: Optional[pathlib.Path], pair: tuple[s
         f"sqrt({summary['repeats']}) = {expected:.0f}; the rest of the seed-to-seed sd is the buffer's",
     ]
     if reference is not None:
-        table = reproduction(data, reference)
+        envs = json.loads((study / "preset.json").read_text())["env_names"]
+        table = reproduction(data, reference_scores(reference, envs, where))
+        chosen = "".join(f", rows with {column} = {value}" for column, value in (where or {}).items())
         lines += [
             "",
-            f"## Repeat 0 against `{reference.name}` (same buffers, settings and seeds)\n",
+            f"## Repeat 0 against `{reference.name}`{chosen} (same buffers, settings and seeds)\n",
             f"{len(table)} (seed, student, environment) scores compared; largest absolute difference "
             f"{table['difference'].abs().max() if len(table) else float('nan'):.1f}.\n",
             "| seed | student | env | this study | reference | difference |",
@@ -124,12 +166,23 @@ def report(study: pathlib.Path, reference: Optional[pathlib.Path], pair: tuple[s
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("study", type=pathlib.Path, help="a study run with student repeats")
-    parser.add_argument("--reference", type=pathlib.Path, default=None, help="another run of the same students (R2)")
+    parser.add_argument(
+        "--reference", type=pathlib.Path, default=None, help="another run of the same students (R2): a study or a CSV"
+    )
+    parser.add_argument(
+        "--reference-where", nargs="*", default=[], metavar="COLUMN=VALUE", help="keep only these rows of a CSV reference"
+    )
     parser.add_argument("--pair", nargs=2, default=list(PAIR), help="the two students whose difference is read")
     parser.add_argument("--env", default="Env-A", help="the environment scored (default: Env-A)")
     parser.add_argument("--output", type=pathlib.Path, default=None, help="also write the markdown here")
     args = parser.parse_args()
-    text = report(args.study, args.reference, tuple(args.pair), args.env)
+    where = {}
+    for condition in args.reference_where:
+        column, equals, value = condition.partition("=")
+        if not equals:
+            parser.error(f"--reference-where takes COLUMN=VALUE, not {condition!r}")
+        where[column] = value
+    text = report(args.study, args.reference, tuple(args.pair), args.env, where)
     print(text)
     if args.output is not None:
         args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -516,9 +516,29 @@ def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
     means = [np.mean(per_seed.loc[seed, "list"]) for seed in (0, 1)]
     assert summary["between"] == pytest.approx(abs(means[0] - means[1]) / np.sqrt(2))  # the sd of two values
     assert summary["within"] == pytest.approx(np.mean([abs(a - b) / np.sqrt(2) for a, b in per_seed["list"]]))
-    table = spread.reproduction(data, source)  # the fixture trained the same students with the same seeds
+    envs = ["Env-A", "Env-B"]
+    theirs = spread.reference_scores(source, envs)
+    table = spread.reproduction(data, theirs)  # the fixture trained the same students with the same seeds
     assert len(table) == 2 * 2 * 2 and (table["difference"] == 0).all()
     text = spread.report(output, source, spread.PAIR, "Env-A")
     assert "largest absolute difference 0.0" in text
+    # the same reference as a table of scores: one column per environment, with rows of another run to filter out
+    wide = theirs.pivot_table(index=["seed", "student"], columns="env", values="score").reset_index()
+    other = wide.assign(critic="MSE", **{env: wide[env] + 100.0 for env in envs})
+    table_path = tmp_path / "comparison.csv"
+    pd.concat([wide.assign(critic="categorical"), other]).to_csv(table_path, index=False)
+    text = spread.report(output, table_path, spread.PAIR, "Env-A", where={"critic": "categorical"})
+    assert "largest absolute difference 0.0" in text and "rows with critic = categorical" in text
+    shifted = spread.reproduction(data, spread.reference_scores(table_path, envs, where={"critic": "MSE"}))
+    assert len(shifted) == 8 and np.allclose(shifted["difference"], -100.0)
+    long_path = tmp_path / "long.csv"
+    theirs.to_csv(long_path, index=False)
+    assert (spread.reproduction(data, spread.reference_scores(long_path, envs))["difference"] == 0).all()
+    with pytest.raises(ValueError, match="more than one score"):
+        spread.reference_scores(table_path, envs)
+    with pytest.raises(ValueError, match="no column 'critc'"):
+        spread.reference_scores(table_path, envs, where={"critc": "MSE"})
+    with pytest.raises(ValueError, match="study directory"):
+        spread.reference_scores(source, envs, where={"critic": "MSE"})
     with pytest.raises(ValueError, match="no finished"):
         spread.spread(data, pair=("BC", "CRR_exp_beta1"))
