@@ -5,6 +5,7 @@ product and the exact float32 pass, interleaved in one process (20 samples x 256
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_scoring_split.py --rounds 7
+    OMP_NUM_THREADS=1 python benchmarks/bench_scoring_split.py --rounds 7 --layer-norm   # MPO's default torso
 """
 
 import argparse
@@ -14,10 +15,10 @@ import time
 import gymnasium as gym
 import numpy as np
 import torch as th
-from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong.common import utils
+from sb3_lifelong.common.policies import QCritic
 from sb3_lifelong.common.utils import LowPrecisionCopy, score_actions
 
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -29,6 +30,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--calls", type=int, default=20, help="scoring passes per timed round")
+    parser.add_argument("--layer-norm", action="store_true", help="the LayerNorm torso (MPO's default) instead of ReLU")
     args = parser.parse_args()
     th.set_num_threads(1)
     threshold = utils.SPLIT_MIN_FEATURES
@@ -39,7 +41,9 @@ def main() -> None:
     ]
     for name, width, action_dim in SHAPES:
         obs_space, act_space = gym.spaces.Box(-1, 1, (width,)), gym.spaces.Box(-1, 1, (action_dim,))
-        critic = ContinuousCritic(obs_space, act_space, [256, 256], FlattenExtractor(obs_space), width, n_critics=1)
+        critic = QCritic(
+            obs_space, act_space, [256, 256], FlattenExtractor(obs_space), width, n_critics=1, layer_norm=args.layer_norm
+        )
         copy = LowPrecisionCopy(critic)
         obs, actions = th.rand(256, width) * 2 - 1, th.rand(20, 256, action_dim) * 2 - 1
         times: dict[str, list[float]] = {"split": [], "stacked": [], "float32": []}
@@ -64,10 +68,11 @@ def main() -> None:
     table = "\n".join(lines)
     print(table)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "scoring_split.md").write_text(
-        "# bf16 scoring pass: first layer split per state / per sample\n\n"
+    torso = " --layer-norm" if args.layer_norm else ""
+    (RESULTS / f"scoring_split{'_layernorm' if args.layer_norm else ''}.md").write_text(
+        f"# bf16 scoring pass: first layer split per state / per sample{' (LayerNorm torso)' if args.layer_norm else ''}\n\n"
         "Command: `OMP_NUM_THREADS=1 python benchmarks/bench_scoring_split.py --rounds "
-        f"{args.rounds}` (medians of the rounds; the three variants interleaved in one process).\n\n" + table + "\n"
+        f"{args.rounds}{torso}` (medians of the rounds; the three variants interleaved in one process).\n\n" + table + "\n"
     )
 
 

@@ -3,11 +3,11 @@
 import gymnasium as gym
 import pytest
 import torch as th
-from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import utils
+from sb3_lifelong.common.policies import QCritic
 from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype, sample_gaussian, score_actions
 from sb3_lifelong.mpo.mpo import dual_value, temperature_loss_and_weights
 
@@ -157,12 +157,15 @@ def test_relu_in_place_matches_relu(dtype):
     assert (out == 0).sum() == (expected == 0).sum()
 
 
-def test_split_first_layer_for_wide_observations(monkeypatch):
+@pytest.mark.parametrize("layer_norm", [False, True], ids=["plain", "layer_norm"])
+def test_split_first_layer_for_wide_observations(monkeypatch, layer_norm):
     """OP3-sized inputs (68 + 20): the bf16 pass computes the state's part of the first layer once per state."""
     obs_space, act_space = gym.spaces.Box(-1, 1, (68,)), gym.spaces.Box(-1, 1, (20,))
-    critic = ContinuousCritic(obs_space, act_space, [256, 256], FlattenExtractor(obs_space), 68, n_critics=2)
-    copy = LowPrecisionCopy(critic)
     th.manual_seed(0)
+    # with layer_norm, MPO's default torso: Linear -> LayerNorm -> tanh first
+    critic = QCritic(obs_space, act_space, [256, 256], FlattenExtractor(obs_space), 68, n_critics=2, layer_norm=layer_norm)
+    assert isinstance(critic.q_networks[0][1], th.nn.LayerNorm if layer_norm else th.nn.ReLU)
+    copy = LowPrecisionCopy(critic)
     obs, actions = th.rand(64, 68) * 2 - 1, th.rand(20, 64, 20) * 2 - 1
     with th.no_grad():
         exact = score_actions(critic, obs, actions)

@@ -302,14 +302,14 @@ def _first_layer_split(
     critic: nn.Module, index: int, q_net: nn.Module, features: th.Tensor, actions: th.Tensor, low_precision: LowPrecisionCopy
 ) -> th.Tensor:
     """
-    The first ``Linear`` + ReLU of a Q-network over ``num_samples`` actions per state, without repeating the
-    state's part: ``W [s; a] + b = (W_s s + b) + W_a a``, the first term once per state (``[batch, hidden]``) and
+    The first ``Linear`` of a Q-network over ``num_samples`` actions per state, without repeating the state's
+    part: ``W [s; a] + b = (W_s s + b) + W_a a``, the first term once per state (``[batch, hidden]``) and
     broadcast over the samples. Same values as the stacked product up to the summation order (a low-precision
-    pass only).
+    pass only). What follows the layer (a ReLU, or the LayerNorm torso's LayerNorm and tanh) is the caller's.
 
     :param features: ``[batch, features_dim]``, in the copy's dtype
     :param actions: ``[num_samples * batch, action_dim]``, sample-major (row ``n * batch + b``), in the copy's dtype
-    :return: the ReLU output ``[num_samples * batch, hidden]`` (a reused buffer)
+    :return: the layer's output ``[num_samples * batch, hidden]`` (a reused buffer)
     """
     weight_t, bias = low_precision.weights[id(q_net[0])]  # type: ignore[index]
     width = features.shape[1]
@@ -319,7 +319,7 @@ def _first_layer_split(
     out = _reused_buffer(critic, (index, 0, actions.shape[0]), (actions.shape[0], weight_t.shape[1]), actions)
     th.mm(actions, weight_t[width:], out=out)
     out.view(-1, features.shape[0], out.shape[1]).add_(per_state)
-    return relu_in_place(out)
+    return out
 
 
 def _splits_first_layer(
@@ -331,7 +331,6 @@ def _splits_first_layer(
         and features_dim >= max(SPLIT_MIN_FEATURES, 2 * action_dim)
         and len(modules) > 2
         and isinstance(modules[0], nn.Linear)
-        and isinstance(modules[1], nn.ReLU)
         and id(modules[0]) in low_precision.weights
     )
 
@@ -366,7 +365,7 @@ def score_actions(
             if split_inputs is None:  # converted once for all the Q-networks
                 split_inputs = (features.to(low_precision.dtype), flat_actions.to(low_precision.dtype))
             hidden = _first_layer_split(critic, index, q_net, *split_inputs, low_precision)
-            q_values.append(_run_mlp_no_grad(critic, index, q_net, hidden, low_precision, first=2, owned=True))
+            q_values.append(_run_mlp_no_grad(critic, index, q_net, hidden, low_precision, first=1, owned=True))
             continue
         if q_input is None:
             q_input = th.cat([features.repeat(num_samples, 1), flat_actions], dim=1)
