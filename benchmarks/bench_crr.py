@@ -203,6 +203,11 @@ def main() -> None:
         lines += ["", f"Speed ratio ours / d3rlpy, quality runs (one after the other): {speedup:.2f}x"]
     if speed["ours"] and speed["d3rlpy"]:
         lines += [f"Speed ratio ours / d3rlpy, best interleaved blocks: {max(speed['ours']) / max(speed['d3rlpy']):.2f}x"]
+        per_round = [ours / theirs for ours, theirs in zip(speed["ours"], speed["d3rlpy"])]
+        lines += [
+            f"Speed ratio ours / d3rlpy, median over the rounds of each round's ratio: {float(np.median(per_round)):.2f}x "
+            f"(rounds: {', '.join(f'{ratio:.2f}' for ratio in per_round)})"
+        ]
     dump = {"results": results, "speed_blocks_updates_per_s": speed, "behaviour": behaviour}
     lines += ["", "```json", json.dumps(dump, indent=2), "```", ""]
     with open(args.output, "w") as file:
