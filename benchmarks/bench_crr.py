@@ -43,15 +43,14 @@ def evaluate(act, env_id: str, episodes: int) -> tuple[float, float]:
     return float(np.mean(returns)), float(np.std(returns))
 
 
-def run_ours(args: argparse.Namespace, data: dict) -> dict:
+def make_ours(data: dict, env_id: str, seed: int) -> Any:
+    """:return: sb3-lifelong's CRR on ``data`` with the settings shared with d3rlpy (see the module docstring)"""
     import gymnasium as gym
-    import torch as th
 
     from sb3_lifelong import CRR
 
-    th.set_num_threads(1)
-    env = gym.make(args.env)
-    model = CRR.from_offline_data(
+    env = gym.make(env_id)
+    return CRR.from_offline_data(
         data,
         env=None,
         observation_space=env.observation_space,
@@ -67,8 +66,15 @@ def run_ours(args: argparse.Namespace, data: dict) -> dict:
         tau=1.0,
         target_update_interval=100,
         policy_kwargs=dict(net_arch=HIDDEN, n_critics=1),
-        seed=args.seed,
+        seed=seed,
     )
+
+
+def run_ours(args: argparse.Namespace, data: dict) -> dict:
+    import torch as th
+
+    th.set_num_threads(1)
+    model = make_ours(data, args.env, args.seed)
     model.learn_offline(20, log_interval=0)  # warm-up, not timed
     start = time.perf_counter()
     model.learn_offline(args.updates, log_interval=0)

@@ -25,10 +25,10 @@ import statistics
 import time
 from typing import Any, Callable
 
-import gymnasium as gym
 import numpy as np
 import torch as th
 import torch.nn.functional as F
+from bench_crr import make_ours
 from stable_baselines3.common.logger import configure
 from torch import nn
 
@@ -39,23 +39,8 @@ from sb3_lifelong.common.utils import LowPrecisionCopy, _run_mlp_no_grad, sample
 CURRENT_TARGET_ACTIONS = crr_module.target_actions
 
 
-def make_model(data: dict, env: gym.Env) -> CRR:
-    model = CRR.from_offline_data(
-        data,
-        env=None,
-        observation_space=env.observation_space,
-        action_space=env.action_space,
-        batch_size=256,
-        learning_rate=3e-4,
-        num_samples=4,
-        advantage_transform="exp",
-        beta=1.0,
-        max_weight=20.0,
-        tau=1.0,
-        target_update_interval=100,
-        policy_kwargs=dict(net_arch=[256, 256], n_critics=1),
-        seed=0,
-    )
+def make_model(data: dict, env_id: str) -> CRR:
+    model = make_ours(data, env_id, seed=0)
     model.set_logger(configure(None, []))
     model.train(50, 256)  # warm-up
     return model
@@ -153,11 +138,10 @@ def main() -> None:
     th.set_num_threads(1)
     with np.load(args.data) as npz:
         data = {key: npz[key] for key in npz.files}
-    env = gym.make(args.env)
     models: dict[str, CRR] = {}
     actions: dict[str, Callable[..., th.Tensor]] = {}
     for name in ("current", "bf16 target actor", "plain-layout copy", "lean Adam", "all three"):
-        model = make_model(data, env)
+        model = make_model(data, args.env)
         actions[name] = bf16_target_actions(model) if name in ("bf16 target actor", "all three") else CURRENT_TARGET_ACTIONS
         if name in ("plain-layout copy", "all three"):
             model._online_scoring_copy = PlainLayoutCopy(model.critic)
