@@ -8,6 +8,7 @@ import types
 import numpy as np
 import pandas as pd
 import pytest
+import torch as th
 
 from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import CLAIMS, PRESETS, STUDENTS, job_names, load_study, run_seed, write_report
@@ -542,3 +543,27 @@ def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
         spread.reference_scores(source, envs, where={"critic": "MSE"})
     with pytest.raises(ValueError, match="no finished"):
         spread.spread(data, pair=("BC", "CRR_exp_beta1"))
+
+
+def test_bench_crr_levers_lean_adam_is_adams_update(monkeypatch: pytest.MonkeyPatch) -> None:
+    """benchmarks/bench_crr_levers.py: its lean Adam step gives torch's fused Adam update, bit for bit."""
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
+    levers = benchmark_module("bench_crr_levers")
+
+    def make() -> tuple[th.nn.Sequential, th.optim.Optimizer]:
+        th.manual_seed(0)
+        net = th.nn.Sequential(th.nn.Linear(5, 16), th.nn.ReLU(), th.nn.Linear(16, 2))
+        return net, th.optim.Adam(net.parameters(), lr=1e-2, fused=True)
+
+    reference, lean = make(), make()
+    inputs = th.randn(32, 5)
+    for step in range(20):
+        for net, optimizer in (reference, lean):
+            optimizer.zero_grad(set_to_none=True)
+            net(inputs).pow(2).mean().backward()
+            optimizer.step()
+        if step == 0:  # Adam's state exists after its first step
+            levers.lean_adam(lean[1])
+    for param, lean_param in zip(reference[0].parameters(), lean[0].parameters()):
+        assert th.equal(param, lean_param)
+    assert not th.equal(next(reference[0].parameters()), next(make()[0].parameters()))  # the steps moved the weights
