@@ -174,9 +174,9 @@ def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     _bars(ax, students, envs, lambda method, env: list(study.score(method, env).values()))
     ax.set_xlabel("offline student (same number of updates)")
     ax.set_ylabel("final return")
-    ax.set_title(
-        f"Distillation variants, {study.preset['distill_steps']:,} updates (mean +- std over {len(study.seeds)} seeds)"
-    )
+    seeds = len(study.seeds)
+    over = f"mean +- std over {seeds} seeds" if seeds > 1 else "1 seed"
+    ax.set_title(f"Distillation variants, {study.preset['distill_steps']:,} updates ({over})")
     ax.legend()
     return [_save(plt, fig, directory / "fig_students.png")]
 
