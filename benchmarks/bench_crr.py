@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 
 HIDDEN = [256, 256]
+#: where the hand-written notes of a results file begin
+NOTES_MARK = "Setup and caveats:"
 
 
 def evaluate(act, env_id: str, episodes: int) -> tuple[float, float]:
@@ -215,6 +217,10 @@ def main() -> None:
             f"(rounds: {', '.join(f'{ratio:.2f}' for ratio in per_round)})"
         ]
     dump = {"results": results, "speed_blocks_updates_per_s": speed, "behaviour": behaviour}
+    # the notes written by hand under the generated table (set-up, readings) are kept when the file is rewritten
+    previous = open(args.output).read() if os.path.exists(args.output) else ""
+    if NOTES_MARK in previous:
+        lines += ["", NOTES_MARK + previous.split(NOTES_MARK, 1)[1].split("\n```json\n", 1)[0].rstrip("\n")]
     lines += ["", "```json", json.dumps(dump, indent=2), "```", ""]
     with open(args.output, "w") as file:
         file.write("\n".join(lines))
