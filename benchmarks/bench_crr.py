@@ -17,6 +17,7 @@ with seeds 0, 1, ... of the final policy.
 import argparse
 import json
 import os
+import pathlib
 import subprocess
 import sys
 import time
@@ -218,7 +219,7 @@ def main() -> None:
         ]
     dump = {"results": results, "speed_blocks_updates_per_s": speed, "behaviour": behaviour}
     # the notes written by hand under the generated table (set-up, readings) are kept when the file is rewritten
-    previous = open(args.output).read() if os.path.exists(args.output) else ""
+    previous = pathlib.Path(args.output).read_text() if os.path.exists(args.output) else ""
     if NOTES_MARK in previous:
         lines += ["", NOTES_MARK + previous.split(NOTES_MARK, 1)[1].split("\n```json\n", 1)[0].rstrip("\n")]
     lines += ["", "```json", json.dumps(dump, indent=2), "```", ""]

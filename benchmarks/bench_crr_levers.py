@@ -46,24 +46,22 @@ def make_model(data: dict, env_id: str) -> CRR:
     return model
 
 
+class ActorTorsoCopy(LowPrecisionCopy):
+    """A bfloat16 copy of an actor's hidden layers (its torso ``latent_pi``; the mean and std heads stay float32)."""
+
+    def _hidden_layers(self) -> list[nn.Linear]:
+        actor: Any = self.critic  # the copied module: here an actor
+        return [module for module in actor.latent_pi.modules() if isinstance(module, nn.Linear)]
+
+
 def bf16_target_actions(model: CRR) -> Callable[..., th.Tensor]:
     """:return: ``target_actions`` with the target actor's hidden layers on a bfloat16 copy of them"""
-    actor: Any = model.actor_target
-    layers = [module for module in actor.latent_pi.modules() if isinstance(module, nn.Linear)]
-    weights = {id(m): (m.weight.detach().t().contiguous().bfloat16(), m.bias.detach().bfloat16()) for m in layers}
-    copy: Any = type("ActorCopy", (), {"weights": weights, "dtype": th.bfloat16})()
-
-    def sync() -> None:
-        for module in layers:
-            weight_t, bias = weights[id(module)]
-            weight_t.copy_(module.weight.detach().t())
-            bias.copy_(module.bias.detach())
-
+    copy = ActorTorsoCopy(model.actor_target)  # type: ignore[arg-type]
     update_targets = model._update_targets
 
     def update_and_sync() -> None:
         update_targets()
-        sync()
+        copy.sync()
 
     model._update_targets = update_and_sync  # type: ignore[method-assign]
 
@@ -97,7 +95,7 @@ class PlainLayoutCopy(LowPrecisionCopy):
 def lean_adam(optimizer: th.optim.Optimizer) -> None:
     """Replace ``optimizer.step`` by one call of the fused kernel on cached lists (same update)."""
     group = optimizer.param_groups[0]
-    params = [p for p in group["params"]]
+    params = list(group["params"])
     for p in params:  # the state exists after the warm-up
         assert "exp_avg" in optimizer.state[p]
     states = [optimizer.state[p] for p in params]
