@@ -253,6 +253,32 @@ for _number, _stages in enumerate(
         note=f"The paper's three-stage set-up, its environment combination {_number}, at its scale (a GPU machine).",
     )
 
+# the dose-response study of the imbalance (benchmarks/results/imbalance_dose/README.md, pre-registered before any run):
+# the collector at MPO's defaults (256x256 LayerNorm torso, 20 samples), Env-A and Env-B 100k steps each; the
+# imbalance is a dose applied by the students (Env-B sampling share, Env-B reward scale), not by the collection
+PRESETS["dose_hopper"] = Preset(
+    env_id="Hopper-v5",
+    stages=({}, {"foot_scale": 2.0}),
+    stage_steps=(100_000, 100_000),
+    distill_steps=200_000,
+    eval_freq=10_000,
+    distill_eval_freq=25_000,
+    eval_episodes=10,
+    learning_starts=5_000,
+    layer_norm=True,
+    students=(),
+    online=False,
+    student_critic="categorical",
+    note="Collection of the imbalance dose study (Hopper, foot x2); students: benchmarks/imbalance_dose.py.",
+)
+# the natural-value-gap candidate (no healthy reward); its episodes are 1000 steps long, so 5 evaluation episodes
+PRESETS["dose_cheetah"] = dataclasses.replace(
+    PRESETS["dose_hopper"],
+    env_id="HalfCheetah-v5",
+    eval_episodes=5,
+    note="Collection of the imbalance dose study (HalfCheetah, foot x2); students: benchmarks/imbalance_dose.py.",
+)
+
 # `make demo`: the cpu preset, shortened to minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
 PRESETS["demo"] = dataclasses.replace(
     PRESETS["cpu"],
