@@ -43,7 +43,7 @@ def advantage_baseline(sampled_q: th.Tensor, kind: str = "mean") -> th.Tensor:
 
 
 def crr_weights(
-    advantages: th.Tensor, transform: str = "exp", beta: float = 1.0, max_weight: float = 20.0
+    advantages: th.Tensor, transform: str = "exp", beta: Union[float, th.Tensor] = 1.0, max_weight: float = 20.0
 ) -> tuple[th.Tensor, th.Tensor]:
     """
     CRR's weights of the data's actions in the policy's regression.
@@ -53,7 +53,7 @@ def crr_weights(
 
     :param advantages: advantages of the data's actions, any shape
     :param transform: ``"exp"`` or ``"indicator"``
-    :param beta: temperature of ``exp`` (> 0)
+    :param beta: temperature of ``exp`` (> 0; a scalar tensor too; ``inf``: equal weights)
     :param max_weight: upper bound of ``exp``'s weights (>= 1)
     :return: the weights and a boolean mask of the weights clipped at ``max_weight``, shaped like ``advantages``
     """
@@ -74,6 +74,88 @@ class AdvantageWeights(NamedTuple):
     weights: th.Tensor
     #: the weights clipped at ``max_weight`` (bool)
     clipped: th.Tensor
+    #: the temperature the ``exp`` weights used, in reward units (a scalar; NaN for the indicator)
+    beta: th.Tensor
+
+
+def effective_sample_size(weights: th.Tensor) -> th.Tensor:
+    """
+    Kish's effective sample size of a weighted regression, as a fraction of the batch:
+    ``(sum w)^2 / (n sum w^2)``, 1 for equal weights, ``1 / n`` when one row has all the weight.
+
+    :param weights: non-negative weights ``[..., batch]`` (the last dimension is the batch)
+    :return: ``[...]``, in ``[1 / batch, 1]`` (1 where every weight is 0)
+    """
+    total = weights.sum(dim=-1)
+    squares = (weights * weights).sum(dim=-1)
+    fraction = total * total / (weights.shape[-1] * squares.clamp_min(th.finfo(weights.dtype).tiny))
+    return th.where(squares > 0, fraction, th.ones_like(fraction))
+
+
+#: the grid of :func:`ess_temperature`: candidate temperatures per pass, and the passes of a search from scratch
+ESS_GRID_POINTS = 64
+ESS_GRID_PASSES = 2
+#: a search from scratch spans the Gaussian guess / e^7 ... x e^7 (about / 1100 ... x 1100); one warm-started from
+#: the previous batch's temperature spans it / e^0.5 ... x e^0.5 in one pass (and starts from scratch if the
+#: target is outside)
+ESS_SEARCH_SPAN = 7.0
+ESS_WARM_SPAN = 0.5
+
+
+def _ess_of_temperatures(advantages: th.Tensor, log_betas: th.Tensor, log_max: float) -> th.Tensor:
+    """:return: the effective sample size of the clipped ``exp`` weights at each temperature ``exp(log_betas)``"""
+    log_weights = (advantages.unsqueeze(0) * th.exp(-log_betas).unsqueeze(1)).clamp(max=log_max)  # [G, B]
+    return effective_sample_size(th.exp(log_weights - log_weights.max(dim=1, keepdim=True).values))
+
+
+def ess_temperature(
+    advantages: th.Tensor, target_ess: float, max_weight: float = 20.0, start: Optional[float] = None
+) -> th.Tensor:
+    """
+    The temperature of the ``exp`` transform at which the (clipped) weights' effective sample size is
+    ``target_ess`` of the batch (to a relative precision of about 1e-5).
+
+    A temperature in reward units has no fixed meaning: ``beta = 1`` keeps a student close to the data when the
+    advantages spread over a tenth of a reward unit and makes it nearly greedy when they spread over five. The
+    effective sample size does not depend on the reward's scale: multiplying every advantage by ``c`` multiplies this
+    temperature by ``c`` and leaves the weights unchanged. For Gaussian advantages of standard deviation ``s`` and no
+    clipping, ``ESS = exp(-s^2 / beta^2)``, so ``beta = s / sqrt(-ln target_ess)``: the centre of the search.
+
+    The size grows with the temperature, so the search is a grid of candidates (vectorised) refined around the
+    first one that reaches the target, then interpolated linearly between the two that bracket it.
+
+    :param advantages: ``[batch]``
+    :param target_ess: the weights' effective sample size as a fraction of the batch, in ``(0, 1)``; larger is
+        closer to behaviour cloning (1: equal weights), smaller is greedier
+    :param max_weight: the clip of the ``exp`` weights (the size is that of the clipped weights)
+    :param start: a temperature to search around first (the previous batch's): one grid pass instead of two
+    :return: a scalar tensor (``inf`` when the advantages are all equal: every temperature gives equal weights)
+    """
+    if not 0.0 < target_ess < 1.0:
+        raise ValueError(f"target_ess must be in (0, 1), got {target_ess}")
+    values = advantages.detach().flatten().float()
+    spread = float(values.std()) if values.numel() > 1 else 0.0
+    if not spread > 0:
+        return advantages.new_tensor(math.inf)
+    log_max = math.log(max_weight)
+    warm = start is not None and math.isfinite(start) and start > 0
+    if warm:
+        assert start is not None
+        low, high, passes = math.log(start) - ESS_WARM_SPAN, math.log(start) + ESS_WARM_SPAN, 1
+    else:
+        centre = math.log(spread / math.sqrt(-math.log(target_ess)))
+        low, high, passes = centre - ESS_SEARCH_SPAN, centre + ESS_SEARCH_SPAN, ESS_GRID_PASSES
+    for _ in range(passes):
+        log_betas = th.linspace(low, high, ESS_GRID_POINTS, device=values.device)
+        ess = _ess_of_temperatures(values, log_betas, log_max)
+        reached = ess >= target_ess
+        if warm and not (bool(reached[-1]) and not bool(reached[0])):  # the target is outside the window
+            return ess_temperature(advantages, target_ess, max_weight)
+        first = int(th.argmax(reached.to(th.int8))) if bool(reached.any()) else ESS_GRID_POINTS - 1
+        low, high = float(log_betas[max(first - 1, 0)]), float(log_betas[first])
+    below, above = float(ess[max(first - 1, 0)]), float(ess[first])
+    share = (target_ess - below) / (above - below) if above > below else 1.0
+    return advantages.new_tensor(math.exp(low + min(max(share, 0.0), 1.0) * (high - low)))
 
 
 class CRRStepStats(NamedTuple):
@@ -84,6 +166,10 @@ class CRRStepStats(NamedTuple):
     advantage_mean: th.Tensor
     weight_mean: th.Tensor
     weight_clip_frac: th.Tensor
+    #: the weights' effective sample size, as a fraction of the batch (:func:`effective_sample_size`)
+    weight_ess: th.Tensor
+    #: the ``exp`` transform's temperature (the batch's with ``target_ess``; NaN for the indicator)
+    beta: th.Tensor
     q_mean: th.Tensor
 
     @classmethod
@@ -94,6 +180,8 @@ class CRRStepStats(NamedTuple):
             advantage_mean=advantage.advantages.mean(),
             weight_mean=advantage.weights.mean(),
             weight_clip_frac=advantage.clipped.float().mean(),
+            weight_ess=effective_sample_size(advantage.weights),
+            beta=advantage.beta.float(),
             q_mean=fit.q_values.mean(),
         )
 
@@ -196,22 +284,35 @@ def advantage_weights(
     beta: float,
     max_weight: float,
     normalize: bool = False,
+    target_ess: Optional[float] = None,
+    ess_start: Optional[float] = None,
 ) -> AdvantageWeights:
     """
     :param data_q: Q-values of the data's actions ``[batch]``
     :param sampled_q: Q-values of actions sampled from the policy ``[num_samples, batch]``
     :param baseline: ``"mean"`` or ``"max"`` (:func:`advantage_baseline`)
     :param transform: ``"exp"`` or ``"indicator"`` (:func:`crr_weights`)
-    :param beta: temperature of ``exp``
+    :param beta: temperature of ``exp`` (unused with ``target_ess``)
     :param max_weight: upper bound of ``exp``'s weights
     :param normalize: divide the advantages by their standard deviation over the batch before the transform, so
         that ``beta`` is in units of that spread rather than of the reward
-    :return: the advantages of the data's actions (not normalised) and their weights
+    :param target_ess: ``exp`` only: choose the temperature of this batch so that the weights' effective sample
+        size is this fraction of the batch (:func:`ess_temperature`); None: ``beta``
+    :param ess_start: with ``target_ess``, the temperature to search around first (the previous batch's)
+    :return: the advantages of the data's actions (not normalised), their weights and the temperature used
     """
     advantages = data_q - advantage_baseline(sampled_q, baseline)
-    scaled = advantages / advantages.std().clamp_min(1e-6) if normalize and advantages.numel() > 1 else advantages
-    weights, clipped = crr_weights(scaled, transform, beta, max_weight)
-    return AdvantageWeights(advantages, weights, clipped)
+    if transform == "exp" and target_ess is not None:
+        used = ess_temperature(advantages, target_ess, max_weight, start=ess_start)
+        weights, clipped = crr_weights(advantages, transform, used, max_weight)
+        return AdvantageWeights(advantages, weights, clipped, used)
+    spread = advantages.std().clamp_min(1e-6) if normalize and advantages.numel() > 1 else None
+    weights, clipped = crr_weights(advantages if spread is None else advantages / spread, transform, beta, max_weight)
+    if transform != "exp":
+        used = advantages.new_tensor(math.nan)
+    else:
+        used = advantages.new_tensor(beta) if spread is None else beta * spread
+    return AdvantageWeights(advantages, weights, clipped, used)
 
 
 def actor_loss(actions: th.Tensor, mean: th.Tensor, std: th.Tensor, weights: th.Tensor) -> th.Tensor:
@@ -262,6 +363,11 @@ class CRR(LifelongOfflineAlgorithm):
     :param normalize_advantages: divide the advantages by their standard deviation over the batch before the
         transform, which makes ``beta`` independent of the reward's scale (with raw advantages of a few units,
         ``exp`` at ``beta=1`` puts most of a batch's weight on a few transitions)
+    :param target_ess: conservativeness with the same meaning at any reward scale (``exp`` only; replaces
+        ``beta``): each batch's temperature is chosen so that the weights' effective sample size
+        ``(sum w)^2 / (n sum w^2)`` is this fraction of the batch (:func:`ess_temperature`). 1 would be behaviour
+        cloning; 0.9 stays close to the data; about 0.5 is as greedy as the indicator. ``train/beta`` logs the
+        temperature it picks, ``train/weight_ess`` the size reached. None: the fixed ``beta``
     :param critic_target: ``"policy"`` (TD target with actions sampled from the target policy) or ``"sarsa"``
         (with the data's next action; offline only, falls back to a policy sample where the data does not show it)
     :param n_target_samples: number of target-policy actions averaged in the TD target
@@ -319,6 +425,7 @@ class CRR(LifelongOfflineAlgorithm):
         beta: float = 1.0,
         max_weight: float = 20.0,
         normalize_advantages: bool = False,
+        target_ess: Optional[float] = None,
         critic_target: str = "policy",
         n_target_samples: int = 1,
         target_update_interval: int = 100,
@@ -370,6 +477,10 @@ class CRR(LifelongOfflineAlgorithm):
         self.beta = beta
         self.max_weight = max_weight
         self.normalize_advantages = normalize_advantages
+        self.target_ess = target_ess
+        #: with ``target_ess``: the last batch's temperature, where the next batch's search starts (saved, so that a
+        #: resumed run continues exactly)
+        self._ess_beta: Optional[float] = None
         self.critic_target_type = critic_target
         self.n_target_samples = n_target_samples
         self.target_update_interval = target_update_interval
@@ -398,6 +509,7 @@ class CRR(LifelongOfflineAlgorithm):
             "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
             "actor_averaging": self.actor_averaging is None or 0.0 < self.actor_averaging <= 1.0,
             "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
+            "target_ess": self.target_ess is None or 0.0 < self.target_ess < 1.0,
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
@@ -407,7 +519,13 @@ class CRR(LifelongOfflineAlgorithm):
                 f"Invalid CRR hyperparameters: {values} (num_samples, n_target_samples and target_update_interval must "
                 f"be >= 1, beta > 0, max_weight >= 1, tau and actor_averaging in (0, 1], advantage_baseline in "
                 f"{ADVANTAGE_BASELINES}, advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS}, "
-                f"scoring_dtype in {SCORING_DTYPES})"
+                f"scoring_dtype in {SCORING_DTYPES}, target_ess None or in (0, 1))"
+            )
+        if self.target_ess is not None and (self.advantage_transform != "exp" or self.normalize_advantages):
+            raise ValueError(
+                f"target_ess={self.target_ess!r} sets the temperature of the exp transform from the weights' effective "
+                f"sample size: it needs advantage_transform='exp' (got {self.advantage_transform!r}) and replaces "
+                f"normalize_advantages (got {self.normalize_advantages!r})"
             )
 
     def _setup_model(self) -> None:
@@ -522,7 +640,11 @@ class CRR(LifelongOfflineAlgorithm):
                     self.beta,
                     self.max_weight,
                     self.normalize_advantages,
+                    self.target_ess,
+                    self._ess_beta,
                 )
+                if self.target_ess is not None:
+                    self._ess_beta = float(advantage.beta)
             self._gradient_step(self.critic, fit.loss)
             regression_loss = actor_loss(actions, mean, std, advantage.weights)
             self._gradient_step(self.actor, regression_loss)

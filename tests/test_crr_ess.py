@@ -1,0 +1,115 @@
+"""The scale-free conservativeness of CRR: the exp transform's temperature set by the weights' effective sample size."""
+
+import math
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+
+from sb3_lifelong import CRR
+from sb3_lifelong.crr.crr import advantage_weights, crr_weights, effective_sample_size, ess_temperature
+from tests.test_crr import Recorder, flat_params, pendulum_data
+
+
+@pytest.fixture(scope="module")
+def data() -> dict:
+    return pendulum_data()
+
+
+def offline(data: dict, seed: int = 0, **kwargs) -> CRR:
+    return CRR.from_offline_data(
+        data, env=None, action_space=spaces.Box(-2, 2, (1,)), seed=seed, policy_kwargs=dict(net_arch=[32, 32]),
+        batch_size=32, **kwargs,
+    )  # fmt: skip
+
+
+def test_effective_sample_size_hand_computed():
+    assert effective_sample_size(th.ones(8)).item() == pytest.approx(1.0)
+    assert effective_sample_size(th.tensor([1.0, 0.0, 0.0, 0.0])).item() == pytest.approx(0.25)
+    assert effective_sample_size(th.tensor([1.0, 1.0, 0.0, 0.0])).item() == pytest.approx(0.5)
+    assert effective_sample_size(th.tensor([3.0, 1.0])).item() == pytest.approx(16 / (2 * 10))
+    assert effective_sample_size(th.zeros(4)).item() == 1.0  # no weight at all: defined, not NaN
+    np.testing.assert_allclose(effective_sample_size(th.tensor([[1.0, 1.0], [1.0, 0.0]])).numpy(), [1.0, 0.5])
+
+
+@pytest.mark.parametrize("target", [0.6, 0.8, 0.95])
+def test_two_point_advantages_closed_form(target):
+    # advantages +-a, half each: ESS = cosh(x)^2 / cosh(2x) with x = a / beta, so cosh(x)^2 = target / (2 target - 1)
+    a = 2.0
+    beta = ess_temperature(th.tensor([a, -a] * 64), target).item()
+    assert beta == pytest.approx(a / math.acosh(math.sqrt(target / (2 * target - 1))), rel=1e-4)
+
+
+def test_gaussian_advantages_match_the_closed_form():
+    # ESS = exp(-s^2 / beta^2) for Gaussian advantages without clipping: beta = s / sqrt(-ln target)
+    advantages = th.randn(200_000, generator=th.Generator().manual_seed(0)) * 0.7
+    beta = ess_temperature(advantages, 0.9, max_weight=1e9).item()
+    assert beta == pytest.approx(0.7 / math.sqrt(-math.log(0.9)), rel=0.02)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.1, 3.0, 250.0])
+def test_weights_do_not_depend_on_the_reward_scale(scale):
+    generator = th.Generator().manual_seed(1)
+    data_q, sampled_q = th.randn(256, generator=generator) * 5, th.randn(4, 256, generator=generator) * 5
+    reference = advantage_weights(data_q, sampled_q, "mean", "exp", 1.0, 20.0, target_ess=0.9)
+    scaled = advantage_weights(scale * data_q, scale * sampled_q, "mean", "exp", 1.0, 20.0, target_ess=0.9)
+    np.testing.assert_allclose(scaled.weights.numpy(), reference.weights.numpy(), rtol=2e-4)
+    assert scaled.beta.item() == pytest.approx(scale * reference.beta.item(), rel=1e-4)
+    assert effective_sample_size(scaled.weights).item() == pytest.approx(0.9, abs=1e-4)
+    # a fixed beta is not scale-free: the same data at 100x the reward collapses onto a few transitions
+    fixed = [advantage_weights(c * data_q, c * sampled_q, "mean", "exp", 1.0, 20.0).weights for c in (0.01, 1.0)]
+    assert effective_sample_size(fixed[0]).item() > 0.99 and effective_sample_size(fixed[1]).item() < 0.5
+
+
+def test_clipped_weights_reach_the_target_and_warm_start_agrees():
+    advantages = th.cat([th.randn(250), th.tensor([40.0] * 6)])  # a few outliers that clip at small temperatures
+    beta = ess_temperature(advantages, 0.7, max_weight=5.0)
+    weights, _ = crr_weights(advantages, "exp", beta, 5.0)
+    assert effective_sample_size(weights).item() == pytest.approx(0.7, abs=1e-4)
+    for start in (beta.item() * 0.8, beta.item() * 1.3, beta.item() * 50):  # inside and outside the warm window
+        assert ess_temperature(advantages, 0.7, 5.0, start=start).item() == pytest.approx(beta.item(), rel=1e-4)
+
+
+def test_degenerate_and_bad_input():
+    assert ess_temperature(th.full((16,), 3.0), 0.9).item() == math.inf  # equal advantages: equal weights
+    weights, _ = crr_weights(th.full((16,), 3.0), "exp", th.tensor(math.inf))
+    assert weights.tolist() == [1.0] * 16
+    for bad in (0.0, 1.0, -0.5, 1.5):
+        with pytest.raises(ValueError, match="target_ess"):
+            ess_temperature(th.randn(8), bad)
+
+
+def test_crr_with_target_ess_logs_it_and_resumes_exactly(data, tmp_path):
+    model = offline(data, seed=2, target_ess=0.8)
+    recorder = Recorder()
+    model.learn_offline(60, callback=recorder, log_interval=1)
+    assert recorder.values["train/weight_ess"] == pytest.approx(0.8, abs=1e-3)
+    assert recorder.values["train/beta"] > 0 and model._ess_beta == pytest.approx(recorder.values["train/beta"], rel=0.5)
+    model.save(tmp_path / "model.zip")
+    uninterrupted = offline(data, seed=2, target_ess=0.8)
+    uninterrupted.learn_offline(60, log_interval=0)
+    uninterrupted.learn_offline(30, reset_num_timesteps=False, log_interval=0)
+    resumed = CRR.load(tmp_path / "model.zip")
+    assert resumed.target_ess == 0.8 and resumed._ess_beta == model._ess_beta
+    resumed.set_offline_data(data)
+    resumed.learn_offline(30, reset_num_timesteps=False, log_interval=0)
+    th.testing.assert_close(flat_params(resumed), flat_params(uninterrupted), rtol=0, atol=0)
+
+
+def test_indicator_and_fixed_beta_log_their_ess(data):
+    for kwargs, beta_logged in ((dict(advantage_transform="indicator"), False), (dict(beta=2.0), True)):
+        recorder = Recorder()
+        offline(data, **kwargs).learn_offline(20, callback=recorder, log_interval=1)
+        assert 0.0 < recorder.values["train/weight_ess"] <= 1.0
+        assert (recorder.values["train/beta"] == pytest.approx(2.0)) if beta_logged else math.isnan(recorder.values["train/beta"])
+
+
+def test_target_ess_needs_the_exp_transform():
+    for kwargs, match in (
+        (dict(target_ess=1.0), "target_ess"),
+        (dict(target_ess=0.9, advantage_transform="indicator"), "indicator"),
+        (dict(target_ess=0.9, normalize_advantages=True), "normalize_advantages"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            CRR("MlpPolicy", "Pendulum-v1", **kwargs)
