@@ -5,6 +5,7 @@ import inspect
 import os
 import pathlib
 from collections.abc import Mapping, Sequence
+from copy import deepcopy
 from typing import Any, Optional, Union
 
 import gymnasium as gym
@@ -13,7 +14,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.type_aliases import GymEnv
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize, unwrap_vec_normalize
 
 CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
 
@@ -73,6 +74,13 @@ class MultiEnvEvalCallback(BaseCallback):
     Works the same during online learning (timesteps = environment steps) and offline training, where the
     algorithms of this package count gradient updates as timesteps.
 
+    As SB3's ``EvalCallback``: ``best_model_save_path``, ``evaluations.npz`` (``evaluations_dir``),
+    ``callback_on_new_best`` and ``callback_after_eval`` (e.g. ``StopTrainingOnRewardThreshold``,
+    ``StopTrainingOnNoModelImprovement``), where the score of an evaluation is ``eval/mean_over_envs``, the mean
+    of the environments' mean returns (``best_mean_reward`` and ``last_mean_reward`` hold it). When the model
+    trains on a ``VecNormalize`` environment, each evaluation environment is wrapped in a ``VecNormalize`` that is
+    not updated (``training=False``, raw rewards) and receives the training statistics before every evaluation.
+
     :param eval_envs: the environments: a mapping name -> env or gym id (names appear in the logs), a sequence
         of envs or gym ids (named after their gym id), or one env (see :func:`make_eval_envs`)
     :param eval_freq: evaluate every ``eval_freq`` timesteps (counted with ``model.num_timesteps``, so that the
@@ -88,6 +96,15 @@ class MultiEnvEvalCallback(BaseCallback):
     :param seed: seed of the evaluation environments: the k-th is seeded with ``seed + k`` before the first
         evaluation and its episodes follow from there, so that a run's evaluations are reproducible (None: not seeded)
     :param verbose: 1 prints each evaluation
+    :param best_model_save_path: folder where the model is saved as ``best_model.zip`` whenever
+        ``eval/mean_over_envs`` beats every earlier evaluation of this callback (None: not saved)
+    :param evaluations_dir: folder where ``evaluations.npz`` is rewritten after every evaluation (SB3's
+        ``EvalCallback(log_path=...)``): ``timesteps`` ``[n_evals]``, ``env_names`` ``[n_envs]``, ``results`` and
+        ``ep_lengths`` ``[n_evals, n_envs, n_eval_episodes]`` (None: not written)
+    :param callback_on_new_best: callback called after an evaluation that set a new best score; it may stop
+        training by returning False (its ``parent`` is this callback)
+    :param callback_after_eval: callback called after every evaluation; it may stop training by returning False
+        (its ``parent`` is this callback)
     """
 
     def __init__(
@@ -101,6 +118,10 @@ class MultiEnvEvalCallback(BaseCallback):
         sources: Optional[Mapping[str, int]] = None,
         seed: Optional[int] = None,
         verbose: int = 0,
+        best_model_save_path: Optional[Union[str, os.PathLike]] = None,
+        evaluations_dir: Optional[Union[str, os.PathLike]] = None,
+        callback_on_new_best: Optional[BaseCallback] = None,
+        callback_after_eval: Optional[BaseCallback] = None,
     ):
         super().__init__(verbose)
         if isinstance(eval_envs, (Mapping, list, tuple)) and len(eval_envs) == 0:
@@ -126,8 +147,30 @@ class MultiEnvEvalCallback(BaseCallback):
         self._next_eval = 0
         self.seed = seed
         self._seeded = False
+        self.best_model_save_path = pathlib.Path(best_model_save_path) if best_model_save_path is not None else None
+        self.evaluations_dir = pathlib.Path(evaluations_dir) if evaluations_dir is not None else None
+        self.callback_on_new_best = callback_on_new_best
+        self.callback_after_eval = callback_after_eval
+        for child in (callback_on_new_best, callback_after_eval):
+            if child is not None:
+                child.parent = self
+        #: ``eval/mean_over_envs`` of the best and of the last evaluation (-inf before the first), as SB3's EvalCallback
+        self.best_mean_reward = -np.inf
+        self.last_mean_reward = -np.inf
+        self.evaluations_timesteps: list[int] = []
+        self.evaluations_results: list[list[list[float]]] = []
+        self.evaluations_length: list[list[list[int]]] = []
+        self._normalized_envs: dict[str, VecNormalize] = {}
+        self._continue_training = True
 
     def _init_callback(self) -> None:
+        for child in (self.callback_on_new_best, self.callback_after_eval):
+            if child is not None:
+                child.init_callback(self.model)
+        if self.best_model_save_path is not None:
+            self.best_model_save_path.mkdir(parents=True, exist_ok=True)
+        if self.evaluations_dir is not None:
+            self.evaluations_dir.mkdir(parents=True, exist_ok=True)
         if self.sources is not None and not hasattr(self.model, "active_source"):
             raise TypeError(
                 f"MultiEnvEvalCallback(sources=...) needs a model with one actor per source, got {type(self.model).__name__}"
@@ -153,7 +196,44 @@ class MultiEnvEvalCallback(BaseCallback):
             self.evaluate()
             while self._next_eval <= self.num_timesteps:
                 self._next_eval += self.eval_freq
-        return True
+        continue_training, self._continue_training = self._continue_training, True
+        return continue_training
+
+    def _normalized(self, name: str, env: VecEnv, training: VecNormalize) -> VecEnv:
+        """``env`` seeing observations normalised with the training env's current statistics (never updated here)."""
+        if isinstance(env, VecNormalize):  # the user's own wrapper: only its statistics are synchronised
+            evaluated = env
+        else:
+            if name not in self._normalized_envs:
+                self._normalized_envs[name] = VecNormalize(
+                    env,
+                    training=False,
+                    norm_obs=training.norm_obs,
+                    norm_reward=False,
+                    clip_obs=training.clip_obs,
+                    epsilon=training.epsilon,
+                    norm_obs_keys=training.norm_obs_keys,
+                )
+            evaluated = self._normalized_envs[name]
+        if training.norm_obs:
+            evaluated.obs_rms = deepcopy(training.obs_rms)
+        return evaluated
+
+    def _record_best(self, score: float) -> None:
+        """SB3's EvalCallback after an evaluation: the best model, ``callback_on_new_best``, ``callback_after_eval``."""
+        continue_training = True
+        self.last_mean_reward = score
+        if score > self.best_mean_reward:
+            if self.verbose >= 1:
+                print(f"New best mean reward over the environments: {score:.2f}")
+            self.best_mean_reward = score
+            if self.best_model_save_path is not None:
+                self.model.save(self.best_model_save_path / "best_model")
+            if self.callback_on_new_best is not None:
+                continue_training = self.callback_on_new_best.on_step()
+        if self.callback_after_eval is not None:
+            continue_training = self.callback_after_eval.on_step() and continue_training
+        self._continue_training = self._continue_training and continue_training
 
     def evaluate(self) -> dict[str, float]:
         """
@@ -165,9 +245,15 @@ class MultiEnvEvalCallback(BaseCallback):
         rows = []
         model: Any = self.model
         selected = model.active_source if self.sources is not None else None
+        training_env = self.model.get_env()
+        training_normalization = unwrap_vec_normalize(training_env) if training_env is not None else None
+        all_rewards: list[list[float]] = []
+        all_lengths: list[list[int]] = []
         for name, env in self.eval_envs.items():
             if self.sources is not None and name in self.sources:
                 model.select_source(self.sources[name])
+            if training_normalization is not None:
+                env = self._normalized(name, env, training_normalization)
             episode_rewards, episode_lengths = evaluate_policy(
                 self.model,
                 env,
@@ -178,6 +264,8 @@ class MultiEnvEvalCallback(BaseCallback):
             )
             mean, std = float(np.mean(episode_rewards)), float(np.std(episode_rewards))
             means[name] = mean
+            all_rewards.append([float(value) for value in episode_rewards])
+            all_lengths.append([int(value) for value in episode_lengths])
             self.logger.record(f"eval/{name}/mean_reward", mean)
             self.logger.record(f"eval/{name}/std_reward", std)
             self.logger.record(f"eval/{name}/mean_ep_length", float(np.mean(episode_lengths)))
@@ -189,13 +277,26 @@ class MultiEnvEvalCallback(BaseCallback):
                 print(f"Eval at {self.num_timesteps}: {name} mean reward {mean:.2f} +/- {std:.2f}")
         if selected is not None:
             model.select_source(selected)
-        self.logger.record("eval/mean_over_envs", float(np.mean(list(means.values()))))
+        score = float(np.mean(list(means.values())))
+        self.logger.record("eval/mean_over_envs", score)
         self.results.extend(rows)
         if self.log_path is not None:
             with open(self.log_path, "a", newline="") as handle:
                 writer = csv.DictWriter(handle, fieldnames=CSV_FIELDS)
                 writer.writerows(rows)
+        self.evaluations_timesteps.append(self.num_timesteps)
+        self.evaluations_results.append(all_rewards)
+        self.evaluations_length.append(all_lengths)
+        if self.evaluations_dir is not None:
+            np.savez(
+                self.evaluations_dir / "evaluations.npz",
+                timesteps=np.array(self.evaluations_timesteps, dtype=np.int64),
+                env_names=np.array(list(self.eval_envs), dtype=str),
+                results=np.array(self.evaluations_results, dtype=np.float64),
+                ep_lengths=np.array(self.evaluations_length, dtype=np.int64),
+            )
         self.logger.dump(self.num_timesteps)
+        self._record_best(score)
         return means
 
 
