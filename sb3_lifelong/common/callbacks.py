@@ -16,7 +16,13 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize, unwrap_vec_normalize
 
+from sb3_lifelong.common.overestimation import MonteCarloProbe
+
 CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
+#: the columns of :class:`SourceQCallback`'s CSV: ``q_mean`` over ``n`` uniform samples; with ``monte_carlo``, on the
+#: fixed sample of ``n_mc`` transitions with a Monte-Carlo return, the mean Q-value ``q_probe``, the mean return
+#: ``mc_return`` and ``overestimation = q_probe - mc_return`` (empty for a source with no such transition yet)
+Q_CSV_FIELDS = ["timesteps", "source", "name", "q_mean", "n", "q_probe", "mc_return", "overestimation", "n_mc"]
 
 #: the experiments seed the evaluation environments of a run with seed ``s`` from ``EVAL_SEED_OFFSET + s`` (apart
 #: from the training environment's ``s``), so that a run's evaluations are reproducible
@@ -316,6 +322,11 @@ class SourceQCallback(BaseCallback):
     :param data: the transitions to measure on (a ``LifelongReplayBuffer`` or view); default: the model's replay
         buffer. Give the whole lifetime here when the model samples its own buffer with per-source weights (a
         student trained on one source's data still gets its Q-values on the others)
+    :param monte_carlo: also measure each source's overestimation against the truth
+        (``diagnostics/overestimation/<name>``: mean Q(s, a) minus the discounted return that followed in the stored
+        episode, on a fixed sample of ``batch_size`` transitions per source, :class:`MonteCarloProbe`; and
+        ``diagnostics/mc_return/<name>``); a source whose overestimation grows is being forgotten
+    :param reward_scale: per-source reward scale the model trains with (source id -> factor), for the returns
     """
 
     def __init__(
@@ -324,6 +335,8 @@ class SourceQCallback(BaseCallback):
         batch_size: int = 4096,
         log_path: Optional[Union[str, os.PathLike]] = None,
         data: Optional[Any] = None,
+        monte_carlo: bool = True,
+        reward_scale: Optional[dict[int, float]] = None,
     ):
         super().__init__()
         if log_freq < 1 or batch_size < 1:
@@ -332,8 +345,12 @@ class SourceQCallback(BaseCallback):
         self.batch_size = batch_size
         self.log_path = pathlib.Path(log_path) if log_path is not None else None
         self.data = data
+        self.monte_carlo = monte_carlo
+        self.reward_scale = reward_scale
         self.results: list[dict[str, Any]] = []
         self._next = 0
+        self._probe: Optional[MonteCarloProbe] = None
+        self._fields = list(Q_CSV_FIELDS)
 
     def _buffer(self) -> Any:
         return self.data if self.data is not None else getattr(self.model, "replay_buffer", None)
@@ -348,10 +365,16 @@ class SourceQCallback(BaseCallback):
         if not hasattr(self.model, "critic"):
             raise TypeError(f"SourceQCallback needs a model with a critic, got {type(self.model).__name__}")
         self._next = (self.model.num_timesteps // self.log_freq + 1) * self.log_freq
-        if self.log_path is not None and not self.log_path.exists():
-            self.log_path.parent.mkdir(parents=True, exist_ok=True)
-            with open(self.log_path, "w", newline="") as handle:
-                csv.writer(handle).writerow(["timesteps", "source", "name", "q_mean", "n"])
+        if self.monte_carlo and self._probe is None:
+            gamma = float(getattr(self.model, "gamma", 0.99))
+            self._probe = MonteCarloProbe(buffer, gamma, self.batch_size, reward_scale=self.reward_scale)
+        if self.log_path is not None:
+            if not self.log_path.exists():
+                self.log_path.parent.mkdir(parents=True, exist_ok=True)
+                with open(self.log_path, "w", newline="") as handle:
+                    csv.writer(handle).writerow(Q_CSV_FIELDS)
+            with open(self.log_path, newline="") as handle:
+                self._fields = next(csv.reader(handle), Q_CSV_FIELDS[:5])  # a file from an older run keeps its columns
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
@@ -372,6 +395,7 @@ class SourceQCallback(BaseCallback):
         with th.no_grad():
             q_values = critic(samples.observations, samples.actions)[0].flatten()
         names = buffer.sources
+        truth = self._probe.measure(critic, self.model.device) if self._probe is not None else {}
         means: dict[str, float] = {}
         rows = []
         for source in th.unique(sources).tolist():
@@ -379,9 +403,16 @@ class SourceQCallback(BaseCallback):
             name = names.get(source, {}).get("name", f"source_{source}")
             means[name] = float(q_values[mask].mean())
             self.logger.record(f"diagnostics/q_mean/{name}", means[name])
-            rows.append(dict(timesteps=self.num_timesteps, source=source, name=name, q_mean=means[name], n=int(mask.sum())))
+            row = dict(timesteps=self.num_timesteps, source=source, name=name, q_mean=means[name], n=int(mask.sum()))
+            if source in truth:
+                measured = truth[source]
+                self.logger.record(f"diagnostics/overestimation/{name}", measured.overestimation)
+                self.logger.record(f"diagnostics/mc_return/{name}", measured.mc_return)
+                row.update(q_probe=measured.q_mean, mc_return=measured.mc_return, n_mc=measured.n)
+                row.update(overestimation=measured.overestimation)
+            rows.append(row)
         self.results.extend(rows)
         if self.log_path is not None:
             with open(self.log_path, "a", newline="") as handle:
-                csv.DictWriter(handle, fieldnames=["timesteps", "source", "name", "q_mean", "n"]).writerows(rows)
+                csv.DictWriter(handle, fieldnames=self._fields, extrasaction="ignore").writerows(rows)
         return means
