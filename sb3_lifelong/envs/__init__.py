@@ -27,6 +27,7 @@ from sb3_lifelong.envs.schedule import (
     SawWave,
     Scheduler,
     UniformPerEpisode,
+    stage_envs,
 )
 
 OP3_WALK_ID = "sb3_lifelong/OP3Walk-v0"
@@ -65,4 +66,5 @@ __all__ = [
     "UniformPerEpisode",
     "find_mujoco",
     "register_envs",
+    "stage_envs",
 ]

@@ -616,3 +616,41 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
         obs, reward, terminated, truncated, info = self.env.step(action)
         self._local_steps += 1
         return self._augment(obs), reward, terminated, truncated, self._info(info)
+
+
+def stage_envs(
+    env_id: str,
+    stages: Sequence[StageLike],
+    names: Optional[Sequence[str]] = None,
+    env_kwargs: Optional[Mapping[str, Any]] = None,
+    **schedule_kwargs: Any,
+) -> Dict[str, DynamicsSchedule]:
+    """
+    The environments a lifelong run lives in, for evaluation: one copy of the robot per stage, each pinned to its
+    stage (``set_stage(i, immediate=True)``) and named, ready for
+    :class:`~sb3_lifelong.common.callbacks.MultiEnvEvalCallback` or ``distill(..., eval_env=...)``.
+
+    :param env_id: the robot's gym id (the training env's)
+    :param stages: the training env's stages (settings or preset names)
+    :param names: the name of each stage in the logs (default ``Env-A``, ``Env-B``, ...)
+    :param env_kwargs: keyword arguments of ``gym.make``
+    :param schedule_kwargs: the training env's other :class:`DynamicsSchedule` arguments that shape the observation
+        (``append_params``, ``observed_params``); ``switch_at`` and ``schedules`` are refused: a copy stays in its stage
+    :return: name -> pinned env, in the order of the stages
+    """
+    moving = sorted({"switch_at", "schedules"} & set(schedule_kwargs))
+    if moving:
+        raise ValueError(f"stage_envs: {moving} would move the copies out of their stage; give only the stages")
+    names = (
+        list(names)
+        if names is not None
+        else [f"Env-{chr(ord('A') + i)}" if i < 26 else f"Env-{i}" for i in range(len(stages))]
+    )
+    if len(names) != len(stages) or len(set(names)) != len(names):
+        raise ValueError(f"stage_envs needs one distinct name per stage: {len(stages)} stages, names {names}")
+    envs: Dict[str, DynamicsSchedule] = {}
+    for index, name in enumerate(names):
+        env = DynamicsSchedule(gym.make(env_id, **dict(env_kwargs or {})), stages=stages, **schedule_kwargs)
+        env.set_stage(index, immediate=True)
+        envs[name] = env
+    return envs
