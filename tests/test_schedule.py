@@ -294,3 +294,22 @@ def test_errors_for_unsupported_envs_and_manual_calls() -> None:
         env.set_stage(3)
     with pytest.raises(ValueError, match="unknown dynamics parameter 'grav'"):
         env.set_params(grav=1.0)
+
+
+def test_stage_envs_pins_one_copy_per_stage():
+    from sb3_lifelong.envs import stage_envs
+
+    stages = [{}, {"hip_deformation": 0.3}, "default"]
+    envs = stage_envs("Hopper-v5", stages, append_params=True)
+    assert list(envs) == ["Env-A", "Env-B", "Env-C"]
+    for index, env in enumerate(envs.values()):
+        obs, info = env.reset(seed=0)
+        assert info["stage"] == index and obs.shape == env.observation_space.shape
+        for _ in range(3):
+            assert env.step(env.action_space.sample())[-1]["stage"] == index
+    assert envs["Env-B"].dynamics_params["hip_deformation"] == pytest.approx(0.3)
+    assert list(stage_envs("Hopper-v5", stages[:2], names=["old", "new"])) == ["old", "new"]
+    with pytest.raises(ValueError, match="switch_at"):
+        stage_envs("Hopper-v5", stages, switch_at=[10, 20])
+    with pytest.raises(ValueError, match="one distinct name per stage"):
+        stage_envs("Hopper-v5", stages, names=["a", "a", "b"])
