@@ -241,6 +241,31 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         super().set_env(env, force_reset=force_reset)
         self._replay_env_rng()
 
+    def _raise_if_not_finite(self, **values: th.Tensor) -> None:
+        """
+        Stop training, with an error naming the update, as soon as a loss or a dual variable is NaN or infinite (a NaN
+        reward in a buffer that does not refuse it, e.g. SB3's ``ReplayBuffer``, would otherwise spread to every
+        parameter). Cheap: one ``isfinite`` over the few values concatenated, one device synchronisation per update;
+        the values are looked at one by one only to write the message.
+
+        :param values: name -> tensor (a loss, or a dual's raw parameters)
+        :raises FloatingPointError: naming the values that are not finite, the update and the timestep
+        """
+        if bool(th.isfinite(th.cat([value.detach().reshape(-1) for value in values.values()])).all()):
+            return
+        bad = {
+            name: value.detach().reshape(-1).tolist()
+            for name, value in values.items()
+            if not bool(th.isfinite(value.detach()).all())
+        }
+        described = ", ".join(f"{name} = {v[0] if len(v) == 1 else v}" for name, v in bad.items())
+        raise FloatingPointError(
+            f"{type(self).__name__}: {described} at update {self._n_updates} (num_timesteps {self.num_timesteps}): not "
+            "finite, training stopped. The parameters this update changed may hold NaN or inf now: go on from the last "
+            "checkpoint. Usual causes: a NaN or infinite reward, observation or action in the data (SB3's ReplayBuffer "
+            "stores them; LifelongReplayBuffer refuses them at add()), or a learning rate too high"
+        )
+
     def _make_scoring_copy(self, critic: th.nn.Module, scoring_dtype: str) -> Optional[LowPrecisionCopy]:
         """
         A low-precision copy of ``critic`` for the no-grad scoring passes, when ``scoring_dtype`` asks for one

@@ -648,6 +648,8 @@ class CRR(LifelongOfflineAlgorithm):
             self._gradient_step(self.critic, fit.loss)
             regression_loss = actor_loss(actions, mean, std, advantage.weights)
             self._gradient_step(self.actor, regression_loss)
+            # one check per update, before the average and the targets take anything non-finite
+            self._raise_if_not_finite(critic_loss=fit.loss, actor_loss=regression_loss)
             if self.actor_averaging is not None:
                 self._update_actor_average()
             if self._n_updates % self.target_update_interval == 0:

@@ -420,6 +420,15 @@ class MPO(LifelongOffPolicyAlgorithm):
                 policy_obs = replay_data.next_observations if self.policy_on_next_obs else replay_data.observations
                 improvement = self._update_actor_and_duals(policy_obs, targets)
             logged.append((critic_fit, improvement))
+            # one check per update, before the targets take anything non-finite (the duals: after their step)
+            self._raise_if_not_finite(
+                critic_loss=critic_fit.critic_loss,
+                actor_loss=improvement.actor_loss,
+                log_temperature=self.log_temperature,
+                log_alpha_mean=self.log_alpha_mean,
+                log_alpha_stddev=self.log_alpha_stddev,
+                log_penalty_temperature=self.log_penalty_temperature,
+            )
             if self._n_updates % self.target_update_interval == 0:
                 self._update_targets()
 
