@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from typing import Any, Optional, Union
 
 import numpy as np
@@ -1087,6 +1088,42 @@ class LifelongReplayBuffer(_LifelongSampler):
         """Flush and release the directory, and close the files opened by ``read_mode="pread"`` (its data stays
         readable from this object)."""
         self.store.close()
+
+    def checkpoint(self) -> Optional[dict[str, Any]]:
+        """
+        Commit the buffer for a model checkpoint (what the ``save`` of this package's algorithms calls): flush the
+        pending transitions, so that a crash right after the checkpoint loses none of them.
+
+        :return: ``{"path": directory, "transitions": global number of transitions committed}`` (transitions ever
+            committed, evicted ones included), recorded in the checkpoint; None in memory
+        :raises OSError: the flush failed (then nothing new is committed, and the checkpoint must not be written)
+        """
+        if self.store.path is None:
+            return None
+        self.store.flush()  # no-op for a read-only buffer: it records what the writer committed
+        return {"path": self.store.path, "transitions": int(self.store.num_committed)}
+
+    def check_checkpoint(self, record: dict[str, Any], checkpoint: str = "the checkpoint") -> None:
+        """
+        Warn when this buffer holds fewer transitions than ``record`` (from :meth:`checkpoint`) says were committed
+        when the model was saved: the directory lags the checkpoint (an older copy, or rows lost outside this
+        package), and resuming would train on less data than the saved model had.
+
+        :param record: What :meth:`checkpoint` returned when the model was saved
+        :param checkpoint: The checkpoint, for the message
+        """
+        if self.store.path is None or not isinstance(record, dict) or not isinstance(record.get("transitions"), int):
+            return
+        held, recorded = int(self.store.end), record["transitions"]
+        if held < recorded:
+            where = "" if record.get("path") == self.store.path else f" (then at {record.get('path')})"
+            warnings.warn(
+                f"{self.store.path} holds {held:,} transitions, but {checkpoint} was saved when its buffer{where} had "
+                f"committed {recorded:,}: the buffer on disk lags the model by {recorded - held:,} transitions (an older "
+                "copy of the directory?). learn(..., reset_num_timesteps=False) would go on with fewer transitions than "
+                "the saved model had; open the buffer directory the model was saved with",
+                stacklevel=3,
+            )
 
     def _index_sources(self, start: int) -> None:
         """Add the source ids of the retained rows from index ``start`` on to the run index."""

@@ -3,11 +3,15 @@ Base class of this package's off-policy algorithms: SB3's ``OffPolicyAlgorithm``
 streams of training and of the environment's resets are saved with the model and restored by ``load``).
 """
 
+import base64
 import inspect
 import io
+import json
 import pathlib
+import pickletools
 import random
 import warnings
+import zipfile
 from collections.abc import Callable, Iterable
 from typing import Any, Optional, TypeVar, Union
 
@@ -136,6 +140,83 @@ class EpisodeRngRecorder(gym.Wrapper):
         :param record: The saved record
         """
         self._replay = record
+
+
+def _describe(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> str:
+    """A saved model's path for messages (``the checkpoint`` for a file object)."""
+    return str(path) if isinstance(path, (str, pathlib.Path)) else "the checkpoint"
+
+
+def _saved_policy_class(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> Optional[tuple[str, str]]:
+    """
+    The policy class recorded in a saved model, read without unpickling anything: the module and name that the
+    pickled class reference of ``data["policy_class"]`` pushes (the pickle's opcodes are only listed, never run).
+
+    :param path: The zip (``.zip`` added if missing, as SB3 does) or a seekable file object
+    :return: ``(module, name)``, or None when it cannot be told
+    """
+    try:
+        if isinstance(path, (str, pathlib.Path)):
+            name = pathlib.Path(path)
+            if not name.exists():  # SB3 adds the suffix to a path that does not exist
+                name = name.with_name(name.name + ".zip")
+            with zipfile.ZipFile(name) as archive:
+                data = json.loads(archive.read("data"))
+        elif path.seekable():
+            position = path.tell()
+            try:
+                with zipfile.ZipFile(path) as archive:  # type: ignore[arg-type]
+                    data = json.loads(archive.read("data"))
+            finally:
+                path.seek(position)
+        else:
+            return None
+        serialized = base64.b64decode(data["policy_class"][":serialized:"].encode())
+        strings: list[str] = []
+        for opcode, argument, _ in pickletools.genops(serialized):
+            if isinstance(argument, str) and opcode.name in ("SHORT_BINUNICODE", "BINUNICODE", "UNICODE", "BINUNICODE8"):
+                strings.append(argument)
+            elif opcode.name == "STACK_GLOBAL" and len(strings) >= 2:
+                return strings[-2], strings[-1]
+            elif opcode.name == "GLOBAL" and isinstance(argument, str) and " " in argument:
+                module, qualname = argument.split(" ", 1)
+                return module, qualname
+    except Exception:  # not a zip, no data, not the expected pickle: SB3's load reports it
+        return None
+    return None
+
+
+def _algorithms(base: type) -> list[type]:
+    """Every algorithm class derived from ``base`` (those imported), ``base`` included."""
+    found = [base]
+    for subclass in base.__subclasses__():
+        found.extend(_algorithms(subclass))
+    return found
+
+
+def _check_saved_algorithm(cls: type, path: Union[str, pathlib.Path, io.BufferedIOBase]) -> None:
+    """
+    Refuse, before anything is built, a zip saved by another of this package's algorithms (its policy class is one
+    of that algorithm's, not of ``cls``), naming both classes.
+
+    :raises ValueError: e.g. ``CRR.load`` of an MPO zip
+    """
+    saved = _saved_policy_class(path)
+    if saved is None:
+        return
+
+    def policies(algorithm: type) -> set[tuple[str, str]]:
+        aliases = getattr(algorithm, "policy_aliases", {}) or {}
+        return {(policy.__module__, policy.__qualname__) for policy in aliases.values()}
+
+    if saved in policies(cls):
+        return
+    owners = [a.__name__ for a in _algorithms(LifelongOffPolicyAlgorithm) if a is not cls and saved in policies(a)]
+    if owners:
+        raise ValueError(
+            f"{_describe(path)} was saved by {owners[0]} (its policy is {saved[0]}.{saved[1]}), not by {cls.__name__}: "
+            f"load it with {owners[0]}.load"
+        )
 
 
 class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
@@ -342,12 +423,57 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         if env is not None and env.has_attr(SYNC_TIMESTEP_METHOD):
             env.env_method(SYNC_TIMESTEP_METHOD, timestep=timestep, n_envs=env.num_envs)
 
+    def _checkpoint_buffer(self) -> Optional[dict[str, Any]]:
+        """
+        Commit the replay buffer for a checkpoint, when it can (a ``LifelongReplayBuffer`` directory: its pending
+        transitions are flushed), and say what the checkpoint records of it.
+
+        :return: ``{"path", "transitions"}`` (the transitions the buffer has committed), or None
+        """
+        checkpoint = getattr(self.replay_buffer, "checkpoint", None)
+        if callable(checkpoint):
+            return checkpoint()
+        if self.replay_buffer is None:  # loaded without its buffer: what the loaded checkpoint recorded, as it was
+            return self.__dict__.get("_buffer_checkpoint")
+        return None
+
+    def _check_buffer_checkpoint(self, checkpoint: str = "the checkpoint") -> None:
+        """Warn when the replay buffer holds fewer transitions than the loaded checkpoint recorded as committed."""
+        record = self.__dict__.get("_buffer_checkpoint")
+        check = getattr(self.replay_buffer, "check_checkpoint", None)
+        if isinstance(record, dict) and callable(check):
+            check(record, checkpoint)
+
+    def load_replay_buffer(self, path: Union[str, pathlib.Path, io.BufferedIOBase], truncate_last_traj: bool = True) -> None:
+        """
+        SB3's ``load_replay_buffer`` (a pickle: load only files you trust, it can run code), then, for a
+        ``LifelongReplayBuffer`` directory, a warning if it holds fewer transitions than the model's checkpoint
+        recorded as committed.
+
+        :param path: The pickled buffer
+        :param truncate_last_traj: As for SB3 (HER buffers)
+        """
+        super().load_replay_buffer(path, truncate_last_traj)
+        self._check_buffer_checkpoint()
+
     def save(
         self,
         path: Union[str, pathlib.Path, io.BufferedIOBase],
         exclude: Optional[Iterable[str]] = None,
         include: Optional[Iterable[str]] = None,
     ) -> None:
+        """
+        SB3's ``save``, plus what exact resumption needs (random streams, episode starts). A checkpoint commits the
+        replay buffer: a ``LifelongReplayBuffer`` directory is flushed first (if that fails, the ``OSError`` goes
+        through and no file is written), and the number of transitions it has committed is recorded in the zip, so
+        that ``load`` can warn when the buffer on disk lags the checkpoint.
+
+        :param path: The file (``.zip`` added if missing) or a file object
+        :param exclude: As for SB3
+        :param include: As for SB3
+        """
+        # the buffer first: a checkpoint whose buffer cannot be committed is not written
+        self._buffer_checkpoint = self._checkpoint_buffer()
         # loaded and not trained since: the streams and records to continue from are those that were loaded
         self._rng_state = self._pending_rng_state() or capture_rng_state(self.action_space)
         pending = self.__dict__.get("_env_rng")  # loaded without an env: saved again as it was
@@ -374,15 +500,41 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         force_reset: bool = True,
         **kwargs,
     ) -> SelfLifelongAlgorithm:
-        model = super().load(
-            path,
-            env=env,
-            device=device,
-            custom_objects=custom_objects,
-            print_system_info=print_system_info,
-            force_reset=force_reset,
-            **kwargs,
-        )
+        """
+        SB3's ``load``, plus exact resumption (random streams, episode starts) and clear errors: a zip saved by another
+        of this package's algorithms is refused with a ``ValueError`` naming both classes, and a ``LifelongReplayBuffer``
+        directory (reopened from ``replay_buffer_kwargs``) that holds fewer transitions than the checkpoint recorded
+        as committed gives a warning.
+
+        Loading unpickles the Python objects of the zip's ``data`` (spaces, schedules, classes) with cloudpickle, as SB3
+        does: a tampered zip can run code. Load only files you trust.
+
+        :param path: The saved model (``.zip`` added if missing) or a file object
+        :param env: As for SB3
+        :param device: As for SB3
+        :param custom_objects: As for SB3
+        :param print_system_info: As for SB3
+        :param force_reset: As for SB3
+        :param kwargs: As for SB3 (e.g. ``replay_buffer_kwargs``)
+        :return: The model
+        """
+        _check_saved_algorithm(cls, path)
+        try:
+            model = super().load(
+                path,
+                env=env,
+                device=device,
+                custom_objects=custom_objects,
+                print_system_info=print_system_info,
+                force_reset=force_reset,
+                **kwargs,
+            )
+        except KeyError as error:  # e.g. a state dict this class saves that the zip does not hold
+            raise ValueError(
+                f"{_describe(path)} does not hold what {cls.__name__} saves (missing {error}): was it saved by another "
+                "algorithm? Load it with the class that saved it"
+            ) from error
+        model._check_buffer_checkpoint(_describe(path))
         rng_state = model.__dict__.pop("_rng_state", None)
         if rng_state is not None:
             restore_rng_state(rng_state, model.action_space)
