@@ -567,3 +567,41 @@ def test_bench_crr_levers_lean_adam_is_adams_update(monkeypatch: pytest.MonkeyPa
     for param, lean_param in zip(reference[0].parameters(), lean[0].parameters()):
         assert th.equal(param, lean_param)
     assert not th.equal(next(reference[0].parameters()), next(make()[0].parameters()))  # the steps moved the weights
+
+
+def test_imbalance_dose_study(study, tmp_path):
+    """benchmarks/imbalance_dose.py: the collector measured, the seven dose students, preconditions and claims."""
+    import argparse
+
+    dose = benchmark_module("imbalance_dose")
+    output, _ = study
+    results = tmp_path / "results"
+    args = argparse.Namespace(
+        robot="tiny", seed=0, updates=60, students=None, runs=str(tmp_path), study=str(output),
+        students_output=str(tmp_path / "students"), results=str(results),
+    )  # fmt: skip
+    dose.run(args)
+    collector = json.loads((results / "tiny" / "seed_0" / "collector.json").read_text())
+    for key in ("stage1_last5_Env-A", "end_last5_Env-A", "stage1_same_episodes_Env-A", "final_same_episodes_Env-B"):
+        assert np.isfinite(collector[key]), key
+    assert collector["mc_return_x3_Env-B"] == pytest.approx(3 * collector["mc_return_x1_Env-B"])  # the reward dose
+    assert collector["mc_return_x3_Env-A"] == pytest.approx(collector["mc_return_x1_Env-A"])
+    summary = json.loads((results / "tiny" / "seed_0" / "students.json").read_text())
+    assert set(summary["students"]) == {"A_only", *(f"{t}_{d}" for t in ("ind", "ess") for d in dose.DOSES)}
+    ess = summary["students"]["ess_x1_1to5"]
+    assert ess["weight_ess"] == pytest.approx(dose.TARGET_ESS, abs=0.01) and ess["beta"] > 0
+    assert np.isnan(summary["students"]["ind_x1_1to5"]["beta"])
+    # one support for every dose, holding the x3 rewards
+    supports = set()
+    for name in summary["students"]:
+        done = json.loads((tmp_path / "students" / "seed_0" / f"distill_{name}" / "done.json").read_text())
+        supports.add(tuple(sorted(done["settings"]["kwargs"]["policy_kwargs"].items())))
+    assert len(supports) == 1
+    rerun = dose.run(args)  # finished students are skipped
+    assert rerun is None
+    dose.report(argparse.Namespace(results=str(results)))
+    claims = pd.read_csv(results / "claims.csv")
+    assert {"claim", "preconditions_held", "result"} <= set(claims.columns)
+    assert set(claims["result"]) <= {"reproduced", "not reproduced", "not testable"}
+    assert (claims["result"] == "not testable").all()  # one seed: no claim is testable
+    assert (results / "dose_tiny.png").exists() and "P1" in (results / "results.md").read_text()

@@ -23,7 +23,8 @@ Layout of ``<output>/seed_<k>/``::
     buffer/, buffer_stage1/     the lifetime buffer and its Stage-1 part (large: never commit them)
     collect/stage1.zip          the Stage-1 MPO agent
     <job>/eval.csv              timesteps, env, mean_reward, std_reward, n_episodes
-    <job>/q_sources.csv         timesteps, source, name, q_mean, n
+    <job>/q_sources.csv         timesteps, source, name, q_mean, n (+ q_probe, mc_return, overestimation, n_mc)
+    <job>/train.csv             timesteps, the train/ values (losses, weight_ess, beta, ...)
     <job>/done.json             wall time and the job's settings
 """
 
@@ -47,7 +48,7 @@ except ImportError:  # pragma: no cover
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.buffers.storage import write_json_atomic
-from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
+from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.envs import DynamicsSchedule
@@ -434,9 +435,12 @@ def _callbacks(
     seed: int,
     data: Optional[Any] = None,
     q: bool = True,
+    reward_scale: Optional[dict[int, float]] = None,
     **eval_kwargs: Any,
 ) -> list[Any]:
+    # the train/ values first: the evaluation dumps the logger, which clears them
     callbacks: list[Any] = [
+        TrainLogCallback(directory / "train.csv", log_freq=eval_freq),
         MultiEnvEvalCallback(
             make_eval_envs(preset),
             eval_freq,
@@ -447,7 +451,8 @@ def _callbacks(
         )
     ]
     if q:
-        callbacks.append(SourceQCallback(log_freq=eval_freq, log_path=directory / "q_sources.csv", data=data))
+        q_log = directory / "q_sources.csv"
+        callbacks.append(SourceQCallback(log_freq=eval_freq, log_path=q_log, data=data, reward_scale=reward_scale))
     return callbacks
 
 
@@ -574,7 +579,14 @@ def distill_student(
         scales = list((student.reward_scale or {}).values())
         common["policy_kwargs"].update(value_support(data.reward_range(), kwargs.get("gamma", 0.99), scales))
     callbacks = _callbacks(
-        preset, directory, preset.distill_eval_freq, seed, data=everything, q=algorithm is CRR, sources=sources
+        preset,
+        directory,
+        preset.distill_eval_freq,
+        seed,
+        data=everything,
+        q=algorithm is CRR,
+        reward_scale=student.reward_scale,
+        sources=sources,
     )
     model = distill(
         data,

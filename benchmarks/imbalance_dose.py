@@ -1,0 +1,462 @@
+"""
+The imbalance as a dose: does CRR with the indicator transform drop in Env-A as Env-B's share of the batches or
+Env-B's reward grows, while a student held close to the data (the exp transform at a fixed effective sample size,
+``target_ess``) stays flat? Pre-registered in ``benchmarks/results/imbalance_dose/README.md`` (design, preconditions,
+pass criteria) before any run.
+
+One seed is two commands: the collection (``python -m sb3_lifelong.experiments run --preset dose_hopper --seed K
+--output runs/imbalance_dose_hopper``), then this script's ``run``, which measures the collector (frozen Stage-1 agent
+against the end, on the same evaluation episodes; its critic's overestimation per source at the switch and at the end;
+the Monte-Carlo value of each source at each reward dose) and trains the seven students on the seed's buffer (a
+finished student is skipped when the command is run again)::
+
+    OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot hopper --seed 0
+    python benchmarks/imbalance_dose.py report     # preconditions, claims.csv, tables, the figure, every seed so far
+
+Small results go to ``benchmarks/results/imbalance_dose/<robot>/seed_<k>/``; buffers and students stay in ``runs/``.
+"""
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import pathlib
+import time
+from typing import Any, Optional
+
+import numpy as np
+
+RESULTS = pathlib.Path(__file__).parent / "results" / "imbalance_dose"
+
+#: robot -> (the collection's preset, P1's Env-A return threshold)
+#: (``tiny``: the tests' smoke run, no threshold)
+ROBOTS = {"hopper": ("dose_hopper", 1000.0), "cheetah": ("dose_cheetah", 1500.0), "tiny": ("tiny", 0.0)}
+#: the conservative student's effective sample size, as a fraction of the batch
+TARGET_ESS = 0.9
+#: the doses: Env-B reward scale and the Env-A : Env-B sampling share
+DOSES = {"x1_1to5": (1.0, (1, 5)), "x3_1to5": (3.0, (1, 5)), "x1_1to20": (1.0, (1, 20))}
+BASE_DOSE = "x1_1to5"
+#: the transforms: the indicator, and exp at a fixed effective sample size
+TRANSFORMS = {"ind": dict(advantage_transform="indicator"), "ess": dict(advantage_transform="exp", target_ess=TARGET_ESS)}
+#: the score of an evaluated policy: the mean of its last evaluations (students) / of the collector's
+LAST_STUDENT_EVALS = 3
+LAST_MPO_EVALS = 5
+#: the preconditions' thresholds (pre-registered)
+A_ONLY_SHARE = 0.5
+FORGETTING_SHARE = 0.8
+VALUE_GAP = 1.1
+MIN_ESS = 0.8
+MAX_CLIP = 0.01
+
+
+def student_settings(support: dict[str, float]) -> dict[str, Any]:
+    """The seven students of a seed, all with the same categorical support (it holds the x3 rewards)."""
+    from sb3_lifelong.experiments.protocol import Student
+
+    network = {"policy_kwargs": dict(support)}
+    students = {"A_only": Student("CRR", {**TRANSFORMS["ind"], **network}, ratio=(1, 0), about="indicator, Env-A only")}
+    for transform, kwargs in TRANSFORMS.items():
+        for dose, (reward, share) in DOSES.items():
+            students[f"{transform}_{dose}"] = Student(
+                "CRR",
+                {**kwargs, **network},
+                ratio=share,
+                reward_scale=None if reward == 1.0 else {1: reward},
+                about=f"{transform}, Env-B reward x{reward:g}, sampled {share[0]}:{share[1]}",
+            )
+    return students
+
+
+# ------------------------------------------------------------------------------------------------- the collector
+def last_mean(eval_csv: pathlib.Path, env: str, upto: Optional[int], count: int) -> tuple[float, list[float]]:
+    """:return: the mean of the last ``count`` evaluations in ``env`` at timesteps <= ``upto``, and those values"""
+    rows = [row for row in csv.DictReader(open(eval_csv)) if row["env"] == env]
+    rows = [row for row in rows if upto is None or int(row["timesteps"]) <= upto]
+    values = [float(row["mean_reward"]) for row in rows[-count:]]
+    return float(np.mean(values)), values
+
+
+def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int) -> dict[str, Any]:
+    """The collector's side of the preconditions and claims C1, C5; the data's Monte-Carlo value per source."""
+    import torch as th
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.monitor import Monitor
+
+    from sb3_lifelong import MPO, LifelongReplayBuffer
+    from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET
+    from sb3_lifelong.common.overestimation import MonteCarloProbe, discounted_returns
+    from sb3_lifelong.experiments.protocol import PRESETS, make_eval_envs
+
+    preset = PRESETS[ROBOTS[robot][0]]
+    run_dir = study / f"seed_{seed}"
+    eval_csv = run_dir / "collect" / "eval.csv"
+    switch = preset.stage_steps[0]
+    out: dict[str, Any] = dict(robot=robot, seed=seed, preset=ROBOTS[robot][0], switch=switch)
+    for env in preset.env_names:
+        out[f"stage1_last5_{env}"], out[f"stage1_evals_{env}"] = last_mean(eval_csv, env, switch, LAST_MPO_EVALS)
+        out[f"end_last5_{env}"], out[f"end_evals_{env}"] = last_mean(eval_csv, env, None, LAST_MPO_EVALS)
+    # the frozen Stage-1 agent and the end agent on the same evaluation episodes
+    agents = {name: MPO.load(run_dir / "collect" / f"{name}.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
+              for name in ("stage1", "final")}  # fmt: skip
+    for name, agent in agents.items():
+        for env_name, env in make_eval_envs(preset).items():
+            env = Monitor(env)
+            env.reset(seed=EVAL_SEED_OFFSET + seed)
+            mean, _ = evaluate_policy(agent, env, n_eval_episodes=episodes, deterministic=True)
+            out[f"{name}_same_episodes_{env_name}"] = float(mean)
+    out["same_episodes"] = episodes
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        names = {source: meta.get("name", f"source_{source}") for source, meta in buffer.sources.items()}
+        for name, agent in agents.items():
+            probe = MonteCarloProbe(buffer, agent.gamma, per_source=4096, seed=seed)
+            for source, measured in probe.measure(agent.critic).items():
+                out[f"{name}_overestimation_{names[source]}"] = measured.overestimation
+                out[f"{name}_q_{names[source]}"] = measured.q_mean
+        columns = buffer.to_d4rl(by_episode=True, normalized_actions=True)
+    sources = columns["sources"].reshape(-1)
+    for reward in sorted({r for r, _ in DOSES.values()}):
+        scale = np.where(sources == 1, reward, 1.0)
+        mc = discounted_returns(columns["rewards"].reshape(-1) * scale, columns["terminals"], columns["timeouts"], 0.99)
+        for source, name in names.items():
+            rows = (sources == source) & mc.valid
+            out[f"mc_return_x{reward:g}_{name}"] = float(mc.returns[rows].mean()) if rows.any() else math.nan
+    out["reward_range"] = [float(columns["rewards"].min()), float(columns["rewards"].max())]
+    out["rows"] = {names[s]: int((sources == s).sum()) for s in names}
+    del th
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- the students
+def summarise_student(directory: pathlib.Path, env_names: tuple[str, ...]) -> dict[str, Any]:
+    """A finished student's scores, overestimation per source at the end, and its weights' statistics."""
+    out: dict[str, Any] = {}
+    for env in env_names:
+        out[f"return_{env}"], out[f"evals_{env}"] = last_mean(directory / "eval.csv", env, None, LAST_STUDENT_EVALS)
+    q_rows = list(csv.DictReader(open(directory / "q_sources.csv")))
+    last = max(int(row["timesteps"]) for row in q_rows)
+    for row in q_rows:
+        if int(row["timesteps"]) == last and row.get("overestimation"):
+            out[f"overestimation_{row['name']}"] = float(row["overestimation"])
+            out[f"q_{row['name']}"] = float(row["q_probe"])
+    train = list(csv.DictReader(open(directory / "train.csv")))
+    late = train[len(train) // 2 :]  # the second half of training
+    for key in ("weight_ess", "weight_clip_frac", "beta"):
+        values = [float(row[key]) for row in late if row.get(key) not in (None, "")]
+        out[key] = float(np.mean(values)) if values else math.nan
+    out["seconds"] = json.loads((directory / "done.json").read_text()).get("seconds")
+    return out
+
+
+def run(args: argparse.Namespace) -> None:
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.experiments.protocol import PRESETS, distill_on_study, value_support
+
+    preset_name, _ = ROBOTS[args.robot]
+    preset = dataclasses.replace(PRESETS[preset_name], distill_steps=args.updates)
+    study = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}")
+    output = pathlib.Path(args.students_output or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}_students")
+    results = pathlib.Path(args.results) / args.robot / f"seed_{args.seed}"
+    results.mkdir(parents=True, exist_ok=True)
+    collector_json = results / "collector.json"
+    if not collector_json.exists():
+        start = time.perf_counter()
+        measured = measure_collector(args.robot, args.seed, study, episodes=2 * preset.eval_episodes)
+        measured["seconds"] = time.perf_counter() - start
+        collector_json.write_text(json.dumps(measured, indent=1))
+        print(f"collector measured in {measured['seconds']:.0f} s -> {collector_json}")
+    with LifelongReplayBuffer.open(study / f"seed_{args.seed}" / "buffer", read_only=True) as buffer:
+        support = value_support(buffer.reward_range(), 0.99, [r for r, _ in DOSES.values()])
+    students = student_settings(support)
+    chosen = {name: students[name] for name in (args.students or students)}
+    about = dict(study="imbalance_dose", robot=args.robot, updates=args.updates, support=support)
+    distill_on_study(study, args.seed, output, chosen, preset, about=about)
+    rows = {}
+    for name in students:
+        directory = output / f"seed_{args.seed}" / f"distill_{name}"
+        if (directory / "done.json").exists():
+            rows[name] = {**summarise_student(directory, preset.env_names), "updates": args.updates}
+    (results / "students.json").write_text(json.dumps(dict(support=support, students=rows), indent=1))
+    print(f"{len(rows)} students summarised -> {results / 'students.json'}")
+
+
+# ------------------------------------------------------------------------------------------------- the report
+def t_interval(values: list[float]) -> tuple[float, float, float, float]:
+    """:return: mean, std (ddof 1), and the 95 % t-interval of the mean (NaN with fewer than two values)"""
+    from scipy import stats
+
+    data = np.asarray(values, dtype=float)
+    mean = float(data.mean()) if len(data) else math.nan
+    if len(data) < 2:
+        return mean, math.nan, math.nan, math.nan
+    std = float(data.std(ddof=1))
+    half = float(stats.t.ppf(0.975, len(data) - 1)) * std / math.sqrt(len(data))
+    return mean, std, mean - half, mean + half
+
+
+def fmt(values: list[float]) -> str:
+    mean, std, low, high = t_interval(values)
+    if len(values) < 2:
+        return f"{mean:.0f} (1 seed)" if values else "-"
+    return f"{mean:.0f} +- {std:.0f} [{low:.0f}, {high:.0f}]"
+
+
+def seed_preconditions(robot: str, collector: dict[str, Any], students: dict[str, Any]) -> dict[str, Any]:
+    """Each precondition of one seed, with its measured value."""
+    threshold = ROBOTS[robot][1]
+    reference = collector["stage1_last5_Env-A"]
+    p: dict[str, Any] = {"stage1_Env-A": reference}
+    a_only = students.get("A_only", {}).get("return_Env-A", math.nan)
+    p["A_only_Env-A"] = a_only
+    p["P1_agent"] = reference >= threshold
+    p["P1"] = p["P1_agent"] and a_only >= A_ONLY_SHARE * reference
+    p["end_Env-A"] = collector["end_last5_Env-A"]
+    p["P2"] = collector["end_last5_Env-A"] <= FORGETTING_SHARE * reference
+    for reward in sorted({r for r, _ in DOSES.values()}):
+        a, b = collector[f"mc_return_x{reward:g}_Env-A"], collector[f"mc_return_x{reward:g}_Env-B"]
+        p[f"gap_x{reward:g}"] = b / a if a > 0 else math.nan
+        p[f"P3_x{reward:g}"] = a > 0 and b >= VALUE_GAP * a
+    ess = [students[name]["weight_ess"] for name in students if name.startswith("ess_")]
+    clip = [students[name]["weight_clip_frac"] for name in students if name.startswith("ess_")]
+    p["ess_min"], p["clip_max"] = (min(ess), max(clip)) if ess else (math.nan, math.nan)
+    p["P4"] = bool(ess) and min(ess) >= MIN_ESS and max(clip) <= MAX_CLIP
+    return p
+
+
+def report(args: argparse.Namespace) -> None:
+    root = pathlib.Path(args.results)
+    lines = ["# Results (generated by `python benchmarks/imbalance_dose.py report`)", ""]
+    claims_rows = []
+    for robot in ROBOTS:
+        seeds = sorted(root.glob(f"{robot}/seed_*/collector.json"))
+        if not seeds:
+            continue
+        data = {}
+        for path in seeds:
+            seed = int(path.parent.name.split("_")[1])
+            students_path = path.parent / "students.json"
+            students = json.loads(students_path.read_text())["students"] if students_path.exists() else {}
+            data[seed] = (json.loads(path.read_text()), students)
+        lines += [f"## {robot}: seeds {sorted(data)}", ""]
+        lines += collector_table(data)
+        lines += student_table(data)
+        pre = {seed: seed_preconditions(robot, *data[seed]) for seed in data}
+        lines += precondition_table(pre)
+        rows = claims(robot, data, pre)
+        claims_rows += rows
+        lines += ["", "| claim | testable seeds | preconditions held | result | evidence |", "| --- | --- | --- | --- | --- |"]
+        lines += [
+            f"| {r['claim']} | {r['seeds']} | {r['preconditions_held']} | {r['result']} | {r['evidence']} |" for r in rows
+        ]
+        lines.append("")
+        figure(robot, data, root)
+    with open(root / "claims.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["robot", "claim", "seeds", "preconditions_held", "result", "evidence"])
+        writer.writeheader()
+        writer.writerows(claims_rows)
+    (root / "results.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def collector_table(data: dict[int, Any]) -> list[str]:
+    lines = ["| seed | Stage-1 in A (last 5) | end in A (last 5) | frozen vs end in A, same episodes | Stage-1 / end in B "
+             "| overestimation on A: switch -> end | on B at end | MC value A / B (x1) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    for seed, (c, _) in sorted(data.items()):
+        same = [c[f"{agent}_same_episodes_{env}"] for env in ("Env-A", "Env-B") for agent in ("stage1", "final")]
+        over = [c.get(key, math.nan) for key in ("stage1_overestimation_Env-A", "final_overestimation_Env-A")]
+        cells = [
+            f"{c['stage1_last5_Env-A']:.0f}",
+            f"{c['end_last5_Env-A']:.0f}",
+            f"{same[0]:.0f} vs {same[1]:.0f}",
+            f"{same[2]:.0f} / {same[3]:.0f}",
+            f"{over[0]:+.1f} -> {over[1]:+.1f}",
+            f"{c.get('final_overestimation_Env-B', math.nan):+.1f}",
+            f"{c['mc_return_x1_Env-A']:.1f} / {c['mc_return_x1_Env-B']:.1f}",
+        ]
+        lines.append(f"| {seed} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def student_table(data: dict[int, Any]) -> list[str]:
+    names = sorted({name for _, students in data.values() for name in students}, key=lambda n: (n != "A_only", n))
+    if not names:
+        return ["(no student finished yet)", ""]
+    lines = ["| student | Env-A return (last 3 evals) | Env-B return | overestimation on A | weight ESS | clip | beta "
+             "| per seed (Env-A) |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    for name in names:
+        have = [(seed, s[name]) for seed, (_, s) in sorted(data.items()) if name in s]
+        per_seed = ", ".join(f"{seed}: {row['return_Env-A']:.0f}" for seed, row in have)
+        ess = np.mean([row["weight_ess"] for _, row in have])
+        clip = np.mean([row["weight_clip_frac"] for _, row in have])
+        beta = np.nanmean([row["beta"] for _, row in have]) if any(np.isfinite(row["beta"]) for _, row in have) else math.nan
+        over = [row.get("overestimation_Env-A", math.nan) for _, row in have]
+        lines.append(
+            f"| {name} | {fmt([r['return_Env-A'] for _, r in have])} | {fmt([r['return_Env-B'] for _, r in have])} "
+            f"| {np.mean(over):+.1f} | {ess:.2f} | {clip:.3f} | {beta:.2f} | {per_seed} |"
+        )
+    return [*lines, ""]
+
+
+def precondition_table(pre: dict[int, dict[str, Any]]) -> list[str]:
+    lines = ["| seed | P1 Stage-1 in A | P1 A_only in A | P2 end in A | P3 value gap B/A x1 | x3 | P4 ESS min / clip max |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    for seed, p in sorted(pre.items()):
+        mark = {True: "held", False: "failed"}
+        lines.append(
+            f"| {seed} | {p['stage1_Env-A']:.0f} ({mark[p['P1_agent']]}) | {p['A_only_Env-A']:.0f} ({mark[p['P1']]}) "
+            f"| {p['end_Env-A']:.0f} ({mark[p['P2']]}) | {p['gap_x1']:.2f} ({mark[p['P3_x1']]}) "
+            f"| {p['gap_x3']:.2f} ({mark[p['P3_x3']]}) | {p['ess_min']:.2f} / {p['clip_max']:.3f} ({mark[p['P4']]}) |"
+        )
+    return [*lines, ""]
+
+
+def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The pre-registered claims, each on the seeds where its preconditions held (>= 2 needed)."""
+    rows = []
+
+    def row(claim: str, seeds: list[int], result: str, evidence: str) -> None:
+        held = f"{len(seeds)} of {len(data)} seeds"
+        rows.append(dict(robot=robot, claim=claim, seeds=" ".join(map(str, seeds)), preconditions_held=held, result=result,
+                         evidence=evidence))  # fmt: skip
+
+    # C1: forgetting online
+    seeds = [s for s in data if pre[s]["P1_agent"]]
+    if len(seeds) < 2:
+        row("C1 MPO forgets Env-A", seeds, "not testable", f"P1 (Stage-1 in A) held on {len(seeds)} seed(s)")
+    else:
+        drops = [1 - data[s][0]["end_last5_Env-A"] / data[s][0]["stage1_last5_Env-A"] for s in seeds]
+        ok = np.mean(drops) >= 0.2 and all(d > 0 for d in drops)
+        row(
+            "C1 MPO forgets Env-A",
+            seeds,
+            "reproduced" if ok else "not reproduced",
+            "drops " + ", ".join(f"{d:.0%}" for d in drops),
+        )
+
+    def dose_drop(seed: int, transform: str, dose: str) -> float:
+        students = data[seed][1]
+        base, dosed = students.get(f"{transform}_{BASE_DOSE}"), students.get(f"{transform}_{dose}")
+        reference = students.get("A_only")
+        if base is None or dosed is None or reference is None:
+            return math.nan
+        return (base["return_Env-A"] - dosed["return_Env-A"]) / reference["return_Env-A"]
+
+    c2: dict[str, bool] = {}
+    for dose in DOSES:
+        if dose == BASE_DOSE:
+            continue
+        needs_gap = DOSES[dose][0] != 1.0
+        seeds = [s for s in data if pre[s]["P1"] and pre[s]["P2"] and (pre[s]["P3_x3"] or not needs_gap)]
+        seeds = [s for s in seeds if not math.isnan(dose_drop(s, "ind", dose))]
+        name = f"C2 indicator drops in A at {dose}"
+        if len(seeds) < 2:
+            row(name, seeds, "not testable", "preconditions or students missing on all but " + str(len(seeds)) + " seed(s)")
+            continue
+        drops = [dose_drop(s, "ind", dose) for s in seeds]
+        c2[dose] = np.mean(drops) >= 0.1 and sum(d > 0 for d in drops) >= min(2, len(drops))
+        row(
+            name,
+            seeds,
+            "reproduced" if c2[dose] else "not reproduced",
+            "drop / A_only: " + ", ".join(f"{d:+.0%}" for d in drops),
+        )
+        # C3: the conservative student stays flat (needs C2 and P4)
+        c3_seeds = [s for s in seeds if pre[s]["P4"] and not math.isnan(dose_drop(s, "ess", dose))]
+        name3 = f"C3 ESS student flat at {dose}"
+        if not c2[dose] or len(c3_seeds) < 2:
+            why = "C2 did not pass: no drop to stay flat against" if not c2[dose] else "P4 or students missing"
+            row(name3, c3_seeds, "not testable", why)
+        else:
+            ind = np.mean([dose_drop(s, "ind", dose) for s in c3_seeds])
+            ess = np.mean([dose_drop(s, "ess", dose) for s in c3_seeds])
+            row(
+                name3,
+                c3_seeds,
+                "reproduced" if ess < 0.5 * ind else "not reproduced",
+                f"drop ess {ess:+.0%} vs indicator {ind:+.0%}",
+            )
+        # C4: overestimation on Env-A grows with the dose
+        key = "overestimation_Env-A"
+        over = [(data[s][1][f"ind_{dose}"].get(key), data[s][1][f"ind_{BASE_DOSE}"].get(key)) for s in seeds]
+        rises = [a - b for a, b in over if a is not None and b is not None]
+        if len(rises) < 2:
+            row(f"C4 overestimation on A rises at {dose}", seeds, "not testable", "overestimation missing")
+        else:
+            row(f"C4 overestimation on A rises at {dose}", seeds, "reproduced" if np.mean(rises) > 0 else "not reproduced",
+                "rise " + ", ".join(f"{r:+.1f}" for r in rises))  # fmt: skip
+    # C5: forgetting risk online
+    seeds = [s for s in data if pre[s]["P1_agent"] and "final_overestimation_Env-A" in data[s][0]]
+    if len(seeds) < 2:
+        row("C5 MPO's overestimation on A grows after the switch", seeds, "not testable", f"P1 held on {len(seeds)} seed(s)")
+    else:
+        rises = [data[s][0]["final_overestimation_Env-A"] - data[s][0]["stage1_overestimation_Env-A"] for s in seeds]
+        result = "reproduced" if np.mean(rises) > 0 else "not reproduced"
+        row(
+            "C5 MPO's overestimation on A grows after the switch",
+            seeds,
+            result,
+            "rise " + ", ".join(f"{r:+.1f}" for r in rises),
+        )
+    return rows
+
+
+def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
+    """Env-A return of each student against the dose, per seed (thin) and the mean (thick), with the references."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only: no display
+    import matplotlib.pyplot as plt
+
+    doses = list(DOSES)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True)
+    for ax, env in zip(axes, ("Env-A", "Env-B")):
+        for transform, color, label in (("ind", "C3", "indicator"), ("ess", "C0", f"exp, ESS {TARGET_ESS:g}")):
+            curves = []
+            for _, (_, students) in sorted(data.items()):
+                ys = [students.get(f"{transform}_{d}", {}).get(f"return_{env}", math.nan) for d in doses]
+                ax.plot(range(len(doses)), ys, color=color, alpha=0.3, lw=1, marker=".")
+                curves.append(ys)
+            if curves:
+                ax.plot(range(len(doses)), np.nanmean(curves, axis=0), color=color, lw=2.5, marker="o",
+                        label=f"{label} (n={len(curves)})")  # fmt: skip
+        stage1 = [c[f"stage1_last5_{env}"] for c, _ in data.values()]
+        ax.axhline(np.mean(stage1), color="k", ls="--", lw=1, label="MPO at the switch (Stage-1)")
+        if env == "Env-A":
+            a_only = [s["A_only"]["return_Env-A"] for _, s in data.values() if "A_only" in s]
+            if a_only:
+                ax.axhline(np.mean(a_only), color="C2", ls=":", lw=1.5, label="Env-A-only student")
+        ax.set_xticks(range(len(doses)), ["x1, 1:5", "x3, 1:5", "x1, 1:20"])
+        ax.set_xlabel("dose: Env-B reward scale, Env-A : Env-B share")
+        ax.set_ylabel(f"return in {env} (last 3 evaluations)")
+        ax.set_title(f"{robot}: students in {env}")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(root / f"dose_{robot}.png", dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    run_parser = sub.add_parser("run", help="measure one seed's collector and train its students")
+    run_parser.add_argument("--robot", choices=sorted(ROBOTS), default="hopper")
+    run_parser.add_argument("--seed", type=int, required=True)
+    run_parser.add_argument("--updates", type=int, default=200_000, help="updates per student (pre-registered: 200k)")
+    run_parser.add_argument("--students", nargs="+", default=None, help="only these students (default: all seven)")
+    run_parser.add_argument("--runs", default="runs", help="where the collections are and the students go")
+    run_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
+    run_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
+    run_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
+    report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
+    report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
+    args = parser.parse_args()
+    import torch as th
+
+    th.set_num_threads(1)
+    run(args) if args.command == "run" else report(args)
+
+
+if __name__ == "__main__":
+    main()
