@@ -416,3 +416,44 @@ class SourceQCallback(BaseCallback):
             with open(self.log_path, "a", newline="") as handle:
                 csv.DictWriter(handle, fieldnames=self._fields, extrasaction="ignore").writerows(rows)
         return means
+
+
+class TrainLogCallback(BaseCallback):
+    """
+    Every ``log_freq`` timesteps (updates when training offline), the model's ``train/*`` values (the means since
+    the logger's last dump: ``train/weight_ess``, ``train/beta``, losses, ...) as a row of a CSV file, so that a run
+    without tensorboard keeps them beside its ``eval.csv``.
+
+    :param log_path: the CSV file (columns: ``timesteps`` and one per ``train/`` key of the first row)
+    :param log_freq: period, in timesteps
+    """
+
+    def __init__(self, log_path: Union[str, os.PathLike], log_freq: int = 10_000):
+        super().__init__()
+        if log_freq < 1:
+            raise ValueError(f"log_freq must be >= 1, got {log_freq}")
+        self.log_path = pathlib.Path(log_path)
+        self.log_freq = log_freq
+        self._fields: Optional[list[str]] = None
+        self._next = 0
+
+    def _init_callback(self) -> None:
+        self._next = (self.model.num_timesteps // self.log_freq + 1) * self.log_freq
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps < self._next:
+            return True
+        while self._next <= self.num_timesteps:
+            self._next += self.log_freq
+        values = {key[len("train/") :]: value for key, value in self.logger.name_to_value.items() if key.startswith("train/")}
+        if not values:
+            return True
+        if self._fields is None:
+            self._fields = ["timesteps", *sorted(values)]
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.log_path, "w", newline="") as handle:
+                csv.writer(handle).writerow(self._fields)
+        with open(self.log_path, "a", newline="") as handle:
+            row = {"timesteps": self.num_timesteps, **values}
+            csv.DictWriter(handle, fieldnames=self._fields, extrasaction="ignore").writerow(row)
+        return True
