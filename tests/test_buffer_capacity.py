@@ -143,8 +143,8 @@ def test_capacity_on_disk_reopen_and_files(tmp_path):
     add_rows(reference, 83, 12, stage=2)
     assert_last_rows(reopened, reference, 25)
     reopened.close()
-    # a smaller capacity evicts at once (and deletes the chunks no longer needed)
-    smaller = LifelongReplayBuffer.open(path, capacity=8)
+    # a smaller capacity evicts at once when asked to (and deletes the chunks no longer needed)
+    smaller = LifelongReplayBuffer.open(path, capacity=8, evict=True)
     assert_last_rows(smaller, reference, 8)
     assert chunk_files(path) == ["chunk.000000000083.bin", "chunk.000000000093.bin"]  # 80-82 | 83-92 | 93-94
     assert json.loads((path / "manifest.json").read_text())["first_row"] == 87

@@ -34,6 +34,7 @@ from sb3_lifelong.buffers.storage import (
     RowStore,
     check_obs_key,
     obs_keys_of,
+    owned_buffer_files,
 )
 from sb3_lifelong.common.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
 from sb3_lifelong.common.datasets import OfflineSamples
@@ -564,19 +565,19 @@ BUFFER_MODES = ("new", "append", "overwrite")
 
 def _prepare_directory(path: str, mode: str) -> int:
     """
-    Apply the constructor's ``mode`` to a buffer directory about to be opened for writing.
+    Check the constructor's ``mode`` against a buffer directory about to be opened for writing. ``"overwrite"`` only
+    checks here that the directory holds one of this package's buffers (else ``BufferFormatError``, before anything
+    is created there); the store deletes it once it holds the directory's writer lock.
 
     :return: the transitions it already holds (-1: a manifest that cannot be read; the store reports it)
     """
     if mode not in BUFFER_MODES:
         raise ValueError(f"mode must be one of {BUFFER_MODES}, got {mode!r}")
     manifest = os.path.join(path, MANIFEST_NAME)
-    if not os.path.isfile(manifest):
-        return 0
     if mode == "overwrite":
-        import shutil
-
-        shutil.rmtree(path)
+        owned_buffer_files(path)  # refuses a directory that is not provably a buffer of this package
+        return 0
+    if not os.path.isfile(manifest):
         return 0
     try:
         with open(manifest) as handle:
@@ -628,8 +629,14 @@ class LifelongReplayBuffer(_LifelongSampler):
         ``"new"`` (default) opens it, but the first ``add`` raises an error that names the two choices, so that a
         re-run never mixes its data into an earlier run's silently (reading and sampling it, and SB3's ``load`` of a
         model whose buffer lives there, work as usual); ``"append"`` continues it (what :meth:`open` does: resuming
-        after a crash or a stop); ``"overwrite"`` deletes that buffer's files and starts empty. Ignored with
-        ``read_only=True``
+        after a crash or a stop); ``"overwrite"`` deletes that buffer and starts empty. Overwriting deletes only what
+        provably belongs to a buffer of this package (a manifest this code parses and validates, the data files it
+        names, unreferenced chunk files and its temporary file; other files of the directory are kept), and only
+        once this buffer holds the directory's writer lock: a directory with a live writer is refused with the error a
+        second writer gets (``RuntimeError``), one whose ``manifest.json`` is not such a buffer's with a
+        ``BufferFormatError`` naming it, both before anything is deleted. Ignored with ``read_only=True``
+    :param evict: Reopening a directory with a ``capacity`` smaller than the number of transitions it holds evicts
+        the oldest of them at once: only with ``evict=True``; otherwise that raises a ``ValueError`` (nothing changes)
     """
 
     def __init__(
@@ -652,6 +659,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         capacity: Optional[int] = None,
         read_mode: str = "mmap",
         mode: str = "new",
+        evict: bool = False,
     ) -> None:
         # BaseBuffer.__init__ is not called: it would allocate and assign attributes that are properties here
         if optimize_memory_usage:
@@ -688,6 +696,8 @@ class LifelongReplayBuffer(_LifelongSampler):
             max_resident_bytes=max_resident_bytes,
             capacity=capacity,
             read_mode=read_mode,
+            overwrite=mode == "overwrite" and not read_only,
+            evict=evict,
         )
         if not self.store.spaces and observation_space is not None and action_space is not None and not read_only:
             self.store.describe_spaces(

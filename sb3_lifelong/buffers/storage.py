@@ -161,8 +161,40 @@ def _write_all(fd: int, data: Any) -> None:
         view = view[written:]
 
 
+# never open a file of a buffer directory for writing through a symbolic link (POSIX; 0 where the OS has no such flag)
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
 def _open_for_writing(file_name: str, flags: int = 0) -> int:
-    return os.open(file_name, os.O_WRONLY | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0) | flags, 0o666)
+    """
+    Open a file of a buffer directory for writing, never through a symbolic link (``O_NOFOLLOW``: a link planted at
+    ``file_name`` makes this fail with ``ELOOP`` instead of writing where it points).
+
+    :param file_name: The file
+    :param flags: Further ``os.O_*`` flags
+    :return: The file descriptor
+    """
+    flags |= os.O_WRONLY | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    return os.open(file_name, flags, 0o666)
+
+
+def _create_new_file(file_name: str) -> int:
+    """
+    Create ``file_name`` as a new, empty regular file and open it for writing. Whatever has that name already (a
+    temporary file or an unflushed chunk file left by a crash, or a symbolic link planted there) is unlinked first:
+    ``unlink`` removes a link itself, never what it points to. The file is then created with ``O_CREAT | O_EXCL |
+    O_NOFOLLOW``, so that no byte is ever written outside the directory, even if a link is planted again meanwhile.
+
+    :param file_name: The file to create
+    :return: The file descriptor
+    :raises OSError: e.g. ``EISDIR`` (a directory has that name) or ``EEXIST`` (an entry appeared again between the
+        unlink and the creation)
+    """
+    try:
+        os.unlink(file_name)
+    except FileNotFoundError:
+        pass
+    return _open_for_writing(file_name, os.O_CREAT | os.O_EXCL)
 
 
 def _remove_quietly(file_name: str) -> None:
@@ -187,7 +219,7 @@ def write_json_atomic(path: str, data: dict[str, Any]) -> None:
     tmp = path + ".tmp"
     payload = json.dumps(data, indent=1, sort_keys=True, allow_nan=False).encode("utf-8")
     try:
-        fd = _open_for_writing(tmp, os.O_CREAT | os.O_TRUNC)
+        fd = _create_new_file(tmp)  # a new file, never through a link planted at the temporary name
         try:
             _write_all(fd, payload)
             os.fsync(fd)
@@ -499,6 +531,72 @@ def _read_into(fd: int, target: memoryview, offset: int) -> None:
         done += count
 
 
+def owned_buffer_files(path: str) -> list[str]:
+    """
+    The files of the buffer in ``path`` that ``mode="overwrite"`` may delete: only what provably belongs to a buffer
+    of this package. ``manifest.json`` must be a regular file (not a link) that this code parses and validates as
+    its own format; the files are then the data files its manifest names (the field files of layout "single", the
+    listed chunk files of layout "chunked"), the chunk files it does not list (layout "chunked": what a writer
+    deletes on opening anyway, left by a crash), the temporary ``manifest.json.tmp``, and the manifest itself,
+    last. ``writer.lock`` and every other entry of the directory are kept.
+
+    :param path: The directory
+    :return: The names of those files (relative to ``path``) that exist, the manifest last; ``[]`` without a manifest
+    :raises BufferFormatError: the manifest is not one of this package's buffers, or one of those names is a
+        directory: nothing may be deleted
+    """
+    manifest_name = os.path.join(path, MANIFEST_NAME)
+    if not os.path.lexists(manifest_name):
+        return []
+    refusal = (
+        f"refusing to overwrite {path}: mode='overwrite' deletes only a buffer directory written by this package, and "
+        "nothing was deleted"
+    )
+    if os.path.islink(manifest_name) or not os.path.isfile(manifest_name):
+        raise BufferFormatError(f"{refusal}: its {MANIFEST_NAME} is a link or not a regular file. Choose another path")
+    try:
+        manifest = read_manifest(path)
+    except (BufferFormatError, OSError) as error:
+        raise BufferFormatError(
+            f"{refusal}: its {MANIFEST_NAME} is not the manifest of such a buffer ({error}). Choose another path (or, if "
+            "this directory holds nothing you need, delete it yourself)"
+        ) from None
+    if manifest.get("layout", "single") == "single":
+        named = [f"{name}.bin" for name in validate_fields(manifest["fields"])]
+    else:
+        listed = [chunk_file_name(chunk["start"]) for chunk in manifest["chunks"]]
+        unlisted = sorted(e for e in os.listdir(path) if CHUNK_FILE_PATTERN.fullmatch(e) and e not in set(listed))
+        named = listed + unlisted
+    names = [name for name in [*named, MANIFEST_NAME + ".tmp"] if os.path.lexists(os.path.join(path, name))]
+    for name in names:
+        file_name = os.path.join(path, name)
+        if os.path.isdir(file_name) and not os.path.islink(file_name):
+            raise BufferFormatError(f"{refusal}: {file_name} is a directory, not a file of the buffer")
+    return [*names, MANIFEST_NAME]
+
+
+def remove_buffer_files(path: str) -> list[str]:
+    """
+    Delete the buffer in ``path`` (``mode="overwrite"``): the files :func:`owned_buffer_files` lists, data files
+    first and the manifest last (so that an interrupted deletion leaves a manifest that still names what is left,
+    which the next overwrite deletes), then fsync the directory. Links are removed, never what they point to. The
+    caller holds the directory's writer lock, so no live writer is affected.
+
+    :param path: The directory
+    :return: The names deleted
+    :raises BufferFormatError: see :func:`owned_buffer_files` (then nothing is deleted)
+    """
+    names = owned_buffer_files(path)
+    for name in names:
+        try:
+            os.unlink(os.path.join(path, name))
+        except FileNotFoundError:  # pragma: no cover (removed meanwhile)
+            pass
+    if names:
+        _fsync_dir(path)
+    return names
+
+
 def orphaned_data_files(path: str) -> list[str]:
     """
     :param path: A directory with no manifest
@@ -577,8 +675,8 @@ class _SingleFileLayout:
         return os.path.join(store.path, name + ".bin")
 
     def create(self, store: RowStore) -> None:
-        for name in store._fields:
-            open(self.field_file(store, name), "wb").close()
+        for name in store._fields:  # empty field files left by an interrupted creation are reused (cut to 0 bytes)
+            os.close(_open_for_writing(self.field_file(store, name), os.O_CREAT | os.O_TRUNC))
 
     def open_existing(self, store: RowStore, verify: str) -> None:
         for name in store._fields:
@@ -595,9 +693,12 @@ class _SingleFileLayout:
                 )
             if have > need and not store.read_only:
                 # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
-                with open(file_name, "r+b") as file:
-                    file.truncate(need)
-                    os.fsync(file.fileno())
+                fd = _open_for_writing(file_name)
+                try:
+                    os.ftruncate(fd, need)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
                 store.discarded_bytes += have - need
         for chunk in _checked_chunks(store.chunks, verify):
             for name in store._fields:
@@ -634,7 +735,11 @@ class _SingleFileLayout:
     def discard(self, store: RowStore, chunks: list[dict[str, Any]]) -> None:
         for name in store._fields:  # best effort: the bytes after the committed rows are ignored anyway
             try:
-                os.truncate(self.field_file(store, name), store.num_committed * store.row_bytes[name])
+                fd = _open_for_writing(self.field_file(store, name))  # not os.truncate(path): it follows links
+                try:
+                    os.ftruncate(fd, store.num_committed * store.row_bytes[name])
+                finally:
+                    os.close(fd)
             except OSError:
                 pass
 
@@ -715,7 +820,8 @@ class _ChunkFileLayout:
         assert store.path is not None
         base = store.num_committed
         for chunk in chunks:
-            fd = _open_for_writing(self.chunk_file(store, chunk), os.O_CREAT | os.O_TRUNC)
+            # a new file: an unflushed chunk file of a crash, or a link planted at this name, is unlinked first
+            fd = _create_new_file(self.chunk_file(store, chunk))
             try:
                 for name in store._fields:
                     store._write_block(fd, name, chunk, chunk["start"] - base, extra)
@@ -1023,6 +1129,11 @@ class RowStore:
         mapped already, but every page touched counts in this process's RSS) or ``"pread"`` (positioned reads
         into fresh arrays, one call per run of nearby rows: no file page is mapped, the RSS stays at the anonymous
         memory; one file descriptor per field file or chunk file, closed by :meth:`close`). No effect in memory
+    :param overwrite: Writers: delete the buffer the directory holds first (:func:`remove_buffer_files`), once this
+        store holds the directory's writer lock (a live writer makes this raise before anything is deleted); a
+        directory whose manifest is not one of this package's buffers is refused (``BufferFormatError``)
+    :param evict: Reopening a directory with a capacity smaller than the number of transitions it retains evicts the
+        oldest of them at once: only with ``evict=True``; otherwise that raises ``ValueError`` and nothing changes
     """
 
     def __init__(
@@ -1035,6 +1146,8 @@ class RowStore:
         max_resident_bytes: Optional[int] = None,
         capacity: Optional[int] = None,
         read_mode: str = "mmap",
+        overwrite: bool = False,
+        evict: bool = False,
     ) -> None:
         check_read_mode(read_mode, max_resident_bytes)
         if chunk_size < 1:
@@ -1078,7 +1191,9 @@ class RowStore:
             # writer that commits and closes in between, and this writer would then cut that writer's rows off
             self._take_lock()
         try:
-            self._open_or_create(fields, capacity, verify)
+            if overwrite and self.path is not None and not read_only and os.path.isdir(self.path):
+                remove_buffer_files(self.path)  # under the lock: a live writer was refused above
+            self._open_or_create(fields, capacity, verify, evict)
         except BaseException:
             self._release_lock()
             raise
@@ -1106,7 +1221,11 @@ class RowStore:
             )
 
     def _open_or_create(
-        self, fields: Optional[dict[str, tuple[str, tuple[int, ...]]]], capacity: Optional[int], verify: str
+        self,
+        fields: Optional[dict[str, tuple[str, tuple[int, ...]]]],
+        capacity: Optional[int],
+        verify: str,
+        evict: bool = False,
     ) -> None:
         """
         Read the committed state of the directory, or create the buffer. A writer holds the directory's lock
@@ -1115,6 +1234,7 @@ class RowStore:
         :param fields: As for the constructor
         :param capacity: As for the constructor
         :param verify: As for the constructor
+        :param evict: As for the constructor
         """
         if self.path is not None and os.path.isfile(os.path.join(self.path, MANIFEST_NAME)):
             manifest = self._read_consistent_manifest() if self.read_only else read_manifest(self.path)
@@ -1133,6 +1253,14 @@ class RowStore:
                     )
                 if self.read_only:
                     raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
+                retained = manifest["num_transitions"] - manifest.get("first_row", 0)
+                if capacity < retained and not evict:
+                    raise ValueError(
+                        f"{self.path} retains {retained:,} transitions (capacity {stored_capacity:,}): reopening it with "
+                        f"capacity={capacity:,} would evict the oldest {retained - capacity:,} of them at once, for good. "
+                        f"Pass evict=True to do that; or capacity=None (keeps {stored_capacity:,}) or a capacity >= "
+                        f"{retained:,}. Nothing was changed"
+                    )
             self.capacity = stored_capacity if capacity is None else int(capacity)
             self._load_manifest(manifest)
             self._set_row_format()
@@ -1167,7 +1295,7 @@ class RowStore:
                 # the buffer meanwhile)
                 os.makedirs(self.path, exist_ok=True)
                 self._take_lock()
-                self._open_or_create(fields, capacity, verify)
+                self._open_or_create(fields, capacity, verify, evict)
                 return
             if self.path is not None:
                 os.makedirs(self.path, exist_ok=True)
@@ -1238,7 +1366,16 @@ class RowStore:
         assert self.path is not None
         if fcntl is None:  # pragma: no cover
             return
-        self._lock_file = open(os.path.join(self.path, LOCK_NAME), "a+")
+        lock_name = os.path.join(self.path, LOCK_NAME)
+        try:  # never through a symbolic link planted at its name (O_NOFOLLOW)
+            self._lock_file = open(lock_name, "a+", opener=lambda name, flags: os.open(name, flags | _NOFOLLOW, 0o666))
+        except OSError as error:
+            if os.path.islink(lock_name):
+                raise BufferFormatError(
+                    f"{lock_name} is a symbolic link, not this buffer's lock file: refusing to open the directory for "
+                    "writing (a lock must be a file of the directory itself). Remove the link, or open it with read_only=True"
+                ) from None
+            raise _explained(error, f"{self.path}: cannot open the writer lock {LOCK_NAME}") from error
         try:
             fcntl.flock(self._lock_file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
