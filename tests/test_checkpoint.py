@@ -161,3 +161,28 @@ def test_loading_another_algorithms_zip_names_both_classes(tmp_path, other):
     with pytest.raises(ValueError, match=rf"mpo was saved by MPO \(its policy is .*MPOPolicy\), not by {other.__name__}"):
         other.load(tmp_path / "mpo")
     assert MPO.load(tmp_path / "mpo").num_timesteps == 12
+
+
+def test_loading_a_model_created_with_overwrite_keeps_its_buffer(tmp_path):
+    """The saved replay_buffer_kwargs rebuild the buffer at load: mode="overwrite" must not delete the very buffer the
+    model was saved with (it is reopened as mode="new"; replay_buffer_kwargs given to load are used as they are)."""
+    model = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        seed=0,
+        replay_buffer_class=LifelongReplayBuffer,
+        replay_buffer_kwargs=dict(path=str(tmp_path / "buffer"), chunk_size=1000, mode="overwrite"),
+        **KWARGS,
+    )
+    model.learn(120)
+    model.save(tmp_path / "model.zip")
+    model.replay_buffer.close()
+    loaded = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"))
+    assert loaded.replay_buffer.size() == 120 and committed(tmp_path / "buffer") == 120
+    with pytest.raises(FileExistsError, match="mode='append'"):  # mode "new": a re-run does not mix into it silently
+        loaded.learn(8, reset_num_timesteps=False)
+    loaded.replay_buffer.close()
+    with pytest.warns(UserWarning, match="lags the model by 120 transitions"):  # asked for explicitly, and told
+        fresh = MPO.load(tmp_path / "model.zip", replay_buffer_kwargs=dict(path=str(tmp_path / "buffer"), mode="overwrite"))
+    assert fresh.replay_buffer.size() == 0
+    fresh.replay_buffer.close()

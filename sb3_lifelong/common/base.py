@@ -4,6 +4,7 @@ streams of training and of the environment's resets are saved with the model and
 """
 
 import base64
+import contextvars
 import inspect
 import io
 import json
@@ -142,6 +143,12 @@ class EpisodeRngRecorder(gym.Wrapper):
         self._replay = record
 
 
+#: True while ``load`` rebuilds a model whose replay buffer comes from the saved ``replay_buffer_kwargs``
+_LOADING_SAVED_BUFFER_KWARGS: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "loading_saved_buffer_kwargs", default=False
+)
+
+
 def _describe(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> str:
     """A saved model's path for messages (``the checkpoint`` for a file object)."""
     return str(path) if isinstance(path, (str, pathlib.Path)) else "the checkpoint"
@@ -237,6 +244,10 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     """
 
     def _setup_model(self) -> None:
+        if _LOADING_SAVED_BUFFER_KWARGS.get() and (self.replay_buffer_kwargs or {}).get("mode") == "overwrite":
+            # load() rebuilds the buffer from the saved replay_buffer_kwargs: a model created with mode="overwrite" must
+            # not delete, when loaded, the very buffer it was trained and saved with (reopened as mode="new" instead)
+            self.replay_buffer_kwargs = {**self.replay_buffer_kwargs, "mode": "new"}
         # A buffer class that computes n-step returns itself (e.g. LifelongReplayBuffer) gets the algorithm's
         # n_steps and gamma. SB3 warns that n_steps "is ignored" whenever a replay_buffer_class is given; that is
         # false when the buffer computes n-step returns of the same length (forwarded here, or saved with the
@@ -519,6 +530,8 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         :return: The model
         """
         _check_saved_algorithm(cls, path)
+        # the saved replay_buffer_kwargs never overwrite a buffer; those given here are used as they are
+        reopening = _LOADING_SAVED_BUFFER_KWARGS.set("replay_buffer_kwargs" not in kwargs)
         try:
             model = super().load(
                 path,
@@ -534,6 +547,8 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
                 f"{_describe(path)} does not hold what {cls.__name__} saves (missing {error}): was it saved by another "
                 "algorithm? Load it with the class that saved it"
             ) from error
+        finally:
+            _LOADING_SAVED_BUFFER_KWARGS.reset(reopening)
         model._check_buffer_checkpoint(_describe(path))
         rng_state = model.__dict__.pop("_rng_state", None)
         if rng_state is not None:
