@@ -285,6 +285,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
             )
         if gradient_steps < 0:
             raise ValueError(f"gradient_steps must be >= 0, got {gradient_steps}")
+        self._check_eval_sources(eval_sources)  # before training, not at the first evaluation
         self._prepare_offline_buffer()
         self.start_time = time.time_ns()
         if self.ep_info_buffer is None or reset_num_timesteps:
@@ -312,6 +313,23 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
             if placeholder:
                 self.env = None
         return self
+
+    def _check_eval_sources(self, eval_sources: Optional[Mapping[str, int]]) -> None:
+        """
+        :param eval_sources: evaluation env name -> the source whose actor acts in it (``learn_offline``)
+        :raises ValueError: naming the sources the model has no actor for (those of its training data), and the data's
+        """
+        known = getattr(self, "source_ids", None)
+        if not eval_sources or known is None:  # no actor per source: MultiEnvEvalCallback refuses it before training
+            return
+        unknown = {name: source for name, source in eval_sources.items() if source not in known}
+        if unknown:
+            names = getattr(self.replay_buffer, "sources", {}) or {}
+            described = ", ".join(f"{s} ({names[s]['name']})" if s in names else str(s) for s in known)
+            raise ValueError(
+                f"eval_sources names sources that the training data does not hold, so that no actor would act in those "
+                f"environments: {unknown}. The data's sources: {described}"
+            )
 
     def _run_offline(
         self,

@@ -90,8 +90,41 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: the seeds numpy accepts
+MAX_SEED = 2**32 - 1
+
+
+def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """
+    Refuse, with a message naming the problem and the path (``parser.error``: usage, message, exit status 2), the
+    arguments that would otherwise fail later with a traceback, before anything is created.
+
+    :param parser: the command line's parser
+    :param args: its parsed arguments
+    """
+    seeds = [args.seed] if args.command == "run" else list(args.seeds or []) if args.command in ("study", "report") else []
+    bad = [seed for seed in seeds if not 0 <= seed <= MAX_SEED]
+    if bad:
+        parser.error(f"seeds are ints in [0, 2**32 - 1] (numpy's range), got {bad[0]}")
+    if args.command in ("run", "study"):
+        output = pathlib.Path(args.output)
+        if output.exists() and not output.is_dir():
+            parser.error(f"--output {output} exists and is not a directory: give the study's directory (created if missing)")
+    if args.command == "report":
+        output = pathlib.Path(args.output)
+        if not output.is_dir():
+            parser.error(f"{output}: no such directory (give the --output directory of a study)")
+        if not (output / "preset.json").is_file():
+            parser.error(
+                f"{output} holds no study (no preset.json): give the --output directory of 'run' or 'study', once a seed "
+                "has finished its collect job"
+            )
+
+
 def main(argv: Optional[list[str]] = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    _check_arguments(parser, args)
     if args.command == "list":
         preset = PRESETS[args.preset]
         print(f"preset {args.preset}: {preset.env_id}, stages {list(preset.stages)}, steps {list(preset.stage_steps)}")
@@ -109,7 +142,11 @@ def main(argv: Optional[list[str]] = None) -> int:
             print(preset.note)
         return 0
     if args.command == "report":
-        print(write_report(pathlib.Path(args.output), plots=not args.no_plots, seeds=args.seeds))
+        try:
+            text = write_report(pathlib.Path(args.output), plots=not args.no_plots, seeds=args.seeds)
+        except FileNotFoundError as error:  # e.g. no seed has finished its collect job yet
+            parser.exit(1, f"{parser.prog} report: error: {error}\n")
+        print(text)
         if args.seeds is None:
             print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
         else:
