@@ -11,15 +11,20 @@ calls (the package's ``__init__`` does). ``sb3_lifelong.common.distill`` re-expo
 """
 
 import os
-import pathlib
 from typing import Any, Optional, Union
 
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import (
+    CSVOutputFormat,
+    HumanOutputFormat,
+    JSONOutputFormat,
+    Logger,
+    TensorBoardOutputFormat,
+    make_output_format,
+)
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import MaybeCallback
 
-from sb3_lifelong.buffers import LifelongReplayBuffer
 from sb3_lifelong.common.base import set_distill_pipeline
 from sb3_lifelong.crr import CRR
 
@@ -28,8 +33,52 @@ __all__ = ["DistillSource", "distill"]
 DistillSource = Union[OffPolicyAlgorithm, ReplayBuffer, str, os.PathLike, dict]
 
 
-def _is_buffer_directory(source: Any) -> bool:
-    return isinstance(source, (str, os.PathLike)) and (pathlib.Path(source) / "manifest.json").is_file()
+def _format_names(logger: Logger) -> set[str]:
+    """:return: the names (as ``configure`` takes them) of the output formats of ``logger``"""
+    names = set()
+    for output in logger.output_formats:
+        if isinstance(output, HumanOutputFormat):
+            names.add("log" if getattr(output, "own_file", False) else "stdout")
+        elif isinstance(output, CSVOutputFormat):
+            names.add("csv")
+        elif isinstance(output, JSONOutputFormat):
+            names.add("json")
+        elif isinstance(output, TensorBoardOutputFormat):
+            names.add("tensorboard")
+    return names
+
+
+def _logger_beside(teacher: OffPolicyAlgorithm, tb_log_name: str, verbose: int) -> Optional[Logger]:
+    """
+    The student's logger in ``<the teacher's log folder>/<tb_log_name>``, with the teacher's output formats (CSV
+    too, and stdout when ``verbose >= 1``), when the teacher logs somewhere: to ``tensorboard_log``, or to a logger
+    the user gave it with ``set_logger``. None when the teacher has no logger of its own to follow.
+    """
+    if teacher._logger is None or (teacher.tensorboard_log is None and not teacher._custom_logger):
+        return None
+    formats = _format_names(teacher.logger)
+    if teacher.tensorboard_log is not None:
+        formats |= {"csv", "tensorboard"}
+    if verbose >= 1:
+        formats.add("stdout")
+    teacher_dir = teacher.logger.get_dir()
+    if teacher_dir is None:  # a logger with no folder (stdout only): the student prints, as the teacher does
+        return Logger(None, [make_output_format("stdout", "")] if "stdout" in formats else [])
+    folder = os.path.join(teacher_dir, tb_log_name)
+    os.makedirs(folder, exist_ok=True)
+    return Logger(folder, [make_output_format(name, folder) for name in sorted(formats)])
+
+
+def _describe(buffer: Any) -> str:
+    """:return: the size of ``buffer``, per source when it knows its sources"""
+    counts = buffer.source_counts() if hasattr(buffer, "source_counts") else None
+    if not counts:
+        return f"{buffer.size():,} transitions"
+    sources = getattr(buffer, "sources", {})
+    per_source = ", ".join(
+        f"{sources.get(source, {}).get('name', f'source {source}')}: {count:,}" for source, count in sorted(counts.items())
+    )
+    return f"{sum(counts.values()):,} transitions ({per_source})"
 
 
 def distill(
@@ -63,8 +112,10 @@ def distill(
     :param n_eval_episodes: episodes per environment and evaluation
     :param callback: extra callback(s), called after every update
     :param log_interval: dump the training logs every this many updates
-    :param tb_log_name: the name of the student's log folder; when ``source`` is a model that logs to
-        tensorboard, the student logs into ``<the model's run>/<tb_log_name>``, beside the collection curves
+    :param tb_log_name: the name of the student's log folder; when ``source`` is a model that logs (to its
+        ``tensorboard_log``, or to a logger given with ``set_logger``), the student logs into ``<the model's log
+        folder>/<tb_log_name>`` with the model's output formats (and CSV), beside the collection curves, unless
+        ``tensorboard_log`` is given here
     :param progress_bar: show a progress bar
     :param eval_sources: with ``actor_per_source=True`` (a CRR diagnostic): the source whose actor is evaluated in
         each environment of ``eval_env``, by name
@@ -75,6 +126,7 @@ def distill(
     if student_class is None:
         student_class = CRR
     teacher: Optional[OffPolicyAlgorithm] = source if isinstance(source, OffPolicyAlgorithm) else None
+    own_tensorboard_log = "tensorboard_log" in student_kwargs
     if teacher is not None:
         if teacher.replay_buffer is None or teacher.replay_buffer.size() == 0:
             raise ValueError(f"{type(teacher).__name__} has no data in its replay buffer to distil")
@@ -83,17 +135,20 @@ def distill(
         student_kwargs.setdefault("verbose", teacher.verbose)
         student_kwargs.setdefault("observation_space", teacher.observation_space)
         student_kwargs.setdefault("action_space", teacher.action_space)
-    elif _is_buffer_directory(source):
-        data = LifelongReplayBuffer.open(source, read_only=True)  # type: ignore[arg-type]
     else:
-        data = source
+        data = source  # a buffer directory is opened read-only by from_offline_data
 
     student = student_class.from_offline_data(data, policy=policy, **student_kwargs)  # type: ignore[attr-defined]
 
-    teacher_dir = teacher.logger.get_dir() if teacher is not None and teacher._logger is not None else None
-    if teacher is not None and teacher_dir is not None and teacher.tensorboard_log is not None:
-        formats = ["csv", "tensorboard"] + (["stdout"] if student.verbose >= 1 else [])
-        student.set_logger(configure(os.path.join(teacher_dir, tb_log_name), formats))
+    logger = _logger_beside(teacher, tb_log_name, student.verbose) if teacher is not None and not own_tensorboard_log else None
+    if logger is not None:
+        student.set_logger(logger)
+    if student.verbose >= 1:
+        where = logger.get_dir() if logger is not None else student.tensorboard_log
+        print(
+            f"Distilling {_describe(student.replay_buffer)} into {type(student).__name__}: {gradient_steps:,} gradient "
+            f"updates" + (f", logging to {where}" if where else "")
+        )
     student.learn_offline(
         gradient_steps,
         callback=callback,

@@ -15,7 +15,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sb3_lifelong.buffers.storage import FLAG_DONE, FLAG_TIMEOUT, MAX_SOURCE_ID
-from sb3_lifelong.common.datasets import import_minari, minari_columns, read_npz
+from sb3_lifelong.common.datasets import import_minari, minari_columns, normalize_actions, read_npz, validate_d4rl
 
 if TYPE_CHECKING:
     from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
@@ -25,6 +25,9 @@ _COPY_BLOCK = 1 << 16
 # Minari interop: per-step source ids (in the episodes' infos) and source names / metadata (in the dataset metadata)
 MINARI_SOURCE_INFO = "sb3_lifelong_source"
 MINARI_SOURCES_METADATA = "sb3_lifelong_sources"
+#: source metadata key of the environment spec (gymnasium's JSON) of data imported from Minari, written again by
+#: ``to_minari`` so that the dataset's ``recover_environment()`` works
+ENV_SPEC_METADATA = "env_spec"
 
 
 def raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset: int = 0) -> None:
@@ -47,37 +50,27 @@ def raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset:
     )
 
 
-def _check_finite_columns(columns: dict[str, Any], where: str) -> None:
+def _to_env_units(actions: np.ndarray, action_space: spaces.Space) -> np.ndarray:
     """
-    Imports: raise a ValueError naming the column and the first row if a float value of the observations, next
-    observations, actions or rewards is NaN or infinite (checked in blocks of rows, to bound the memory used).
-    """
-    for name in ("observations", "next_observations", "actions", "rewards"):
-        values = np.asarray(columns[name])
-        if values.dtype.kind != "f":
-            continue
-        for start in range(0, len(values), _COPY_BLOCK):
-            block = values[start : start + _COPY_BLOCK]
-            if not np.isfinite(block).all():
-                raise_if_not_finite(block, f"{where}: {name} of row", "nothing was imported", offset=start)
-
-
-def _rescale_actions(actions: np.ndarray, action_space: spaces.Space, to_env_units: bool) -> np.ndarray:
-    """
-    Map actions between the normalised ``[-1, 1]`` range SB3 stores and the action space's bounds. Unbounded
-    spaces, and spaces that already are ``[-1, 1]``, leave the actions untouched (bit for bit).
+    Exports: map the normalised ``[-1, 1]`` actions SB3 stores to the action space's bounds (the inverse of
+    :func:`~sb3_lifelong.common.datasets.normalize_actions`, which every import uses). Unbounded spaces, and spaces
+    that already are ``[-1, 1]``, leave the actions untouched (bit for bit).
     """
     if not isinstance(action_space, spaces.Box) or not action_space.is_bounded():
         return actions
     low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
     if np.all(low == -1.0) and np.all(high == 1.0):
         return actions
-    values = actions.astype(np.float64)
-    if to_env_units:
-        values = low + 0.5 * (values + 1.0) * (high - low)
-    else:
-        values = 2.0 * (values - low) / (high - low) - 1.0
-    return values.astype(actions.dtype)
+    return (low + 0.5 * (actions.astype(np.float64) + 1.0) * (high - low)).astype(actions.dtype)
+
+
+def _minari_env_spec(dataset: Any) -> Optional[str]:
+    """:return: the JSON of a Minari dataset's environment spec (what ``recover_environment`` makes), or None"""
+    spec = getattr(getattr(dataset, "spec", None), "env_spec", None)
+    try:
+        return spec.to_json() if spec is not None else None
+    except Exception:  # an env spec gymnasium cannot write as JSON (e.g. a callable entry point): not kept
+        return None
 
 
 def export_columns(
@@ -109,7 +102,7 @@ def export_columns(
         timeouts = timeouts | open_end
     actions = data["actions"][order]
     if not normalized_actions:
-        actions = _rescale_actions(actions, buffer.action_space, to_env_units=True)
+        actions = _to_env_units(actions, buffer.action_space)
     columns = {
         "observations": data["observations"][order],
         "actions": actions,
@@ -194,6 +187,12 @@ def to_minari(
         description = f"Exported from an sb3_lifelong LifelongReplayBuffer ({len(episodes)} episodes)"
     if "jpeg_encoding" in inspect.signature(minari.create_dataset_from_buffers).parameters:
         minari_kwargs.setdefault("jpeg_encoding", False)
+    if minari_kwargs.get("env") is None:  # the env spec of data imported from Minari, when every source agrees on it
+        specs = {info["metadata"].get(ENV_SPEC_METADATA) for info in buffer.sources.values()}
+        if len(specs) == 1 and isinstance(next(iter(specs)), str):
+            from gymnasium.envs.registration import EnvSpec
+
+            minari_kwargs["env"] = EnvSpec.from_json(next(iter(specs)))
     dataset = minari.create_dataset_from_buffers(
         dataset_id,
         episodes,
@@ -222,32 +221,17 @@ def from_d4rl(
     if not isinstance(data, dict):
         where = f"from_d4rl({os.fspath(data)})"
         data = read_npz(data)
-    for key in ("observations", "actions", "rewards", "next_observations", "terminals"):
-        if key not in data:
-            raise KeyError(f"d4rl data has no {key!r}")
-    obs = np.asarray(data["observations"])
-    actions = np.asarray(data["actions"])
+    data = validate_d4rl(data, where=where, cast_observations=False, integer_actions=True)  # before anything is created
+    obs, actions = data["observations"], data["actions"]
     total = len(obs)
-    for key, value in data.items():
-        if key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts", "sources"):
-            if len(value) != total:
-                raise ValueError(f"d4rl key {key!r} has {len(value)} rows, observations have {total}")
-    if actions.ndim == 1:
-        actions = actions.reshape(-1, 1)
-    _check_finite_columns(
-        {**data, "rewards": np.asarray(data["rewards"], dtype=np.float32), "actions": actions}, where
-    )  # before anything is created
     if observation_space is None:
         observation_space = spaces.Box(-np.inf, np.inf, shape=obs.shape[1:], dtype=obs.dtype)  # type: ignore[arg-type]
     if action_space is None:
         action_space = spaces.Box(-np.inf, np.inf, shape=actions.shape[1:], dtype=actions.dtype)  # type: ignore[arg-type]
+    actions = normalize_actions(actions, action_space, normalized_actions)  # the one normaliser (also checks bounds)
     buffer = cls(total, observation_space, action_space, source=source, **kwargs)
-    terminals = np.asarray(data["terminals"]).astype(bool).reshape(-1)
-    timeouts = np.asarray(data.get("timeouts", np.zeros(total, dtype=bool))).astype(bool).reshape(-1)
-    next_obs = np.asarray(data["next_observations"])
-    sources = np.asarray(data["sources"]).reshape(-1) if "sources" in data else np.full(total, source)
-    if total and (sources.min() < 0 or sources.max() > MAX_SOURCE_ID):
-        raise ValueError(f"source ids must be in [0, {MAX_SOURCE_ID}]")
+    terminals, timeouts, next_obs = data["terminals"], data["timeouts"], data["next_observations"]
+    sources = data["sources"] if "sources" in data else np.full(total, source)
     ended = terminals | timeouts
     chained = np.zeros(total, dtype=bool)
     if total > 1:
@@ -255,13 +239,11 @@ def from_d4rl(
         chained[1:] = same & ~ended[:-1]
     new_streams = np.cumsum(~chained) - 1
     streams = buffer.store.reserve_streams(int(new_streams[-1]) + 1 if total else 0) + new_streams
-    if not normalized_actions:
-        actions = _rescale_actions(actions, action_space, to_env_units=False)
     rows = {
         "observations": obs,
         "next_observations": next_obs,
         "actions": actions,
-        "rewards": np.asarray(data["rewards"], dtype=np.float32).reshape(-1),
+        "rewards": data["rewards"],
         "flags": ((terminals | timeouts) * FLAG_DONE + timeouts * FLAG_TIMEOUT).astype(np.uint8),
         "sources": sources.astype(np.uint16),
         "streams": streams.astype(np.uint32),
@@ -300,15 +282,21 @@ def from_minari(
     lengths = columns["episode_lengths"]
     total = int(lengths.sum())
     name_of = dataset_id if isinstance(dataset_id, str) else type(dataset).__name__
-    _check_finite_columns(
-        {**columns, "rewards": np.asarray(columns["rewards"], dtype=np.float32)}, f"from_minari({name_of})"
-    )  # before anything is created
+    valid = validate_d4rl(  # the one validator, before anything is created
+        {key: columns[key] for key in ("observations", "next_observations", "actions", "rewards", "terminals", "timeouts")},
+        where=f"from_minari({name_of})",
+        cast_observations=False,
+        integer_actions=True,
+    )
     buffer = cls(total, observation_space, action_space, path=path, **kwargs)
     common = {
         "minari_dataset_id": dataset_id if isinstance(dataset_id, str) else None,
         "minari_total_episodes": len(lengths),
         "minari_total_steps": total,
     }
+    env_spec = _minari_env_spec(dataset)
+    if env_spec is not None:  # kept, so that to_minari can write it again (recover_environment)
+        common[ENV_SPEC_METADATA] = env_spec
     tags = columns.get(f"info/{MINARI_SOURCE_INFO}")
     if source is None and tags is not None:
         sources = tags.astype(np.int64).reshape(total)
@@ -321,22 +309,21 @@ def from_minari(
             info = info if isinstance(info, dict) else {}
             name = info["name"] if isinstance(info.get("name"), str) else None
             extra: dict[str, Any] = info["metadata"] if isinstance(info.get("metadata"), dict) else {}
-            buffer._ensure_source(source_id, name, {**extra, "minari_dataset_id": common["minari_dataset_id"]})
+            spec = {ENV_SPEC_METADATA: env_spec} if env_spec is not None else {}
+            buffer._ensure_source(source_id, name, {**extra, "minari_dataset_id": common["minari_dataset_id"], **spec})
     else:
         source = buffer._check_source(0 if source is None else source)
         sources = np.full(total, source, dtype=np.int64)
         name = source_name or f"minari:{dataset_id if isinstance(dataset_id, str) else 'dataset'}"
         buffer._ensure_source(source, name, {**common, **dict(source_metadata or {})})
-    actions = columns["actions"].reshape(total, buffer.action_dim)
-    if not normalized_actions:
-        actions = _rescale_actions(actions, action_space, to_env_units=False)
-    terminals, timeouts = columns["terminals"], columns["timeouts"]
+    actions = normalize_actions(valid["actions"].reshape(total, buffer.action_dim), action_space, normalized_actions)
+    terminals, timeouts = valid["terminals"], valid["timeouts"]
     base = buffer.store.reserve_streams(len(lengths))
     rows = {
         "observations": columns["observations"].reshape(total, *buffer.obs_shape),
         "next_observations": columns["next_observations"].reshape(total, *buffer.obs_shape),
         "actions": actions,
-        "rewards": np.asarray(columns["rewards"], dtype=np.float32).reshape(total),
+        "rewards": valid["rewards"],
         "flags": ((terminals | timeouts) * FLAG_DONE + timeouts * FLAG_TIMEOUT).astype(np.uint8),
         "sources": sources.astype(np.uint16),
         "streams": np.repeat(np.arange(base, base + len(lengths), dtype=np.int64), lengths).astype(np.uint32),

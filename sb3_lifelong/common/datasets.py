@@ -43,6 +43,9 @@ __all__ = [
 ]
 
 REQUIRED_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals")
+#: the largest source id a transition may have: the buffer's (``sb3_lifelong.buffers.storage.MAX_SOURCE_ID``, a layer
+#: above this module; equal, tested)
+MAX_SOURCE_ID = 65534
 OPTIONAL_KEYS = ("timeouts", "sources")
 
 # What the offline entry points accept
@@ -68,95 +71,118 @@ class OfflineSamples(NamedTuple):
     next_action_mask: Optional[th.Tensor] = None
 
 
-def _as_array(data: Mapping[str, Any], key: str) -> np.ndarray:
+#: rows checked for NaN and infinite values at a time (bounds the memory the check takes on large data)
+_CHECK_BLOCK = 1 << 16
+
+
+def _as_array(data: Mapping[str, Any], key: str, where: str) -> np.ndarray:
     try:
         return np.asarray(data[key])
     except Exception as error:  # ragged lists, exotic objects
-        raise OfflineDataError(f"offline data key {key!r} cannot be read as an array: {error}") from error
+        raise OfflineDataError(f"{where} key {key!r} cannot be read as an array: {error}") from error
 
 
-def _check_numeric(key: str, array: np.ndarray, allow_int: bool) -> None:
+def _check_numeric(key: str, array: np.ndarray, allow_int: bool, where: str) -> None:
     kind = array.dtype.kind
     allowed = "fiu" if allow_int else "f"
     if kind not in allowed:
         expected = "a numeric (float or integer)" if allow_int else "a floating-point"
-        raise OfflineDataError(f"offline data key {key!r} must have {expected} dtype, got {array.dtype}")
-    if kind == "f" and not np.isfinite(array).all():
-        bad = np.flatnonzero(~np.isfinite(array.reshape(len(array), -1)).all(axis=1))
+        raise OfflineDataError(f"{where} key {key!r} must have {expected} dtype, got {array.dtype}")
+    if kind != "f":
+        return
+    bad = np.zeros(0, dtype=np.int64)
+    for start in range(0, len(array), _CHECK_BLOCK):
+        block = array[start : start + _CHECK_BLOCK]
+        bad = np.concatenate([bad, start + np.flatnonzero(~np.isfinite(block.reshape(len(block), -1)).all(axis=1))])
+    if len(bad):
         raise OfflineDataError(
-            f"offline data key {key!r} holds NaN or infinite values in {len(bad)} rows (first: row {int(bad[0])})"
+            f"{where} key {key!r} holds NaN or infinite values in {len(bad)} rows (first: row {int(bad[0])}): values "
+            "that are not finite are refused"
         )
 
 
-def _check_flags(key: str, array: np.ndarray) -> np.ndarray:
+def _check_flags(key: str, array: np.ndarray, where: str) -> np.ndarray:
     if array.dtype.kind == "b":
         return array.reshape(len(array))
     if array.dtype.kind not in "fiu":
-        raise OfflineDataError(f"offline data key {key!r} must be boolean (or 0/1 numbers), got dtype {array.dtype}")
+        raise OfflineDataError(f"{where} key {key!r} must be boolean (or 0/1 numbers), got dtype {array.dtype}")
     if array.size and not np.isin(array, (0, 1)).all():
-        raise OfflineDataError(f"offline data key {key!r} must hold only 0/1 (or booleans), got other values")
+        raise OfflineDataError(f"{where} key {key!r} must hold only 0/1 (or booleans), got other values")
     return array.astype(bool).reshape(len(array))
 
 
-def validate_d4rl(data: Mapping[str, Any]) -> dict[str, np.ndarray]:
+def validate_d4rl(
+    data: Mapping[str, Any], where: str = "offline data", cast_observations: bool = True, integer_actions: bool = False
+) -> dict[str, np.ndarray]:
     """
-    Check a d4rl-style dict and return a clean copy of its standard keys (other keys are dropped).
+    Check a d4rl-style dict and return a clean copy of its standard keys (other keys are dropped): the one validator
+    of every way data comes in (``from_offline_data``, ``LifelongReplayBuffer.from_d4rl`` and ``from_minari``).
 
     :param data: mapping with ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals`` and
         optionally ``timeouts`` and ``sources`` (the source id of each transition, as ``to_d4rl`` exports them)
-    :return: dict with float observations, ``actions`` ``[N, action_dim]``, ``rewards`` ``[N]`` (float32), boolean
-        ``terminals`` and ``timeouts``, and ``sources`` ``[N]`` (int64) when given
+    :param where: what the data is, at the start of the error messages (e.g. the file it was read from)
+    :param cast_observations: cast float64 observations to float32 (False: keep their dtype, for a buffer whose
+        observation space keeps it)
+    :param integer_actions: also accept integer actions (discrete action spaces, which the buffer stores but the
+        offline algorithms do not learn from), kept as they are
+    :return: dict with the observations (float32 unless they were integers, or ``cast_observations=False``),
+        ``actions`` ``[N, action_dim]`` (float32, or integers with ``integer_actions``) and ``rewards`` ``[N]``
+        (float32), boolean ``terminals`` and ``timeouts``,
+        and ``sources`` ``[N]`` (int64) when given
     :raises OfflineDataError: on missing keys, mismatched lengths or shapes, wrong dtypes, NaN or infinite values
+        (checked in blocks of rows, so the check takes little memory on large data)
     """
     if not isinstance(data, Mapping):
-        raise OfflineDataError(f"offline data must be a mapping of arrays, got {type(data).__name__}")
+        raise OfflineDataError(f"{where} must be a mapping of arrays, got {type(data).__name__}")
     missing = [key for key in REQUIRED_KEYS if key not in data]
     if missing:
         raise OfflineDataError(
-            f"offline data is missing the key(s) {missing}; required: {list(REQUIRED_KEYS)}, optional: "
+            f"{where} is missing the key(s) {missing}; required: {list(REQUIRED_KEYS)}, optional: "
             f"{list(OPTIONAL_KEYS)}; found: {sorted(data.keys())}"
         )
-    arrays = {key: _as_array(data, key) for key in REQUIRED_KEYS + OPTIONAL_KEYS if key in data}
+    arrays = {key: _as_array(data, key, where) for key in REQUIRED_KEYS + OPTIONAL_KEYS if key in data}
     for key, array in arrays.items():
         if array.ndim == 0:
-            raise OfflineDataError(f"offline data key {key!r} must be an array with one row per transition, got a scalar")
+            raise OfflineDataError(f"{where} key {key!r} must be an array with one row per transition, got a scalar")
     lengths = {key: len(array) for key, array in arrays.items()}
     if len(set(lengths.values())) != 1:
-        raise OfflineDataError(f"offline data arrays must all have the same length, got {lengths}")
+        raise OfflineDataError(f"{where}: the arrays must all have the same length, got {lengths}")
     total = lengths["observations"]
     if total == 0:
-        raise OfflineDataError("offline data is empty (0 transitions)")
+        raise OfflineDataError(f"{where} is empty (0 transitions)")
     obs, next_obs = arrays["observations"], arrays["next_observations"]
     if obs.shape != next_obs.shape:
-        raise OfflineDataError(f"observations {obs.shape} and next_observations {next_obs.shape} must have the same shape")
-    _check_numeric("observations", obs, allow_int=True)
-    _check_numeric("next_observations", next_obs, allow_int=True)
+        raise OfflineDataError(
+            f"{where}: observations {obs.shape} and next_observations {next_obs.shape} must have the same shape"
+        )
+    _check_numeric("observations", obs, allow_int=True, where=where)
+    _check_numeric("next_observations", next_obs, allow_int=True, where=where)
     actions = arrays["actions"]
-    _check_numeric("actions", actions, allow_int=False)
+    _check_numeric("actions", actions, allow_int=integer_actions, where=where)
     if actions.ndim == 1:
         actions = actions.reshape(total, 1)
     elif actions.ndim > 2:
-        raise OfflineDataError(f"actions must be [N, action_dim] (or [N]), got shape {actions.shape}")
+        raise OfflineDataError(f"{where}: actions must be [N, action_dim] (or [N]), got shape {actions.shape}")
     rewards = arrays["rewards"]
-    _check_numeric("rewards", rewards, allow_int=True)
+    _check_numeric("rewards", rewards, allow_int=True, where=where)
     if rewards.ndim > 2 or (rewards.ndim == 2 and rewards.shape[1] != 1):
-        raise OfflineDataError(f"rewards must be [N] (or [N, 1]), got shape {rewards.shape}")
+        raise OfflineDataError(f"{where}: rewards must be [N] (or [N, 1]), got shape {rewards.shape}")
     flags = {}
     for key in ("terminals", "timeouts"):
         if key in arrays:
             if arrays[key].ndim > 2 or arrays[key].size != total:
-                raise OfflineDataError(f"{key} must be [N] (or [N, 1]), got shape {arrays[key].shape}")
-            flags[key] = _check_flags(key, arrays[key])
+                raise OfflineDataError(f"{where}: {key} must be [N] (or [N, 1]), got shape {arrays[key].shape}")
+            flags[key] = _check_flags(key, arrays[key], where)
         else:
             flags[key] = np.zeros(total, dtype=bool)
 
     def float_obs(array: np.ndarray) -> np.ndarray:
-        return array.astype(np.float32) if array.dtype == np.float64 else array
+        return array.astype(np.float32) if cast_observations and array.dtype == np.float64 else array
 
     clean = {
         "observations": float_obs(obs),
         "next_observations": float_obs(next_obs),
-        "actions": actions.astype(np.float32),
+        "actions": actions if actions.dtype.kind in "iu" else actions.astype(np.float32),
         "rewards": rewards.reshape(total).astype(np.float32),
         "terminals": flags["terminals"],
         "timeouts": flags["timeouts"],
@@ -164,9 +190,13 @@ def validate_d4rl(data: Mapping[str, Any]) -> dict[str, np.ndarray]:
     if "sources" in arrays:
         sources = arrays["sources"]
         if sources.dtype.kind not in "iu" or sources.size != total or sources.ndim > 2:
-            raise OfflineDataError(f"sources must be integer source ids, [N] (or [N, 1]), got {sources.dtype} {sources.shape}")
-        if sources.min() < 0 or sources.max() > 65534:
-            raise OfflineDataError(f"sources must be in [0, 65534], got values in [{sources.min()}, {sources.max()}]")
+            raise OfflineDataError(
+                f"{where}: sources must be integer source ids, [N] (or [N, 1]), got {sources.dtype} {sources.shape}"
+            )
+        if sources.min() < 0 or sources.max() > MAX_SOURCE_ID:
+            raise OfflineDataError(
+                f"{where}: sources must be in [0, {MAX_SOURCE_ID}], got values in [{sources.min()}, {sources.max()}]"
+            )
         clean["sources"] = sources.reshape(total).astype(np.int64)
     return clean
 
@@ -395,25 +425,35 @@ def infer_spaces(
 
 
 def normalize_actions(
-    data: Mapping[str, np.ndarray], action_space: spaces.Box, normalized_actions: bool = False
+    data: Union[Mapping[str, np.ndarray], np.ndarray], action_space: spaces.Space, normalized_actions: bool = False
 ) -> np.ndarray:
     """
-    The data's actions normalised to ``[-1, 1]`` with the action space's bounds (as SB3 stores them for squashed
-    policies). Actions outside the bounds are clipped, with a warning.
+    The data's actions normalised to ``[-1, 1]`` with the action space's bounds, as SB3 stores them for squashed
+    policies: the one normaliser of every way data comes in (``from_offline_data``,
+    ``LifelongReplayBuffer.from_d4rl`` and ``from_minari``). Computed in float64, returned as float32. Actions outside
+    the bounds are clipped, with a warning. A space that is not a bounded Box (``from_d4rl`` without an action
+    space), or whose bounds already are ``[-1, 1]``, leaves the values as they are (discrete actions keep their
+    dtype).
 
-    :param data: a validated d4rl dict (see :func:`validate_d4rl`)
-    :param action_space: bounded Box action space
-    :param normalized_actions: whether the data's actions are already normalised to ``[-1, 1]``
-    :return: the normalised actions, float32
+    :param data: the actions ``[N, action_dim]``, or a validated d4rl dict holding them (see :func:`validate_d4rl`)
+    :param action_space: the action space (a bounded Box for the actions to be rescaled)
+    :param normalized_actions: whether the actions are already normalised to ``[-1, 1]`` (only checked and clipped)
+    :return: the normalised actions, float32 (a discrete space's as they are)
     """
-    actions: np.ndarray = data["actions"].astype(np.float32)
-    if not normalized_actions:
-        low, high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
-        actions = 2.0 * (actions - low) / (high - low) - 1.0
-    outside = np.abs(actions) > 1.0 + 1e-5
+    actions = np.asarray(data["actions"] if isinstance(data, Mapping) else data)
+    if not isinstance(action_space, spaces.Box):
+        return actions
+    bounded = isinstance(action_space, spaces.Box) and _is_box_bounded(action_space)
+    if not bounded:
+        return actions.astype(np.float32)
+    assert isinstance(action_space, spaces.Box)
+    low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
+    if normalized_actions or (np.all(low == -1.0) and np.all(high == 1.0)):
+        normalized = actions.astype(np.float32)
+    else:
+        normalized = (2.0 * (actions.astype(np.float64) - low) / (high - low) - 1.0).astype(np.float32)
+    outside = np.abs(normalized) > 1.0 + 1e-5
     if outside.any():
-        warnings.warn(
-            f"{int(outside.any(axis=1).sum())} of {len(actions)} actions lie outside the action space's bounds: clipped",
-            stacklevel=3,
-        )
-    return np.clip(actions, -1.0, 1.0)
+        rows = int(outside.reshape(len(normalized), -1).any(axis=1).sum())
+        warnings.warn(f"{rows} of {len(normalized)} actions lie outside the action space's bounds: clipped", stacklevel=3)
+    return np.clip(normalized, -1.0, 1.0)
