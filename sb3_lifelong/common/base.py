@@ -28,6 +28,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_lifelong.common.contract import SYNC_TIMESTEP_METHOD
+from sb3_lifelong.common.safe_load import safe_custom_objects
 from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype
 
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
@@ -154,13 +155,12 @@ def _describe(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> str:
     return str(path) if isinstance(path, (str, pathlib.Path)) else "the checkpoint"
 
 
-def _saved_policy_class(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> Optional[tuple[str, str]]:
+def _saved_data(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> Optional[dict[str, Any]]:
     """
-    The policy class recorded in a saved model, read without unpickling anything: the module and name that the
-    pickled class reference of ``data["policy_class"]`` pushes (the pickle's opcodes are only listed, never run).
+    The ``data`` of a saved model, parsed as JSON: its pickled entries stay base64 text, nothing is unpickled.
 
-    :param path: The zip (``.zip`` added if missing, as SB3 does) or a seekable file object
-    :return: ``(module, name)``, or None when it cannot be told
+    :param path: The zip (``.zip`` added if missing, as SB3 does) or a seekable file object (read, then put back)
+    :return: The document, or None when it cannot be read (not a zip, no ``data``: SB3's load reports it)
     """
     try:
         if isinstance(path, (str, pathlib.Path)):
@@ -178,6 +178,20 @@ def _saved_policy_class(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> Op
                 path.seek(position)
         else:
             return None
+    except Exception:
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _saved_policy_class(data: dict[str, Any]) -> Optional[tuple[str, str]]:
+    """
+    The policy class recorded in a saved model's ``data``, read without unpickling anything: the module and name that
+    the pickled class reference of ``data["policy_class"]`` pushes (the pickle's opcodes are only listed, never run).
+
+    :param data: The ``data`` of the zip (see :func:`_saved_data`)
+    :return: ``(module, name)``, or None when it cannot be told
+    """
+    try:
         serialized = base64.b64decode(data["policy_class"][":serialized:"].encode())
         strings: list[str] = []
         for opcode, argument, _ in pickletools.genops(serialized):
@@ -188,7 +202,7 @@ def _saved_policy_class(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> Op
             elif opcode.name == "GLOBAL" and isinstance(argument, str) and " " in argument:
                 module, qualname = argument.split(" ", 1)
                 return module, qualname
-    except Exception:  # not a zip, no data, not the expected pickle: SB3's load reports it
+    except Exception:  # not the expected pickle: SB3's load reports it
         return None
     return None
 
@@ -201,14 +215,19 @@ def _algorithms(base: type) -> list[type]:
     return found
 
 
-def _check_saved_algorithm(cls: type, path: Union[str, pathlib.Path, io.BufferedIOBase]) -> None:
+def _check_saved_algorithm(
+    cls: type, path: Union[str, pathlib.Path, io.BufferedIOBase], data: Optional[dict[str, Any]]
+) -> None:
     """
     Refuse, before anything is built, a zip saved by another of this package's algorithms (its policy class is one
     of that algorithm's, not of ``cls``), naming both classes.
 
+    :param cls: The class whose ``load`` was called
+    :param path: The saved model, for the message
+    :param data: Its ``data`` (see :func:`_saved_data`), or None
     :raises ValueError: e.g. ``CRR.load`` of an MPO zip
     """
-    saved = _saved_policy_class(path)
+    saved = None if data is None else _saved_policy_class(data)
     if saved is None:
         return
 
@@ -509,17 +528,29 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         custom_objects: Optional[dict[str, Any]] = None,
         print_system_info: bool = False,
         force_reset: bool = True,
+        safe: bool = False,
         **kwargs,
     ) -> SelfLifelongAlgorithm:
         """
         SB3's ``load``, plus exact resumption (random streams, episode starts) and clear errors: a zip saved by another
         of this package's algorithms is refused with a ``ValueError`` naming both classes, and a ``LifelongReplayBuffer``
         directory (reopened from ``replay_buffer_kwargs``) that holds fewer transitions than the checkpoint recorded
-        as committed gives a warning.
+        as committed gives a warning. The buffer is rebuilt from the saved ``replay_buffer_kwargs`` unless others are
+        given; a saved ``mode="overwrite"`` reopens it as ``mode="new"`` (loading never deletes a buffer).
 
-        Loading unpickles the Python objects of the zip's ``data`` (spaces, schedules, classes) with cloudpickle, as SB3
-        does: a tampered zip can run code. Load only files you trust.
+        By default, loading unpickles the Python objects of the zip's ``data`` (spaces, schedules, classes) with
+        cloudpickle, as SB3 does: **a tampered zip runs code**. Load only files you trust, or pass ``safe=True``.
 
+        :param path: The saved model (``.zip`` added if missing) or a file object
+        :param env: As for SB3
+        :param device: As for SB3
+        :param custom_objects: As for SB3 (entries given here are not unpickled, also with ``safe=True``)
+        :param print_system_info: As for SB3
+        :param force_reset: As for SB3
+        :param safe: Unpickle nothing but what a model of this package saves: arrays, spaces, random generators,
+            schedules, and references to policy, buffer, module and optimizer classes; anything else (a function
+            pickled by value, any other global) raises ``pickle.UnpicklingError`` naming the entry and the global,
+            before it runs (see :mod:`sb3_lifelong.common.safe_load`)
         :param path: The saved model (``.zip`` added if missing) or a file object
         :param env: As for SB3
         :param device: As for SB3
@@ -529,7 +560,12 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         :param kwargs: As for SB3 (e.g. ``replay_buffer_kwargs``)
         :return: The model
         """
-        _check_saved_algorithm(cls, path)
+        data = _saved_data(path)
+        _check_saved_algorithm(cls, path, data)
+        if safe:
+            if data is None:
+                raise ValueError(f"{_describe(path)}: safe=True needs a zip whose 'data' can be read as JSON")
+            custom_objects = safe_custom_objects(data, custom_objects or {}, _describe(path))
         # the saved replay_buffer_kwargs never overwrite a buffer; those given here are used as they are
         reopening = _LOADING_SAVED_BUFFER_KWARGS.set("replay_buffer_kwargs" not in kwargs)
         try:
