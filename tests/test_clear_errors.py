@@ -92,3 +92,21 @@ def test_learn_offline_eval_sources_are_checked_before_any_update():
             50, eval_env={"Env-A": "Pendulum-v1", "Env-B": "Pendulum-v1"}, eval_freq=40, eval_sources={"Env-A": 2, "Env-B": 1}
         )
     assert model._n_updates == 0
+
+
+# ---------------------------------------------------------------------------------------------- d4rl import
+def test_from_d4rl_refuses_terminals_that_are_not_0_or_1(tmp_path):
+    """Before: terminals=2 was read as True, silently."""
+    n = 5
+    data = dict(
+        observations=np.zeros((n, 3), np.float32),
+        actions=np.zeros((n, 2), np.float32),
+        rewards=np.zeros(n, np.float32),
+        next_observations=np.ones((n, 3), np.float32),
+        terminals=np.array([0, 0, 2, 0, 1]),
+    )
+    with pytest.raises(ValueError, match=r"'terminals' must hold only 0/1"):
+        LifelongReplayBuffer.from_d4rl(data, path=tmp_path / "buffer")
+    assert not (tmp_path / "buffer").exists()  # nothing created
+    with pytest.raises(ValueError, match=r"'timeouts' must hold only 0/1"):
+        LifelongReplayBuffer.from_d4rl({**data, "terminals": np.zeros(n, bool), "timeouts": np.full(n, -1)})
