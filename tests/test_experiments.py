@@ -3,6 +3,7 @@
 import importlib.util
 import json
 import pathlib
+import re
 import types
 
 import numpy as np
@@ -120,6 +121,11 @@ def test_report_claims_and_figures(study):
     verdicts = dict(zip(claims["claim"], claims["verdict"]))
     assert verdicts["C5a reward scale"] == "no data"  # its student did not run
     assert verdicts["C1 forgetting"] != "no data"
+    paired = dict(zip(claims["claim"], claims["paired"].fillna("")))
+    pattern = r"CRR beta=1 - MPO: [+-][\d.]+ \[[+-][\d.]+, [+-][\d.]+\], CRR beta=1 higher on [\d.]+ of 2 seeds"
+    assert re.fullmatch(pattern, paired["C2a conservative online CRR remembers"])
+    assert paired["C1 forgetting"] == ""  # a per-seed ratio: paired already
+    assert "paired by seed" in text
 
 
 def test_export_keeps_results_not_data(study, tmp_path):
@@ -170,10 +176,49 @@ def test_sampling_weights_give_the_ratio():
 
 
 def test_bootstrap_interval():
+    from scipy import stats
+
     low, high = bootstrap_ci([1.0, 2.0, 3.0])
     assert 1.0 <= low < 2.0 < high <= 3.0
-    assert bootstrap_ci([5.0]) == (5.0, 5.0)
+    assert bootstrap_ci([5.0]) == (5.0, 5.0) and bootstrap_ci([4.0, 4.0]) == (4.0, 4.0)
     assert all(np.isnan(bootstrap_ci([])))
+    # scipy's BCa interval, not a percentile one: on skewed data (one seed far above the others) BCa reaches further
+    # towards the outlier than the percentile interval of the same resamples does
+    skewed = np.array([100.0, 120.0, 130.0, 110.0, 125.0, 900.0])
+    expected = stats.bootstrap((skewed,), np.mean, n_resamples=10_000, method="BCa", rng=np.random.default_rng(0))
+    assert bootstrap_ci(list(skewed)) == pytest.approx(tuple(expected.confidence_interval))
+    percentile = stats.bootstrap((skewed,), np.mean, n_resamples=10_000, method="percentile", rng=np.random.default_rng(0))
+    assert bootstrap_ci(list(skewed))[1] > percentile.confidence_interval.high
+
+
+def test_claims_pair_the_compared_series_by_seed():
+    from sb3_lifelong.experiments.report import CLAIMS, describe_pair, paired_difference
+
+    # seeds differ a lot, the first method is 8-12 above the second on every seed: paired, the difference is sure
+    second = {0: 100.0, 1: 500.0, 2: 900.0, 3: 1300.0, 4: 1700.0}
+    first = {seed: value + offset for (seed, value), offset in zip(second.items(), (10.0, 12.0, 8.0, 11.0, 9.0))}
+    difference = paired_difference(first, {**second, 9: 5.0})  # a seed of one side only is left out
+    assert difference["n"] == 5 and difference["wins"] == 5 and difference["mean"] == pytest.approx(10.0)
+    assert 8.0 <= difference["low"] < 10.0 < difference["high"] <= 12.0
+    unpaired_low, unpaired_high = bootstrap_ci(list(first.values()))
+    assert unpaired_high - unpaired_low > 100 * (difference["high"] - difference["low"])  # each mean's own: no verdict
+    text = describe_pair("A", "B", difference)
+    assert re.fullmatch(r"A - B: \+10 \[\+[89], \+1[01]\], A higher on 5 of 5 seeds", text), text
+    tie = paired_difference({0: 1.0, 1: 2.0}, {0: 1.0, 1: 1.0})
+    assert tie["wins"] == 1.5  # a tie counts one half
+    pairs = {claim.name: claim.compared(["x", "y", "z"]) for claim in CLAIMS}
+    assert pairs["C5d sampling ratio hurts the indicator"] == [("1:1", "1:5"), ("1:5", "1:10")]
+    assert all(first == "CRR_exp_beta1" for first, _ in pairs["C3 the pipeline is best"])
+    assert pairs["C2a conservative online CRR remembers"] == [("x", "y"), ("x", "z")]  # default: the first vs the others
+
+
+def test_seeds_needed_is_the_paired_t_test():
+    needed = benchmark_module("seeds_needed")
+    # G*Power's one-sided paired t-test, level 0.05, power 0.8: 8 pairs for an effect of 1 sd, 27 for half an sd
+    assert needed.seeds_for(100.0, 100.0) == 8 and needed.seeds_for(2.0, 1.0) == 27
+    assert needed.seeds_for(1.0, 2.0) == 4  # the normal approximation said 2
+    assert needed.power(8, 1.0) >= 0.8 > needed.power(7, 1.0)
+    assert needed.seeds_for(1.0, 0.0) == np.inf and needed.seeds_for(0.0, 1.0) == 2
 
 
 def test_a_study_keeps_one_set_of_settings(study):

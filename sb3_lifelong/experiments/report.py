@@ -1,7 +1,8 @@
 """
 Gather the seeds of a two-stage (or three-stage) study into tables, the pre-registered claims and the paper's figures.
 
-Scores (each seed's, then mean +- std over seeds and a 95 % percentile-bootstrap interval of the mean):
+Scores (each seed's, then mean +- std over seeds and a 95 % BCa bootstrap interval of the mean, from
+``scipy.stats.bootstrap``):
 
 * an online method's final return in an environment: the mean of its last ``ONLINE_LAST`` evaluations;
 * MPO's return in an environment *at the switch* (when it leaves that environment): the mean of its last
@@ -9,8 +10,13 @@ Scores (each seed's, then mean +- std over seeds and a 95 % percentile-bootstrap
 * Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
 * a student's final return: the mean of its last ``STUDENT_LAST`` evaluations;
 * Q per source: the student's last average Q-value over each environment's data.
+
+A claim that compares two methods also reports their paired difference: per seed (both from the same seed's
+collection), its mean with a BCa interval, and on how many seeds the first is higher (rliable's "probability of
+improvement" over seeds). The verdicts themselves are the pre-registered tests on the means.
 """
 
+import inspect
 import json
 import pathlib
 from collections.abc import Mapping, Sequence
@@ -26,21 +32,56 @@ STUDENT_LAST = 2
 BOOTSTRAP_RESAMPLES = 10_000
 
 
+def _resampling(seed: int) -> dict[str, Any]:
+    """:return: ``scipy.stats.bootstrap``'s random generator argument (``rng`` from scipy 1.15, ``random_state`` before)"""
+    from scipy import stats
+
+    name = "rng" if "rng" in inspect.signature(stats.bootstrap).parameters else "random_state"
+    return {name: np.random.default_rng(seed)}
+
+
 def bootstrap_ci(values: Sequence[float], level: float = 0.95, seed: int = 0) -> tuple[float, float]:
     """
-    Percentile bootstrap interval of the mean (resampling seeds with replacement).
+    BCa (bias-corrected and accelerated) bootstrap interval of the mean, resampling seeds with replacement
+    (``scipy.stats.bootstrap``, ``BOOTSTRAP_RESAMPLES`` resamples). With a handful of seeds no interval is reliable:
+    with two it is the range of their values.
 
-    :param values: one value per seed
+    :param values: one value per seed (non-finite values are left out)
     :param level: coverage
     :param seed: seed of the resampling
-    :return: the interval's bounds (NaN without values; the single value for one seed)
+    :return: the interval's bounds (NaN without values; the single value for one seed or identical values)
     """
+    from scipy import stats
+
     data = np.asarray([v for v in values if np.isfinite(v)], dtype=float)
     if len(data) == 0:
         return float("nan"), float("nan")
-    rng = np.random.default_rng(seed)
-    means = data[rng.integers(0, len(data), size=(BOOTSTRAP_RESAMPLES, len(data)))].mean(axis=1)
-    return float(np.quantile(means, (1 - level) / 2)), float(np.quantile(means, (1 + level) / 2))
+    if len(data) == 1 or np.ptp(data) == 0:  # no spread to resample (BCa's acceleration is undefined)
+        return float(data[0]), float(data[0])
+    result = stats.bootstrap(
+        (data,), np.mean, confidence_level=level, n_resamples=BOOTSTRAP_RESAMPLES, method="BCa", **_resampling(seed)
+    )
+    low, high = result.confidence_interval
+    return float(low), float(high)
+
+
+def paired_difference(first: Mapping[int, float], second: Mapping[int, float], level: float = 0.95) -> dict[str, Any]:
+    """
+    The per-seed difference ``first - second`` over the seeds both have (paired by seed: both values come from the
+    same seed's collection), with the BCa interval of its mean.
+
+    :param first: seed -> value
+    :param second: seed -> value
+    :param level: coverage of the interval
+    :return: ``n`` (paired seeds), ``mean``, ``low``, ``high`` (NaN without pairs) and ``wins``: the seeds on which
+        ``first`` is higher, ties counting one half (``wins / n``: the probability of improvement over seeds)
+    """
+    seeds = sorted(s for s in first if s in second and np.isfinite(first[s]) and np.isfinite(second[s]))
+    differences = np.asarray([first[s] - second[s] for s in seeds], dtype=float)
+    low, high = bootstrap_ci(list(differences), level)
+    wins = float(np.sum(differences > 0) + 0.5 * np.sum(differences == 0))
+    mean = float(differences.mean()) if len(differences) else float("nan")
+    return dict(n=len(seeds), mean=mean, low=low, high=high, wins=wins)
 
 
 def describe(values: Sequence[float]) -> str:
@@ -179,12 +220,32 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
 # ------------------------------------------------------------------------------------------------- claims
 @dataclass
 class Claim:
-    """A pre-registered claim: per-seed values, and a test on their means."""
+    """
+    A pre-registered claim: per-seed values, and a test on their means.
+
+    :param name: short name (``"C2a ..."``)
+    :param statement: the pre-registered criterion, in words
+    :param values: the named per-seed series of a study
+    :param test: the criterion, on the means of the series
+    :param pairs: the series compared (first, second), each reported as a paired difference per seed (see
+        :func:`paired_difference`); None: the first series against each other one (none for a single series, e.g. a
+        per-seed ratio, which is paired already)
+    """
 
     name: str
     statement: str
-    values: Callable[[Study], dict[str, dict[int, float]]]  # named per-seed series
-    test: Callable[[dict[str, float]], bool]  # on the means of the series
+    values: Callable[[Study], dict[str, dict[int, float]]]
+    test: Callable[[dict[str, float]], bool]
+    pairs: Optional[Sequence[tuple[str, str]]] = None
+
+    def compared(self, names: Sequence[str]) -> list[tuple[str, str]]:
+        """
+        :param names: the names of the claim's series
+        :return: the pairs of series whose paired difference the report gives
+        """
+        if self.pairs is not None:
+            return list(self.pairs)
+        return [(names[0], other) for other in names[1:]]
 
 
 def _mean(series: dict[int, float]) -> float:
@@ -249,6 +310,7 @@ CLAIMS: list[Claim] = [
         + ")",
         lambda s: {m: _mean_over_envs(s, m) for m in LIFELONG_METHODS},
         lambda m: all(m["CRR_exp_beta1"] >= v for k, v in m.items() if np.isfinite(v)),
+        pairs=tuple(("CRR_exp_beta1", method) for method in LIFELONG_METHODS if method != "CRR_exp_beta1"),
     ),
     Claim(
         "C4a the imbalance drop",
@@ -289,6 +351,7 @@ CLAIMS: list[Claim] = [
             "1:10": s.score("CRR_indicator_ratio_1to10", "Env-A"),
         },
         lambda m: m["1:1"] > m["1:5"] > m["1:10"],
+        pairs=(("1:1", "1:5"), ("1:5", "1:10")),
     ),
     Claim(
         "C5e beta=1 is robust to the ratio",
@@ -386,8 +449,34 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
                 if values
                 else f"{name}: no data"
             )
-        rows.append(dict(claim=claim.name, statement=claim.statement, verdict=verdict, values="; ".join(details)))
+        paired = [describe_pair(a, b, paired_difference(series[a], series[b])) for a, b in claim.compared(list(series))]
+        rows.append(
+            dict(
+                claim=claim.name,
+                statement=claim.statement,
+                verdict=verdict,
+                values="; ".join(details),
+                paired="; ".join(paired),
+            )
+        )
     return rows
+
+
+def describe_pair(first: str, second: str, difference: Mapping[str, Any]) -> str:
+    """
+    :param first: the first series' name
+    :param second: the second series' name
+    :param difference: :func:`paired_difference` of the two
+    :return: ``first - second: mean [low, high], first higher on k of n seeds``
+    """
+    if difference["n"] == 0:
+        return f"{first} - {second}: no paired seeds"
+    fmt = "{:+.2f}" if abs(difference["mean"]) < 10 else "{:+.0f}"
+    wins = f"{difference['wins']:g}"
+    return (
+        f"{first} - {second}: {fmt.format(difference['mean'])} [{fmt.format(difference['low'])}, "
+        f"{fmt.format(difference['high'])}], {first} higher on {wins} of {difference['n']} seeds"
+    )
 
 
 # ------------------------------------------------------------------------------------------------- tables
@@ -408,8 +497,14 @@ def score_table(study: Study) -> str:
 
 
 def claims_table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| claim | pre-registered criterion | verdict | values: mean [95 % CI] (per seed) |", "| --- | --- | --- | --- |"]
-    lines += [f"| {r['claim']} | {r['statement']} | **{r['verdict']}** | {r['values']} |" for r in rows]
+    lines = [
+        "| claim | pre-registered criterion | verdict | values: mean [95 % BCa CI] (per seed) "
+        "| paired by seed: mean difference [95 % BCa CI], seeds on which the first is higher |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    lines += [
+        f"| {r['claim']} | {r['statement']} | **{r['verdict']}** | {r['values']} | {r.get('paired') or '-'} |" for r in rows
+    ]
     return "\n".join(lines)
 
 
@@ -469,7 +564,7 @@ def write_report(output: pathlib.Path, plots: bool = True, seeds: Optional[Seque
             if partial
             else ""
         )
-        + "## Final returns\n\nmean +- std over seeds [95 % bootstrap CI of the mean]; online methods: mean of the last "
+        + "## Final returns\n\nmean +- std over seeds [95 % BCa bootstrap CI of the mean]; online methods: mean of the last "
         + f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
         + score_table(study)
         + "\n\n## Claims\n\n"
