@@ -76,6 +76,28 @@ def test_a_seed_writes_every_job(study):
     assert any("job 1/" in m and "collect" in m for m in messages)
 
 
+def test_every_job_writes_a_tensorboard_run(study):
+    """A study is browsable in tensorboard like any SB3 run: one run per job, with a curve per environment."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    output, _ = study
+    expected = {"collect": "MPO", "online_CRR_exp_beta1": "CRR", "distill_BC": "BC", "distill_CRR_exp_beta1": "CRR"}
+    for job in JOBS:
+        runs = sorted((output / "seed_0" / job / "tb").glob("*_*"))
+        assert len(runs) == 1, f"{job}: one tensorboard run, got {runs}"  # the collection's two stages: one run
+        assert runs[0].name.startswith(expected.get(job, "CRR") + "_") and list(runs[0].glob("events.out.tfevents.*"))
+        events = EventAccumulator(str(runs[0]))
+        events.Reload()
+        evals = pd.read_csv(output / "seed_0" / job / "eval.csv")
+        for env in ("Env-A", "Env-B"):
+            logged = {event.step: event.value for event in events.Scalars(f"eval/{env}/mean_reward")}
+            in_csv = evals[evals["env"] == env].set_index("timesteps")["mean_reward"]
+            assert sorted(logged) == sorted(in_csv.index), job  # every evaluation, at its timestep
+            assert np.allclose([logged[t] for t in in_csv.index], in_csv.values, rtol=1e-4), job
+        if job != "distill_BC":  # a critic: the Q-value diagnostic per source
+            assert {"diagnostics/q_mean/Env-A", "diagnostics/q_mean/Env-B"} <= set(events.Tags()["scalars"]), job
+
+
 def test_finished_jobs_are_skipped_and_a_lost_job_reruns(study):
     output, _ = study
     messages: list[str] = []

@@ -25,6 +25,9 @@ Layout of ``<output>/seed_<k>/``::
     <job>/eval.csv              timesteps, env, mean_reward, std_reward, n_episodes
     <job>/q_sources.csv         timesteps, source, name, q_mean, n (+ q_probe, mc_return, overestimation, n_mc)
     <job>/train.csv             timesteps, the train/ values (losses, weight_ess, beta, ...)
+    <job>/tb/<Algorithm>_<k>/   the job's tensorboard run, as SB3 writes it (when tensorboard is installed): the
+                                eval/<env>/, diagnostics/ and train/ values, so ``tensorboard --logdir <output>``
+                                browses every seed, job and environment of the study
     <job>/done.json             wall time and the job's settings
 """
 
@@ -404,6 +407,19 @@ def switch_points(preset: Preset) -> list[int]:
 
 
 # ------------------------------------------------------------------------------------------------- the jobs
+def tensorboard_dir(directory: pathlib.Path) -> Optional[str]:
+    """
+    :param directory: a job's directory
+    :return: the ``tensorboard_log`` of the job's model, ``<directory>/tb`` (SB3 writes each run into a folder
+        ``<tb_log_name>_<k>`` there), or None when tensorboard is not installed (the CSV files only)
+    """
+    try:
+        from torch.utils.tensorboard import SummaryWriter  # noqa: F401  (SB3 writes its event files with it)
+    except ImportError:
+        return None
+    return str(directory / "tb")
+
+
 def _common(preset: Preset, seed: int) -> dict[str, Any]:
     return dict(policy_kwargs=dict(net_arch=list(preset.net_arch), layer_norm=preset.layer_norm), seed=seed)
 
@@ -448,7 +464,7 @@ def _callbacks(
             log_path=directory / "eval.csv",
             seed=EVAL_SEED_OFFSET + seed,
             **eval_kwargs,
-        )
+        ),
     ]
     if q:
         q_log = directory / "q_sources.csv"
@@ -474,6 +490,7 @@ def collect(preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool
         num_samples=preset.num_samples,
         batch_size=preset.batch_size,
         learning_rate=preset.learning_rate,
+        tensorboard_log=tensorboard_dir(directory),
         **_common(preset, seed),
     )
     buffer: Any = model.replay_buffer
@@ -506,6 +523,7 @@ def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress
         learning_starts=0,
         batch_size=preset.batch_size,
         learning_rate=preset.learning_rate,
+        tensorboard_log=tensorboard_dir(directory),
         **ONLINE[name],
         **_common(preset, seed),
     )
@@ -596,6 +614,8 @@ def distill_student(
         progress_bar=progress_bar,
         batch_size=preset.student_batch_size,
         learning_rate=preset.student_learning_rate,
+        tensorboard_log=tensorboard_dir(directory),
+        tb_log_name=algorithm.__name__,
         **kwargs,
         **common,
     )
