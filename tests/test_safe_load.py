@@ -36,7 +36,9 @@ class CallsAClass:
 
     def __reduce__(self):
         space = gym.spaces.Box(-1, 1, (2,))
-        return LifelongReplayBuffer, (0, space, space, "cpu", 1, False, True, 1, 0.99, self.path, False, 10, "last", 0)
+        # positional up to mode="overwrite": LifelongReplayBuffer(0, ..., path=self.path, ..., mode="overwrite")
+        args = (0, space, space, "cpu", 1, False, True, 1, 0.99, self.path, False, 10, "last", 0, None, None, "mmap")
+        return LifelongReplayBuffer, (*args, "overwrite")
 
 
 def tamper(source, target, key: str, payload: object) -> None:
