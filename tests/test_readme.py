@@ -1,11 +1,15 @@
-"""The README's snippet runs as written (at a tiny budget: only its step counts are changed)."""
+"""The README's snippet runs as written (at a tiny budget: only its step counts are changed) and shows what happens."""
 
+import csv
 import os
 import pathlib
 import re
 
+import pytest
+
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
-TINY_BUDGET = {"200_000": "300", "1_000_000": "300", "500_000": "200"}
+#: the snippet's budgets (steps, updates, evaluation periods) and the tiny ones the test runs it with
+TINY_BUDGET = {"200_000": "300", "1_000_000": "300", "500_000": "200", "20_000": "300", "50_000": "200"}
 
 
 def readme_snippet() -> str:
@@ -14,7 +18,16 @@ def readme_snippet() -> str:
     return re.search(r"```python\n(.*?)```", section, re.DOTALL).group(1)
 
 
-def test_users_day_snippet_runs(tmp_path, monkeypatch):
+def scalar_tags(directory: pathlib.Path) -> set[str]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    accumulator = EventAccumulator(str(directory))
+    accumulator.Reload()
+    return set(accumulator.Tags()["scalars"])
+
+
+def test_users_day_snippet_runs(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("tensorboard")
     code = readme_snippet()
     for big, small in TINY_BUDGET.items():
         assert big in code, f"the snippet no longer says {big}: update TINY_BUDGET"
@@ -25,4 +38,22 @@ def test_users_day_snippet_runs(tmp_path, monkeypatch):
     assert namespace["model"].num_timesteps == 600
     assert namespace["action"].shape == namespace["env"].action_space.shape
     assert (tmp_path / "distilled.zip").exists() and (tmp_path / "runs" / "buffer" / "manifest.json").exists()
-    assert os.listdir(tmp_path / "runs")  # tensorboard logs
+    assert set(namespace["model"].replay_buffer.source_counts()) == {0, 1}  # both environments were lived in
+
+    # it shows what happens: every evaluation printed, on every environment seen, online and while distilling
+    out = capsys.readouterr().out
+    for step in (300, 600):  # at the end of each stage
+        assert f"Eval at {step}: Env-A mean reward" in out and f"Eval at {step}: Env-B mean reward" in out
+    assert "Distilling 600 transitions (stage_0: " in out and "into CRR: 200 gradient updates" in out
+    assert "Eval at 200: Env-B mean reward" in out  # the student's last evaluation
+    with open(tmp_path / "runs" / "eval.csv") as handle:
+        assert {row["env"] for row in csv.DictReader(handle)} == {"Env-A", "Env-B"}
+
+    # and tensorboard has the curves per environment: collection (both stages, one run) and the student beside it
+    run = tmp_path / "runs" / "lifelong_1"
+    assert os.listdir(tmp_path / "runs") and run.is_dir()
+    online, student = scalar_tags(run), scalar_tags(run / "distill")
+    for tags in (online, student):
+        for env in ("Env-A", "Env-B"):
+            assert {f"eval/{env}/mean_reward", f"eval/{env}/std_reward", f"eval/{env}/mean_ep_length"} <= tags
+    assert {"diagnostics/q_mean/stage_0", "diagnostics/q_mean/stage_1"} <= online
