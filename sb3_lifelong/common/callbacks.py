@@ -270,8 +270,8 @@ class MultiEnvEvalCallback(BaseCallback):
             )
             mean, std = float(np.mean(episode_rewards)), float(np.std(episode_rewards))
             means[name] = mean
-            all_rewards.append([float(value) for value in episode_rewards])
-            all_lengths.append([int(value) for value in episode_lengths])
+            all_rewards.append(np.asarray(episode_rewards, dtype=np.float64).tolist())  # per episode (return_episode_rewards)
+            all_lengths.append(np.asarray(episode_lengths, dtype=np.int64).tolist())
             self.logger.record(f"eval/{name}/mean_reward", mean)
             self.logger.record(f"eval/{name}/std_reward", std)
             self.logger.record(f"eval/{name}/mean_ep_length", float(np.mean(episode_lengths)))
