@@ -107,3 +107,18 @@ def test_source_q_callback_appends_to_an_older_file_with_its_columns(tmp_path):
     model.learn_offline(5, callback=SourceQCallback(log_freq=5, batch_size=64, log_path=path, data=buffer), log_interval=0)
     lines = path.read_text().splitlines()
     assert lines[0] == "timesteps,source,name,q_mean,n" and all(len(line.split(",")) == 5 for line in lines)
+
+
+def test_probe_applies_the_observation_normaliser():
+    class Shift:
+        def normalize_obs(self, obs):
+            return obs + 100.0
+
+    class ObsCritic(th.nn.Module):
+        def forward(self, obs, actions):
+            return (obs[:, :1],)
+
+    probe = MonteCarloProbe(two_source_buffer(), 0.5, per_source=100)
+    raw, shifted = probe.measure(ObsCritic()), probe.measure(ObsCritic(), normalizer=Shift())
+    assert shifted[0].q_mean == pytest.approx(raw[0].q_mean + 100.0)
+    assert shifted[0].mc_return == raw[0].mc_return

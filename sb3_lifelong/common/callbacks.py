@@ -390,12 +390,14 @@ class SourceQCallback(BaseCallback):
         buffer: Any = self._buffer()
         if buffer.size() == 0:
             return {}
-        samples, sources = buffer.sample(self.batch_size, return_sources=True)
+        # a model trained on a VecNormalize env sees normalised observations: so must its critic here
+        normalizer = getattr(self.model, "_vec_normalize_env", None)
+        samples, sources = buffer.sample(self.batch_size, env=normalizer, return_sources=True)
         critic: Any = self.model.critic  # type: ignore[attr-defined]
         with th.no_grad():
             q_values = critic(samples.observations, samples.actions)[0].flatten()
         names = buffer.sources
-        truth = self._probe.measure(critic, self.model.device) if self._probe is not None else {}
+        truth = self._probe.measure(critic, self.model.device, normalizer) if self._probe is not None else {}
         means: dict[str, float] = {}
         rows = []
         for source in th.unique(sources).tolist():

@@ -149,10 +149,12 @@ class MonteCarloProbe:
                 observations=columns["observations"][rows], actions=columns["actions"][rows], returns=mc.returns[rows]
             )
 
-    def measure(self, critic: Any, device: Any = "cpu") -> dict[int, SourceOverestimation]:
+    def measure(self, critic: Any, device: Any = "cpu", normalizer: Any = None) -> dict[int, SourceOverestimation]:
         """
         :param critic: an SB3-style critic, ``critic(obs, actions)`` -> a tuple of ``[n, 1]`` Q-values (the first is used)
         :param device: where the critic lives
+        :param normalizer: the ``VecNormalize`` the critic was trained behind (its ``normalize_obs`` is applied to the
+            stored observations; the returns stay in the stored rewards' units)
         :return: source id -> the mean Q-value, the mean Monte-Carlo return and their difference on its sample
         """
         import torch as th
@@ -160,7 +162,8 @@ class MonteCarloProbe:
         self.refresh()
         results = {}
         for source, rows in self._sample.items():
-            obs = th.as_tensor(rows["observations"], dtype=th.float32, device=device)
+            stored = rows["observations"] if normalizer is None else normalizer.normalize_obs(rows["observations"])
+            obs = th.as_tensor(stored, dtype=th.float32, device=device)
             actions = th.as_tensor(rows["actions"], dtype=th.float32, device=device)
             with th.no_grad():
                 q_values = critic(obs, actions)[0].flatten().double().cpu().numpy()
