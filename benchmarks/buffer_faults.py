@@ -20,6 +20,18 @@ Cases, for each layout:
 - ``file size limit``: a real short write past ``RLIMIT_FSIZE`` (EFBIG) in a child, then a retry.
 - ``lost manifest``: ``manifest.json`` deleted; creating or opening a buffer there (5 ways) must refuse and change no
   file; the manifest is then put back.
+- ``live overwrite``: a second process opens the directory of a live writer with ``mode="overwrite"``: refused, nothing
+  deleted, the live writer goes on.
+- ``foreign directory``: ``mode="overwrite"`` on directories that hold a ``manifest.json`` of something else (a web
+  app's, invalid JSON, an unknown format version) beside other files: refused, no file changed or created.
+- ``crash after save``: a child trains MPO with a directory buffer, saves the model (a checkpoint) and is killed with
+  SIGKILL right after; every transition of the checkpoint must be in the directory.
+- ``planted symlinks``: links to a file outside the directory planted at ``manifest.json.tmp``, at the next chunk file
+  (layout "chunked") or instead of a field file (layout "single"), and at ``writer.lock``: nothing may be written
+  through them.
+
+*Foreign bytes written or deleted* counts the bytes of files that are not the buffer's (outside its directory, or
+in a directory that is not a buffer) that were written, changed, deleted or created.
 
 Counting: *transitions committed* are those whose commit the writer was told of (``flush()`` / ``add()`` /
 ``append()`` returned, or the child printed it) and that the buffer must still hold (a capacity keeps only the most
@@ -96,6 +108,24 @@ SIGKILL loop, 100,000 elsewhere):
 - *file size limit*: a real short write past `RLIMIT_FSIZE` (EFBIG) in a child during a flush, then a retry.
 - *lost manifest*: `manifest.json` deleted; creating or opening a buffer there in 5 ways must raise
   `BufferFormatError` and change no file; then the manifest is put back and the directory opened.
+- *live overwrite*: a writer holds 100 committed and 20 pending transitions; a second process opens the directory with
+  `mode="overwrite"` (it must be refused with the second writer's `RuntimeError`, nothing deleted); the writer adds
+  20 more and closes.
+- *foreign directory*: `mode="overwrite"` on a directory holding a `manifest.json` that is not a buffer's (a web app's
+  manifest, invalid JSON, a buffer manifest of an unknown version) beside an `index.html`, a file named
+  `observations.bin` and a subdirectory: it must raise `BufferFormatError` and change, delete or create no file.
+- *crash after save*: a child collects 150, 230 or 310 Pendulum steps with MPO into a directory buffer (chunks of
+  1,000, 64 or 100 transitions), saves the model and kills itself with SIGKILL; the transitions of the checkpoint
+  (the model's timesteps, also recorded in the zip) must be in the directory, bit-identical to what the child held.
+- *planted symlinks*: a link to a 16 KiB file outside the directory is planted at `manifest.json.tmp` (then a flush),
+  at the next chunk file (layout "chunked", then a flush) or instead of `rewards.bin` (layout "single": the flush
+  must fail, then the file is put back and the flush repeated), and at `writer.lock` of a closed buffer (opening it
+  as a writer must fail; readers still open it). A fault counts as not reported when a write went through a link.
+  These four cases came with their fixes (issue 32). The store before them (commit 3291fb1, run with `--kills 2`)
+  lost 956 of their transitions (the live writer's 140 per layout, written into re-created files; 198 per layout
+  of the checkpoints, still in memory at the kill; the 140 of the symlinked directory per layout, unreadable after),
+  served 342 wrong rows, wrote or deleted 88,739 bytes of other files, and left 12 of these faults unreported (the
+  overwrites it accepted, the writes it made through links).
 
 What the columns count:
 
@@ -108,6 +138,8 @@ What the columns count:
   *lost* is the difference;
 - *wrong rows served*: every row returned by a read (every retained row by `read_range`, and sampled rows, on the
   live buffer during and after the fault and on the reopened directory) that differs from what was written.
+- *foreign bytes written or deleted*: bytes of files that are not the buffer's (outside its directory, or in a
+  directory that is not a buffer) written, changed, deleted or created.
 
 The `directory fsync` rows also count the previous commit (100 transitions) read back from a copy of the directory
 with the previous manifest put back, which is what a power loss may leave after that fault. The pending (unflushed)
@@ -127,6 +159,7 @@ class Tally:
     wrong: int = 0
     runs: int = 0
     unreported: int = 0  # faults after which the call returned without an error
+    foreign: int = 0  # bytes of files that are not the buffer's written, changed, deleted or created
 
     @property
     def lost(self) -> int:
@@ -195,19 +228,32 @@ def served_wrong(buffer: LifelongReplayBuffer, count: int, batches: int = 4) -> 
 
 def reopen_and_check(path: str, committed: int, tally: Tally, first: int = 0) -> None:
     """Reopen the directory (writer, verify="all"): count the committed rows recovered and the wrong rows served."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "recovered N transitions; discarded B bytes ..."
-        buffer = LifelongReplayBuffer.open(path, device="cpu", verify="all")
-    store = buffer.store
     tally.committed += committed - first
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "recovered N transitions; discarded B bytes ..."
+            buffer = LifelongReplayBuffer.open(path, device="cpu", verify="all")
+    except (BufferFormatError, OSError, RuntimeError) as error:  # the directory cannot be opened: every row is lost
+        print(f"  {tally.case} {tally.layout}: reopening failed: {type(error).__name__}: {error}", file=sys.stderr)
+        return
+    store = buffer.store
     tally.recovered += matching_rows(store, max(first, store.first), min(committed, store.end))
     tally.wrong += served_wrong(buffer, store.end)
     buffer.close()
 
 
-def make_buffer(path: str, layout: str, chunk_size: int = CHUNK, capacity: int = 100_000) -> LifelongReplayBuffer:
+def make_buffer(
+    path: str, layout: str, chunk_size: int = CHUNK, capacity: int = 100_000, **kwargs: Any
+) -> LifelongReplayBuffer:
     return LifelongReplayBuffer(
-        0, OBS, ACT, device="cpu", path=path, chunk_size=chunk_size, capacity=None if layout == "single" else capacity
+        0,
+        OBS,
+        ACT,
+        device="cpu",
+        path=path,
+        chunk_size=chunk_size,
+        capacity=None if layout == "single" else capacity,
+        **kwargs,
     )
 
 
@@ -589,6 +635,248 @@ def lost_manifest_case(root: str, layout: str, tally: Tally) -> None:
     reopen_and_check(path, 120, tally)
 
 
+# ------------------------------------------------------------------------------------ ownership and checkpoint cases
+def files_of(directory: str) -> dict[str, bytes]:
+    """Every entry under ``directory`` by relative name: a file's bytes, a link's target, a directory's marker."""
+    found: dict[str, bytes] = {}
+    for parent, folders, names in os.walk(directory):
+        for name in folders + names:
+            full = os.path.join(parent, name)
+            key = os.path.relpath(full, directory)
+            if os.path.islink(full):
+                found[key] = b"-> " + os.readlink(full).encode()
+            elif os.path.isdir(full):
+                found[key] = b"<dir>"
+            else:
+                with open(full, "rb") as file:
+                    found[key] = file.read()
+    return found
+
+
+def bytes_changed(before: bytes, after: Optional[bytes]) -> int:
+    """Bytes of a file written, changed or deleted (``after`` None: deleted; ``before`` empty: created)."""
+    if after is None:
+        return max(len(before), 1)
+    if after == before:
+        return 0
+    common = min(len(before), len(after))
+    differing = int(np.count_nonzero(np.frombuffer(before[:common], np.uint8) != np.frombuffer(after[:common], np.uint8)))
+    return max(differing + abs(len(after) - len(before)), 1)  # a created empty file counts as one
+
+
+def foreign_changed(before: dict[str, bytes], after: dict[str, bytes]) -> int:
+    """Bytes written, changed, deleted or created among entries that are not the buffer's."""
+    total = sum(bytes_changed(content, after.get(name)) for name, content in before.items())
+    return total + sum(bytes_changed(b"", content) for name, content in after.items() if name not in before)
+
+
+OVERWRITE_CHILD = r"""
+import sys
+import gymnasium as gym
+import numpy as np
+from sb3_lifelong import LifelongReplayBuffer
+path, layout = sys.argv[1], sys.argv[2]
+obs = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+act = gym.spaces.Box(-1, 1, (2,), np.float32)
+try:
+    LifelongReplayBuffer(0, obs, act, device="cpu", path=path, chunk_size=50,
+                         capacity=None if layout == "single" else 100_000, mode="overwrite")
+    print("accepted", flush=True)
+except Exception as error:
+    print("refused", type(error).__name__, error, flush=True)
+"""
+
+
+def live_overwrite_case(root: str, layout: str, tally: Tally, env: dict[str, str]) -> None:
+    """A second process opens the directory of a live writer with mode="overwrite"; the writer goes on and closes."""
+    path = os.path.join(root, f"live-overwrite-{layout}")
+    tally.runs += 1
+    live = make_buffer(path, layout)
+    add_rows(live, 0, 120)  # 100 committed, 20 pending
+    out = subprocess.run(
+        [sys.executable, "-c", OVERWRITE_CHILD, path, layout], capture_output=True, text=True, env=env, timeout=300
+    ).stdout
+    tally.faults += 1
+    tally.unreported += int("refused RuntimeError" not in out)
+    try:
+        tally.wrong += served_wrong(live, 120)
+        add_rows(live, 120, 140)
+        live.close()
+    except Exception as error:  # e.g. files deleted under it: shows as lost rows
+        print(f"  live overwrite {layout}: {type(error).__name__}: {error}", file=sys.stderr)
+    reopen_and_check(path, 140, tally)
+
+
+FOREIGN_MANIFESTS = (
+    '{"name": "My App", "short_name": "app", "start_url": "/index.html", "display": "standalone"}',
+    "not JSON at all",
+    '{"format": "sb3-lifelong-buffer", "version": 99, "fields": {}}',
+)
+
+
+def foreign_directory_case(root: str, layout: str, tally: Tally) -> None:
+    """mode="overwrite" on directories that hold a manifest.json of something else, beside other files."""
+    for k, manifest in enumerate(FOREIGN_MANIFESTS):
+        project = os.path.join(root, f"foreign-{layout}-{k}")
+        os.makedirs(os.path.join(project, "static"))
+        for name, content in {
+            "manifest.json": manifest.encode(),
+            "index.html": b"<html><body>" + b"x" * 1000 + b"</body></html>",
+            "observations.bin": bytes(range(256)) * 4,  # named like a buffer's field file
+            os.path.join("static", "thesis.tex"): b"\\chapter{Results}\n" * 50,
+        }.items():
+            with open(os.path.join(project, name), "wb") as file:
+                file.write(content)
+        before = files_of(project)
+        tally.runs += 1
+        tally.faults += 1
+        try:
+            make_buffer(project, layout, mode="overwrite").close()
+            tally.unreported += 1
+        except BufferFormatError:
+            pass
+        except Exception as error:  # refused, but not as a format error
+            print(f"  foreign directory {layout}: {type(error).__name__}: {error}", file=sys.stderr)
+        tally.foreign += foreign_changed(before, files_of(project))
+
+
+SAVE_CHILD = r"""
+import os, signal, sys
+import numpy as np
+import torch as th
+th.set_num_threads(1)
+from sb3_lifelong import MPO, LifelongReplayBuffer
+path, zip_path, npz_path = sys.argv[1], sys.argv[2], sys.argv[3]
+steps, chunk = int(sys.argv[4]), int(sys.argv[5])
+capacity = None if sys.argv[6] == "none" else int(sys.argv[6])
+model = MPO("MlpPolicy", "Pendulum-v1", seed=steps, learning_starts=10**6, policy_kwargs=dict(net_arch=[8]),
+            replay_buffer_class=LifelongReplayBuffer,
+            replay_buffer_kwargs=dict(path=path, chunk_size=chunk, capacity=capacity))
+model.learn(steps)
+store = model.replay_buffer.store
+names = ("observations", "next_observations", "actions", "rewards", "flags", "sources")
+np.savez(npz_path, **{name: np.asarray(store.read_range(name, 0, len(store))) for name in names})
+model.save(zip_path)
+print("saved", model.num_timesteps, flush=True)
+os.kill(os.getpid(), signal.SIGKILL)  # right after the checkpoint: the buffer is never closed
+"""
+
+
+def crash_after_save_case(root: str, layout: str, tally: Tally, env: dict[str, str]) -> None:
+    """A child saves an MPO model whose buffer is a directory, then is killed: the checkpoint's rows must be there."""
+    for steps, chunk in ((150, 1000), (230, 64), (310, 100)):
+        path = os.path.join(root, f"save-{layout}-{steps}")
+        tally.runs += 1
+        out = subprocess.run(
+            [
+                sys.executable, "-c", SAVE_CHILD, path, path + ".zip", path + ".npz", str(steps), str(chunk),
+                "none" if layout == "single" else "100000",
+            ],
+            capture_output=True, text=True, env=env, timeout=600,
+        ).stdout  # fmt: skip
+        tally.faults += 1
+        saved = [int(line.split()[1]) for line in out.split("\n") if line.startswith("saved")]
+        if not saved:
+            print(f"  crash after save {layout}: the child did not save: {out}", file=sys.stderr)
+            continue
+        with np.load(path + ".npz") as held:
+            want = {name: held[name] for name in CHECKED}
+        tally.committed += saved[0]
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                buffer = LifelongReplayBuffer.open(path, device="cpu", verify="all", read_only=True)
+        except (BufferFormatError, OSError) as error:
+            print(f"  crash after save {layout}: reopening failed: {type(error).__name__}: {error}", file=sys.stderr)
+            continue
+        count = min(buffer.size(), len(want["rewards"]))
+        same = np.ones(count, dtype=bool)
+        for name in CHECKED if count else ():
+            got = np.asarray(buffer.store.read_range(name, 0, count))
+            same &= (got == want[name][:count]).reshape(count, -1).all(axis=1)
+        tally.recovered += int(same.sum())
+        tally.wrong += int((~same).sum())
+        buffer.close()
+
+
+def planted_link(root: str, layout: str, name: str) -> tuple[str, bytes]:
+    """A 16 KiB file outside the buffer directory, for a link planted in it to point to."""
+    outside = os.path.join(root, f"someone-elses-{layout}-{name}")
+    content = np.random.default_rng(len(name)).integers(0, 256, 16384, dtype=np.uint8).tobytes()
+    with open(outside, "wb") as file:
+        file.write(content)
+    return outside, content
+
+
+def planted_symlinks_case(root: str, layout: str, tally: Tally) -> None:
+    """Links to a file outside the directory planted where the writer writes: nothing may be written through them."""
+    path = os.path.join(root, f"symlinks-{layout}")
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)  # 100 committed, 20 pending
+
+    def outside_changed(outside: str, content: bytes) -> int:
+        with open(outside, "rb") as file:
+            return bytes_changed(content, file.read())
+
+    # the temporary manifest: the writer creates it anew, never through the link
+    tally.runs += 1
+    tally.faults += 1
+    outside, content = planted_link(root, layout, "tmp")
+    os.symlink(outside, os.path.join(path, "manifest.json.tmp"))
+    try:
+        buffer.flush()
+    except OSError as error:
+        print(f"  planted symlinks {layout}: {type(error).__name__}: {error}", file=sys.stderr)
+    changed = outside_changed(outside, content)
+    tally.foreign += changed
+    tally.unreported += int(changed > 0)
+    tally.wrong += served_wrong(buffer, 120)
+    add_rows(buffer, 120, 140)  # pending again
+
+    # the next data file: a new chunk file (created anew), or a field file replaced by a link (writing must fail)
+    tally.runs += 1
+    tally.faults += 1
+    outside, content = planted_link(root, layout, "data")
+    if layout == "chunked":
+        os.symlink(outside, os.path.join(path, f"chunk.{buffer.store.num_committed:012d}.bin"))
+        try:
+            buffer.flush()
+        except OSError as error:
+            print(f"  planted symlinks {layout}: {type(error).__name__}: {error}", file=sys.stderr)
+        tally.unreported += int(outside_changed(outside, content) > 0)
+    else:
+        field = os.path.join(path, "rewards.bin")
+        os.rename(field, field + ".aside")
+        os.symlink(outside, field)
+        try:
+            buffer.flush()
+            tally.unreported += 1
+        except OSError:
+            pass
+        os.remove(field)  # the real file put back, the flush repeated
+        os.rename(field + ".aside", field)
+        buffer.flush()
+    tally.foreign += outside_changed(outside, content)
+    tally.wrong += served_wrong(buffer, 140)
+    buffer.close()
+
+    # the writer lock of a closed buffer: opening it as a writer must fail (readers take no lock)
+    tally.runs += 1
+    tally.faults += 1
+    outside, content = planted_link(root, layout, "lock")
+    lock = os.path.join(path, "writer.lock")
+    os.remove(lock)
+    os.symlink(outside, lock)
+    try:
+        LifelongReplayBuffer.open(path, device="cpu").close()
+        tally.unreported += 1
+    except (BufferFormatError, OSError, RuntimeError):
+        pass
+    tally.foreign += outside_changed(outside, content)
+    os.remove(lock)
+    reopen_and_check(path, 140, tally)
+
+
 # ------------------------------------------------------------------------------------------------------------ SIGKILL
 KILL_CHILD = r"""
 import importlib.util, sys
@@ -717,6 +1005,22 @@ def run(kills: int, seed: int) -> list[Tally]:
             tally = Tally("lost manifest", layout)
             lost_manifest_case(root, layout, tally)
             tallies.append(tally)
+
+            tally = Tally("live overwrite", layout)
+            live_overwrite_case(root, layout, tally, env)
+            tallies.append(tally)
+
+            tally = Tally("foreign directory", layout)
+            foreign_directory_case(root, layout, tally)
+            tallies.append(tally)
+
+            tally = Tally("crash after save", layout)
+            crash_after_save_case(root, layout, tally, env)
+            tallies.append(tally)
+
+            tally = Tally("planted symlinks", layout)
+            planted_symlinks_case(root, layout, tally)
+            tallies.append(tally)
     finally:
         shutil.rmtree(root, ignore_errors=True)
     return tallies
@@ -725,17 +1029,17 @@ def run(kills: int, seed: int) -> list[Tally]:
 def table(tallies: list[Tally]) -> list[str]:
     lines = [
         "| case | layout | runs | faults injected | faults not reported | transitions committed | recovered bit-identical "
-        "| lost | wrong rows served |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| lost | wrong rows served | foreign bytes written or deleted |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     total = Tally("**total**", "")
     for t in [*tallies, total]:
         lines.append(
             f"| {t.case} | {t.layout} | {t.runs} | {t.faults} | {t.unreported} | {t.committed:,} | {t.recovered:,} | "
-            f"{t.lost:,} | {t.wrong:,} |"
+            f"{t.lost:,} | {t.wrong:,} | {t.foreign:,} |"
         )
         if t is not total:
-            for name in ("runs", "faults", "unreported", "committed", "recovered", "wrong"):
+            for name in ("runs", "faults", "unreported", "committed", "recovered", "wrong", "foreign"):
                 setattr(total, name, getattr(total, name) + getattr(t, name))
     return lines
 
@@ -759,7 +1063,7 @@ def main() -> None:
         + (f" --kills {args.kills}" if args.kills != 32 else "")
         + (f" --seed {args.seed}" if args.seed else "")
     )
-    ok = all(t.lost == 0 and t.wrong == 0 and t.unreported == 0 for t in tallies)
+    ok = all(t.lost == 0 and t.wrong == 0 and t.unreported == 0 and t.foreign == 0 for t in tallies)
     report = [
         "# LifelongReplayBuffer under injected faults",
         "",
@@ -771,9 +1075,10 @@ def main() -> None:
         "",
         "Result: "
         + (
-            "every fault was reported, no committed transition was lost and no wrong row was served."
+            "every fault was reported, no committed transition was lost, no wrong row was served and no byte of a file "
+            "that is not the buffer's was written or deleted."
             if ok
-            else "FAILURES: see the columns faults not reported / lost / wrong."
+            else "FAILURES: see the columns faults not reported / lost / wrong / foreign bytes."
         ),
         "",
         *NOTES.strip().split("\n"),
