@@ -150,6 +150,49 @@ def test_report_claims_and_figures(study):
     assert "paired by seed" in text
 
 
+def test_the_study_figures_read_as_they_should(study, monkeypatch):
+    """Titles name the set-up, one name and colour per method, no rotated code names, seeds and n shown, a reference."""
+    from sb3_lifelong.experiments import figures
+    from sb3_lifelong.experiments.style import METHODS
+
+    output, _ = study
+    drawn = {}
+
+    def keep(plt, fig, path, **kwargs):
+        drawn[path.name] = fig
+        return path
+
+    monkeypatch.setattr(figures, "save", keep)
+    figures.plot_study(load_study(output))
+    assert set(drawn) == {"fig_online.png", "fig_students.png", "fig_q_sources.png", "fig_sampling_ratio.png"}
+    for name, fig in drawn.items():  # the preset and what changes, in every title
+        title = fig._suptitle.get_text() if fig._suptitle is not None else fig.axes[0].get_title()
+        assert title.startswith("tiny: Hopper-v5, Env-B = hip_deformation 0.3"), name
+
+    students = drawn["fig_students.png"]
+    assert [ax.get_title() for ax in students.axes] == ["Evaluated in Env-A", "Evaluated in Env-B"]
+    ticks = students.axes[0].get_yticklabels()
+    assert [t.get_text() for t in ticks][:2] == [METHODS["CRR_exp_beta1"].label, METHODS["CRR_indicator"].label]
+    assert all(t.get_rotation() == 0 and t.get_fontsize() >= 9 for t in ticks)
+    references = [line for line in students.axes[0].get_lines() if line.get_label().startswith("MPO at the end")]
+    assert references and references[0].get_color() == METHODS["MPO"].color  # MPO's final return, as a reference
+    bars = {round(patch.get_y() + patch.get_height() / 2): patch.get_facecolor() for patch in students.axes[0].patches}
+    assert len(set(bars.values())) == len(bars)  # one colour per student
+
+    ratio = drawn["fig_sampling_ratio.png"].axes[0]
+    series = ratio.containers  # one error-bar series per student kind
+    assert len(series) == 2 and all("n=2" in container.get_label() for container in series)
+    first, second = (np.asarray(container.lines[0].get_xdata(), dtype=float) for container in series)
+    assert np.all(np.abs(first - second) > 0.1)  # the two series side by side, not on top of each other
+
+    q = drawn["fig_q_sources.png"]
+    assert "2 seeds, one line each" in q._suptitle.get_text()
+    seeds_lines = [line for line in q.axes[0].get_lines() if len(line.get_xdata()) > 0]
+    methods = [text.get_text() for text in q.axes[-1].get_legend().get_texts()]
+    assert len(seeds_lines) == 2 * len(methods)  # one line per seed and student, no mean +- std band
+    assert not q.axes[0].collections
+
+
 def test_export_keeps_results_not_data(study, tmp_path):
     from sb3_lifelong.experiments.report import export_results
 

@@ -143,3 +143,66 @@ def test_every_preset_draws_distillation_curves(preset):
     assert config["distill_steps"] // config["distill_eval_freq"] >= 5
     config = resolve_config(parser.parse_args(["--preset", preset, "--distill-eval-freq", "7"]))
     assert config["distill_eval_freq"] == 7
+
+
+def test_one_style_for_every_method():
+    from sb3_lifelong.experiments.protocol import ONLINE, STUDENTS
+    from sb3_lifelong.experiments.style import METHODS, SEQUENTIAL_METHODS, method_color
+
+    known = ["MPO", *(f"online {name}" for name in ONLINE), *STUDENTS]
+    assert set(known) <= set(METHODS)  # every method of the studies has its name and colour
+    assert len({style.color for style in METHODS.values()}) == len(METHODS)
+    assert len({style.label for style in METHODS.values()}) == len(METHODS)
+    assert set(SEQUENTIAL_METHODS.values()) <= set(METHODS)
+    others = ["x", "y", "MPO", "z"]
+    colors = [method_color(name, others) for name in others]
+    assert len(set(colors)) == 4 and not set(colors) - {METHODS["MPO"].color} & {s.color for s in METHODS.values()}
+
+
+def test_the_examples_name_methods_as_the_studies(tmp_path):
+    from sb3_lifelong.experiments.style import METHODS
+
+    for seed in (0, 1):
+        run_dir = tmp_path / f"seed_{seed}"
+        write_method(run_dir, "MPO", range(100, 700, 100), seed, q_sources=("stage_0", "stage_1"))
+        write_method(run_dir, "distilled", range(0, 220, 20), seed)
+        write_method(run_dir, "distilled_indicator", range(0, 220, 20), seed)
+        write_layout(run_dir, ENVS, distilled=["distilled", "distilled_indicator"], switch_at=[300])
+    experiment = load_experiment(tmp_path)
+    assert experiment.color("distilled") == METHODS["CRR_exp_beta1"].color
+    assert experiment.color("distilled_indicator") == METHODS["CRR_indicator"].color
+    specs = {spec.filename: spec for spec in experiment_figures(experiment)}
+    found = texts(draw_figure(specs["distillation.png"]))
+    assert f"{METHODS['CRR_exp_beta1'].label} (n=2)" in found and not any("distilled" in text for text in found)
+    ticks = [t.get_text() for t in draw_figure(specs["final_returns.png"]).axes[0].get_xticklabels()]
+    assert ticks == ["MPO", METHODS["CRR_exp_beta1"].label, METHODS["CRR_indicator"].label]
+
+
+def test_a_diverging_seed_drags_no_summary():
+    """Q over seeds: one line per seed, the median and an interquartile band of the seeds' own values."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sb3_lifelong.experiments.style import seed_lines, value_scale
+
+    steps = np.arange(1, 7) * 5000
+    rows = [dict(seed=s, timesteps=t, q=100.0 + s + k) for s in range(3) for k, t in enumerate(steps)]
+    rows += [dict(seed=3, timesteps=t, q=100.0 * 3.0**k) for k, t in enumerate(steps)]  # diverges to 24,300
+    frame = pd.DataFrame(rows)
+    fig, ax = plt.subplots()
+    assert seed_lines(ax, frame, "student", "red", y="q") == 4
+    lines = [line for line in ax.get_lines() if len(line.get_xdata())]
+    assert len(lines) == 5  # four seeds and their median
+    median = lines[-1].get_ydata()
+    assert median.max() < 110 and lines[-1].get_label() == "student (n=4)"
+    band = ax.collections[0].get_paths()[0].vertices[:, 1]
+    assert band.max() < 110  # the upper quartile is a seed's own value, not a point pulled towards the diverged one
+    assert value_scale(ax, list(frame["q"]), "average Q") == "average Q (log scale)" and ax.get_yscale() == "log"
+    plt.close(fig)
+    fig, ax = plt.subplots()
+    seed_lines(ax, frame[frame["seed"] < 2], "student", "red", y="q")
+    assert len([line for line in ax.get_lines() if len(line.get_xdata())]) == 2 and not ax.collections  # no summary
+    assert value_scale(ax, [100.0, 120.0], "average Q") == "average Q" and ax.get_yscale() == "linear"
+    plt.close(fig)

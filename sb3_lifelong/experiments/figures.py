@@ -1,42 +1,30 @@
 """
 The paper's figures from a two-stage (or three-stage) study (matplotlib's Agg backend, chosen when a figure is drawn:
-no display needed). The helpers (a curve with its band over seeds, a labelled change of environment, grouped bars, saving)
-also draw the figures of the sequential examples (:mod:`sb3_lifelong.experiments.plots`).
+no display needed), in the package's one style (:mod:`sb3_lifelong.experiments.style`: one name and one colour per
+method in every figure). Every figure's title names the study's set-up (its preset, robot and environments), so that
+the figures of a variant study are not read as another's.
 """
 
+import json
 import pathlib
-from collections.abc import Callable, Sequence
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from sb3_lifelong.experiments.report import split_repeat, stage_ends
-
-COLORS = {
-    "MPO": "tab:blue",
-    "online CRR_indicator": "tab:orange",
-    "online CRR_exp_beta1": "tab:green",
-    "CRR_exp_beta1": "tab:red",
-    "CRR_indicator": "tab:purple",
-    "BC": "tab:brown",
-}
-
-
-def _pyplot() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only: no display, no GL
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(plt: Any, fig: Any, path: pathlib.Path) -> pathlib.Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+from sb3_lifelong.experiments.style import (
+    band,
+    method_color,
+    method_label,
+    over_seeds,
+    pyplot,
+    save,
+    seed_lines,
+    steps_axis,
+    switch,
+    value_scale,
+)
 
 
 def _curves(study: Any, job: str) -> pd.DataFrame:
@@ -48,211 +36,233 @@ def _curves(study: Any, job: str) -> pd.DataFrame:
     return pd.concat(frames) if frames else pd.DataFrame()
 
 
-#: curves with at most this many points are drawn with markers (each evaluation visible)
-MARKERS_UP_TO = 12
-
-
-def _band(ax: Any, frame: pd.DataFrame, env: Optional[str], label: str, color: str, y: str = "mean_reward") -> None:
-    """
-    One curve: the mean over seeds of ``y`` against ``timesteps``, shaded +- std where there are >= 2 seeds.
-
-    :param ax: the matplotlib axes
-    :param frame: rows ``timesteps``, ``env``, ``y`` (and ``seed``), one per seed and point
-    :param env: keep only the rows of this ``env`` (None: all rows)
-    :param label: legend entry, the number of seeds appended
-    :param color: matplotlib colour
-    :param y: the column to draw
-    """
-    rows = (frame if env is None else frame[frame["env"] == env]).groupby("timesteps")[y]
-    mean, std, count = rows.mean(), rows.std().fillna(0.0), rows.count()
-    marker = "o" if len(mean) <= MARKERS_UP_TO else None
-    ax.plot(
-        mean.index,
-        mean.values,
-        color=color,
-        label=f"{label} (n={int(count.max())})",
-        linewidth=1.8,
-        marker=marker,
-        markersize=3,
-    )
-    ax.fill_between(mean.index, (mean - std).values, (mean + std).values, color=color, alpha=0.15, linewidth=0)
-
-
-def _switch(ax: Any, timestep: float, label: str, row: int = 0) -> None:
-    """
-    A change of environment: a dashed vertical line, labelled (e.g. ``"Env-A -> Env-B"``) at the top of the axes.
-
-    :param ax: the matplotlib axes
-    :param timestep: where the change happens, in the x-axis' units
-    :param label: what changes
-    :param row: the label's line from the top (successive changes close together would overlap on one line)
-    """
-    ax.axvline(timestep, color="black", linestyle="--", linewidth=1)
-    ax.annotate(
-        label,
-        xy=(timestep, 0.97 - 0.07 * row),
-        xycoords=("data", "axes fraction"),
-        ha="left",
-        va="top",
-        fontsize=9,
-        xytext=(4, 0),
-        textcoords="offset points",
+def _describe_stage(stage: Any) -> str:
+    if isinstance(stage, str):
+        return stage
+    return ", ".join(
+        f"{key} {value:g}" if isinstance(value, (int, float)) else f"{key} {value}" for key, value in stage.items()
     )
 
 
-def _bars(
-    ax: Any,
-    methods: Sequence[str],
-    envs: Sequence[str],
-    scores: Callable[[str, str], Sequence[float]],
-    colors: Optional[Sequence[str]] = None,
-) -> None:
+def preset_name(preset: dict[str, Any]) -> str:
     """
-    Grouped bars: for every method, one bar per environment (mean over seeds, error bar +- std).
+    :param preset: a study's recorded settings (``preset.json``)
+    :return: the name of the preset it was run with (:data:`~sb3_lifelong.experiments.protocol.PRESETS`), or ``""``
+    """
+    from sb3_lifelong.experiments.protocol import PRESETS, same_settings
 
-    :param ax: the matplotlib axes
-    :param methods: the groups, along the x axis (tick labels)
-    :param envs: the bars of each group (legend entries)
-    :param scores: the per-seed values of a method in an environment (empty: no bar)
-    :param colors: one colour per environment (default: matplotlib's colour cycle)
+    for name, candidate in PRESETS.items():
+        if same_settings(preset, json.loads(json.dumps(candidate.describe()))):
+            return name
+    return ""
+
+
+def study_title(study: Any) -> str:
     """
-    width = 0.8 / len(envs)
-    x = np.arange(len(methods))
-    for k, env in enumerate(envs):
-        means, stds = [], []
-        for method in methods:
-            values = list(scores(method, env))
-            means.append(np.mean(values) if values else np.nan)
-            stds.append(np.std(values) if values else 0.0)
-        color = colors[k % len(colors)] if colors else None
-        ax.bar(x + (k - (len(envs) - 1) / 2) * width, means, width, yerr=stds, capsize=3, label=env, color=color)
-    ax.set_xticks(x)
-    ax.set_xticklabels(methods, rotation=35, ha="right", fontsize=8)
-    ax.grid(axis="y", alpha=0.3)
+    :param study: a loaded study (:func:`~sb3_lifelong.experiments.report.load_study`)
+    :return: what sets the study apart, for the figures' titles: its preset (or directory), robot, the environments
+        after the first (what changes), and the students' critic and repeats when they are not the default
+    """
+    preset = study.preset
+    name = preset_name(preset) or study.output.name
+    changes = [
+        f"{env} = {_describe_stage(stage) or 'default'}" for env, stage in zip(preset["env_names"][1:], preset["stages"][1:])
+    ]
+    extras = []
+    if preset.get("student_critic", "mse") != "mse":
+        extras.append(f"{preset['student_critic']}-critic students")
+    if preset.get("student_repeats", 1) > 1:
+        extras.append(f"each student trained {preset['student_repeats']}x per seed")
+    return f"{name}: {preset['env_id']}, " + "; ".join(changes + extras)
+
+
+#: the online methods' jobs, by method key
+ONLINE_JOBS = {
+    "MPO": "collect",
+    "online CRR_indicator": "online_CRR_indicator",
+    "online CRR_exp_beta1": "online_CRR_exp_beta1",
+}
 
 
 def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
-    """Paper Fig. 2: online curves per environment, each switch labelled, the distilled students dotted."""
-    plt = _pyplot()
+    """Paper Fig. 2: online curves per environment, each switch labelled, the distilled students' finals dotted."""
+    plt = pyplot()
     envs = study.preset["env_names"]
     ends = stage_ends(study.preset["stage_steps"])[:-1]  # one switch per change of environment
-    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.2), squeeze=False)
-    jobs = {"MPO": "collect", "online CRR_indicator": "online_CRR_indicator", "online CRR_exp_beta1": "online_CRR_exp_beta1"}
+    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.4), squeeze=False)
     for ax, env in zip(axes[0], envs):
-        for label, job in jobs.items():
+        for method, job in ONLINE_JOBS.items():
             frame = _curves(study, job)
             if len(frame):
-                _band(ax, frame, env, label, COLORS[label])
+                band(ax, frame, env, method_label(method), method_color(method))
         for method in ("CRR_exp_beta1", "CRR_indicator"):
             values = list(study.score(method, env).values())
             if values:
-                ax.axhline(np.mean(values), color=COLORS[method], linestyle=":", linewidth=2, label=f"distilled {method}")
+                label = f"{method_label(method)}, distilled: final (mean, n={len(values)})"
+                ax.axhline(np.mean(values), color=method_color(method), linestyle=":", linewidth=2, label=label)
         for index, end in enumerate(ends):
-            _switch(ax, end, f"{envs[index]} -> {envs[index + 1]}", row=index)
+            switch(ax, end, f"{envs[index]} -> {envs[index + 1]}", row=index)
         ax.set_title(f"Evaluated in {env}")
-        ax.set_xlabel("environment steps")
+        steps_axis(ax, "environment steps")
         ax.set_ylabel("return (deterministic policy)")
         ax.margins(y=0.08)
         ax.grid(alpha=0.3)
     axes[0][-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the axes: no curve hidden
     change = "change" if len(ends) == 1 else "changes"
-    fig.suptitle(f"{study.preset['env_id']}: online learning through the {change} (mean +- std over seeds)")
-    return [_save(plt, fig, directory / "fig_online.png")]
+    fig.suptitle(
+        f"{study_title(study)}\nonline learning through the {change} ({over_seeds(len(study.seeds))}; dotted: students)"
+    )
+    return [save(plt, fig, directory / "fig_online.png")]
+
+
+def _mpo_references(study: Any, env: str, index: int, last: bool) -> list[tuple[str, float, str]]:
+    """:return: (label, value, line style) of MPO's returns in ``env``: at the end, and when it left ``env``"""
+    references = []
+    final = [v for v in study.score("MPO", env).values() if np.isfinite(v)]
+    if final:
+        references.append((f"MPO at the end of the collection (online, n={len(final)})", float(np.mean(final)), "--"))
+    if not last:
+        left = [v for v in study.extra(f"MPO|switch|{env}").values() if np.isfinite(v)]
+        if left:
+            references.append((f"MPO when it left that environment (n={len(left)})", float(np.mean(left)), ":"))
+    return references
 
 
 def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
-    """Paper Fig. 4: final return of every offline student per environment, error bars over seeds."""
-    plt = _pyplot()
+    """
+    Paper Fig. 4: the final return of every offline student, one panel per environment (a horizontal bar per
+    student: the mean over seeds, each seed a dot), with MPO's return at the end of the collection and when it left
+    the environment as reference lines.
+    """
     envs = study.preset["env_names"]
     from sb3_lifelong.experiments.protocol import STUDENTS
 
     present = set(study.finals[study.finals["kind"] == "student"]["method"])
-    students = [name for name in STUDENTS if name in present]
+    students = [name for name in STUDENTS if name in present] + sorted(present - set(STUDENTS))
     if not students:
         return []
-    fig, ax = plt.subplots(figsize=(max(8, 0.8 * len(students) * len(envs)), 4.8))
-    _bars(ax, students, envs, lambda method, env: list(study.score(method, env).values()))
-    ax.set_xlabel("offline student (same number of updates)")
-    ax.set_ylabel("final return")
+    plt = pyplot()
+    height = 2.2 + 0.42 * len(students)
+    fig, axes = plt.subplots(1, len(envs), figsize=(3.2 + 3.6 * len(envs), height), squeeze=False, sharey=True)
+    y = np.arange(len(students))
+    legend: dict[str, Any] = {}
+    for index, (ax, env) in enumerate(zip(axes[0], envs)):
+        for row, method in enumerate(students):
+            values = [v for v in study.score(method, env).values() if np.isfinite(v)]
+            if values:
+                ax.barh(row, np.mean(values), height=0.7, color=method_color(method, students), alpha=0.85)
+                ax.plot(values, np.full(len(values), row), "o", color="black", markersize=3, zorder=3)
+        for label, value, style in _mpo_references(study, env, index, index == len(envs) - 1):
+            ax.axvline(value, color=method_color("MPO"), linestyle=style, linewidth=1.8, label=label)
+        ax.set_title(f"Evaluated in {env}")
+        ax.set_xlabel("final return")
+        ax.grid(axis="x", alpha=0.3)
+        legend.update({label: handle for handle, label in zip(*ax.get_legend_handles_labels())})
+    axes[0][0].set_yticks(y)
+    axes[0][0].set_yticklabels([method_label(method) for method in students], fontsize=10)
+    axes[0][0].invert_yaxis()  # the pipeline's student first, at the top
     seeds = len(study.seeds)
-    over = f"mean +- std over {seeds} seeds" if seeds > 1 else "1 seed"
-    ax.set_title(f"Distillation variants, {study.preset['distill_steps']:,} updates ({over})")
-    ax.legend()
-    return [_save(plt, fig, directory / "fig_students.png")]
+    what = f"bar: mean over {seeds} seeds, dots: seeds" if seeds > 1 else "1 seed"
+    fig.suptitle(
+        f"{study_title(study)}\noffline students, {study.preset['distill_steps']:,} updates each ({what})", fontsize=11
+    )
+    rect = None
+    if legend:  # below the panels: no bar hidden
+        fig.legend(legend.values(), legend.keys(), loc="lower center", ncol=len(legend), fontsize=9, frameon=False)
+        rect = (0.0, 0.45 / height, 1.0, 1.0)
+    return [save(plt, fig, directory / "fig_students.png", rect=rect)]
+
+
+#: the students whose average Q per source Fig. 5 draws
+Q_STUDENTS = ("CRR_indicator", "CRR_indicator_A_only", "CRR_indicator_B_only", "CRR_exp_beta1")
+
+
+def _q_frame(study: Any, method: str) -> pd.DataFrame:
+    """:return: rows ``seed, timesteps, env, q_mean`` of a student's finished runs (its repeats averaged per seed)"""
+    frames = []
+    for seed in study.seeds:
+        run_dir = study.output / f"seed_{seed}"
+        for path in sorted(run_dir.glob(f"distill_{method}*/q_sources.csv")):  # with the student's repeats
+            finished = (path.parent / "done.json").exists()  # a repeat still running: not yet
+            if finished and split_repeat(path.parent.name[len("distill_") :])[0] == method:
+                frames.append(pd.read_csv(path).assign(seed=seed))
+    if not frames:
+        return pd.DataFrame(columns=["seed", "timesteps", "env", "q_mean"])
+    frame = pd.concat(frames).rename(columns={"name": "env"})
+    return frame.groupby(["seed", "timesteps", "env"], as_index=False)["q_mean"].mean()  # repeats: one per seed
 
 
 def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
-    """Paper Fig. 5: average Q per source during distillation, sources named by environment."""
-    plt = _pyplot()
-    methods = ["CRR_indicator", "CRR_indicator_A_only", "CRR_indicator_B_only", "CRR_exp_beta1"]
+    """
+    Paper Fig. 5: average Q per source during distillation, sources named by environment: one thin line per seed
+    (and the median with its interquartile range from three seeds on), so that one diverging seed shows as itself.
+    """
     envs = study.preset["env_names"]
-    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.2), squeeze=False)
-    drawn = False
-    for ax, env in zip(axes[0], envs):
-        for index, method in enumerate(methods):
-            frames = []
-            for seed in study.seeds:
-                run_dir = study.output / f"seed_{seed}"
-                for path in sorted(run_dir.glob(f"distill_{method}*/q_sources.csv")):  # with the student's repeats
-                    finished = (path.parent / "done.json").exists()  # a repeat still running: not yet
-                    if finished and split_repeat(path.parent.name[len("distill_") :])[0] == method:
-                        frames.append(pd.read_csv(path).assign(seed=seed))
-            if not frames:
-                continue
-            frame = pd.concat(frames).rename(columns={"name": "env"})
-            frame = frame.groupby(["seed", "timesteps", "env"], as_index=False)["q_mean"].mean()  # repeats: one per seed
-            if len(frame[frame["env"] == env]):
-                _band(ax, frame, env, method, f"C{index}", y="q_mean")
-                drawn = True
-        ax.set_title(f"Average Q over {env} data")
-        ax.set_xlabel("distillation updates")
-        low, high = ax.get_ylim()
-        if low < 0 or high > 10 * max(low, 1.0):
-            # symmetric log: a diverging critic (e.g. a student that never saw this data) would flatten the others
-            ax.set_yscale("symlog", linthresh=100)
-            ax.set_ylabel("Q (symmetric log scale)")
-        else:  # within one decade a log axis has no labelled tick: linear
-            ax.set_ylabel("Q")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    if not drawn:
-        plt.close(fig)
+    frames = {method: _q_frame(study, method) for method in Q_STUDENTS}
+    frames = {method: frame for method, frame in frames.items() if len(frame)}
+    if not frames:
         return []
-    return [_save(plt, fig, directory / "fig_q_sources.png")]
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.6), squeeze=False)
+    counts = set()
+    for ax, env in zip(axes[0], envs):
+        drawn: list[float] = []
+        for method, frame in frames.items():
+            rows = frame[frame["env"] == env]
+            if len(rows):
+                counts.add(seed_lines(ax, rows, method_label(method), method_color(method), y="q_mean"))
+                drawn += list(rows["q_mean"])
+        ax.set_title(f"Average Q over {env} data")
+        steps_axis(ax, "distillation updates")
+        value_scale(ax, drawn, "average Q")
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    seeds = max(counts) if counts else 0
+    what = f"{seeds} seeds, one line each" if seeds > 1 else "1 seed"
+    what += "; thick: median, band: interquartile range" if seeds >= 3 else ""
+    fig.suptitle(f"{study_title(study)}\nthe students' average Q on each environment's data ({what})", fontsize=11)
+    return [save(plt, fig, directory / "fig_q_sources.png")]
+
+
+#: Fig. 6's sampling ratios Env-A : Env-B, and the suffix of the students that sample them
+RATIOS = (("1:1", "_ratio_1to1"), ("1:5 (raw)", ""), ("1:10", "_ratio_1to10"))
 
 
 def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
-    """Paper Fig. 6: Env-A return against the Env-A : Env-B sampling ratio."""
+    """Paper Fig. 6: Env-A return against the Env-A : Env-B sampling ratio (the two series side by side)."""
     env = study.preset["env_names"][0]
-    ratios = [("1:1", "_ratio_1to1"), ("1:5 (raw)", ""), ("1:10", "_ratio_1to10")]
+    bases = ("CRR_indicator", "CRR_exp_beta1")
     if len(study.preset["env_names"]) != 2 or not any(
-        study.score(base + suffix, env) for base in ("CRR_indicator", "CRR_exp_beta1") for _, suffix in ratios if suffix
+        study.score(base + suffix, env) for base in bases for _, suffix in RATIOS if suffix
     ):
         return []  # the ratios are Env-A : Env-B of a two-stage study; without a re-weighted student there is no curve
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4.2))
-    drawn = False
-    for base, label in (("CRR_indicator", "indicator"), ("CRR_exp_beta1", "exp, beta=1")):
-        means, stds = [], []
-        for _, suffix in ratios:
-            values = list(study.score(base + suffix, env).values())
-            means.append(np.mean(values) if values else np.nan)
-            stds.append(np.std(values) if values else 0.0)
-        if np.isfinite(means).any():
-            ax.errorbar(range(len(ratios)), means, yerr=stds, marker="o", capsize=4, label=label)
-            drawn = True
-    if not drawn:
-        plt.close(fig)
-        return []
-    ax.set_xticks(range(len(ratios)))
-    ax.set_xticklabels([r for r, _ in ratios])
-    ax.set_xlabel("Env-A : Env-B sampling ratio")
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    x = np.arange(len(RATIOS))
+    counts = set()
+    for offset, base in zip((-0.09, 0.09), bases):
+        per_ratio = [[v for v in study.score(base + suffix, env).values() if np.isfinite(v)] for _, suffix in RATIOS]
+        means = [np.mean(values) if values else np.nan for values in per_ratio]
+        stds = [np.std(values) if values else 0.0 for values in per_ratio]
+        if not np.isfinite(means).any():
+            continue
+        n = max(len(values) for values in per_ratio)
+        counts.add(n)
+        color = method_color(base)
+        label = f"{method_label(base)} (mean ± std, n={n})"
+        ax.errorbar(x + offset, means, yerr=stds, marker="o", capsize=4, color=color, label=label)
+        for position, values in zip(x + 1.7 * offset, per_ratio):  # beside the error bar (two seeds sit on its ends)
+            ax.plot(np.full(len(values), position), values, "o", color=color, markersize=3.5, alpha=0.6, markeredgewidth=0)
+    ax.set_xticks(x)
+    ax.set_xticklabels([r for r, _ in RATIOS])
+    ax.set_xlabel("Env-A : Env-B sampling ratio of the student's batches")
     ax.set_ylabel(f"final return in {env}")
-    ax.set_title(f"{env} return vs sampling ratio (mean +- std over seeds)")
-    ax.margins(x=0.15)
+    seeds = f"{max(counts)} seeds" if counts else "no seed"
+    ax.set_title(f"{study_title(study)}\n{env} return vs sampling ratio ({seeds}; small dots: seeds)", fontsize=10)
+    ax.margins(x=0.12)
     ax.grid(alpha=0.3)
-    ax.legend()
-    return [_save(plt, fig, directory / "fig_sampling_ratio.png")]
+    ax.legend(fontsize=9)
+    return [save(plt, fig, directory / "fig_sampling_ratio.png")]
 
 
 def plot_study(study: Any) -> list[pathlib.Path]:

@@ -1,7 +1,8 @@
 """
 The figures of the sequential examples (``examples/three_stage.py``, ``parallel_sharing.py``,
-``continuous_drift.py``; see :mod:`sb3_lifelong.experiments.sequential`), drawn with the helpers of
-:mod:`sb3_lifelong.experiments.figures`.
+``continuous_drift.py``; see :mod:`sb3_lifelong.experiments.sequential`), in the package's one style
+(:mod:`sb3_lifelong.experiments.style`: the methods the examples share with the studies have the studies' names and
+colours, e.g. ``distilled`` is "CRR exp β=1", red, as in every figure).
 
 Reads the layout the examples write (``<dir>/seed_<k>/<method>/eval.csv`` and ``q_sources.csv``,
 ``<dir>/seed_<k>/stages.json``) and writes into ``<dir>``:
@@ -10,12 +11,13 @@ Reads the layout the examples write (``<dir>/seed_<k>/<method>/eval.csv`` and ``
   (mean over seeds, +- std band with two seeds or more), the environment changes as labelled vertical lines and the
   distilled policies' final return as dotted horizontal lines;
 - ``final_returns.png``: the final return of every method in every environment (mean +- std over seeds);
-- ``q_sources.png``: each online method's average Q-value on each environment's data (the overestimation curves);
+- ``q_sources.png``: each online method's average Q-value on each environment's data (the overestimation curves),
+  one line per seed (and from three seeds on their median and interquartile range, which no diverging seed drags);
 - ``distillation.png``: the distilled policies' return against offline updates, one panel per environment.
 
 The methods are read from the directory: the distilled ones are those named in ``stages.json`` (outputs written
 before it named them: the methods whose name starts with ``distilled``), the online ones all the others. A method
-keeps its colour in every figure. Usage::
+keeps its name and colour in every figure. Usage::
 
     python -m sb3_lifelong.plotting runs/three_stage_quick
 """
@@ -29,12 +31,22 @@ from typing import Any, Optional, Union
 
 import pandas as pd
 
-from sb3_lifelong.experiments.figures import _band, _bars, _pyplot, _save, _switch
+from sb3_lifelong.experiments.style import (
+    SEQUENTIAL_METHODS,
+    band,
+    env_color,
+    grouped_bars,
+    method_color,
+    method_label,
+    over_seeds,
+    pyplot,
+    save,
+    seed_lines,
+    steps_axis,
+    switch,
+    value_scale,
+)
 
-#: one colour per method (matplotlib's default cycle), in the order of :attr:`Experiment.methods`
-METHOD_COLORS = [f"C{index}" for index in range(10)]
-#: one colour per environment or source of data (matplotlib's "Dark2"), distinct from the methods'
-ENV_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666"]
 #: the name prefix of the distilled methods, for outputs whose ``stages.json`` does not list them
 DISTILLED_PREFIX = "distilled"
 
@@ -71,8 +83,12 @@ class Experiment:
         return sorted(set(self.evals["seed"]))
 
     def color(self, method: str) -> str:
-        """:return: the colour of a method, the same in every figure"""
-        return METHOD_COLORS[self.methods.index(method) % len(METHOD_COLORS)]
+        """:return: the colour of a method, the same in every figure (a study method's colour, see :mod:`.style`)"""
+        return method_color(SEQUENTIAL_METHODS.get(method, method), [SEQUENTIAL_METHODS.get(m, m) for m in self.methods])
+
+    def label(self, method: str) -> str:
+        """:return: the name of a method in the figures (a study method's name, see :mod:`.style`)"""
+        return method_label(SEQUENTIAL_METHODS.get(method, method))
 
     def finals(self, method: str, env: str) -> list[float]:
         """:return: a method's last evaluation in an environment, one value per seed"""
@@ -148,6 +164,8 @@ class Curve:
     :param y: the column drawn
     :param color: matplotlib colour
     :param final: draw only the final value (mean over seeds), as a dotted horizontal line
+    :param per_seed: draw one line per seed (and their median and interquartile range from three seeds on) instead
+        of the mean +- std, for values that one seed can drag far (a diverging critic's Q)
     """
 
     label: str
@@ -155,6 +173,7 @@ class Curve:
     y: str
     color: str
     final: bool = False
+    per_seed: bool = False
 
 
 @dataclass
@@ -168,6 +187,7 @@ class Panel:
     :param curves: the lines
     :param switches: ``(x, label)`` of every change of environment
     :param bars: ``(groups, bars of each group, values per seed of (group, bar))`` for a bar chart
+    :param group_labels: the tick labels of the bar chart's groups (default: the groups)
     """
 
     title: str
@@ -176,6 +196,7 @@ class Panel:
     curves: list[Curve] = field(default_factory=list)
     switches: list[tuple[int, str]] = field(default_factory=list)
     bars: Optional[tuple[list[str], list[str], dict[tuple[str, str], list[float]]]] = None
+    group_labels: Optional[list[str]] = None
 
 
 @dataclass
@@ -194,8 +215,7 @@ class FigureSpec:
 
 
 def _over_seeds(experiment: Experiment) -> str:
-    count = len(experiment.seeds)
-    return f"mean +- std over {count} seeds" if count > 1 else "1 seed"
+    return over_seeds(len(experiment.seeds))
 
 
 def online_curves(experiment: Experiment, env: str) -> FigureSpec:
@@ -206,12 +226,18 @@ def online_curves(experiment: Experiment, env: str) -> FigureSpec:
     """
     rows = experiment.evals[experiment.evals["env"] == env]
     curves = [
-        Curve(method, rows[rows["method"] == method], "mean_reward", experiment.color(method))
+        Curve(experiment.label(method), rows[rows["method"] == method], "mean_reward", experiment.color(method))
         for method in experiment.online
         if (rows["method"] == method).any()
     ]
     curves += [
-        Curve(f"{method}, final", rows[rows["method"] == method], "mean_reward", experiment.color(method), final=True)
+        Curve(
+            f"{experiment.label(method)}, final",
+            rows[rows["method"] == method],
+            "mean_reward",
+            experiment.color(method),
+            final=True,
+        )
         for method in experiment.distilled
         if (rows["method"] == method).any()
     ]
@@ -227,6 +253,7 @@ def final_returns(experiment: Experiment) -> FigureSpec:
     values = {(method, env): experiment.finals(method, env) for method in experiment.methods for env in experiment.envs}
     panel = Panel("Every method in every environment", "method", "return at the last evaluation")
     panel.bars = (experiment.methods, experiment.envs, values)
+    panel.group_labels = [experiment.label(method) for method in experiment.methods]
     return FigureSpec("final_returns.png", f"Final return ({_over_seeds(experiment)})", [panel])
 
 
@@ -243,12 +270,16 @@ def q_sources(experiment: Experiment) -> FigureSpec:
         rows = q[q["method"] == method]
         if len(rows):
             curves = [
-                Curve(f"{source} data", rows[rows["source"] == source], "q_mean", ENV_COLORS[index % len(ENV_COLORS)])
+                Curve(f"{source} data", rows[rows["source"] == source], "q_mean", env_color(index), per_seed=True)
                 for index, source in enumerate(sources)
                 if (rows["source"] == source).any()
             ]
-            panels.append(Panel(f"{method}'s critic", "environment steps", "average Q", curves, experiment.switches))
-    title = f"Average Q on each environment's data ({_over_seeds(experiment)})"
+            title = f"{experiment.label(method)}'s critic"
+            panels.append(Panel(title, "environment steps", "average Q", curves, experiment.switches))
+    count = len(experiment.seeds)
+    what = f"{count} seeds, one line each" if count > 1 else "1 seed"
+    what += "; thick: median, band: interquartile range" if count >= 3 else ""
+    title = f"Average Q on each environment's data\n({what})"
     return FigureSpec("q_sources.png", title, panels)
 
 
@@ -262,7 +293,7 @@ def distillation(experiment: Experiment) -> FigureSpec:
     for env in experiment.envs:
         in_env = rows[rows["env"] == env]
         curves = [
-            Curve(method, in_env[in_env["method"] == method], "mean_reward", experiment.color(method))
+            Curve(experiment.label(method), in_env[in_env["method"] == method], "mean_reward", experiment.color(method))
             for method in experiment.distilled
             if (in_env["method"] == method).any()
         ]
@@ -294,7 +325,7 @@ def draw_figure(spec: FigureSpec) -> Any:
     :param spec: what it shows
     :return: the matplotlib figure
     """
-    plt = _pyplot()
+    plt = pyplot()
     first = spec.panels[0]
     width = 6.0 if first.bars is None else max(6.0, 0.5 * len(first.bars[0]) * len(first.bars[1]))
     fig, axes = plt.subplots(1, len(spec.panels), figsize=(width * len(spec.panels) + 2.0, 4.5), squeeze=False)
@@ -302,27 +333,31 @@ def draw_figure(spec: FigureSpec) -> Any:
     for ax, panel in zip(axes[0], spec.panels):
         if panel.bars is not None:
             groups, bars, table = panel.bars
-            _bars(ax, groups, bars, functools.partial(_lookup, table), colors=ENV_COLORS)
+            grouped_bars(ax, groups, bars, functools.partial(_lookup, table), labels=panel.group_labels)
             ax.use_sticky_edges = False  # margins on the bars' side of 0 too
         for curve in panel.curves:
             if curve.final:
                 last = _last(curve.frame, curve.y)
                 label = f"{curve.label} (n={len(last)})"
                 ax.axhline(last.mean(), color=curve.color, linestyle=":", linewidth=2, label=label)
+            elif curve.per_seed:
+                seed_lines(ax, curve.frame, curve.label, curve.color, y=curve.y)
             else:
-                _band(ax, curve.frame, None, curve.label, curve.color, y=curve.y)
-        ylabel = panel.ylabel
+                band(ax, curve.frame, None, curve.label, curve.color, y=curve.y)
         values = pd.concat([curve.frame[curve.y] for curve in panel.curves]) if panel.curves else pd.Series(dtype=float)
         if len(values) and values.abs().max() > 1e4:  # a diverging critic would flatten the others
-            ax.set_yscale("symlog", linthresh=100)
-            ylabel += " (symmetric log scale)"
+            value_scale(ax, list(values), panel.ylabel)
+        else:
+            ax.set_ylabel(panel.ylabel)
         for timestep, label in panel.switches:
-            _switch(ax, timestep, label)
+            switch(ax, timestep, label)
         ax.margins(y=0.15)  # room above the top curve, where the changes are labelled
         ax.set_title(panel.title)
-        ax.set_xlabel(panel.xlabel)
-        ax.set_ylabel(ylabel)
-        ax.grid(alpha=0.3)
+        if panel.bars is None:
+            steps_axis(ax, panel.xlabel)
+        else:
+            ax.set_xlabel(panel.xlabel)
+        ax.grid(axis="both" if panel.bars is None else "y", alpha=0.3)
         legend.update({label: handle for handle, label in zip(*ax.get_legend_handles_labels())})
     axes[0][-1].legend(legend.values(), legend.keys(), fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     fig.suptitle(spec.title)
@@ -337,8 +372,8 @@ def plot_experiment(directory: Union[str, pathlib.Path]) -> list[pathlib.Path]:
     :return: the paths written
     """
     root = pathlib.Path(directory)
-    plt = _pyplot()
-    return [_save(plt, draw_figure(spec), root / spec.filename) for spec in experiment_figures(load_experiment(root))]
+    plt = pyplot()
+    return [save(plt, draw_figure(spec), root / spec.filename) for spec in experiment_figures(load_experiment(root))]
 
 
 def main(argv: Optional[list[str]] = None) -> None:

@@ -1,0 +1,294 @@
+"""
+One look for every figure of the package: one name and one colour per method, one colour per environment, and the
+drawing helpers (curves over seeds, a labelled change of environment, grouped bars, saving) that the study figures
+(:mod:`sb3_lifelong.experiments.figures`), the sequential examples' figures (:mod:`sb3_lifelong.experiments.plots`)
+and the benchmarks share.
+
+A method is known by its key in the protocol (:data:`sb3_lifelong.experiments.protocol.STUDENTS`, ``"MPO"`` for the
+collector, ``"online <name>"`` for the online baselines); the sequential examples' directory names are mapped onto
+those keys by :data:`SEQUENTIAL_METHODS`, so that "CRR exp β=1" is red and called so in every figure of the package.
+A method this module does not know keeps its own name and gets a colour of :data:`OTHER_COLORS`.
+"""
+
+import pathlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+import pandas as pd
+
+
+@dataclass(frozen=True)
+class MethodStyle:
+    """
+    How a method appears in every figure.
+
+    :param label: its name in legends and on axes
+    :param color: its colour (matplotlib colour string)
+    """
+
+    label: str
+    color: str
+
+
+#: every method of the studies by its key: the collector, the online baselines and the offline students
+METHODS: dict[str, MethodStyle] = {
+    "MPO": MethodStyle("MPO", "#1f77b4"),
+    "online CRR_indicator": MethodStyle("online CRR indicator", "#ff7f0e"),
+    "online CRR_exp_beta1": MethodStyle("online CRR exp β=1", "#2ca02c"),
+    "CRR_exp_beta1": MethodStyle("CRR exp β=1", "#d62728"),
+    "CRR_indicator": MethodStyle("CRR indicator", "#9467bd"),
+    "BC": MethodStyle("BC", "#8c564b"),
+    "CRR_indicator_A_only": MethodStyle("CRR indicator, Env-A data only", "#e377c2"),
+    "CRR_indicator_B_only": MethodStyle("CRR indicator, Env-B data only", "#7f7f7f"),
+    "CRR_exp_beta1_A_only": MethodStyle("CRR exp β=1, Env-A data only", "#bcbd22"),
+    "CRR_indicator_scale_rwd_B": MethodStyle("CRR indicator, Env-B rewards x0.5", "#17becf"),
+    "CRR_indicator_two_actors": MethodStyle("CRR indicator, one actor per env", "#393b79"),
+    "CRR_exp_beta1_two_actors": MethodStyle("CRR exp β=1, one actor per env", "#5254a3"),
+    "CRR_indicator_ratio_1to1": MethodStyle("CRR indicator, sampled 1:1", "#637939"),
+    "CRR_indicator_ratio_1to10": MethodStyle("CRR indicator, sampled 1:10", "#8c6d31"),
+    "CRR_exp_beta1_ratio_1to1": MethodStyle("CRR exp β=1, sampled 1:1", "#843c39"),
+    "CRR_exp_beta1_ratio_1to10": MethodStyle("CRR exp β=1, sampled 1:10", "#7b4173"),
+    "SAC": MethodStyle("SAC", "#222222"),
+}
+
+#: the sequential examples' method directories (``examples/two_stage.py``) by the study method each one is
+SEQUENTIAL_METHODS: dict[str, str] = {
+    "MPO": "MPO",
+    "CRR_indicator": "online CRR_indicator",
+    "CRR_beta1": "online CRR_exp_beta1",
+    "distilled": "CRR_exp_beta1",
+    "distilled_indicator": "CRR_indicator",
+    "distilled_per_source": "CRR_exp_beta1_two_actors",
+}
+
+#: colours for the methods :data:`METHODS` does not know, in order (none of them a known method's)
+OTHER_COLORS = ["#000075", "#469990", "#9a6324", "#f58231", "#911eb4", "#42d4f4", "#808000", "#e6194b", "#3cb44b"]
+
+#: one colour per environment or source of data, in the order of the stages (matplotlib's "Dark2")
+ENV_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666"]
+
+#: curves with at most this many points are drawn with markers (each evaluation visible)
+MARKERS_UP_TO = 12
+
+#: from this many seeds on, :func:`seed_lines` draws the median and the interquartile range over the seed lines
+MEDIAN_FROM = 3
+
+
+def method_label(method: str) -> str:
+    """:return: the name of a method in figures (its key when it is not a known method)"""
+    return METHODS[method].label if method in METHODS else method
+
+
+def method_color(method: str, others: Sequence[str] = ()) -> str:
+    """
+    :param method: a method's key
+    :param others: the unknown methods of the figure, in order: an unknown method gets the colour of its position
+    :return: the method's colour
+    """
+    if method in METHODS:
+        return METHODS[method].color
+    unknown = [name for name in others if name not in METHODS]
+    position = unknown.index(method) if method in unknown else 0
+    return OTHER_COLORS[position % len(OTHER_COLORS)]
+
+
+def env_color(index: int) -> str:
+    """:return: the colour of the environment (or source of data) of stage ``index``"""
+    return ENV_COLORS[index % len(ENV_COLORS)]
+
+
+def over_seeds(count: int, what: str = "mean ± std") -> str:
+    """:return: e.g. ``"mean ± std over 4 seeds"``, or ``"1 seed"``"""
+    return f"{what} over {count} seeds" if count > 1 else "1 seed"
+
+
+# ------------------------------------------------------------------------------------------------- drawing
+def pyplot() -> Any:
+    """:return: ``matplotlib.pyplot`` on the Agg backend (files only: no display, no GL)"""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save(
+    plt: Any, fig: Any, path: pathlib.Path, dpi: int = 110, rect: Optional[tuple[float, float, float, float]] = None
+) -> pathlib.Path:
+    """
+    Lay out, write and close a figure.
+
+    :param plt: ``matplotlib.pyplot``
+    :param fig: the figure
+    :param path: the PNG file
+    :param dpi: resolution
+    :param rect: the part of the figure the axes are laid out in (``tight_layout``'s; None: all of it), e.g. to
+        leave room for a legend below
+    :return: ``path``
+    """
+    fig.tight_layout(rect=rect)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+def band(ax: Any, frame: pd.DataFrame, env: Optional[str], label: str, color: str, y: str = "mean_reward") -> None:
+    """
+    One curve: the mean over seeds of ``y`` against ``timesteps``, shaded +- std where there are >= 2 seeds.
+
+    :param ax: the matplotlib axes
+    :param frame: rows ``timesteps``, ``env``, ``y`` (and ``seed``), one per seed and point
+    :param env: keep only the rows of this ``env`` (None: all rows)
+    :param label: legend entry, the number of seeds appended
+    :param color: matplotlib colour
+    :param y: the column to draw
+    """
+    rows = (frame if env is None else frame[frame["env"] == env]).groupby("timesteps")[y]
+    mean, std, count = rows.mean(), rows.std().fillna(0.0), rows.count()
+    marker = "o" if len(mean) <= MARKERS_UP_TO else None
+    ax.plot(
+        mean.index,
+        mean.values,
+        color=color,
+        label=f"{label} (n={int(count.max())})",
+        linewidth=1.8,
+        marker=marker,
+        markersize=3,
+    )
+    ax.fill_between(mean.index, (mean - std).values, (mean + std).values, color=color, alpha=0.15, linewidth=0)
+
+
+def seed_lines(ax: Any, frame: pd.DataFrame, label: str, color: str, y: str) -> int:
+    """
+    A method's curves over seeds that no single seed can drag: one thin line per seed, and from
+    :data:`MEDIAN_FROM` seeds on the median over seeds with its interquartile range (quartiles of nearest rank; a
+    mean +- std band is pulled by one diverging seed, and on a log axis reaches below zero for a positive quantity).
+
+    :param ax: the matplotlib axes
+    :param frame: rows ``seed``, ``timesteps``, ``y``
+    :param label: the method's legend entry (the number of seeds and what is drawn are appended)
+    :param color: its colour
+    :param y: the column to draw
+    :return: the number of seeds
+    """
+    seeds = sorted(set(frame["seed"]))
+    summary = len(seeds) >= MEDIAN_FROM
+    width, alpha = (0.8, 0.4) if summary else (1.4, 0.9)  # with a median drawn, the seeds' lines step back
+    for seed in seeds:
+        rows = frame[frame["seed"] == seed].sort_values("timesteps")
+        marker = "o" if len(rows) <= MARKERS_UP_TO else None
+        ax.plot(rows["timesteps"], rows[y], color=color, linewidth=width, alpha=alpha, marker=marker, markersize=2.5)
+    if summary:
+        by_step = frame.groupby("timesteps")[y]
+        # quartiles of nearest rank: the band joins seeds' own values, never a point pulled towards a diverging seed
+        median = by_step.median()
+        low, high = by_step.quantile(0.25, interpolation="nearest"), by_step.quantile(0.75, interpolation="nearest")
+        ax.plot(median.index, median.values, color=color, linewidth=2.4, label=f"{label} (n={len(seeds)})")
+        ax.fill_between(median.index, low.values, high.values, color=color, alpha=0.15, linewidth=0)
+    else:
+        ax.plot([], [], color=color, linewidth=width, label=f"{label} (n={len(seeds)})")
+    return len(seeds)
+
+
+def value_scale(ax: Any, values: Sequence[float], ylabel: str) -> str:
+    """
+    Set a y axis that shows values spanning decades: logarithmic for positive values over more than a decade and a
+    half, symmetric-log (linear within +- 100) when values of both signs reach beyond 1,000, else linear.
+
+    :param ax: the matplotlib axes
+    :param values: the values drawn
+    :param ylabel: the axis' label
+    :return: the label with the scale named (set on ``ax`` too)
+    """
+    data = np.asarray([v for v in values if np.isfinite(v)], dtype=float)
+    if len(data) and data.min() > 0 and data.max() / data.min() > 30:
+        from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))  # 100, 200, 500, 1000: read without powers of 10
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:,.0f}" if value >= 1 else f"{value:g}"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ylabel += " (log scale)"
+    elif len(data) and data.min() <= 0 and np.abs(data).max() > 1e3:
+        ax.set_yscale("symlog", linthresh=100)
+        ylabel += " (symmetric log scale, linear within ±100)"
+    ax.set_ylabel(ylabel)
+    return ylabel
+
+
+def steps_axis(ax: Any, label: str) -> None:
+    """
+    Label an x axis of steps or updates, its ticks in thousands (``50k``) when they reach 10,000, so that long runs'
+    ticks do not run into each other.
+
+    :param ax: the matplotlib axes
+    :param label: the axis' label
+    """
+    from matplotlib.ticker import FuncFormatter
+
+    if max(abs(value) for value in ax.get_xlim()) >= 10_000:
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value / 1000:g}k"))
+    ax.set_xlabel(label)
+
+
+def switch(ax: Any, timestep: float, label: str, row: int = 0) -> None:
+    """
+    A change of environment: a dashed vertical line, labelled (e.g. ``"Env-A -> Env-B"``) at the top of the axes.
+
+    :param ax: the matplotlib axes
+    :param timestep: where the change happens, in the x-axis' units
+    :param label: what changes
+    :param row: the label's line from the top (successive changes close together would overlap on one line)
+    """
+    ax.axvline(timestep, color="black", linestyle="--", linewidth=1)
+    ax.annotate(
+        label,
+        xy=(timestep, 0.97 - 0.07 * row),
+        xycoords=("data", "axes fraction"),
+        ha="left",
+        va="top",
+        fontsize=9,
+        xytext=(4, 0),
+        textcoords="offset points",
+    )
+
+
+def grouped_bars(
+    ax: Any,
+    groups: Sequence[str],
+    bars: Sequence[str],
+    scores: Callable[[str, str], Sequence[float]],
+    colors: Optional[Sequence[str]] = None,
+    labels: Optional[Sequence[str]] = None,
+) -> None:
+    """
+    Grouped bars: for every group, one bar per entry of ``bars`` (the mean over seeds), error bar +- std, and each
+    seed's value as a dot (so that the number of seeds is seen).
+
+    :param ax: the matplotlib axes
+    :param groups: the groups, along the x axis
+    :param bars: the bars of each group (legend entries)
+    :param scores: the per-seed values of (group, bar) (empty: no bar)
+    :param colors: one colour per bar (default: :data:`ENV_COLORS`)
+    :param labels: the groups' tick labels (default: ``groups``)
+    """
+    colors = list(colors) if colors else ENV_COLORS
+    width = 0.8 / len(bars)
+    x = np.arange(len(groups))
+    for k, bar in enumerate(bars):
+        offset = (k - (len(bars) - 1) / 2) * width
+        means, stds = [], []
+        for index, group in enumerate(groups):
+            values = [float(v) for v in scores(group, bar)]
+            means.append(np.mean(values) if values else np.nan)
+            stds.append(np.std(values) if values else 0.0)
+            ax.plot(np.full(len(values), x[index] + offset), values, "o", color="black", markersize=2.5, zorder=3)
+        ax.bar(x + offset, means, width, yerr=stds, capsize=3, label=bar, color=colors[k % len(colors)])
+    names = list(labels) if labels is not None else list(groups)
+    long = max((len(name) for name in names), default=0) > 12
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=25 if long else 0, ha="right" if long else "center", fontsize=9)
+    ax.grid(axis="y", alpha=0.3)
