@@ -46,6 +46,29 @@ MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
 }
 CURVES = RESULTS / "quality"
 
+#: how the figures name each run's algorithm: the plain torso was MPO's default until 2026-11-25, the LayerNorm one since
+LABELS = {
+    "MPO": "MPO, plain torso (old default)",
+    "MPO_n5": "MPO, plain torso, n-step 5",
+    "MPO_penalty": "MPO, plain torso, action penalty",
+    "MPO_n5_penalty": "MPO, plain torso, n-step 5, action penalty",
+    "MPO_obsnorm": "MPO, plain torso, VecNormalize",
+    "MPO_layernorm": "MPO, LayerNorm torso (the default)",
+    "MPO_layernorm_obsnorm": "MPO, LayerNorm torso (the default), VecNormalize",
+    "SAC": "SAC",
+}
+#: their colours: the default MPO and SAC as in every figure of the package (sb3_lifelong.experiments.style)
+COLORS = {
+    "MPO": "#e6ab02",
+    "MPO_n5": "#8c564b",
+    "MPO_penalty": "#e377c2",
+    "MPO_n5_penalty": "#bcbd22",
+    "MPO_obsnorm": "#9467bd",
+    "MPO_layernorm": "#1f77b4",
+    "MPO_layernorm_obsnorm": "#17becf",
+    "SAC": "#222222",
+}
+
 
 def budget_name(steps: int) -> str:
     """The folder of a step budget's curves: ``30000`` -> ``"30k"``."""
@@ -138,24 +161,25 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
 
 
 def summarise() -> None:
-    import matplotlib
+    from sb3_lifelong.experiments.report import bootstrap_ci, paired_difference
+    from sb3_lifelong.experiments.style import method_color, pyplot, save, steps_axis
 
-    from sb3_lifelong.experiments.report import bootstrap_ci
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     curves: dict[tuple[str, str, str], list[np.ndarray]] = {}
+    seeds: dict[tuple[str, str, str], list[int]] = {}
     for path in sorted(CURVES.glob("*/*.csv"), key=lambda p: (int(p.parent.name.rstrip("k")), p.name)):
-        env_id, algo, _ = path.stem.split("__")
+        env_id, algo, seed = path.stem.split("__")
         data = np.genfromtxt(path, delimiter=",", skip_header=1, ndmin=2)
         budget = path.parent.name
         steps = int(budget[:-1]) * 1000 if budget.endswith("k") else int(budget)
         if data.size and data[-1, 0] >= steps:  # a run still going (or stopped) is left out of the table
             curves.setdefault((budget, env_id, algo), []).append(data)
+            seeds.setdefault((budget, env_id, algo), []).append(int(seed.lstrip("s")))
+    scores: dict[tuple[str, str, str], dict[int, tuple[float, float]]] = {}  # seed -> (final, mean of the last 3)
     lines = [
         "| budget | env | algorithm | seeds | steps reached | final return (mean +- std over seeds, ddof=0) "
-        "| 95 % bootstrap CI | per seed | last 3 evals (mean +- std over seeds) | best eval (mean over seeds) |",
+        "| 95 % BCa bootstrap CI | per seed | last 3 evals (mean +- std over seeds) | best eval (mean over seeds) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for (budget, env_id, algo), runs in curves.items():
@@ -164,10 +188,34 @@ def summarise() -> None:
         bests = [run[:, 1].max() for run in runs]
         lasts = [run[run[:, 0] <= reached][-3:, 1].mean() for run in runs]  # one evaluation swings; three less
         low, high = bootstrap_ci(finals)
+        scores[(budget, env_id, algo)] = dict(zip(seeds[(budget, env_id, algo)], zip(finals, lasts)))
         lines.append(
             f"| {budget} | {env_id} | {algo} | {len(runs)} | {reached} | {np.mean(finals):.0f} +- {np.std(finals):.0f} | "
             f"[{low:.0f}, {high:.0f}] | {', '.join(f'{value:.0f}' for value in finals)} | "
             f"{np.mean(lasts):.0f} +- {np.std(lasts):.0f} | {np.mean(bests):.0f} |"
+        )
+    lines += [
+        "",
+        "Each MPO variant against SAC, paired by seed (the same seed's runs: first minus second; 95 % BCa bootstrap "
+        "interval of the mean difference; on how many of the paired seeds MPO is higher):",
+        "",
+        "| budget | env | algorithm | seeds paired | final return: MPO - SAC [95 % BCa CI] | MPO higher on "
+        "| last 3 evals: MPO - SAC [95 % BCa CI] | MPO higher on |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for (budget, env_id, algo), mine in scores.items():
+        sac = scores.get((budget, env_id, "SAC"))
+        if algo == "SAC" or sac is None:
+            continue
+        final = paired_difference({s: v[0] for s, v in mine.items()}, {s: v[0] for s, v in sac.items()})
+        last = paired_difference({s: v[1] for s, v in mine.items()}, {s: v[1] for s, v in sac.items()})
+        if final["n"] < 2:
+            continue
+        lines.append(
+            f"| {budget} | {env_id} | {algo} | {final['n']} "
+            f"| {final['mean']:+.0f} [{final['low']:+.0f}, {final['high']:+.0f}] "
+            f"| {final['wins']:g} of {final['n']} | {last['mean']:+.0f} [{last['low']:+.0f}, {last['high']:+.0f}] "
+            f"| {last['wins']:g} of {last['n']} |"
         )
     table = "\n".join(lines)
     print(table)
@@ -185,22 +233,28 @@ def summarise() -> None:
         + notes
     )
     for budget, env_id in dict.fromkeys((budget, env) for budget, env, _ in curves):
-        fig, ax = plt.subplots(figsize=(6, 4))
+        fig, ax = plt.subplots(figsize=(9.5, 4.2))
         for (run_budget, env, algo), runs in sorted(curves.items()):
             if (run_budget, env) != (budget, env_id):
                 continue
             length = min(len(run) for run in runs)
             steps = runs[0][:length, 0]
             returns = np.stack([run[:length, 1] for run in runs])
-            ax.plot(steps, returns.mean(0), label=f"{algo} ({len(runs)} seeds)")
-            ax.fill_between(steps, returns.min(0), returns.max(0), alpha=0.2)
-        ax.set_xlabel("environment steps")
-        ax.set_ylabel("evaluation return")
-        ax.set_title(f"{env_id}, {budget} steps")
-        ax.legend(title="line: mean; band: min to max over seeds", fontsize=8, title_fontsize=8)
-        fig.tight_layout()
-        fig.savefig(RESULTS / f"mpo_quality_{env_id}_{budget}.png", dpi=100)
-        plt.close(fig)
+            color = COLORS.get(algo) or method_color(algo)
+            ax.plot(steps, returns.mean(0), color=color, linewidth=1.8, label=f"{LABELS.get(algo, algo)} ({len(runs)} seeds)")
+            ax.fill_between(steps, returns.min(0), returns.max(0), color=color, alpha=0.15, linewidth=0)
+        steps_axis(ax, "environment steps")
+        ax.set_ylabel("evaluation return (deterministic policy)")
+        ax.set_title(f"MPO vs SAC on {env_id}, {budget} steps (256x256 networks)")
+        ax.grid(alpha=0.3)
+        ax.legend(
+            title="line: mean; band: min to max over seeds",
+            fontsize=8,
+            title_fontsize=8,
+            loc="upper left",
+            bbox_to_anchor=(1.02, 1.0),
+        )
+        save(plt, fig, RESULTS / f"mpo_quality_{env_id}_{budget}.png", dpi=100)
 
 
 def main() -> None:
