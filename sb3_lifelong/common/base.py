@@ -210,6 +210,7 @@ def _saved_policy_class(data: dict[str, Any]) -> Optional[tuple[str, str]]:
 def _algorithms(base: type) -> list[type]:
     """Every algorithm class derived from ``base`` (those imported), ``base`` included."""
     found = [base]
+    subclass: type
     for subclass in base.__subclasses__():
         found.extend(_algorithms(subclass))
     return found

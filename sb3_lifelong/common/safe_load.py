@@ -124,7 +124,7 @@ class RestrictedUnpickler(pickle.Unpickler):
                 return obj
         elif "." not in name and module.startswith(REFERABLE_PACKAGES):
             obj = getattr(importlib.import_module(module), name, None)
-            if _referable(obj):
+            if isinstance(obj, type) and _referable(obj):
                 return ClassReference(obj)
         raise pickle.UnpicklingError(
             f"{self.what}: the pickle asks for {module}.{name}, which safe=True does not allow (it could run code). "
