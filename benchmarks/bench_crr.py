@@ -184,10 +184,18 @@ def main() -> None:
     if os.path.exists(stats_path):
         with open(stats_path) as file:
             behaviour = json.load(file)
+    # the CPU's matrix flags and oneDNN's bf16 kernel decide these ratios (imported here: the d3rlpy child runs this
+    # file in an interpreter without the package)
+    from sb3_lifelong.common.utils import machine_description
+
+    machine = machine_description()
+    print(machine)
     lines = [
         f"# CRR on {args.env}, offline ({len(data['rewards'])} transitions, {os.path.basename(args.data)})",
         "",
         "Command: `OMP_NUM_THREADS=1 python benchmarks/bench_crr.py " + " ".join(base) + "`",
+        "",
+        f"Machine: {machine}",
         "",
         f"| implementation | updates | updates/s (quality run) | updates/s (best of {args.speed_rounds} interleaved blocks "
         f"of {args.speed_updates}) | final return (mean +- std, {args.eval_episodes} episodes) |",
@@ -217,7 +225,7 @@ def main() -> None:
             f"Speed ratio ours / d3rlpy, median over the rounds of each round's ratio: {float(np.median(per_round)):.2f}x "
             f"(rounds: {', '.join(f'{ratio:.2f}' for ratio in per_round)})"
         ]
-    dump = {"results": results, "speed_blocks_updates_per_s": speed, "behaviour": behaviour}
+    dump = {"results": results, "speed_blocks_updates_per_s": speed, "behaviour": behaviour, "machine": machine}
     # the notes written by hand under the generated table (set-up, readings) are kept when the file is rewritten
     previous = pathlib.Path(args.output).read_text() if os.path.exists(args.output) else ""
     if NOTES_MARK in previous:

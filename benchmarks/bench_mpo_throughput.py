@@ -16,7 +16,6 @@ import argparse
 import datetime
 import json
 import pathlib
-import platform
 import time
 from typing import Any
 
@@ -26,6 +25,7 @@ from stable_baselines3 import SAC
 from torch.profiler import ProfilerActivity, profile
 
 from sb3_lifelong import MPO
+from sb3_lifelong.common.utils import machine_description
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 
@@ -129,7 +129,7 @@ def main() -> None:
         + " ".join(map(str, args.num_samples))
         + f" --scoring-dtypes {' '.join(args.scoring_dtypes)} --layer-norms {' '.join(args.layer_norms)}"
         + f" --threads {args.threads}",
-        "machine": f"{platform.processor() or platform.machine()}, torch {th.__version__}, {th.get_num_threads()} thread(s)",
+        "machine": machine_description(),  # CPU, its matrix flags (AMX, AVX-512 BF16), oneDNN's bf16 kernel, torch
     }
     out.with_suffix(".json").write_text(json.dumps({**meta, "envs": per_env}, indent=2))
     out.with_suffix(".raw.md").write_text(

@@ -208,3 +208,15 @@ def test_layer_norm_torso_in_low_precision_matches_its_modules():
     assert (fused.float() - expected.float()).abs().max() <= 2**-8
     plain = utils._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=False)
     assert th.equal(plain, torso[1](hidden.float()).to(th.bfloat16))
+
+
+def test_machine_description_names_the_matrix_flags_and_the_bf16_kernel(monkeypatch):
+    from sb3_lifelong.common import utils
+
+    flags = utils.cpu_matrix_flags()
+    assert set(flags) <= set(utils.MATRIX_FLAGS)
+    assert utils.cpu_has_fast_bf16() == ("avx512_bf16" in flags or "amx_bf16" in flags)
+    text = utils.machine_description()
+    assert "matrix flags:" in text and "oneDNN bf16 kernel:" in text and th.__version__ in text
+    kernel = utils.onednn_bf16_kernel()
+    assert kernel and ("amx" not in kernel or "amx_bf16" in flags)  # an AMX kernel only where the CPU has AMX
