@@ -10,6 +10,7 @@ against the end, on the same evaluation episodes; its critic's overestimation pe
 the Monte-Carlo value of each source at each reward dose) and trains the seven students on the seed's buffer (a
 finished student is skipped when the command is run again)::
 
+    OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py screen --robot hopper --seed 0   # at the switch, optional
     OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot hopper --seed 0
     python benchmarks/imbalance_dose.py report     # preconditions, claims.csv, tables, the figure, every seed so far
 
@@ -146,6 +147,50 @@ def summarise_student(directory: pathlib.Path, env_names: tuple[str, ...]) -> di
         out[key] = float(np.mean(values)) if values else math.nan
     out["seconds"] = json.loads((directory / "done.json").read_text()).get("seconds")
     return out
+
+
+def screen(args: argparse.Namespace) -> None:
+    """
+    The collection at the switch, before Env-B's budget is spent: the Stage-1 agent's Env-A return (P1's agent part),
+    the same agent in Env-B (the zero-shot drop A -> B), its critic's overestimation on Env-A data, the Env-A data's
+    Monte-Carlo value. Works on a collection still running in Env-B (it reads the Stage-1 agent and buffer).
+    """
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.monitor import Monitor
+
+    from sb3_lifelong import MPO, LifelongReplayBuffer
+    from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET
+    from sb3_lifelong.common.overestimation import MonteCarloProbe
+    from sb3_lifelong.experiments.protocol import PRESETS, make_eval_envs
+
+    preset = PRESETS[ROBOTS[args.robot][0]]
+    run_dir = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}") / f"seed_{args.seed}"
+    switch = preset.stage_steps[0]
+    out: dict[str, Any] = dict(robot=args.robot, seed=args.seed, switch=switch, threshold_P1=ROBOTS[args.robot][1])
+    eval_csv = run_dir / "collect" / "eval.csv"
+    for env in preset.env_names:
+        out[f"stage1_last5_{env}"], out[f"stage1_evals_{env}"] = last_mean(eval_csv, env, switch, LAST_MPO_EVALS)
+    out["P1_agent"] = out["stage1_last5_Env-A"] >= ROBOTS[args.robot][1]
+    agent = MPO.load(run_dir / "collect" / "stage1.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
+    episodes = 2 * preset.eval_episodes
+    for env_name, env in make_eval_envs(preset).items():
+        monitored = Monitor(env)
+        monitored.reset(seed=EVAL_SEED_OFFSET + args.seed)
+        out[f"stage1_same_episodes_{env_name}"] = float(evaluate_policy(agent, monitored, episodes, deterministic=True)[0])
+    out["same_episodes"] = episodes
+    out["zero_shot_drop_A_to_B"] = 1 - out["stage1_same_episodes_Env-B"] / out["stage1_same_episodes_Env-A"]
+    with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as buffer:
+        measured = MonteCarloProbe(buffer, agent.gamma, per_source=4096, seed=args.seed).measure(agent.critic)
+        for source, values in measured.items():
+            name = buffer.sources.get(source, {}).get("name", f"source_{source}")
+            out[f"stage1_overestimation_{name}"] = values.overestimation
+            out[f"stage1_q_{name}"] = values.q_mean
+            out[f"mc_return_x1_{name}"] = values.mc_return
+        out["stage1_rows"] = int(buffer.size())
+    results = pathlib.Path(args.results) / args.robot / f"seed_{args.seed}"
+    results.mkdir(parents=True, exist_ok=True)
+    (results / "screen.json").write_text(json.dumps(out, indent=1))
+    print(json.dumps(out, indent=1))
 
 
 def run(args: argparse.Namespace) -> None:
@@ -449,13 +494,19 @@ def main() -> None:
     run_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
     run_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
     run_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
+    screen_parser = sub.add_parser("screen", help="the collection at the switch (Stage-1 agent and data) only")
+    screen_parser.add_argument("--robot", choices=sorted(ROBOTS), default="hopper")
+    screen_parser.add_argument("--seed", type=int, required=True)
+    screen_parser.add_argument("--runs", default="runs", help="where the collections are")
+    screen_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
+    screen_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
     import torch as th
 
     th.set_num_threads(1)
-    run(args) if args.command == "run" else report(args)
+    {"run": run, "screen": screen, "report": report}[args.command](args)
 
 
 if __name__ == "__main__":

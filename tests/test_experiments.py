@@ -690,6 +690,11 @@ def test_imbalance_dose_study(study, tmp_path):
         robot="tiny", seed=0, updates=60, students=None, runs=str(tmp_path), study=str(output),
         students_output=str(tmp_path / "students"), results=str(results),
     )  # fmt: skip
+    screen_args = argparse.Namespace(robot="tiny", seed=0, runs=str(tmp_path), study=str(output), results=str(results))
+    dose.screen(screen_args)
+    screened = json.loads((results / "tiny" / "seed_0" / "screen.json").read_text())
+    assert np.isfinite(screened["zero_shot_drop_A_to_B"]) and np.isfinite(screened["stage1_overestimation_Env-A"])
+    assert screened["P1_agent"] is True  # the tiny robot has no threshold
     dose.run(args)
     collector = json.loads((results / "tiny" / "seed_0" / "collector.json").read_text())
     for key in ("stage1_last5_Env-A", "end_last5_Env-A", "stage1_same_episodes_Env-A", "final_same_episodes_Env-B"):
