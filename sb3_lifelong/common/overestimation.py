@@ -5,6 +5,14 @@ actually followed them in the stored episode (their Monte-Carlo return), per sou
 Q levels alone do not show overestimation (a source of better data has higher Q-values for good reasons); the gap to
 the return the data really obtained does. In a lifelong run this gap is the forgetting risk of each source, with no
 task boundary needed: a source whose gap grows is being extrapolated on, not learnt.
+
+What the gap holds: ``Q(s, a)`` estimates the return of the stored action followed by the *current* policy, the
+Monte-Carlo return is that of the action followed by the policy that *collected* the data. So the gap is the
+current policy's improvement over the collector on that data plus the critic's error:
+``Q_hat - G = (Q^pi - Q^behaviour) + (Q_hat - Q^pi)``. An improving learner has a positive gap on its own older data
+even with an exact critic (MPO's critic at the end of Env-A: +56 on Hopper, +94 on HalfCheetah,
+``benchmarks/results/imbalance_dose``). Read it as a trend on a source the policy no longer improves on: when the
+policy gets worse there (forgetting), the first term shrinks, so a gap that grows is the critic's error.
 """
 
 import math
