@@ -78,16 +78,41 @@ def last_mean(eval_csv: pathlib.Path, env: str, upto: Optional[int], count: int)
     return float(np.mean(values)), values
 
 
-def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int) -> dict[str, Any]:
-    """The collector's side of the preconditions and claims C1, C5; the data's Monte-Carlo value per source."""
-    import torch as th
+def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Any, seed: int, episodes: int) -> dict[str, Any]:
+    """
+    One saved collector agent (``collect/<name>.zip``): its return in every environment on the same evaluation
+    episodes, and its critic's Q and overestimation on each source of ``buffer``.
+
+    :return: ``<name>_same_episodes_<env>``, ``<name>_q_<source>``, ``<name>_overestimation_<source>``,
+        ``mc_return_x1_<source>``
+    """
     from stable_baselines3.common.evaluation import evaluate_policy
     from stable_baselines3.common.monitor import Monitor
 
-    from sb3_lifelong import MPO, LifelongReplayBuffer
+    from sb3_lifelong import MPO
     from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET
-    from sb3_lifelong.common.overestimation import MonteCarloProbe, discounted_returns
-    from sb3_lifelong.experiments.protocol import PRESETS, make_eval_envs
+    from sb3_lifelong.common.overestimation import MonteCarloProbe
+    from sb3_lifelong.experiments.protocol import make_eval_envs
+
+    agent = MPO.load(run_dir / "collect" / f"{name}.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
+    out: dict[str, Any] = {}
+    for env_name, env in make_eval_envs(preset).items():
+        monitored = Monitor(env)
+        monitored.reset(seed=EVAL_SEED_OFFSET + seed)
+        out[f"{name}_same_episodes_{env_name}"] = float(evaluate_policy(agent, monitored, episodes, deterministic=True)[0])
+    names = {source: meta.get("name", f"source_{source}") for source, meta in buffer.sources.items()}
+    for source, measured in MonteCarloProbe(buffer, agent.gamma, per_source=4096, seed=seed).measure(agent.critic).items():
+        out[f"{name}_overestimation_{names[source]}"] = measured.overestimation
+        out[f"{name}_q_{names[source]}"] = measured.q_mean
+        out[f"mc_return_x1_{names[source]}"] = measured.mc_return
+    return out
+
+
+def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int) -> dict[str, Any]:
+    """The collector's side of the preconditions and claims C1, C5; the data's Monte-Carlo value per source."""
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.common.overestimation import discounted_returns
+    from sb3_lifelong.experiments.protocol import PRESETS
 
     preset = PRESETS[ROBOTS[robot][0]]
     run_dir = study / f"seed_{seed}"
@@ -97,23 +122,11 @@ def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int)
     for env in preset.env_names:
         out[f"stage1_last5_{env}"], out[f"stage1_evals_{env}"] = last_mean(eval_csv, env, switch, LAST_MPO_EVALS)
         out[f"end_last5_{env}"], out[f"end_evals_{env}"] = last_mean(eval_csv, env, None, LAST_MPO_EVALS)
-    # the frozen Stage-1 agent and the end agent on the same evaluation episodes
-    agents = {name: MPO.load(run_dir / "collect" / f"{name}.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
-              for name in ("stage1", "final")}  # fmt: skip
-    for name, agent in agents.items():
-        for env_name, env in make_eval_envs(preset).items():
-            env = Monitor(env)
-            env.reset(seed=EVAL_SEED_OFFSET + seed)
-            mean, _ = evaluate_policy(agent, env, n_eval_episodes=episodes, deterministic=True)
-            out[f"{name}_same_episodes_{env_name}"] = float(mean)
     out["same_episodes"] = episodes
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
         names = {source: meta.get("name", f"source_{source}") for source, meta in buffer.sources.items()}
-        for name, agent in agents.items():
-            probe = MonteCarloProbe(buffer, agent.gamma, per_source=4096, seed=seed)
-            for source, measured in probe.measure(agent.critic).items():
-                out[f"{name}_overestimation_{names[source]}"] = measured.overestimation
-                out[f"{name}_q_{names[source]}"] = measured.q_mean
+        for name in ("stage1", "final"):  # the frozen Stage-1 agent and the end agent on the same evaluation episodes
+            out.update(measure_agent(name, run_dir, buffer, preset, seed, episodes))
         columns = buffer.to_d4rl(by_episode=True, normalized_actions=True)
     sources = columns["sources"].reshape(-1)
     for reward in sorted({r for r, _ in DOSES.values()}):
@@ -124,7 +137,6 @@ def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int)
             out[f"mc_return_x{reward:g}_{name}"] = float(mc.returns[rows].mean()) if rows.any() else math.nan
     out["reward_range"] = [float(columns["rewards"].min()), float(columns["rewards"].max())]
     out["rows"] = {names[s]: int((sources == s).sum()) for s in names}
-    del th
     return out
 
 
@@ -155,13 +167,8 @@ def screen(args: argparse.Namespace) -> None:
     the same agent in Env-B (the zero-shot drop A -> B), its critic's overestimation on Env-A data, the Env-A data's
     Monte-Carlo value. Works on a collection still running in Env-B (it reads the Stage-1 agent and buffer).
     """
-    from stable_baselines3.common.evaluation import evaluate_policy
-    from stable_baselines3.common.monitor import Monitor
-
-    from sb3_lifelong import MPO, LifelongReplayBuffer
-    from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET
-    from sb3_lifelong.common.overestimation import MonteCarloProbe
-    from sb3_lifelong.experiments.protocol import PRESETS, make_eval_envs
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.experiments.protocol import PRESETS
 
     preset = PRESETS[ROBOTS[args.robot][0]]
     run_dir = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}") / f"seed_{args.seed}"
@@ -171,22 +178,11 @@ def screen(args: argparse.Namespace) -> None:
     for env in preset.env_names:
         out[f"stage1_last5_{env}"], out[f"stage1_evals_{env}"] = last_mean(eval_csv, env, switch, LAST_MPO_EVALS)
     out["P1_agent"] = out["stage1_last5_Env-A"] >= ROBOTS[args.robot][1]
-    agent = MPO.load(run_dir / "collect" / "stage1.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
-    episodes = 2 * preset.eval_episodes
-    for env_name, env in make_eval_envs(preset).items():
-        monitored = Monitor(env)
-        monitored.reset(seed=EVAL_SEED_OFFSET + args.seed)
-        out[f"stage1_same_episodes_{env_name}"] = float(evaluate_policy(agent, monitored, episodes, deterministic=True)[0])
-    out["same_episodes"] = episodes
-    out["zero_shot_drop_A_to_B"] = 1 - out["stage1_same_episodes_Env-B"] / out["stage1_same_episodes_Env-A"]
+    out["same_episodes"] = episodes = 2 * preset.eval_episodes
     with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as buffer:
-        measured = MonteCarloProbe(buffer, agent.gamma, per_source=4096, seed=args.seed).measure(agent.critic)
-        for source, values in measured.items():
-            name = buffer.sources.get(source, {}).get("name", f"source_{source}")
-            out[f"stage1_overestimation_{name}"] = values.overestimation
-            out[f"stage1_q_{name}"] = values.q_mean
-            out[f"mc_return_x1_{name}"] = values.mc_return
+        out.update(measure_agent("stage1", run_dir, buffer, preset, args.seed, episodes))
         out["stage1_rows"] = int(buffer.size())
+    out["zero_shot_drop_A_to_B"] = 1 - out["stage1_same_episodes_Env-B"] / out["stage1_same_episodes_Env-A"]
     results = pathlib.Path(args.results) / args.robot / f"seed_{args.seed}"
     results.mkdir(parents=True, exist_ok=True)
     (results / "screen.json").write_text(json.dumps(out, indent=1))
@@ -338,10 +334,9 @@ def screen_table(robot: str, screens: list[dict[str, Any]]) -> list[str]:
 
 def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path) -> None:
     """MPO's evaluations in both environments through the collection, one line per seed, the switch marked."""
-    import matplotlib
+    from sb3_lifelong.experiments.style import pyplot
 
-    matplotlib.use("Agg")  # files only: no display
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     import pandas as pd
 
     from sb3_lifelong.experiments.protocol import PRESETS
@@ -513,10 +508,9 @@ def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> 
 
 def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
     """Env-A return of each student against the dose, per seed (thin) and the mean (thick), with the references."""
-    import matplotlib
+    from sb3_lifelong.experiments.style import pyplot
 
-    matplotlib.use("Agg")  # files only: no display
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     doses = list(DOSES)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True)
