@@ -228,6 +228,63 @@ def run(args: argparse.Namespace) -> None:
     print(f"{len(rows)} students summarised -> {results / 'students.json'}")
 
 
+# ------------------------------------------------------------------------------------------------- other changes
+def branch(args: argparse.Namespace) -> None:
+    """
+    The Env-B stage of a collection with another change, continued from a finished Stage-1 collection.
+
+    Env-A does not depend on the change: its appended parameter column is the nominal value (0 after normalisation)
+    whatever the change is, so the Stage-1 agent (weights, optimisers, dual variables) and the Stage-1 buffer of
+    ``--study`` are what a collection with ``--change`` (one parameter) would hold at the switch. The new collection
+    continues from them in Env-B = ``--change`` and writes ``collect/`` (Stage-1 Env-A evaluations copied, then both
+    environments every ``eval_freq``), ``buffer`` and ``buffer_stage1`` under ``--output``/``seed_<k>``, like a full
+    collection; its Env-A return after Env-B is P2's test of the change (the change screen, README).
+    """
+    import shutil
+
+    from sb3_lifelong import MPO, LifelongReplayBuffer
+    from sb3_lifelong.buffers import merge_buffers
+    from sb3_lifelong.experiments.protocol import PRESETS, _callbacks, _describe, make_env, switch_points
+
+    change = json.loads(args.change)
+    if not isinstance(change, dict) or len(change) != 1:
+        raise ValueError(f"--change must be one parameter as JSON, e.g. '{{\"hip_deformation\": 1.0}}', got {args.change}")
+    base = PRESETS[ROBOTS[args.robot][0]]
+    if len(base.stages) != 2 or base.stages[0] or len(base.stages[1]) != 1:
+        raise ValueError(f"{ROBOTS[args.robot][0]} is not a two-stage collection from the nominal robot with one change")
+    preset = dataclasses.replace(base, stages=({}, change), stage_steps=(base.stage_steps[0], args.steps))
+    source = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}") / f"seed_{args.seed}"
+    run_dir = pathlib.Path(args.output) / f"seed_{args.seed}"
+    if run_dir.exists():
+        raise FileExistsError(f"{run_dir} exists: a branch is written once (remove it to run it again)")
+    directory = run_dir / "collect"
+    directory.mkdir(parents=True)
+    shutil.copy(source / "collect" / "stage1.zip", directory / "stage1.zip")
+    switch = preset.stage_steps[0]
+    with open(source / "collect" / "eval.csv") as handle:  # the Stage-1 Env-A curve (the same Env-A)
+        rows = list(csv.reader(handle))
+    kept = [rows[0]] + [r for r in rows[1:] if int(r[0]) <= switch and r[1] == preset.env_names[0]]
+    with open(directory / "eval.csv", "w", newline="") as handle:
+        csv.writer(handle).writerows(kept)
+    (run_dir / "branch.json").write_text(json.dumps(dict(source=str(source), change=change, steps=args.steps), indent=1))
+    env = make_env(preset, switch_at=switch_points(preset))
+    model = MPO.load(directory / "stage1.zip", env=env, device="cpu", custom_objects={"replay_buffer_kwargs": {}})
+    if model.observation_space != env.observation_space:
+        raise ValueError(f"the Stage-1 agent observes {model.observation_space}, the new pair {env.observation_space}")
+    model.set_random_seed(args.seed)
+    with LifelongReplayBuffer.open(source / "buffer_stage1", read_only=True) as stage1:
+        merge_buffers([stage1], path=run_dir / "buffer_stage1").close()
+        buffer = merge_buffers([stage1], path=run_dir / "buffer")
+    buffer.set_source(1, name=preset.env_names[1], metadata=dict(setting=_describe(preset.stages[1])))
+    model.replay_buffer = buffer
+    start = time.perf_counter()
+    model.learn(args.steps, callback=_callbacks(preset, directory, preset.eval_freq, args.seed), reset_num_timesteps=False)
+    model.save(directory / "final.zip")
+    buffer.close()
+    (directory / "done.json").write_text(json.dumps(dict(seconds=time.perf_counter() - start)))
+    print(f"branch {change} finished -> {run_dir}")
+
+
 # ------------------------------------------------------------------------------------------------- the report
 def t_interval(values: list[float]) -> tuple[float, float, float, float]:
     """:return: mean, std (ddof 1), and the 95 % t-interval of the mean (NaN with fewer than two values)"""
@@ -559,13 +616,21 @@ def main() -> None:
     screen_parser.add_argument("--runs", default="runs", help="where the collections are")
     screen_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
     screen_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
+    branch_parser = sub.add_parser("branch", help="a collection with another change, from a finished Stage-1")
+    branch_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah")
+    branch_parser.add_argument("--seed", type=int, required=True)
+    branch_parser.add_argument("--change", required=True, help="Env-B, one parameter as JSON")
+    branch_parser.add_argument("--steps", type=int, default=100_000, help="Env-B steps (the collection's: 100k)")
+    branch_parser.add_argument("--runs", default="runs", help="where the collections are")
+    branch_parser.add_argument("--study", default=None, help="the Stage-1 collection (default: <runs>/imbalance_dose_<robot>)")
+    branch_parser.add_argument("--output", required=True, help="the new collection's directory")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
     import torch as th
 
     th.set_num_threads(1)
-    {"run": run, "screen": screen, "report": report}[args.command](args)
+    {"run": run, "screen": screen, "branch": branch, "report": report}[args.command](args)
 
 
 if __name__ == "__main__":
