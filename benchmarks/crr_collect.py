@@ -21,7 +21,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
-from sb3_lifelong.common.datasets import replay_buffer_to_d4rl
+from sb3_lifelong.core.datasets import replay_buffer_to_d4rl
 
 
 class TimeLimit(BaseCallback):

@@ -90,8 +90,8 @@ def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Any, se
     from stable_baselines3.common.monitor import Monitor
 
     from sb3_lifelong import MPO
-    from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET
-    from sb3_lifelong.common.overestimation import MonteCarloProbe
+    from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
+    from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
     from sb3_lifelong.experiments.protocol import make_eval_envs
 
     agent = MPO.load(run_dir / "collect" / f"{name}.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
@@ -111,7 +111,7 @@ def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Any, se
 def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int) -> dict[str, Any]:
     """The collector's side of the preconditions and claims C1, C5; the data's Monte-Carlo value per source."""
     from sb3_lifelong import LifelongReplayBuffer
-    from sb3_lifelong.common.overestimation import discounted_returns
+    from sb3_lifelong.evaluation.overestimation import discounted_returns
     from sb3_lifelong.experiments.protocol import PRESETS
 
     preset = PRESETS[ROBOTS[robot][0]]

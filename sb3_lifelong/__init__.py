@@ -1,7 +1,5 @@
 import os
 
-# the Offline Distillation Pipeline, above the algorithms (it registers their ``distill`` method's implementation)
-from sb3_lifelong import distill as _distill_pipeline
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer
 from sb3_lifelong.crr import CRR

@@ -6,7 +6,7 @@ import pytest
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_lifelong import MPO
-from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
+from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50, num_samples=8)
 
@@ -47,7 +47,7 @@ def test_seeded_evaluations_are_reproducible():
 
 def test_experiment_callbacks_seed_their_evaluations(tmp_path):
     """The sequential experiments' callbacks seed the evaluations of a run with seed ``s`` from ``EVAL_SEED_OFFSET + s``."""
-    from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET
+    from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
     from sb3_lifelong.experiments.sequential import eval_callbacks
 
     config = dict(eval_freq=100, eval_episodes=1)
@@ -82,7 +82,7 @@ def test_bad_arguments():
 
 def test_source_q_callback_groups_by_source(tmp_path):
     from sb3_lifelong import LifelongReplayBuffer
-    from sb3_lifelong.common.callbacks import SourceQCallback
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback
 
     model = MPO("MlpPolicy", "Pendulum-v1", replay_buffer_class=LifelongReplayBuffer, seed=0, **SMALL)
     model.replay_buffer.set_source(0, name="env_a")
@@ -102,7 +102,7 @@ def test_source_q_callback_groups_by_source(tmp_path):
 
 
 def test_source_q_callback_needs_source_tags():
-    from sb3_lifelong.common.callbacks import SourceQCallback
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback
 
     model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
     with pytest.raises(TypeError, match="source tags"):

@@ -8,8 +8,8 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 
 from sb3_lifelong import CRR, LifelongReplayBuffer
-from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
 from sb3_lifelong.crr.policies import PerSourceActor
+from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
 
 OBS = spaces.Box(-1.0, 1.0, (3,), np.float32)
 ACT = spaces.Box(-1.0, 1.0, (2,), np.float32)

@@ -6,8 +6,8 @@ import pytest
 from stable_baselines3 import SAC
 
 from sb3_lifelong import BC, CRR, MPO, LifelongReplayBuffer
-from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
-from sb3_lifelong.common.distill import distill
+from sb3_lifelong.distill import distill
+from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
 
 
 def net() -> dict:
@@ -24,7 +24,7 @@ def test_distill_from_mpo_logs_into_the_same_run(tmp_path):
     model.tensorboard_log = str(tmp_path)
     model.learn(250, tb_log_name="life")
     envs = {"env_a": gym.make("Pendulum-v1"), "env_b": gym.make("Pendulum-v1", g=5.0)}
-    student = model.distill(gradient_steps=120, eval_env=envs, eval_freq=60, n_eval_episodes=1, **student_kwargs())
+    student = model.distill(CRR, gradient_steps=120, eval_env=envs, eval_freq=60, n_eval_episodes=1, **student_kwargs())
     assert isinstance(student, CRR)
     assert student.num_timesteps == 120
     assert student.replay_buffer is model.replay_buffer  # no copy of the lifetime buffer
@@ -68,4 +68,11 @@ def test_distill_from_a_buffer_directory(tmp_path):
 def test_distill_needs_data():
     model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net())
     with pytest.raises(ValueError, match="no data"):
-        model.distill(gradient_steps=10)
+        model.distill(CRR, gradient_steps=10)
+
+
+def test_model_distill_names_its_student():
+    model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net(), learning_starts=10, batch_size=8, num_samples=4)
+    model.learn(20)
+    with pytest.raises(TypeError, match="offline algorithm class"):
+        model.distill("CRR", gradient_steps=1)

@@ -10,7 +10,7 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from sb3_lifelong import MPO
-from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
+from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50, num_samples=8)
 

@@ -9,7 +9,8 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 
 from sb3_lifelong import BC, CRR, LifelongReplayBuffer
-from sb3_lifelong.common.datasets import (
+from sb3_lifelong.buffers.loading import as_lifelong_data, resolve_data
+from sb3_lifelong.core.datasets import (
     OfflineDataError,
     OfflineSamples,
     load_d4rl,
@@ -17,7 +18,7 @@ from sb3_lifelong.common.datasets import (
     replay_buffer_to_d4rl,
     validate_d4rl,
 )
-from sb3_lifelong.common.offline import as_lifelong_data, make_eval_envs, resolve_data
+from sb3_lifelong.evaluation.callbacks import make_eval_envs
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), batch_size=16, seed=0)
 

@@ -7,8 +7,8 @@ from gymnasium import spaces
 
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
 from sb3_lifelong.buffers.storage import MAX_SOURCE_ID
-from sb3_lifelong.common import datasets
-from sb3_lifelong.common.datasets import OfflineDataError, normalize_actions
+from sb3_lifelong.core import datasets
+from sb3_lifelong.core.datasets import OfflineDataError, normalize_actions
 from sb3_lifelong.distill import distill
 
 SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), batch_size=16, seed=0)
@@ -162,7 +162,7 @@ def test_distill_follows_a_logger_given_with_set_logger(tmp_path, capsys):
     model.set_logger(configure(str(tmp_path / "run"), ["stdout", "csv"]))  # no tensorboard_log
     model.learn(100)
     envs = {"Env-A": gym.make("Pendulum-v1")}
-    student = model.distill(gradient_steps=40, eval_env=envs, eval_freq=20, n_eval_episodes=1, log_interval=20)
+    student = model.distill(CRR, gradient_steps=40, eval_env=envs, eval_freq=20, n_eval_episodes=1, log_interval=20)
     assert student.logger.get_dir() == str(tmp_path / "run" / "distill")
     progress = (tmp_path / "run" / "distill" / "progress.csv").read_text()
     assert "eval/Env-A/mean_reward" in progress and "train/critic_loss" in progress

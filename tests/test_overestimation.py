@@ -7,7 +7,7 @@ import pytest
 import torch as th
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.common.overestimation import MonteCarloProbe, discounted_returns, monte_carlo_horizon
+from sb3_lifelong.evaluation.overestimation import MonteCarloProbe, discounted_returns, monte_carlo_horizon
 
 
 def test_horizon():
@@ -80,7 +80,7 @@ def test_probe_samples_at_most_per_source_and_keeps_its_sample():
 
 def test_source_q_callback_logs_overestimation(tmp_path):
     from sb3_lifelong import CRR
-    from sb3_lifelong.common.callbacks import SourceQCallback
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback
 
     buffer = two_source_buffer()
     model = CRR.from_offline_data(buffer, batch_size=4, policy_kwargs=dict(net_arch=[8]), seed=0, gamma=0.5)
@@ -98,7 +98,7 @@ def test_source_q_callback_logs_overestimation(tmp_path):
 
 def test_source_q_callback_appends_to_an_older_file_with_its_columns(tmp_path):
     from sb3_lifelong import CRR
-    from sb3_lifelong.common.callbacks import SourceQCallback
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback
 
     path = tmp_path / "q.csv"
     path.write_text("timesteps,source,name,q_mean,n\n0,0,a,1.0,3\n")

@@ -11,7 +11,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
 from sb3_lifelong import MPO
-from sb3_lifelong.common.contract import SYNC_TIMESTEP_METHOD
+from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.envs import (
     Constant,
     Cyclic,

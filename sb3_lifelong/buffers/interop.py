@@ -15,7 +15,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sb3_lifelong.buffers.storage import FLAG_DONE, FLAG_TIMEOUT, MAX_SOURCE_ID
-from sb3_lifelong.common.datasets import import_minari, minari_columns, normalize_actions, read_npz, validate_d4rl
+from sb3_lifelong.core.datasets import import_minari, minari_columns, normalize_actions, read_npz, validate_d4rl
 
 if TYPE_CHECKING:
     from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
@@ -53,7 +53,7 @@ def raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset:
 def _to_env_units(actions: np.ndarray, action_space: spaces.Space) -> np.ndarray:
     """
     Exports: map the normalised ``[-1, 1]`` actions SB3 stores to the action space's bounds (the inverse of
-    :func:`~sb3_lifelong.common.datasets.normalize_actions`, which every import uses). Unbounded spaces, and spaces
+    :func:`~sb3_lifelong.core.datasets.normalize_actions`, which every import uses). Unbounded spaces, and spaces
     that already are ``[-1, 1]``, leave the actions untouched (bit for bit).
     """
     if not isinstance(action_space, spaces.Box) or not action_space.is_bounded():

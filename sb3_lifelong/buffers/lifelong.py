@@ -36,8 +36,8 @@ from sb3_lifelong.buffers.storage import (
     obs_keys_of,
     owned_buffer_files,
 )
-from sb3_lifelong.common.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
-from sb3_lifelong.common.datasets import OfflineSamples
+from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
+from sb3_lifelong.core.datasets import OfflineSamples
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongReplayBuffer"]
 

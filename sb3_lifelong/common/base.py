@@ -13,7 +13,7 @@ import pickletools
 import random
 import warnings
 import zipfile
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Any, Optional, TypeVar, Union
 
 import gymnasium as gym
@@ -27,27 +27,12 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_lifelong.common.contract import SYNC_TIMESTEP_METHOD
-from sb3_lifelong.common.safe_load import safe_custom_objects
+from sb3_lifelong.common.distillation import distill
 from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype
+from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
+from sb3_lifelong.core.safe_load import safe_custom_objects
 
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
-
-#: The Offline Distillation Pipeline behind :meth:`LifelongOffPolicyAlgorithm.distill`. It lives above the
-#: algorithms (:mod:`sb3_lifelong.distill`, which imports them and registers itself here when imported; the package's
-#: ``__init__`` imports it), so this module, below them, holds a reference instead of importing it.
-_distill_pipeline: Optional[Callable[..., Any]] = None
-
-
-def set_distill_pipeline(pipeline: Callable[..., Any]) -> None:
-    """
-    Register the function that :meth:`LifelongOffPolicyAlgorithm.distill` delegates to (done by
-    :mod:`sb3_lifelong.distill`).
-
-    :param pipeline: called as ``pipeline(model, student_class=..., gradient_steps=..., **kwargs)``
-    """
-    global _distill_pipeline
-    _distill_pipeline = pipeline
 
 
 def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, Any]:
@@ -260,7 +245,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     random numbers, and the first episode start, of the start of training). An env that was in the middle of an
     episode starts a new episode from its generator's saved state. The state of the environment itself (e.g.
     a dynamics schedule's step counter) is not saved; a dynamics schedule follows the model's ``num_timesteps``,
-    which ``learn`` tells it (:mod:`sb3_lifelong.common.contract`).
+    which ``learn`` tells it (:mod:`sb3_lifelong.core.contract`).
     """
 
     def _setup_model(self) -> None:
@@ -404,20 +389,19 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng"]
 
-    def distill(self, student_class: Optional[type] = None, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
+    def distill(self, student_class: type, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
         """
-        Distil this model's whole replay buffer into a fresh policy, offline (the Offline Distillation Pipeline).
-        See :func:`sb3_lifelong.distill.distill` for the arguments.
+        Distil this model's whole replay buffer into a fresh policy, offline (the Offline Distillation Pipeline):
+        ``model.distill(CRR, advantage_transform="exp", beta=1.0)``. See
+        :func:`sb3_lifelong.common.distillation.distill` for the arguments.
 
-        :param student_class: the offline algorithm (default CRR; BC for behaviour cloning)
+        :param student_class: the offline algorithm (CRR; BC for behaviour cloning)
         :param gradient_steps: number of offline gradient updates
         :param kwargs: ``eval_env``, ``eval_freq``, ``progress_bar``, ... and the student's hyperparameters
             (``advantage_transform="exp"``, ``beta=1.0``, ...)
         :return: the trained student
         """
-        if _distill_pipeline is None:
-            raise RuntimeError("the distillation pipeline is not loaded: import sb3_lifelong.distill")
-        return _distill_pipeline(self, student_class=student_class, gradient_steps=gradient_steps, **kwargs)
+        return distill(self, student_class, gradient_steps, **kwargs)
 
     def _pending_rng_state(self) -> Optional[dict[str, Any]]:
         """The random state restored by the last ``load``, while no training happened since (else None)."""
@@ -446,7 +430,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     def _sync_env_timestep(self, timestep: int) -> None:
         """
         Tell the envs that follow the model's timestep (e.g. a ``DynamicsSchedule``) the timestep of the next step
-        and the number of envs, before SB3's ``_setup_learn`` resets them (see :mod:`sb3_lifelong.common.contract`).
+        and the number of envs, before SB3's ``_setup_learn`` resets them (see :mod:`sb3_lifelong.core.contract`).
 
         :param timestep: ``num_timesteps`` at the start of this ``learn``
         """
@@ -551,7 +535,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         :param safe: Unpickle nothing but what a model of this package saves: arrays, spaces, random generators,
             schedules, and references to policy, buffer, module and optimizer classes; anything else (a function
             pickled by value, any other global) raises ``pickle.UnpicklingError`` naming the entry and the global,
-            before it runs (see :mod:`sb3_lifelong.common.safe_load`)
+            before it runs (see :mod:`sb3_lifelong.core.safe_load`)
         :param path: The saved model (``.zip`` added if missing) or a file object
         :param env: As for SB3
         :param device: As for SB3

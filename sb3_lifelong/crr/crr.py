@@ -14,8 +14,9 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
+from sb3_lifelong.buffers.loading import as_lifelong_data
 from sb3_lifelong.common.distributional import CategoricalCritic, CriticLoss, sum_of
-from sb3_lifelong.common.offline import LifelongOfflineAlgorithm, as_lifelong_data
+from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
 from sb3_lifelong.common.utils import SCORING_DTYPES, LowPrecisionCopy, sample_gaussian, score_actions
 from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor

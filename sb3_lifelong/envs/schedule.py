@@ -9,7 +9,7 @@ Two kinds of change, which can be combined:
 
 Global timesteps are SB3's ``model.num_timesteps``. This package's algorithms tell the wrapper the model's timestep
 (and the VecEnv's ``n_envs``) at the start of every ``learn``, before the env is reset, through the method named
-:data:`~sb3_lifelong.common.contract.SYNC_TIMESTEP_METHOD`; from there the wrapper counts ``n_envs`` per step, as
+:data:`~sb3_lifelong.core.contract.SYNC_TIMESTEP_METHOD`; from there the wrapper counts ``n_envs`` per step, as
 SB3 does, however many ``model.learn`` calls, resets or episodes there are. Outside such a ``learn`` (the env used
 on its own, or by another library's algorithm) it counts ``timestep = start_timestep + n_envs * (steps taken by
 this wrapper)`` from its constructor's arguments (or :meth:`DynamicsSchedule.set_timestep`).
@@ -17,7 +17,7 @@ The transition collected when ``model.num_timesteps == t`` uses the setting due 
 from ``t >= switch_at[i]``. By default a due change is applied at the next episode start; with
 ``mid_episode=True`` it is applied before the very next step.
 
-The ``info`` keys written (``"stage"``, ``"dynamics_params"``) are defined in :mod:`sb3_lifelong.common.contract`,
+The ``info`` keys written (``"stage"``, ``"dynamics_params"``) are defined in :mod:`sb3_lifelong.core.contract`,
 which the replay buffer reads them by.
 """
 
@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sb3_lifelong.common.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
+from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
 from sb3_lifelong.envs.perturbations import PERTURBATIONS, PhysicsEditor, find_mujoco, stable_seed
 
 StageLike = Union[str, Mapping[str, float]]
@@ -348,7 +348,7 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
         parameter
     :param n_envs: number of sub-envs of the VecEnv stepping this env, so that ``timestep`` equals SB3's
         ``num_timesteps``; 1 for a single env. Only needed outside this package's algorithms: their ``learn``
-        sets it from the VecEnv (see :mod:`sb3_lifelong.common.contract`)
+        sets it from the VecEnv (see :mod:`sb3_lifelong.core.contract`)
     :param mid_episode: apply due changes before the next step instead of at the next episode start
     :param append_params: append the observed parameters, normalised as ``(value - nominal) / obs_scale``, to the
         observation (and widen the observation space)
@@ -484,7 +484,7 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def sb3_lifelong_sync_timestep(self, timestep: int, n_envs: int) -> None:
         """
         Follow a model's timestep: the next step counts as ``timestep``, and every step as ``n_envs`` (called by
-        this package's algorithms at the start of ``learn``; see :mod:`sb3_lifelong.common.contract`).
+        this package's algorithms at the start of ``learn``; see :mod:`sb3_lifelong.core.contract`).
 
         :param timestep: the model's ``num_timesteps``
         :param n_envs: number of sub-envs of the VecEnv stepping this env
@@ -628,7 +628,7 @@ def stage_envs(
     """
     The environments a lifelong run lives in, for evaluation: one copy of the robot per stage, each pinned to its
     stage (``set_stage(i, immediate=True)``) and named, ready for
-    :class:`~sb3_lifelong.common.callbacks.MultiEnvEvalCallback` or ``distill(..., eval_env=...)``.
+    :class:`~sb3_lifelong.evaluation.callbacks.MultiEnvEvalCallback` or ``distill(..., eval_env=...)``.
 
     :param env_id: the robot's gym id (the training env's)
     :param stages: the training env's stages (settings or preset names)

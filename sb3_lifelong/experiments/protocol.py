@@ -51,10 +51,10 @@ except ImportError:  # pragma: no cover
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.buffers.storage import write_json_atomic
-from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.envs import DynamicsSchedule
+from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback
 from sb3_lifelong.experiments.report import REPEAT_MARK, split_repeat, stage_ends
 from sb3_lifelong.mpo import MPO
 

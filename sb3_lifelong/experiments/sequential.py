@@ -39,8 +39,8 @@ import torch as th
 
 import sb3_lifelong.envs  # noqa: F401  (registers the OP3 task)
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
-from sb3_lifelong.common.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 from sb3_lifelong.envs import DynamicsSchedule
+from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 
 Stage = Union[str, Mapping[str, float]]
 

@@ -23,9 +23,9 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 import sb3_lifelong
 from sb3_lifelong.buffers import LifelongReplayBuffer
-from sb3_lifelong.common.callbacks import MultiEnvEvalCallback
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.envs import stage_envs
+from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
 from sb3_lifelong.mpo import MPO
 from sb3_lifelong.zoo.optimize import CONVERTERS, SAMPLERS
 
@@ -85,7 +85,7 @@ class StageEvalCallback(MultiEnvEvalCallback):
     :param append_params: the wrapper's ``append_params``
     :param observed_params: the wrapper's ``observed_params``
     :param env_kwargs: keyword arguments of ``gym.make``
-    :param kwargs: :class:`~sb3_lifelong.common.callbacks.MultiEnvEvalCallback`'s (``eval_freq``,
+    :param kwargs: :class:`~sb3_lifelong.evaluation.callbacks.MultiEnvEvalCallback`'s (``eval_freq``,
         ``n_eval_episodes``, ``log_path``, ``best_model_save_path``, ``seed``, ``verbose``, ...)
     """
 

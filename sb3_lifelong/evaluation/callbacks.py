@@ -16,7 +16,7 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize, unwrap_vec_normalize
 
-from sb3_lifelong.common.overestimation import MonteCarloProbe
+from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
 
 CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
 #: the columns of :class:`SourceQCallback`'s CSV: ``q_mean`` over ``n`` uniform samples; with ``monte_carlo``, on the

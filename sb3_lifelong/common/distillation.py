@@ -1,0 +1,161 @@
+"""
+The Offline Distillation Pipeline, given the student's class: train a fresh student on everything a robot has
+collected, offline.
+
+Any off-policy collector (MPO, SAC, TD3, CRR) explores online and keeps every transition; the whole lifetime buffer,
+with no task boundaries, is then distilled into one policy. :meth:`LifelongOffPolicyAlgorithm.distill
+<sb3_lifelong.common.base.LifelongOffPolicyAlgorithm.distill>` calls it with the model as the source;
+:func:`sb3_lifelong.distill.distill` (above the algorithms) is the same with CRR as the default student. It needs no
+algorithm of the package: the student class is given.
+"""
+
+import os
+from typing import Any, Optional, Union
+
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.logger import (
+    CSVOutputFormat,
+    HumanOutputFormat,
+    JSONOutputFormat,
+    Logger,
+    TensorBoardOutputFormat,
+    make_output_format,
+)
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.type_aliases import MaybeCallback
+
+__all__ = ["DistillSource", "distill"]
+
+DistillSource = Union[OffPolicyAlgorithm, ReplayBuffer, str, os.PathLike, dict]
+
+
+def _format_names(logger: Logger) -> set[str]:
+    """:return: the names (as ``configure`` takes them) of the output formats of ``logger``"""
+    names = set()
+    for output in logger.output_formats:
+        if isinstance(output, HumanOutputFormat):
+            names.add("log" if getattr(output, "own_file", False) else "stdout")
+        elif isinstance(output, CSVOutputFormat):
+            names.add("csv")
+        elif isinstance(output, JSONOutputFormat):
+            names.add("json")
+        elif isinstance(output, TensorBoardOutputFormat):
+            names.add("tensorboard")
+    return names
+
+
+def _logger_beside(teacher: OffPolicyAlgorithm, tb_log_name: str, verbose: int) -> Optional[Logger]:
+    """
+    The student's logger in ``<the teacher's log folder>/<tb_log_name>``, with the teacher's output formats (CSV
+    too, and stdout when ``verbose >= 1``), when the teacher logs somewhere: to ``tensorboard_log``, or to a logger
+    the user gave it with ``set_logger``. None when the teacher has no logger of its own to follow.
+    """
+    if teacher._logger is None or (teacher.tensorboard_log is None and not teacher._custom_logger):
+        return None
+    formats = _format_names(teacher.logger)
+    if teacher.tensorboard_log is not None:
+        formats |= {"csv", "tensorboard"}
+    if verbose >= 1:
+        formats.add("stdout")
+    teacher_dir = teacher.logger.get_dir()
+    if teacher_dir is None:  # a logger with no folder (stdout only): the student prints, as the teacher does
+        return Logger(None, [make_output_format("stdout", "")] if "stdout" in formats else [])
+    folder = os.path.join(teacher_dir, tb_log_name)
+    os.makedirs(folder, exist_ok=True)
+    return Logger(folder, [make_output_format(name, folder) for name in sorted(formats)])
+
+
+def _describe(buffer: Any) -> str:
+    """:return: the size of ``buffer``, per source when it knows its sources"""
+    counts = buffer.source_counts() if hasattr(buffer, "source_counts") else None
+    if not counts:
+        return f"{buffer.size():,} transitions"
+    sources = getattr(buffer, "sources", {})
+    per_source = ", ".join(
+        f"{sources.get(source, {}).get('name', f'source {source}')}: {count:,}" for source, count in sorted(counts.items())
+    )
+    return f"{sum(counts.values()):,} transitions ({per_source})"
+
+
+def distill(
+    source: DistillSource,
+    student_class: type,
+    gradient_steps: int = 100_000,
+    policy: Any = "MlpPolicy",
+    eval_env: Optional[Any] = None,
+    eval_freq: int = 10_000,
+    n_eval_episodes: int = 5,
+    callback: MaybeCallback = None,
+    log_interval: int = 1_000,
+    tb_log_name: str = "distill",
+    progress_bar: bool = False,
+    eval_sources: Optional[dict[str, int]] = None,
+    **student_kwargs: Any,
+) -> Any:
+    """
+    Train a new policy offline on a collector's whole replay buffer (or on a buffer or dataset alone).
+
+    :param source: an SB3 off-policy model (its replay buffer is used, e.g. MPO / SAC / TD3 with a
+        ``LifelongReplayBuffer``), a replay buffer, the directory of a ``LifelongReplayBuffer`` on disk (opened
+        read-only, so collection may go on in another process), or a d4rl-style dict / ``.npz`` path
+    :param student_class: the offline algorithm (:class:`sb3_lifelong.CRR`; :class:`sb3_lifelong.BC` for
+        behaviour cloning), any class with ``from_offline_data`` and ``learn_offline``
+    :param gradient_steps: number of offline gradient updates
+    :param policy: the student's policy
+    :param eval_env: environment(s) to evaluate the student on every ``eval_freq`` updates (a dict name -> env
+        gives the names of the ``eval/<name>/mean_reward`` curves: Env-A, Env-B, ...)
+    :param eval_freq: evaluation period, in updates
+    :param n_eval_episodes: episodes per environment and evaluation
+    :param callback: extra callback(s), called after every update
+    :param log_interval: dump the training logs every this many updates
+    :param tb_log_name: the name of the student's log folder; when ``source`` is a model that logs (to its
+        ``tensorboard_log``, or to a logger given with ``set_logger``), the student logs into ``<the model's log
+        folder>/<tb_log_name>`` with the model's output formats (and CSV), beside the collection curves, unless
+        ``tensorboard_log`` is given here
+    :param progress_bar: show a progress bar
+    :param eval_sources: with ``actor_per_source=True`` (a CRR diagnostic): the source whose actor is evaluated in
+        each environment of ``eval_env``, by name
+    :param student_kwargs: the student's hyperparameters (``advantage_transform="exp"``, ``beta=1.0``,
+        ``batch_size``, ``seed``, ``tensorboard_log``, ``verbose``, ...)
+    :return: the trained student, ready for ``predict`` and ``save``
+    """
+    if not isinstance(student_class, type) or not hasattr(student_class, "from_offline_data"):
+        raise TypeError(
+            f"the student must be an offline algorithm class (CRR, BC, ...), got {student_class!r}: model.distill(CRR, ...)"
+        )
+    teacher: Optional[OffPolicyAlgorithm] = source if isinstance(source, OffPolicyAlgorithm) else None
+    own_tensorboard_log = "tensorboard_log" in student_kwargs
+    if teacher is not None:
+        if teacher.replay_buffer is None or teacher.replay_buffer.size() == 0:
+            raise ValueError(f"{type(teacher).__name__} has no data in its replay buffer to distil")
+        data: Any = teacher.replay_buffer
+        student_kwargs.setdefault("tensorboard_log", teacher.tensorboard_log)
+        student_kwargs.setdefault("verbose", teacher.verbose)
+        student_kwargs.setdefault("observation_space", teacher.observation_space)
+        student_kwargs.setdefault("action_space", teacher.action_space)
+    else:
+        data = source  # a buffer directory is opened read-only by from_offline_data
+
+    student = student_class.from_offline_data(data, policy=policy, **student_kwargs)  # type: ignore[attr-defined]
+
+    logger = _logger_beside(teacher, tb_log_name, student.verbose) if teacher is not None and not own_tensorboard_log else None
+    if logger is not None:
+        student.set_logger(logger)
+    if student.verbose >= 1:
+        where = logger.get_dir() if logger is not None else student.tensorboard_log
+        print(
+            f"Distilling {_describe(student.replay_buffer)} into {type(student).__name__}: {gradient_steps:,} gradient "
+            f"updates" + (f", logging to {where}" if where else "")
+        )
+    student.learn_offline(
+        gradient_steps,
+        callback=callback,
+        eval_env=eval_env,
+        eval_freq=eval_freq,
+        n_eval_episodes=n_eval_episodes,
+        log_interval=log_interval,
+        tb_log_name=tb_log_name,
+        progress_bar=progress_bar,
+        eval_sources=eval_sources,
+    )
+    return student

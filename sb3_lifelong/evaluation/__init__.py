@@ -1,0 +1,24 @@
+"""
+Measuring a model while it trains, in any algorithm: evaluation in several named environments, the critic's values
+per data source against the Monte-Carlo returns of the stored data, and the ``train/`` values as CSV.
+"""
+
+from sb3_lifelong.evaluation.callbacks import (
+    EVAL_SEED_OFFSET,
+    MultiEnvEvalCallback,
+    SourceQCallback,
+    TrainLogCallback,
+    make_eval_envs,
+)
+from sb3_lifelong.evaluation.overestimation import MonteCarloProbe, discounted_returns, monte_carlo_horizon
+
+__all__ = [
+    "EVAL_SEED_OFFSET",
+    "MonteCarloProbe",
+    "MultiEnvEvalCallback",
+    "SourceQCallback",
+    "TrainLogCallback",
+    "discounted_returns",
+    "make_eval_envs",
+    "monte_carlo_horizon",
+]
