@@ -19,7 +19,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 import gymnasium as gym
 import numpy as np
 
-from sb3_lifelong.envs import OP3_WALK_ID, PAPER_PRESETS, DynamicsSchedule, LinearRamp
+from sb3_lifelong.envs import OP3_WALK_ID, PAPER_STAGES, DynamicsSchedule, LinearRamp
 
 
 def steps_per_second(make: Callable[[], gym.Env], steps: int, repeats: int) -> float:
@@ -186,7 +186,7 @@ def gait_table() -> List[str]:
         "| --- | --- | --- | --- | --- |",
     ]
     base = base_x = None
-    for preset in ["default", *PAPER_PRESETS]:
+    for preset in ["default", *PAPER_STAGES]:
         env = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=[preset])
         env.reset(seed=0)
         total = 0.0

@@ -34,7 +34,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_lifelong.envs  # noqa: F401  (registers the env ids)
-from sb3_lifelong.envs import OP3_WALK_ID, PAPER_PRESETS, PRESETS, DynamicsSchedule
+from sb3_lifelong.envs import NAMED_STAGES, OP3_WALK_ID, PAPER_STAGES, DynamicsSchedule
 
 
 class WallClock(BaseCallback):
@@ -122,8 +122,8 @@ def report(args: argparse.Namespace) -> List[str]:
         "| --- | --- | --- | --- | --- | --- |",
     ]
     base_r = base_d = None
-    for name in ["default", *PAPER_PRESETS]:
-        r, n, dist = evaluate(model, stats, PRESETS[name], args.eval_episodes)
+    for name in ["default", *PAPER_STAGES]:
+        r, n, dist = evaluate(model, stats, NAMED_STAGES[name], args.eval_episodes)
         mr, md = float(np.mean(r)), float(np.mean(dist))
         if base_r is None:
             base_r, base_d = mr, md

@@ -13,7 +13,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-from sb3_lifelong.envs import DMC_WALKER_ID, OP3_WALK_ID, PAPER_PRESETS, PERTURBATIONS, DynamicsSchedule
+from sb3_lifelong.envs import DMC_WALKER_ID, OP3_WALK_ID, PAPER_STAGES, PERTURBATIONS, DynamicsSchedule
 
 # the OP3 model is read from the local mujoco-menagerie copy beside the checkout when there is one
 _SHARED_MENAGERIE = Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
@@ -177,19 +177,19 @@ def test_op3_task_basics() -> None:
     assert env.step(np.zeros(20))[2]
 
 
-def test_op3_paper_presets_hurt_a_fixed_gait() -> None:
+def test_op3_paper_stages_hurt_a_fixed_gait() -> None:
     op3_or_skip()
     from sb3_lifelong.envs.op3 import OP3OpenLoopGait
 
     gait = OP3OpenLoopGait()
-    env = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=["default", *PAPER_PRESETS])
+    env = DynamicsSchedule(gym.make(OP3_WALK_ID), stages=["default", *PAPER_STAGES])
     returns, distances = {}, {}
-    for i, name in enumerate(["default", *PAPER_PRESETS]):
+    for i, name in enumerate(["default", *PAPER_STAGES]):
         env.set_stage(i, immediate=True)
         returns[name] = rollout_return(env, lambda step, n: gait(step), steps=300)
         distances[name] = float(env.unwrapped.data.qpos[0])
     assert distances["default"] > 0.4  # the gait walks the nominal robot forward
-    for name in PAPER_PRESETS:
+    for name in PAPER_STAGES:
         assert returns[name] < returns["default"], returns
         assert distances[name] < 0.8 * distances["default"], distances
 

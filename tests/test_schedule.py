@@ -274,7 +274,7 @@ def test_mid_episode_change_keeps_the_robot_state() -> None:
         (dict(stages=[{}, {}, {}], switch_at=[200, 100]), r"strictly increasing.*out of order"),
         (dict(stages=[{}, {}, {}], switch_at=[100]), r"one global timestep per stage"),
         (dict(stages=[{}, {}], switch_at=[0]), r"strictly increasing positive"),
-        (dict(stages=["hip_9"]), r"unknown preset 'hip_9'"),
+        (dict(stages=["hip_9"]), r"unknown named stage 'hip_9'"),
         (dict(schedules={"mass": RandomWalk(1.0, 0.1)}), r"unknown dynamics parameter 'mass'.*mass_scale"),
         (dict(schedules={"friction": RandomWalk(1.0, 0.1, low=-1.0)}), r"bounds \[-1.0, .*physical range"),
         (dict(schedules={"friction": Cyclic(1.0, 0.1, high=1.0)}), r"start must differ"),

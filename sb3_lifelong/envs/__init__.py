@@ -1,6 +1,6 @@
 """
-Robots whose dynamics change: the :class:`DynamicsSchedule` wrapper, its schedulers, named perturbations and
-the OP3 walking task.
+Robots whose dynamics change: the :class:`DynamicsSchedule` wrapper, its schedulers, the perturbations, named stages
+and the OP3 walking task.
 
 Importing this module registers ``sb3_lifelong/OP3Walk-v0`` and ``sb3_lifelong/DMCWalker-v0`` with Gymnasium
 (by entry-point string: MuJoCo, the menagerie and dm_control load only when an env is made).
@@ -16,7 +16,6 @@ from sb3_lifelong.envs.perturbations import (
     RobotDescription,
     find_mujoco,
 )
-from sb3_lifelong.envs.presets import PAPER_PRESETS, PRESETS
 from sb3_lifelong.envs.schedule import (
     Constant,
     Cyclic,
@@ -29,6 +28,7 @@ from sb3_lifelong.envs.schedule import (
     UniformPerEpisode,
     stage_envs,
 )
+from sb3_lifelong.envs.stages import NAMED_STAGES, PAPER_STAGES
 
 OP3_WALK_ID = "sb3_lifelong/OP3Walk-v0"
 DMC_WALKER_ID = "sb3_lifelong/DMCWalker-v0"
@@ -47,10 +47,10 @@ register_envs()
 
 __all__ = [
     "DMC_WALKER_ID",
+    "NAMED_STAGES",
     "OP3_WALK_ID",
-    "PAPER_PRESETS",
+    "PAPER_STAGES",
     "PERTURBATIONS",
-    "PRESETS",
     "ROBOTS",
     "Constant",
     "Cyclic",

@@ -30,6 +30,7 @@ from gymnasium import spaces
 
 from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
 from sb3_lifelong.envs.perturbations import PERTURBATIONS, PhysicsEditor, find_mujoco, stable_seed
+from sb3_lifelong.envs.stages import NAMED_STAGES
 
 StageLike = Union[str, Mapping[str, float]]
 
@@ -341,7 +342,7 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
     :param env: a MuJoCo env (Gymnasium's Walker2d/Hopper/HalfCheetah/Humanoid v5, ``sb3_lifelong/OP3Walk-v0``,
         ``sb3_lifelong/DMCWalker-v0`` or any env with a robot description)
     :param stages: list of settings ``{parameter: value}`` (missing parameters keep their nominal value) or names
-        of presets (see :data:`sb3_lifelong.envs.PRESETS`); default: one nominal stage
+        of named stages (see :data:`sb3_lifelong.envs.NAMED_STAGES`); default: one nominal stage
     :param switch_at: global timesteps at which stages 1, 2, ... take effect (``len(stages) - 1`` strictly
         increasing positive integers); ``None`` keeps stage 0 until :meth:`set_stage` is called
     :param schedules: continuous schedules ``{parameter: Scheduler}``; they override the stages' values of the same
@@ -458,13 +459,11 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
     # ------------------------------------------------------------------ construction helpers
     def _resolve_stage(self, stage: StageLike, where: str) -> Dict[str, float]:
         if isinstance(stage, str):
-            from sb3_lifelong.envs.presets import PRESETS
-
-            if stage not in PRESETS:
-                raise ValueError(f"{where}: unknown preset {stage!r}; presets are {sorted(PRESETS)}")
-            stage = PRESETS[stage]
+            if stage not in NAMED_STAGES:
+                raise ValueError(f"{where}: unknown named stage {stage!r}; the named stages are {sorted(NAMED_STAGES)}")
+            stage = NAMED_STAGES[stage]
         if not isinstance(stage, Mapping):
-            raise TypeError(f"{where} must be a dict of parameter values or a preset name, got {stage!r}")
+            raise TypeError(f"{where} must be a dict of parameter values or a named stage, got {stage!r}")
         return self.editor.validate(stage, where)
 
     # ------------------------------------------------------------------ public state
@@ -551,7 +550,7 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """
         Pin a setting by hand. It becomes a stage (a new index, or the index of an equal existing stage).
 
-        :param params: parameter values (missing ones nominal); may be a preset name
+        :param params: parameter values (missing ones nominal); may be a named stage
         :param immediate: apply now, even mid-episode
         :param kwargs: more parameter values
         :return: the stage index of this setting
@@ -631,7 +630,7 @@ def stage_envs(
     :class:`~sb3_lifelong.evaluation.callbacks.MultiEnvEvalCallback` or ``distill(..., eval_env=...)``.
 
     :param env_id: the robot's gym id (the training env's)
-    :param stages: the training env's stages (settings or preset names)
+    :param stages: the training env's stages (settings or named stages)
     :param names: the name of each stage in the logs (default ``Env-A``, ``Env-B``, ...)
     :param env_kwargs: keyword arguments of ``gym.make``
     :param schedule_kwargs: the training env's other :class:`DynamicsSchedule` arguments that shape the observation
