@@ -61,7 +61,7 @@ def rows(start: int, count: int, rng: np.random.Generator) -> dict[str, np.ndarr
 def fill_bulk(buffer: LifelongReplayBuffer, total: int, block: int = 100_000) -> None:
     rng = np.random.default_rng(0)
     for start in range(0, total, block):
-        buffer._append_rows(rows(start, min(block, total - start), rng))
+        buffer.append_rows(rows(start, min(block, total - start), rng))
     buffer.flush()
 
 
@@ -84,9 +84,9 @@ def bench_sampling(size: int, n_batches: int, tmp: str) -> list[tuple[str, float
     sb3.dones[:, 0] = data["flags"]
     sb3.full = True
     memory = LifelongReplayBuffer(size, OBS, ACT, device="cpu")
-    memory._append_rows(data)
+    memory.append_rows(data)
     disk = LifelongReplayBuffer(size, OBS, ACT, device="cpu", path=os.path.join(tmp, "sample1m"), chunk_size=100_000)
-    disk._append_rows(data)
+    disk.append_rows(data)
     disk.flush()
     del data
     pread = LifelongReplayBuffer.open(os.path.join(tmp, "sample1m"), read_only=True, device="cpu", read_mode="pread")

@@ -70,12 +70,15 @@ from typing import Any, Callable, Optional
 import gymnasium as gym
 import numpy as np
 
+import sb3_lifelong
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import storage
-from sb3_lifelong.buffers.storage import FIELD_NAMES, BufferFormatError, CommitNotDurableError, RowStore
+from sb3_lifelong.buffers import BufferFormatError, CommitNotDurableError
+from sb3_lifelong.buffers.manifest import FIELD_NAMES
+from sb3_lifelong.buffers.rowstore import RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
+PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
 LAYOUTS = ("single", "chunked")
 CHUNK = 50
 CHECKED = ("observations", "next_observations", "actions", "rewards", "flags", "sources")
@@ -484,12 +487,12 @@ def writer_race_case(root: str, layout: str, tally: Tally) -> None:
     add_rows(first, 0, 120)
     real_take_lock = RowStore._take_lock
 
-    def take_lock(self: RowStore) -> None:
+    def take_lock(self: RowStore, create: bool = False) -> bool:
         RowStore._take_lock = real_take_lock  # type: ignore[method-assign]
         add_rows(first, 120, 130)  # the first writer's last rows, committed by its close()
         first.close()
         tally.faults += 1
-        real_take_lock(self)
+        return real_take_lock(self, create)
 
     RowStore._take_lock = take_lock  # type: ignore[method-assign]
     try:
@@ -505,11 +508,14 @@ def writer_race_case(root: str, layout: str, tally: Tally) -> None:
 
 
 RLIMIT_CHILD = r"""
-import importlib.util, resource, signal, sys
+import resource, signal, sys, types
 import numpy as np
-spec = importlib.util.spec_from_file_location("storage", sys.argv[1])
-storage = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(storage)
+# the row store's modules import only numpy, the standard library and one another: load them without the package's
+# __init__ (which imports torch and SB3), so that this process starts in a fraction of a second
+for name, folder in (("sb3_lifelong", sys.argv[1]), ("sb3_lifelong.buffers", sys.argv[1] + "/buffers")):
+    sys.modules[name] = types.ModuleType(name)
+    sys.modules[name].__path__ = [folder]
+from sb3_lifelong.buffers import rowstore
 path, capacity = sys.argv[2], None if sys.argv[3] == "none" else int(sys.argv[3])
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past RLIMIT_FSIZE then fails with EFBIG
 fields = {"observations": ("<f4", (4,)), "next_observations": ("<f4", (4,)), "actions": ("<f4", (2,)),
@@ -523,7 +529,7 @@ def rows(a, b):
             "rewards": (idx * 0.001).astype(np.float32), "flags": (idx % 3).astype(np.uint8),
             "sources": (idx // 1000).astype(np.uint16), "streams": (idx // 77).astype(np.uint32),
             "widths": np.ones(b - a, np.uint16)}
-store = storage.RowStore(fields, path=path, chunk_size=1000, capacity=capacity)
+store = rowstore.RowStore(fields, path=path, chunk_size=1000, capacity=capacity)
 store.append(rows(0, 30))
 store.flush()
 store.append(rows(30, 60))
@@ -583,7 +589,7 @@ def file_size_limit_case(root: str, layout: str, tally: Tally, env: dict[str, st
     path = os.path.join(root, f"rlimit-{layout}")
     tally.runs += 1
     out = subprocess.run(
-        [sys.executable, "-c", RLIMIT_CHILD, storage.__file__, path, "none" if layout == "single" else "100000"],
+        [sys.executable, "-c", RLIMIT_CHILD, PACKAGE_DIR, path, "none" if layout == "single" else "100000"],
         capture_output=True,
         text=True,
         env=env,
@@ -879,17 +885,20 @@ def planted_symlinks_case(root: str, layout: str, tally: Tally) -> None:
 
 # ------------------------------------------------------------------------------------------------------------ SIGKILL
 KILL_CHILD = r"""
-import importlib.util, sys
+import sys, types
 import numpy as np
-spec = importlib.util.spec_from_file_location("storage", sys.argv[1])
-storage = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(storage)
+# the row store's modules import only numpy, the standard library and one another: load them without the package's
+# __init__ (which imports torch and SB3), so that this process starts in a fraction of a second
+for name, folder in (("sb3_lifelong", sys.argv[1]), ("sb3_lifelong.buffers", sys.argv[1] + "/buffers")):
+    sys.modules[name] = types.ModuleType(name)
+    sys.modules[name].__path__ = [folder]
+from sb3_lifelong.buffers import rowstore
 path, chunk, seed = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 capacity = None if sys.argv[5] == "none" else int(sys.argv[5])
 fields = {"observations": ("<f4", (4,)), "next_observations": ("<f4", (4,)), "actions": ("<f4", (2,)),
           "rewards": ("<f4", ()), "flags": ("|u1", ()), "sources": ("<u2", ()), "streams": ("<u4", ()),
           "widths": ("<u2", ())}
-store = storage.RowStore(fields, path=path, chunk_size=chunk, capacity=capacity)
+store = rowstore.RowStore(fields, path=path, chunk_size=chunk, capacity=capacity)
 rng = np.random.default_rng(seed)
 print("open", store.num_committed, flush=True)
 while True:
@@ -915,7 +924,7 @@ def sigkill_loop(root: str, layout: str, kills: int, seed: int, tally: Tally, en
     for trial in range(kills):
         chunk = int(rng.integers(5, 200))
         child = subprocess.Popen(
-            [sys.executable, "-c", KILL_CHILD, storage.__file__, path, str(chunk), str(trial), capacity],
+            [sys.executable, "-c", KILL_CHILD, PACKAGE_DIR, path, str(chunk), str(trial), capacity],
             stdout=subprocess.PIPE,
             text=True,
             env=env,

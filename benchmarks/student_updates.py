@@ -21,7 +21,7 @@ import time
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.buffers.storage import write_json_atomic
+from sb3_lifelong.buffers.files import write_json_atomic
 from sb3_lifelong.experiments.protocol import PRESETS, distill_student
 
 

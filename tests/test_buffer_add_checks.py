@@ -8,7 +8,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers.storage import FIELD_NAMES
+from sb3_lifelong.buffers.manifest import FIELD_NAMES
 
 OBS = spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = spaces.Box(-1, 1, (2,), np.float32)

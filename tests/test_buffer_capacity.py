@@ -13,13 +13,15 @@ import pytest
 import torch as th
 from stable_baselines3 import SAC
 
+import sb3_lifelong
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers, storage
-from sb3_lifelong.buffers.storage import FIELD_NAMES, BufferFormatError, RowStore
+from sb3_lifelong.buffers import BufferFormatError, LifelongBufferView, files, merge_buffers
+from sb3_lifelong.buffers.manifest import FIELD_NAMES
+from sb3_lifelong.buffers.rowstore import RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (1,), np.float32)
-STORAGE_FILE = storage.__file__
+PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
 
 
 def add_rows(buffer, start, count, n_envs=1, stage=None):
@@ -212,14 +214,14 @@ def test_capacity_reader_follows_evicting_writer(tmp_path):
 def test_capacity_crash_between_commit_and_delete(tmp_path, monkeypatch):
     path = tmp_path / "b"
     deleted = []
-    monkeypatch.setattr(storage, "_delete_file", deleted.append)  # the "crash": files are never deleted
+    monkeypatch.setattr(files, "delete_file", deleted.append)  # the "crash": files are never deleted
     writer = LifelongReplayBuffer(0, OBS, ACT, path=path, chunk_size=10, capacity=15)
     add_rows(writer, 0, 60)
     # the manifest no longer lists the evicted chunks, their files are still there
     listed = [f"chunk.{c['start']:012d}.bin" for c in json.loads((path / "manifest.json").read_text())["chunks"]]
     assert listed == ["chunk.000000000040.bin", "chunk.000000000050.bin"]
     assert len(chunk_files(path)) == 6 and len(deleted) == 4
-    writer.store._lock_file.close()  # the writer dies without closing (no further flush, lock released)
+    writer.store._release_lock()  # the writer dies without closing (no further flush, lock released)
     writer.store._closed = True
     monkeypatch.undo()
     reader = LifelongReplayBuffer.open(path, read_only=True, verify="all")
@@ -234,16 +236,19 @@ def test_capacity_crash_between_commit_and_delete(tmp_path, monkeypatch):
 
 
 CHILD = r"""
-import importlib.util, sys
+import sys, types
 import numpy as np
-spec = importlib.util.spec_from_file_location("storage", sys.argv[1])
-storage = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(storage)
+# the row store's modules import only numpy, the standard library and one another: load them without the package's
+# __init__ (which imports torch and SB3), so that this process starts in a fraction of a second
+for name, folder in (("sb3_lifelong", sys.argv[1]), ("sb3_lifelong.buffers", sys.argv[1] + "/buffers")):
+    sys.modules[name] = types.ModuleType(name)
+    sys.modules[name].__path__ = [folder]
+from sb3_lifelong.buffers import rowstore
 path, chunk, seed, capacity = sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
 fields = {"observations": ("<f4", (2,)), "next_observations": ("<f4", (2,)), "actions": ("<f4", (1,)),
           "rewards": ("<f4", ()), "flags": ("|u1", ()), "sources": ("<u2", ()), "streams": ("<u4", ()),
           "widths": ("<u2", ())}
-store = storage.RowStore(fields, path=path, chunk_size=chunk, capacity=capacity)
+store = rowstore.RowStore(fields, path=path, chunk_size=chunk, capacity=capacity)
 rng = np.random.default_rng(seed)
 print("open", store.num_committed, len(store), flush=True)
 while True:
@@ -268,7 +273,7 @@ def test_capacity_crash_sigkill(tmp_path):
     for trial in range(8):
         chunk = int(rng.integers(5, 60))
         child = subprocess.Popen(
-            [sys.executable, "-c", CHILD, STORAGE_FILE, path, str(chunk), str(trial), str(capacity)],
+            [sys.executable, "-c", CHILD, PACKAGE_DIR, path, str(chunk), str(trial), str(capacity)],
             stdout=subprocess.PIPE,
             text=True,
             env=env,

@@ -11,8 +11,7 @@ from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
-from sb3_lifelong.buffers.storage import BufferFormatError
+from sb3_lifelong.buffers import BufferFormatError, LifelongBufferView, merge_buffers
 
 OBS = spaces.Dict(
     {
@@ -138,7 +137,7 @@ def test_dict_on_disk_reopen_nstep_and_sources(tmp_path):
     twin = LifelongReplayBuffer(0, OBS["pos"], ACT, n_steps=3, gamma=0.9)
     rows = {name: values for name, values in before.items() if "." not in name}
     rows.update(observations=before["observations.pos"], next_observations=before["next_observations.pos"])
-    twin._append_rows(rows)
+    twin.append_rows(rows)
     inds = np.arange(160)
     got, expected = reopened._get_samples(inds), twin._get_samples(inds)
     assert got.discounts is not None and (got.discounts < 0.9).any()

@@ -14,13 +14,15 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+import sb3_lifelong
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import storage
-from sb3_lifelong.buffers.storage import FIELD_NAMES, BufferFormatError, CommitNotDurableError, RowStore
+from sb3_lifelong.buffers import BufferFormatError, CommitNotDurableError
+from sb3_lifelong.buffers.manifest import FIELD_NAMES
+from sb3_lifelong.buffers.rowstore import RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-STORAGE_FILE = storage.__file__
+PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
 needs_proc = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self/fd (Linux)")
 
 
@@ -151,11 +153,14 @@ def test_disk_full_in_add_then_retry(tmp_path, monkeypatch, layout, n_envs):
 
 
 RLIMIT_CHILD = r"""
-import importlib.util, resource, signal, sys
+import resource, signal, sys, types
 import numpy as np
-spec = importlib.util.spec_from_file_location("storage", sys.argv[1])
-storage = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(storage)
+# the row store's modules import only numpy, the standard library and one another: load them without the package's
+# __init__ (which imports torch and SB3), so that this process starts in a fraction of a second
+for name, folder in (("sb3_lifelong", sys.argv[1]), ("sb3_lifelong.buffers", sys.argv[1] + "/buffers")):
+    sys.modules[name] = types.ModuleType(name)
+    sys.modules[name].__path__ = [folder]
+from sb3_lifelong.buffers import rowstore
 path, capacity = sys.argv[2], None if sys.argv[3] == "none" else int(sys.argv[3])
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past RLIMIT_FSIZE then fails with EFBIG
 fields = {"observations": ("<f4", (4,)), "next_observations": ("<f4", (4,)), "actions": ("<f4", (2,)),
@@ -169,7 +174,7 @@ def rows(a, b):
             "rewards": (idx * 0.001).astype(np.float32), "flags": (idx % 3).astype(np.uint8),
             "sources": (idx // 1000).astype(np.uint16), "streams": (idx // 77).astype(np.uint32),
             "widths": np.ones(b - a, np.uint16)}
-store = storage.RowStore(fields, path=path, chunk_size=1000, capacity=capacity)
+store = rowstore.RowStore(fields, path=path, chunk_size=1000, capacity=capacity)
 store.append(rows(0, 30))
 store.flush()
 store.append(rows(30, 60))
@@ -196,7 +201,7 @@ def test_file_size_limit_during_flush_then_retry(tmp_path, capacity):
     path = tmp_path / "b"
     env = dict(os.environ, OMP_NUM_THREADS="1")
     out = subprocess.run(
-        [sys.executable, "-c", RLIMIT_CHILD, STORAGE_FILE, str(path), capacity],
+        [sys.executable, "-c", RLIMIT_CHILD, PACKAGE_DIR, str(path), capacity],
         capture_output=True,
         text=True,
         env=env,
@@ -595,12 +600,12 @@ def test_writer_takes_the_lock_before_reading_the_manifest(tmp_path, monkeypatch
     real_take_lock = RowStore._take_lock
     state = {"raced": False}
 
-    def take_lock(self):
+    def take_lock(self, *args, **kwargs):
         if not state["raced"]:  # the first writer commits and closes just before the second one locks
             state["raced"] = True
             add_rows(first, 120, 130)
             first.close()
-        return real_take_lock(self)
+        return real_take_lock(self, *args, **kwargs)
 
     monkeypatch.setattr(RowStore, "_take_lock", take_lock)
     with warnings.catch_warnings():

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers.storage import FIELD_NAMES
+from sb3_lifelong.buffers.manifest import FIELD_NAMES
 
 minari = pytest.importorskip("minari")
 pytest.importorskip("h5py")  # minari's default (hdf5) storage

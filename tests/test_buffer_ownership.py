@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers.storage import BufferFormatError
+from sb3_lifelong.buffers import BufferFormatError
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)

@@ -12,9 +12,11 @@ import pytest
 import torch as th
 from gymnasium import spaces
 
+import sb3_lifelong
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers, storage
-from sb3_lifelong.buffers.storage import BufferFormatError, RowStore
+from sb3_lifelong.buffers import BufferFormatError, LifelongBufferView, merge_buffers, readers
+from sb3_lifelong.buffers.manifest import chunk_file_name
+from sb3_lifelong.buffers.rowstore import RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (5,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
@@ -26,7 +28,7 @@ DICT_OBS = spaces.Dict(
     }
 )
 LAYOUTS = {"single": None, "chunked": 150}  # capacity of each layout
-STORAGE_FILE = storage.__file__
+PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
 linux_only = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self (Linux)")
 
 
@@ -200,7 +202,7 @@ def test_same_reads_as_mmap(tmp_path, layout, observation_space):
 @pytest.mark.parametrize("merge_gap", [0, 16384, 1 << 40])
 def test_merge_gap_and_short_reads(tmp_path, monkeypatch, merge_gap):
     """Rows read one call each, runs of nearby rows, or everything in one call; reads that return fewer bytes."""
-    monkeypatch.setattr(storage, "PREAD_MERGE_GAP", merge_gap)
+    monkeypatch.setattr(readers, "PREAD_MERGE_GAP", merge_gap)
     writers = make_pair(tmp_path, "chunked", chunk_size=30)
     fill(writers, 200, 1, seed=4)
     assert_same_gather(*writers, np.random.default_rng(1))
@@ -237,7 +239,7 @@ def test_followers_read_the_same_while_writer_appends(tmp_path, layout):
         if os.path.isdir("/proc/self/fd"):  # the pread follower keeps the files of the retained chunks open, no other
             store = followers[1].store
             opened = {os.readlink(f"/proc/self/fd/{fd}") for fd in store._reader.fds.values()}
-            assert opened == {os.path.join(store.path, storage.chunk_file_name(c["start"])) for c in store.chunks}
+            assert opened == {os.path.join(store.path, chunk_file_name(c["start"])) for c in store.chunks}
             assert not [fd for fd in open_files(tmp_path / "b") if fd.endswith("(deleted)")]
     writer.close()
 
@@ -245,7 +247,7 @@ def test_followers_read_the_same_while_writer_appends(tmp_path, layout):
 def test_follower_of_a_writer_process(tmp_path):
     """A pread follower reading while another process appends and evicts: every row read is the committed one."""
     child = subprocess.Popen(
-        [sys.executable, "-c", WRITER_CHILD, STORAGE_FILE, str(tmp_path / "b")], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", WRITER_CHILD, PACKAGE_DIR, str(tmp_path / "b")], stdout=subprocess.PIPE, text=True
     )
     try:
         assert child.stdout is not None
@@ -274,15 +276,18 @@ def test_follower_of_a_writer_process(tmp_path):
 
 
 WRITER_CHILD = r"""
-import importlib.util, sys, time
+import sys, time, types
 import numpy as np
-spec = importlib.util.spec_from_file_location("storage", sys.argv[1])
-storage = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(storage)
+# the row store's modules import only numpy, the standard library and one another: load them without the package's
+# __init__ (which imports torch and SB3), so that this process starts in a fraction of a second
+for name, folder in (("sb3_lifelong", sys.argv[1]), ("sb3_lifelong.buffers", sys.argv[1] + "/buffers")):
+    sys.modules[name] = types.ModuleType(name)
+    sys.modules[name].__path__ = [folder]
+from sb3_lifelong.buffers import rowstore
 fields = {"observations": ("<f4", (6,)), "next_observations": ("<f4", (6,)), "actions": ("<f4", (2,)),
           "rewards": ("<f4", ()), "flags": ("|u1", ()), "sources": ("<u2", ()), "streams": ("<u4", ()),
           "widths": ("<u2", ())}
-store = storage.RowStore(fields, path=sys.argv[2], chunk_size=50, capacity=1000)
+store = rowstore.RowStore(fields, path=sys.argv[2], chunk_size=50, capacity=1000)
 print("open", flush=True)
 while store.end < 5_000_000:  # 20 flushes per capacity: readers refresh long before their newest chunk goes
     time.sleep(0.002)

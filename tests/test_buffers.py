@@ -15,13 +15,15 @@ from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 
+import sb3_lifelong
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers, storage
-from sb3_lifelong.buffers.storage import BufferFormatError
+from sb3_lifelong.buffers import BufferFormatError, LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers.manifest import FIELD_NAMES
+from sb3_lifelong.buffers.rowstore import RowStore
 
 OBS = gym.spaces.Box(-10, 10, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-STORAGE_FILE = storage.__file__
+PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
 
 
 def fill(buffer, steps, n_envs, seed=0, start=0, stage=None, rng=None):
@@ -45,7 +47,7 @@ def fill(buffer, steps, n_envs, seed=0, start=0, stage=None, rng=None):
 
 
 def all_rows(buffer):
-    return {name: np.array(buffer.store.read_range(name, 0, buffer.size())) for name in storage.FIELD_NAMES}
+    return {name: np.array(buffer.store.read_range(name, 0, buffer.size())) for name in FIELD_NAMES}
 
 
 # ---------------------------------------------------------------------------------------------- SB3 semantics
@@ -163,20 +165,12 @@ def test_store_owns_streams_sources_and_spaces():
         store.set_source(70000, "too large", {})
     store.describe_spaces({"observation": {}, "action": {}})  # a store that has a description keeps it
     assert store.spaces["action"]["type"] == "Box"
-    # an in-memory store pickled by an earlier version holds these attributes under their public names
-    public = ("fields", "dtypes", "sources", "spaces", "next_stream_id")
-    legacy = {key.lstrip("_") if key.lstrip("_") in public else key: value for key, value in store.__getstate__().items()}
-    assert set(public) <= set(legacy)
-    # ... and the reading state of the time (empty in memory) instead of a reader
-    del legacy["_reader"]
-    legacy.update(_maps={}, _chunk_maps=[], _chunk_starts=np.zeros(0, np.int64), _read_fds={}, _pread_table=None)
-    legacy.update(_segment_starts=np.zeros(1, np.int64))
-    old = storage.RowStore.__new__(storage.RowStore)
-    old.__setstate__(legacy)
-    assert (dict(old.fields), old.next_stream_id, old.source_table()) == (dict(store.fields), 5, store.source_table())
+    # an in-memory store pickles its rows (and its layout, "memory"), and keeps its tables
+    clone = pickle.loads(pickle.dumps(store))
+    assert (dict(clone.fields), clone.next_stream_id, clone.source_table()) == (dict(store.fields), 5, store.source_table())
+    assert clone.layout == store.layout == "memory" and clone.path is None and len(clone) == len(store)
     for name in store.fields:
-        np.testing.assert_array_equal(old.read_range(name, 0, len(store)), store.read_range(name, 0, len(store)))
-    assert not {"_maps", "_chunk_maps", "_read_fds", "_pread_table"} & set(vars(old))
+        np.testing.assert_array_equal(clone.read_range(name, 0, len(store)), store.read_range(name, 0, len(store)))
 
 
 # ---------------------------------------------------------------------------------------------- persistence
@@ -233,16 +227,19 @@ def test_read_only_reader_follows_writer(tmp_path):
 
 
 CHILD = r"""
-import importlib.util, sys
+import sys, types
 import numpy as np
-spec = importlib.util.spec_from_file_location("storage", sys.argv[1])
-storage = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(storage)
+# the row store's modules import only numpy, the standard library and one another: load them without the package's
+# __init__ (which imports torch and SB3), so that this process starts in a fraction of a second
+for name, folder in (("sb3_lifelong", sys.argv[1]), ("sb3_lifelong.buffers", sys.argv[1] + "/buffers")):
+    sys.modules[name] = types.ModuleType(name)
+    sys.modules[name].__path__ = [folder]
+from sb3_lifelong.buffers import rowstore
 path, chunk, seed = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 fields = {"observations": ("<f4", (4,)), "next_observations": ("<f4", (4,)), "actions": ("<f4", (2,)),
           "rewards": ("<f4", ()), "flags": ("|u1", ()), "sources": ("<u2", ()), "streams": ("<u4", ()),
           "widths": ("<u2", ())}
-store = storage.RowStore(fields, path=path, chunk_size=chunk)
+store = rowstore.RowStore(fields, path=path, chunk_size=chunk)
 rng = np.random.default_rng(seed)
 print("open", store.num_committed, flush=True)
 while True:
@@ -282,7 +279,7 @@ def test_crash_sigkill_loses_only_unflushed_tail(tmp_path):
     for trial in range(30):
         chunk = int(rng.integers(5, 200))
         child = subprocess.Popen(
-            [sys.executable, "-c", CHILD, STORAGE_FILE, path, str(chunk), str(trial)],
+            [sys.executable, "-c", CHILD, PACKAGE_DIR, path, str(chunk), str(trial)],
             stdout=subprocess.PIPE,
             text=True,
             env=env,
@@ -306,7 +303,7 @@ def test_crash_sigkill_loses_only_unflushed_tail(tmp_path):
             continue
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            store = storage.RowStore(path=path, verify="all")
+            store = RowStore(path=path, verify="all")
         if store.discarded_bytes:  # reopening says how many transitions were recovered
             assert any(f"recovered {store.num_committed} transitions" in str(w.message) for w in caught)
         assert store.num_committed >= least and store.recovered == store.num_committed

@@ -6,7 +6,7 @@ import pytest
 from gymnasium import spaces
 
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
-from sb3_lifelong.buffers.storage import MAX_SOURCE_ID
+from sb3_lifelong.buffers.manifest import MAX_SOURCE_ID
 from sb3_lifelong.core import datasets
 from sb3_lifelong.core.datasets import OfflineDataError, normalize_actions
 from sb3_lifelong.distill import distill

@@ -1,27 +1,25 @@
 """
 The lifelong buffer's exchange formats: d4rl-style dicts (and ``.npz`` files of them) and Minari datasets, in and out.
 
-:class:`~sb3_lifelong.buffers.lifelong.LifelongReplayBuffer`'s ``from_d4rl``, ``from_minari``, ``to_d4rl``,
-``to_minari`` and ``save_npz`` are thin methods over these functions.
+:class:`~sb3_lifelong.buffers.LifelongReplayBuffer`'s ``from_d4rl``, ``from_minari``, ``to_d4rl``, ``to_minari`` and
+``save_npz`` are thin methods over these functions. They use only what a buffer offers anyone (:class:`Exportable`,
+:class:`Importing`), and of the buffer's modules they import only the row store's (its format and ``RowStore``):
+``sampling`` and ``lifelong`` import this one.
 """
 
 from __future__ import annotations
 
 import inspect
 import os
-from typing import TYPE_CHECKING, Any, Optional, Union
+from typing import Any, Callable, Optional, Protocol, TypeVar, Union
 
 import numpy as np
 from gymnasium import spaces
 
-from sb3_lifelong.buffers.storage import FLAG_DONE, FLAG_TIMEOUT, MAX_SOURCE_ID
+from sb3_lifelong.buffers.manifest import FLAG_DONE, FLAG_TIMEOUT, MAX_SOURCE_ID, check_source_id
+from sb3_lifelong.buffers.rowstore import RowStore
 from sb3_lifelong.core.datasets import import_minari, minari_columns, normalize_actions, read_npz, validate_d4rl
 
-if TYPE_CHECKING:
-    from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
-
-#: rows checked for non-finite values (and copied by merge_buffers) at a time
-_COPY_BLOCK = 1 << 16
 # Minari interop: per-step source ids (in the episodes' infos) and source names / metadata (in the dataset metadata)
 MINARI_SOURCE_INFO = "sb3_lifelong_source"
 MINARI_SOURCES_METADATA = "sb3_lifelong_sources"
@@ -30,24 +28,42 @@ MINARI_SOURCES_METADATA = "sb3_lifelong_sources"
 ENV_SPEC_METADATA = "env_spec"
 
 
-def raise_if_not_finite(values: np.ndarray, what: str, consequence: str, offset: int = 0) -> None:
-    """
-    :param values: Array whose first dimension is the env (or row) index
-    :param what: Start of the message, e.g. ``"add(): rewards of env"``, followed by the first bad index
-    :param consequence: End of the message
-    :param offset: Added to the index reported
-    :raises ValueError: if a value is NaN or infinite
-    """
-    bad = ~np.isfinite(values)
-    if not bad.any():
-        return
-    rows = np.flatnonzero(bad.reshape(len(values), -1).any(axis=1)) if values.ndim else np.zeros(1, np.int64)
-    first = int(rows[0])
-    value = values.reshape(len(values), -1)[first][bad.reshape(len(values), -1)[first]][0] if values.ndim else values
-    more = f" (and {len(rows) - 1} more)" if len(rows) > 1 else ""
-    raise ValueError(
-        f"{what} {first + offset}{more} is not finite ({value}): NaN and infinite values are refused; {consequence}"
-    )
+class Exportable(Protocol):
+    """What the exports read of a buffer or a view (a :class:`~sb3_lifelong.buffers.sampling.LifelongSampler`)."""
+
+    observation_space: spaces.Space
+    action_space: spaces.Space
+
+    @property
+    def sources(self) -> dict[int, dict[str, Any]]: ...
+
+    def size(self) -> int: ...
+
+    def read_range(self, name: str, start: int, stop: int) -> np.ndarray: ...
+
+
+class Importing(Protocol):
+    """What the imports write to a new buffer (a :class:`~sb3_lifelong.buffers.LifelongReplayBuffer`)."""
+
+    store: RowStore
+    obs_shape: tuple[int, ...]
+    action_dim: int
+
+    def name_source(self, source: int, name: Optional[str] = None, metadata: Optional[dict[str, Any]] = None) -> None: ...
+
+    def append_rows(self, rows: dict[str, np.ndarray]) -> None: ...
+
+    def flush(self) -> None: ...
+
+
+BufferT = TypeVar("BufferT", bound=Importing)
+
+
+def _check_exportable(buffer: Exportable, what: str) -> None:
+    if isinstance(buffer.observation_space, spaces.Dict):
+        raise NotImplementedError(
+            f"{what} of Dict observations is not supported (d4rl and Minari exports need one observation array)"
+        )
 
 
 def _to_env_units(actions: np.ndarray, action_space: spaces.Space) -> np.ndarray:
@@ -73,9 +89,7 @@ def _minari_env_spec(dataset: Any) -> Optional[str]:
         return None
 
 
-def export_columns(
-    buffer: _LifelongSampler, by_episode: bool, normalized_actions: bool
-) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def export_columns(buffer: Exportable, by_episode: bool, normalized_actions: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """
     :param buffer: the buffer (or view) to export
     :param by_episode: see :meth:`LifelongReplayBuffer.to_d4rl`
@@ -83,10 +97,10 @@ def export_columns(
     :return: The d4rl columns of ``to_d4rl`` plus ``streams``, and a mask of the rows marked as a timeout
         only because their stream stops there (the write head of an env, a reopen, an ``n_envs`` change)
     """
-    buffer._check_exportable("d4rl export")
+    _check_exportable(buffer, "d4rl export")
     total = buffer.size()
     names = ("observations", "next_observations", "actions", "rewards", "flags", "sources", "streams")
-    data = {name: np.asarray(buffer._read_range(name, 0, total)) for name in names}
+    data = {name: np.asarray(buffer.read_range(name, 0, total)) for name in names}
     flags = data["flags"]
     timeouts = (flags & FLAG_TIMEOUT) != 0
     terminals = ((flags & FLAG_DONE) != 0) & ~timeouts
@@ -116,21 +130,21 @@ def export_columns(
     return columns, open_end
 
 
-def to_d4rl(buffer: _LifelongSampler, by_episode: bool = True, normalized_actions: bool = False) -> dict[str, np.ndarray]:
+def to_d4rl(buffer: Exportable, by_episode: bool = True, normalized_actions: bool = False) -> dict[str, np.ndarray]:
     """``buffer`` as a d4rl-style dict (in memory): see :meth:`LifelongReplayBuffer.to_d4rl`."""
     columns, _ = export_columns(buffer, by_episode, normalized_actions)
     del columns["streams"]
     return columns
 
 
-def save_npz(buffer: _LifelongSampler, file: Union[str, os.PathLike]) -> None:
+def save_npz(buffer: Exportable, file: Union[str, os.PathLike]) -> None:
     """Write :func:`to_d4rl` of ``buffer`` to a ``.npz`` file (no pickle inside): see :meth:`LifelongReplayBuffer.save_npz`."""
     columns: dict[str, Any] = to_d4rl(buffer)  # (typed Any: numpy's stubs would match the arrays to savez's flags)
     np.savez(file, **columns)
 
 
 def to_minari(
-    buffer: _LifelongSampler,
+    buffer: Exportable,
     dataset_id: str,
     normalized_actions: bool = False,
     unfinished: str = "truncate",
@@ -140,7 +154,7 @@ def to_minari(
     """Write ``buffer`` as a new local Minari dataset: see :meth:`LifelongReplayBuffer.to_minari`."""
     if unfinished not in ("truncate", "drop"):
         raise ValueError(f"unfinished must be 'truncate' or 'drop', got {unfinished!r}")
-    buffer._check_exportable("Minari export")
+    _check_exportable(buffer, "Minari export")
     minari = import_minari("LifelongReplayBuffer.to_minari")
     from minari.data_collector import EpisodeBuffer
 
@@ -166,7 +180,7 @@ def to_minari(
     obs_shape = tuple(buffer.observation_space.shape or ())
     action_space = buffer.action_space
     if normalized_actions and isinstance(action_space, spaces.Box):
-        action_space = spaces.Box(-1.0, 1.0, shape=action_space.shape, dtype=action_space.dtype)  # type: ignore[arg-type]
+        action_space = spaces.Box(-1.0, 1.0, shape=action_space.shape, dtype=action_space.dtype.type)
     action_shape = tuple(action_space.shape or ())
     sources = data["sources"].astype(np.int64)
     episodes = []
@@ -206,14 +220,14 @@ def to_minari(
 
 
 def from_d4rl(
-    cls: type[LifelongReplayBuffer],
+    cls: Callable[..., BufferT],
     data: Union[dict[str, np.ndarray], str, os.PathLike],
     observation_space: Optional[spaces.Space] = None,
     action_space: Optional[spaces.Space] = None,
     source: int = 0,
     normalized_actions: bool = False,
     **kwargs: Any,
-) -> LifelongReplayBuffer:
+) -> BufferT:
     """Build a ``cls`` buffer from a d4rl-style dict or ``.npz`` file: see :meth:`LifelongReplayBuffer.from_d4rl`."""
     if isinstance(observation_space, spaces.Dict):
         raise NotImplementedError("from_d4rl: d4rl data has one observation array: Dict observation spaces are not supported")
@@ -225,9 +239,9 @@ def from_d4rl(
     obs, actions = data["observations"], data["actions"]
     total = len(obs)
     if observation_space is None:
-        observation_space = spaces.Box(-np.inf, np.inf, shape=obs.shape[1:], dtype=obs.dtype)  # type: ignore[arg-type]
+        observation_space = spaces.Box(-np.inf, np.inf, shape=obs.shape[1:], dtype=obs.dtype.type)
     if action_space is None:
-        action_space = spaces.Box(-np.inf, np.inf, shape=actions.shape[1:], dtype=actions.dtype)  # type: ignore[arg-type]
+        action_space = spaces.Box(-np.inf, np.inf, shape=actions.shape[1:], dtype=actions.dtype.type)
     actions = normalize_actions(actions, action_space, normalized_actions)  # the one normaliser (also checks bounds)
     buffer = cls(total, observation_space, action_space, source=source, **kwargs)
     terminals, timeouts, next_obs = data["terminals"], data["timeouts"], data["next_observations"]
@@ -250,14 +264,14 @@ def from_d4rl(
         "widths": np.ones(total, dtype=np.uint16),
     }
     for source_id in np.unique(sources):
-        buffer._ensure_source(int(source_id))
-    buffer._append_rows(rows)
+        buffer.name_source(int(source_id))
+    buffer.append_rows(rows)
     buffer.flush()
     return buffer
 
 
 def from_minari(
-    cls: type[LifelongReplayBuffer],
+    cls: Callable[..., BufferT],
     dataset: Any,
     path: Optional[Union[str, os.PathLike]] = None,
     source: Optional[int] = None,
@@ -267,7 +281,7 @@ def from_minari(
     observation_space: Optional[spaces.Space] = None,
     action_space: Optional[spaces.Space] = None,
     **kwargs: Any,
-) -> LifelongReplayBuffer:
+) -> BufferT:
     """Build a ``cls`` buffer from a Minari dataset: see :meth:`LifelongReplayBuffer.from_minari`."""
     if isinstance(dataset, (str, os.PathLike)):
         dataset = import_minari("LifelongReplayBuffer.from_minari").load_dataset(os.fspath(dataset))
@@ -310,12 +324,12 @@ def from_minari(
             name = info["name"] if isinstance(info.get("name"), str) else None
             extra: dict[str, Any] = info["metadata"] if isinstance(info.get("metadata"), dict) else {}
             spec = {ENV_SPEC_METADATA: env_spec} if env_spec is not None else {}
-            buffer._ensure_source(source_id, name, {**extra, "minari_dataset_id": common["minari_dataset_id"], **spec})
+            buffer.name_source(source_id, name, {**extra, "minari_dataset_id": common["minari_dataset_id"], **spec})
     else:
-        source = buffer._check_source(0 if source is None else source)
+        source = check_source_id(0 if source is None else source)
         sources = np.full(total, source, dtype=np.int64)
         name = source_name or f"minari:{dataset_id if isinstance(dataset_id, str) else 'dataset'}"
-        buffer._ensure_source(source, name, {**common, **dict(source_metadata or {})})
+        buffer.name_source(source, name, {**common, **dict(source_metadata or {})})
     actions = normalize_actions(valid["actions"].reshape(total, buffer.action_dim), action_space, normalized_actions)
     terminals, timeouts = valid["terminals"], valid["timeouts"]
     base = buffer.store.reserve_streams(len(lengths))
@@ -329,6 +343,6 @@ def from_minari(
         "streams": np.repeat(np.arange(base, base + len(lengths), dtype=np.int64), lengths).astype(np.uint32),
         "widths": np.ones(total, dtype=np.uint16),
     }
-    buffer._append_rows(rows)
+    buffer.append_rows(rows)
     buffer.flush()
     return buffer

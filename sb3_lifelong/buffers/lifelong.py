@@ -1,13 +1,15 @@
 """
 Lifelong replay buffer: every transition of a robot's life, in memory or in a crash-safe directory.
 
+This module is the buffer's write side (construction, ``add`` and its checks, sources and streams, commits); the read
+side it shares with :class:`~sb3_lifelong.buffers.LifelongBufferView` (sampling, n-step returns, next actions,
+exports) is :class:`~sb3_lifelong.buffers.sampling.LifelongSampler`.
+
 See ``docs/modules/buffer.md`` for the directory format, the crash guarantees and examples.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import os
 import warnings
 from typing import Any, Optional, Union
@@ -15,549 +17,27 @@ from typing import Any, Optional, Union
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
-from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 from stable_baselines3.common.utils import get_device
-from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_lifelong.buffers import interop
-from sb3_lifelong.buffers.interop import raise_if_not_finite
-from sb3_lifelong.buffers.storage import (
-    FLAG_DONE,
+from sb3_lifelong.buffers.add_checks import AddChecks
+from sb3_lifelong.buffers.files import CommitNotDurableError
+from sb3_lifelong.buffers.layouts import owned_buffer_files
+from sb3_lifelong.buffers.manifest import (
     FLAG_TIMEOUT,
     MANIFEST_NAME,
-    MAX_SOURCE_ID,
-    OBS_FIELDS,
     BufferFormatError,
-    CommitNotDurableError,
-    RowStore,
-    check_obs_key,
+    check_source_id,
+    committed_transitions,
     obs_keys_of,
-    owned_buffer_files,
 )
+from sb3_lifelong.buffers.rowstore import RowStore
+from sb3_lifelong.buffers.sampling import LifelongSampler, RunIndex
+from sb3_lifelong.buffers.schema import buffer_fields, observation_space_of, space_from_json, space_to_json
 from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
-from sb3_lifelong.core.datasets import OfflineSamples
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongReplayBuffer"]
-
-_Samples = Union[ReplayBufferSamples, DictReplayBufferSamples]
-
-
-_vdot = np.vdot
-_isfinite = math.isfinite
-
-
-def _conform(label: str, value: np.ndarray, target: tuple[int, ...], what: str = "") -> np.ndarray:
-    """
-    ``value`` as an array of shape ``target`` where numpy's assignment rules (as used by SB3's ``ReplayBuffer.add``)
-    accept it: leading dimensions of size 1 dropped, then broadcasting. Otherwise a ValueError naming the field.
-    """
-    shape = value.shape
-    while len(shape) > len(target) and shape[0] == 1:
-        shape = shape[1:]
-    try:
-        return np.broadcast_to(value.reshape(shape), target)
-    except ValueError:
-        where = f"; {what}" if what else ""
-        raise ValueError(
-            f"add(): {label} have shape {value.shape}, expected {target} ({target[0]} envs, the length of rewards{where})"
-        ) from None
-
-
-def _env_vector(label: str, value: np.ndarray) -> np.ndarray:
-    """Rewards given as a scalar (one env) or with leading dimensions of size 1, as a vector (n_envs,)."""
-    shape = value.shape
-    while len(shape) > 1 and shape[0] == 1:
-        shape = shape[1:]
-    if len(shape) > 1:
-        raise ValueError(f"add(): {label} have shape {value.shape}, expected (n_envs,): one value per env")
-    return value.reshape(shape or (1,))
-
-
-def _space_to_json(space: spaces.Space) -> dict[str, Any]:
-    if isinstance(space, spaces.Dict):
-        return {"type": "Dict", "spaces": {key: _space_to_json(sub) for key, sub in space.spaces.items()}}
-    if isinstance(space, spaces.Discrete):
-        return {"type": "Discrete", "n": int(space.n), "start": int(space.start)}
-    if isinstance(space, spaces.Box):
-        result: dict[str, Any] = {"type": "Box", "shape": list(space.shape), "dtype": np.dtype(space.dtype).str}
-        if space.low.size <= 4096:
-            # non-finite bounds are written as null (-inf for low, +inf for high)
-            result["low"] = [float(v) if np.isfinite(v) else None for v in space.low.reshape(-1)]
-            result["high"] = [float(v) if np.isfinite(v) else None for v in space.high.reshape(-1)]
-        return result
-    return {"type": type(space).__name__, "shape": list(space.shape or ()), "dtype": np.dtype(space.dtype).str}
-
-
-def _space_from_json(data: dict[str, Any], dtype: str, shape: tuple[int, ...]) -> spaces.Space:
-    if data.get("type") == "Discrete" and isinstance(data.get("n"), int):
-        return spaces.Discrete(data["n"], start=int(data.get("start", 0)))
-    size = int(np.prod(shape))
-    low = np.full(size, -np.inf)
-    high = np.full(size, np.inf)
-    bounds = data.get("low"), data.get("high")
-    if all(isinstance(b, list) and len(b) == size for b in bounds):
-        low = np.array([-np.inf if v is None else float(v) for v in data["low"]])
-        high = np.array([np.inf if v is None else float(v) for v in data["high"]])
-    np_dtype = np.dtype(dtype)
-    if np.issubdtype(np_dtype, np.integer):
-        info = np.iinfo(np_dtype)
-        low, high = np.clip(low, info.min, info.max), np.clip(high, info.min, info.max)
-    elif np.issubdtype(np_dtype, np.floating):  # the bounds were written from values of this dtype: exact
-        low, high = low.astype(np_dtype), high.astype(np_dtype)
-    return spaces.Box(low.reshape(shape), high.reshape(shape), shape=shape, dtype=np_dtype)  # type: ignore[arg-type]
-
-
-def _observation_space_from_store(store: RowStore) -> spaces.Space:
-    """The observation space described by a store's manifest (a Dict space when the observations have keys)."""
-    data = store.spaces.get("observation", {})
-    data = data if isinstance(data, dict) else {}
-    keys = obs_keys_of(store.fields)
-    if keys is None:
-        return _space_from_json(data, *store.fields["observations"])
-    described = data["spaces"] if isinstance(data.get("spaces"), dict) else {}
-    subspaces = {}
-    for key in keys:
-        sub = described.get(key)
-        subspaces[key] = _space_from_json(sub if isinstance(sub, dict) else {}, *store.fields[f"observations.{key}"])
-    return spaces.Dict(subspaces)
-
-
-def _observation_fields(observation_space: spaces.Space) -> dict[str, tuple[str, tuple[int, ...]]]:
-    """The observation and next-observation fields of a store for an observation space (one pair per Dict key)."""
-
-    def spec(space: spaces.Space) -> tuple[str, tuple[int, ...]]:
-        shape: tuple[int, ...] = tuple(get_obs_shape(space))  # type: ignore[arg-type]
-        return np.dtype(space.dtype).str, shape
-
-    if not isinstance(observation_space, spaces.Dict):
-        return {"observations": spec(observation_space), "next_observations": spec(observation_space)}
-    fields = {}
-    for base in OBS_FIELDS:
-        for key, sub in observation_space.spaces.items():
-            if isinstance(sub, (spaces.Dict, spaces.Tuple)):
-                raise NotImplementedError(
-                    f"Dict observation key {key!r}: nested {type(sub).__name__} spaces are not supported"
-                )
-            check_obs_key(key)
-            fields[f"{base}.{key}"] = spec(sub)
-    return fields
-
-
-class _RunIndex:
-    """
-    Run-length index of the source ids (start row and source of each run), for per-source sampling. Rows are the
-    store's global row numbers, so that evicting the oldest rows only moves the point from which runs count.
-    """
-
-    def __init__(self, start: int = 0) -> None:
-        self.starts = np.zeros(64, dtype=np.int64)
-        self.sources = np.zeros(64, dtype=np.int64)
-        self.count = 0
-        self.total = start  # global row after the last indexed row
-
-    def extend(self, sources: np.ndarray, at: Optional[int] = None) -> None:
-        """
-        :param sources: Source ids of the rows from ``at``
-        :param at: Global row of ``sources[0]`` (default: right after the indexed rows). Rows skipped before it
-            (evicted before they were indexed) are counted in the previous run, which only matters for evicted rows
-        """
-        if at is not None and at > self.total:
-            self.total = at
-        if len(sources) == 0:
-            return
-        if self.count and len(sources) == 1 and sources[0] == self.sources[self.count - 1]:
-            self.total += 1  # the common case of add() with one env: the last run grows
-            return
-        breaks = np.flatnonzero(sources[1:] != sources[:-1]) + 1
-        new = breaks if self.count and self.sources[self.count - 1] == sources[0] else np.concatenate([[0], breaks])
-        if self.count + len(new) > len(self.starts):
-            capacity = max(2 * len(self.starts), self.count + len(new))
-            self.starts = np.resize(self.starts, capacity)
-            self.sources = np.resize(self.sources, capacity)
-        self.starts[self.count : self.count + len(new)] = new + self.total
-        self.sources[self.count : self.count + len(new)] = sources[new]
-        self.count += len(new)
-        self.total += len(sources)
-
-    def runs(self, first: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """
-        :param first: Global row of the oldest retained row: runs are cut there
-        :return: Start (counted from ``first``), length and source of each run of retained rows
-        """
-        skip = max(int(np.searchsorted(self.starts[: self.count], first, side="right")) - 1, 0) if first else 0
-        if skip > 64 and skip > self.count // 2:  # forget runs of evicted rows for good
-            self.starts[: self.count - skip] = self.starts[skip : self.count]
-            self.sources[: self.count - skip] = self.sources[skip : self.count]
-            self.count -= skip
-            skip = 0
-        starts = np.maximum(self.starts[skip : self.count], first)
-        lengths = np.diff(np.append(starts, self.total))
-        return starts - first, lengths, self.sources[skip : self.count]
-
-
-class _LifelongSampler(ReplayBuffer):
-    """
-    Sampling shared by :class:`LifelongReplayBuffer` and :class:`LifelongBufferView` (uniform or per-source
-    weighted indices, n-step returns, per-source reward scales). Subclasses provide the rows.
-    """
-
-    n_steps: int
-    gamma: float
-    # keys of Dict observations (fields ``observations.<key>``), None for Box / Discrete observations
-    _obs_keys: Optional[tuple[str, ...]]
-
-    def _init_sampler(self, n_steps: int, gamma: float) -> None:
-        if n_steps < 1:
-            raise ValueError(f"n_steps must be >= 1, got {n_steps}")
-        self.n_steps = int(n_steps)
-        self.gamma = float(gamma)
-        self._sampling_weights: dict[int, float] = {}
-        self._reward_scale: dict[int, float] = {}
-
-    # ------------------------------------------------------------------ provided by subclasses
-    def size(self) -> int:
-        raise NotImplementedError
-
-    def _gather(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, np.ndarray]:
-        raise NotImplementedError
-
-    def _source_runs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
-    def _read_range(self, name: str, start: int, stop: int) -> np.ndarray:
-        raise NotImplementedError
-
-    @property
-    def sources(self) -> dict[int, dict[str, Any]]:
-        """Source id -> ``{"name": str, "metadata": dict}`` (e.g. the dynamics parameters of a stage)."""
-        raise NotImplementedError
-
-    def _field_names(self, names: tuple[str, ...]) -> tuple[str, ...]:
-        """Stored fields of ``names``: ``observations`` / ``next_observations`` stand for one field per Dict key."""
-        if self._obs_keys is None:
-            return names
-        result: list[str] = []
-        for name in names:
-            result.extend([f"{name}.{key}" for key in self._obs_keys] if name in OBS_FIELDS else [name])
-        return tuple(result)
-
-    def _gather_rows(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, Any]:
-        """Like ``_gather``, with Dict observations regrouped as ``{key: array}`` under their base name."""
-        rows: dict[str, Any] = self._gather(self._field_names(names), indices)
-        if self._obs_keys is not None:
-            for base in OBS_FIELDS:
-                if base in names:
-                    rows[base] = {key: rows.pop(f"{base}.{key}") for key in self._obs_keys}
-        return rows
-
-    def _check_exportable(self, what: str) -> None:
-        if self._obs_keys is not None:
-            raise NotImplementedError(
-                f"{what} of Dict observations is not supported (d4rl and Minari exports need one observation array)"
-            )
-
-    # ------------------------------------------------------------------ SB3 attributes
-    @property  # type: ignore[override]
-    def pos(self) -> int:
-        """Number of stored transitions (the write position of an append-only buffer)."""
-        return self.size()
-
-    @pos.setter
-    def pos(self, value: int) -> None:
-        raise AttributeError("the position of a lifelong buffer is its size and cannot be set")
-
-    @property
-    def capacity(self) -> Optional[int]:
-        """The number of most recent transitions kept, or None when every transition is kept."""
-        return None
-
-    @property  # type: ignore[override]
-    def full(self) -> bool:
-        """Whether the buffer holds ``capacity`` transitions (new ones evict the oldest); always False without one."""
-        capacity = self.capacity
-        return capacity is not None and self.size() >= capacity
-
-    @full.setter
-    def full(self, value: bool) -> None:
-        if value != self.full:
-            raise AttributeError("whether a lifelong buffer is full follows from its size and capacity and cannot be set")
-
-    # ------------------------------------------------------------------ per-source options
-    def source_counts(self) -> dict[int, int]:
-        """
-        :return: Number of stored transitions per source id
-        """
-        _, lengths, run_sources = self._source_runs()
-        counts = np.bincount(run_sources, weights=lengths, minlength=1) if len(run_sources) else np.zeros(0)
-        return {int(s): int(c) for s, c in enumerate(counts) if c > 0}
-
-    def reward_range(self, block: int = 1 << 20) -> tuple[float, float]:
-        """
-        The smallest and largest stored reward (as stored: per-source reward scales are not applied), read in blocks
-        of rows. With the discount ``gamma``, every policy's return on this data lies in
-        ``[min(0, low) / (1 - gamma), max(0, high) / (1 - gamma)]``: the support of a categorical critic that cannot
-        diverge.
-
-        :param block: rows read at a time (bounds the memory used)
-        :return: ``(low, high)``
-        :raises ValueError: the buffer is empty
-        """
-        total = self.size()
-        if total == 0:
-            raise ValueError("reward_range() of an empty buffer")
-        low, high = np.inf, -np.inf
-        for start in range(0, total, block):
-            rewards = np.asarray(self._read_range("rewards", start, min(total, start + block)))
-            low, high = min(low, float(rewards.min())), max(high, float(rewards.max()))
-        return low, high
-
-    def set_sampling_weights(self, weights: Optional[dict[int, float]]) -> None:
-        """
-        Per-source sampling weights. A transition of source ``s`` is drawn with a probability proportional
-        to ``weights[s]`` (sources not listed weigh 1), so source ``s`` makes up a fraction
-        ``w_s * N_s / sum_t(w_t * N_t)`` of the batches. ``None`` or ``{}``: uniform over all transitions.
-
-        :param weights: source id -> non-negative weight
-        """
-        weights = dict(weights or {})
-        for source, weight in weights.items():
-            if not np.isfinite(weight) or weight < 0:
-                raise ValueError(f"sampling weight of source {source} must be finite and >= 0, got {weight}")
-        self._sampling_weights = {int(s): float(w) for s, w in weights.items()}
-
-    def set_reward_scale(self, scales: Optional[dict[int, float]]) -> None:
-        """
-        Per-source reward scale applied at sampling time (stored rewards are unchanged).
-
-        :param scales: source id -> factor (sources not listed: 1)
-        """
-        scales = dict(scales or {})
-        for source, scale in scales.items():
-            if not np.isfinite(scale):
-                raise ValueError(f"reward scale of source {source} must be finite, got {scale}")
-        self._reward_scale = {int(s): float(v) for s, v in scales.items()}
-
-    # ------------------------------------------------------------------ sampling
-    def _sample_indices(self, batch_size: int) -> np.ndarray:
-        total = self.size()
-        if total == 0:
-            raise ValueError("cannot sample from an empty buffer")
-        if not self._sampling_weights or all(w == 1.0 for w in self._sampling_weights.values()):
-            return np.random.randint(0, total, size=batch_size)
-        starts, lengths, run_sources = self._source_runs()
-        counts = np.bincount(run_sources, weights=lengths)
-        ids = np.flatnonzero(counts)
-        mass = counts[ids] * np.array([self._sampling_weights.get(int(s), 1.0) for s in ids])
-        if mass.sum() <= 0:
-            raise ValueError("the sampling weights give zero probability to every stored transition")
-        chosen = np.random.choice(len(ids), size=batch_size, p=mass / mass.sum())
-        indices = np.empty(batch_size, dtype=np.int64)
-        for k in np.unique(chosen):
-            where = np.flatnonzero(chosen == k)
-            runs = np.flatnonzero(run_sources == ids[k])
-            cum = np.cumsum(lengths[runs])
-            offset = np.random.randint(0, cum[-1], size=len(where))
-            run = np.searchsorted(cum, offset, side="right")
-            indices[where] = starts[runs][run] + offset - (cum[run] - lengths[runs][run])
-        return indices
-
-    def sample(  # type: ignore[override]
-        self,
-        batch_size: int,
-        env: Optional[VecNormalize] = None,
-        return_sources: bool = False,
-        next_actions: bool = False,
-    ) -> Union[_Samples, tuple[_Samples, th.Tensor]]:
-        """
-        Sample transitions uniformly (or with the per-source weights) over everything stored.
-
-        :param batch_size: Number of transitions
-        :param env: VecNormalize to normalise observations and rewards with
-        :param return_sources: Also return the source ids of the batch (a long tensor)
-        :param next_actions: Also return the action the data took at each sample's (last) next observation, for
-            SARSA targets: ``OfflineSamples`` with ``next_actions`` (zeros where unknown) and ``next_action_mask``
-            (1.0 where the same stream goes on after that transition without an episode end)
-        :return: The samples (``discounts`` is set when ``n_steps > 1``, like SB3's ``NStepReplayBuffer``;
-            ``DictReplayBufferSamples`` for Dict observations), and the source ids if asked.
-        """
-        samples, sources = self._get_samples_and_sources(self._sample_indices(batch_size), env, next_actions)
-        if return_sources:
-            return samples, th.as_tensor(sources.astype(np.int64), device=self.device)
-        return samples
-
-    def _scaled(self, rewards: np.ndarray, sources: np.ndarray) -> np.ndarray:
-        if not self._reward_scale:
-            return rewards
-        table = np.ones(max(max(self._reward_scale), int(sources.max(initial=0))) + 1, dtype=np.float32)
-        for source, scale in self._reward_scale.items():
-            table[source] = scale
-        return rewards * table[sources]
-
-    def _tensor(self, array: np.ndarray) -> th.Tensor:
-        # the gathered arrays are fresh copies: no second copy needed
-        return th.as_tensor(array, device=self.device)
-
-    def _obs_tensor(self, obs: Union[np.ndarray, dict[str, np.ndarray]], env: Optional[VecNormalize]) -> Any:
-        obs = self._normalize_obs(obs, env)
-        if isinstance(obs, dict):
-            return {key: self._tensor(value) for key, value in obs.items()}
-        return self._tensor(obs)
-
-    def _samples(self, **kwargs: Any) -> Any:
-        """``ReplayBufferSamples``, or ``DictReplayBufferSamples`` for Dict observations (as SB3's ``DictReplayBuffer``)."""
-        return (ReplayBufferSamples if self._obs_keys is None else DictReplayBufferSamples)(**kwargs)
-
-    def _get_samples(self, batch_inds: np.ndarray, env: Optional[VecNormalize] = None) -> _Samples:  # type: ignore[override]
-        return self._get_samples_and_sources(batch_inds, env)[0]
-
-    def _get_samples_and_sources(
-        self, batch_inds: np.ndarray, env: Optional[VecNormalize], next_actions: bool = False
-    ) -> tuple[_Samples, np.ndarray]:
-        """:return: the samples of rows ``batch_inds`` (with the data's next actions if asked) and their source ids"""
-        batch_inds = np.asarray(batch_inds, dtype=np.int64)
-        if self.n_steps > 1:
-            return self._get_n_step_samples(batch_inds, env, next_actions)
-        rows = self._gather_rows(("observations", "actions", "next_observations", "rewards", "flags", "sources"), batch_inds)
-        flags = rows["flags"]
-        dones = ((flags & FLAG_DONE) != 0) & ((flags & FLAG_TIMEOUT) == 0)
-        rewards = self._scaled(rows["rewards"], rows["sources"])
-        samples = self._samples(
-            observations=self._obs_tensor(rows["observations"], env),
-            actions=self._tensor(rows["actions"]),
-            next_observations=self._obs_tensor(rows["next_observations"], env),
-            dones=self._tensor(dones.astype(np.float32).reshape(-1, 1)),
-            rewards=self._tensor(self._normalize_reward(rewards.reshape(-1, 1), env).astype(np.float32, copy=False)),
-        )
-        if next_actions:
-            samples = self._with_next_actions(samples, batch_inds, flags)
-        return samples, rows["sources"]
-
-    def _get_n_step_samples(
-        self, batch_inds: np.ndarray, env: Optional[VecNormalize], next_actions: bool = False
-    ) -> tuple[_Samples, np.ndarray]:
-        total = self.size()
-        first = self._gather_rows(("observations", "actions", "rewards", "flags", "sources", "streams", "widths"), batch_inds)
-        steps = np.arange(1, self.n_steps)
-        # the next transition of the same env stream is `widths` rows further (the n_envs of the add() that wrote it)
-        succ = batch_inds[:, None] + steps[None, :] * first["widths"].astype(np.int64)[:, None]
-        in_range = succ < total
-        succ = np.where(in_range, succ, batch_inds[:, None])
-        later = self._gather(("rewards", "flags", "sources", "streams"), succ.reshape(-1))
-        shape = succ.shape
-        linked = in_range & (later["streams"].reshape(shape) == first["streams"][:, None])
-        flags = np.concatenate([first["flags"][:, None], later["flags"].reshape(shape)], axis=1)
-        rewards = np.concatenate([first["rewards"][:, None], later["rewards"].reshape(shape)], axis=1)
-        sources = np.concatenate([first["sources"][:, None], later["sources"].reshape(shape)], axis=1)
-        indices = np.concatenate([batch_inds[:, None], succ], axis=1)
-        # step k counts if steps 0..k-1 did not end an episode (done or timeout) and step k follows in the same stream
-        step_ok = np.ones(indices.shape, dtype=bool)
-        step_ok[:, 1:] = ((flags[:, :-1] & (FLAG_DONE | FLAG_TIMEOUT)) == 0) & linked
-        mask = np.logical_and.accumulate(step_ok, axis=1)
-        count = mask.sum(axis=1)
-        rewards = self._normalize_reward(self._scaled(rewards, sources), env)
-        powers = self.gamma ** np.arange(self.n_steps, dtype=np.float32)
-        returns = (rewards * powers[None, :] * mask).sum(axis=1, keepdims=True).astype(np.float32)
-        discounts = (self.gamma ** count.astype(np.float32)).reshape(-1, 1).astype(np.float32)
-        rows = np.arange(len(batch_inds))
-        last = indices[rows, count - 1]
-        last_flags = flags[rows, count - 1]
-        final_dones = ((last_flags & FLAG_DONE) != 0) & ((last_flags & FLAG_TIMEOUT) == 0)
-        next_obs = self._gather_rows(("next_observations",), last)["next_observations"]
-        samples = self._samples(
-            observations=self._obs_tensor(first["observations"], env),
-            actions=self._tensor(first["actions"]),
-            next_observations=self._obs_tensor(next_obs, env),
-            dones=self._tensor(final_dones.astype(np.float32).reshape(-1, 1)),
-            rewards=self._tensor(returns),
-            discounts=self._tensor(discounts),
-        )
-        if next_actions:
-            samples = self._with_next_actions(samples, last, last_flags)
-        return samples, first["sources"]
-
-    def _with_next_actions(self, samples: _Samples, last: np.ndarray, last_flags: np.ndarray) -> OfflineSamples:
-        """
-        :param samples: the batch
-        :param last: the row whose next observation each sample bootstraps from
-        :param last_flags: the flags of those rows
-        :return: the batch plus the action taken at that next observation, where the same stream goes on
-        """
-        total = self.size()
-        own = self._gather(("streams", "widths"), last)
-        successor = last + own["widths"].astype(np.int64)
-        in_range = successor < total
-        later = self._gather(("actions", "streams"), np.where(in_range, successor, last))
-        known = in_range & (later["streams"] == own["streams"]) & ((last_flags & (FLAG_DONE | FLAG_TIMEOUT)) == 0)
-        actions = np.where(known[:, None], later["actions"].reshape(len(last), -1), 0.0).astype(np.float32)
-        return OfflineSamples(
-            observations=samples.observations,
-            actions=samples.actions,
-            next_observations=samples.next_observations,
-            dones=samples.dones,
-            rewards=samples.rewards,
-            discounts=samples.discounts,
-            next_actions=self._tensor(actions.reshape(len(last), *later["actions"].shape[1:])),
-            next_action_mask=self._tensor(known.astype(np.float32).reshape(-1, 1)),
-        )
-
-    # ------------------------------------------------------------------ export
-    def to_d4rl(self, by_episode: bool = True, normalized_actions: bool = False) -> dict[str, np.ndarray]:
-        """
-        Materialise the whole buffer as a d4rl-style dict (in memory).
-
-        :param by_episode: Order the rows stream by stream (each env's trajectory contiguous, as d4rl expects)
-            and mark the last row of a stream that did not end an episode as a timeout. Otherwise keep the
-            stored order (transitions of parallel envs interleaved).
-        :param normalized_actions: Export the actions as stored (SB3 stores Box actions normalised to
-            ``[-1, 1]``). By default they are rescaled to the action space's bounds (environment units, the d4rl
-            convention), when the space is a bounded Box.
-        :return: ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals`` (done and not a
-            timeout), ``timeouts`` (time-limit truncations) and ``sources`` (source id of each transition)
-        """
-        return interop.to_d4rl(self, by_episode, normalized_actions)
-
-    def to_minari(
-        self,
-        dataset_id: str,
-        normalized_actions: bool = False,
-        unfinished: str = "truncate",
-        description: Optional[str] = None,
-        **minari_kwargs: Any,
-    ) -> Any:
-        """
-        Write the buffer as a new local Minari dataset (under ``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``).
-        Needs the optional package ``minari`` (``pip install minari[hdf5]``). The data is materialised in memory.
-
-        Episodes: the rows of each env stream (see :meth:`to_d4rl`), split after every episode end (done or
-        time-limit truncation), and also where ``next_observations[t] != observations[t + 1]`` inside a stream
-        (a Minari episode is one chain of observations: the cut is written as a truncation). The source id of step
-        ``t`` is written to ``infos["sb3_lifelong_source"][t + 1]`` (``[0]`` repeats it for the reset), and the
-        sources' names and metadata to the dataset metadata ``sb3_lifelong_sources``, so that :meth:`from_minari`
-        restores them.
-
-        :param dataset_id: Minari dataset id, ``(namespace/)(env_name/)dataset_name(-v<version>)``; must not exist
-        :param normalized_actions: Write the actions as stored (normalised to ``[-1, 1]``, with a ``Box(-1, 1)``
-            action space). By default they are in environment units (as :meth:`to_d4rl`) with the buffer's space
-        :param unfinished: The last episode of a stream that has not ended yet (the write head of an env, or a stream
-            cut by a reopen, an ``n_envs`` change or ``end_streams()``): ``"truncate"`` writes it with its last step
-            marked as a truncation (as :meth:`to_d4rl` does), ``"drop"`` leaves it out
-        :param description: Dataset description (default: says where it comes from)
-        :param minari_kwargs: Further arguments of ``minari.create_dataset_from_buffers`` (``author``,
-            ``author_email``, ``algorithm_name``, ``code_permalink``, ``env``, ``eval_env``, ``data_format``, ...).
-            Image observations are stored losslessly (``jpeg_encoding=False``) unless asked otherwise
-        :return: The ``minari.MinariDataset``
-        """
-        return interop.to_minari(self, dataset_id, normalized_actions, unfinished, description, **minari_kwargs)
-
-    def save_npz(self, file: Union[str, os.PathLike]) -> None:
-        """
-        Write :meth:`to_d4rl` to a ``.npz`` file (no pickle inside).
-
-        :param file: Target file
-        """
-        interop.save_npz(self, file)
 
 
 BUFFER_MODES = ("new", "append", "overwrite")
@@ -579,14 +59,11 @@ def _prepare_directory(path: str, mode: str) -> int:
         return 0
     if not os.path.isfile(manifest):
         return 0
-    try:
-        with open(manifest) as handle:
-            return int(json.load(handle).get("num_transitions", 0))
-    except (OSError, ValueError, TypeError, AttributeError):
-        return -1
+    held = committed_transitions(path)
+    return -1 if held is None else held
 
 
-class LifelongReplayBuffer(_LifelongSampler):
+class LifelongReplayBuffer(LifelongSampler):
     """
     Replay buffer that keeps every transition (or the most recent ``capacity`` ones), tagged with its source
     (stage), in memory or in a crash-safe directory of append-only files, read with memory maps or positioned reads
@@ -675,16 +152,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         self._refused_writes = f"{path_str!r} held {held:,} transitions when it was opened" if held and mode == "new" else ""
         fields: Optional[dict[str, tuple[str, tuple[int, ...]]]] = None
         if observation_space is not None and action_space is not None:
-            action_dtype = self._maybe_cast_dtype(action_space.dtype)
-            fields = {
-                **_observation_fields(observation_space),
-                "actions": (np.dtype(action_dtype).str, (get_action_dim(action_space),)),
-                "rewards": ("<f4", ()),
-                "flags": ("|u1", ()),
-                "sources": ("<u2", ()),
-                "streams": ("<u4", ()),
-                "widths": ("<u2", ()),
-            }
+            fields = buffer_fields(observation_space, action_space, self._maybe_cast_dtype(action_space.dtype))
         elif path_str is None:
             raise ValueError("observation_space and action_space are required for a new buffer")
         self.store = RowStore(
@@ -701,13 +169,14 @@ class LifelongReplayBuffer(_LifelongSampler):
         )
         if not self.store.spaces and observation_space is not None and action_space is not None and not read_only:
             self.store.describe_spaces(
-                {"observation": _space_to_json(observation_space), "action": _space_to_json(action_space)}
+                {"observation": space_to_json(observation_space), "action": space_to_json(action_space)}
             )
         if observation_space is None or action_space is None:
             act_dtype, act_shape = self.store.fields["actions"]
-            observation_space = _observation_space_from_store(self.store)
-            action_space = _space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
+            observation_space = observation_space_of(self.store)
+            action_space = space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
         self._obs_keys = obs_keys_of(self.store.fields)
+        self._checks = AddChecks(observation_space, action_space, self.store.fields)
         self.observation_space = observation_space
         self.action_space = action_space
         self.obs_shape = get_obs_shape(observation_space)  # type: ignore[assignment]
@@ -718,10 +187,10 @@ class LifelongReplayBuffer(_LifelongSampler):
         self.optimize_memory_usage = False
         self.handle_timeout_termination = handle_timeout_termination
         self._init_sampler(n_steps, gamma)
-        self._source = self._check_source(source)
+        self._source = check_source_id(source)
         self._stream_base: Optional[int] = None
         self._width = 0
-        self._runs = _RunIndex(self.store.first)
+        self._runs = RunIndex(self.store.first)
         self._index_sources(0)
 
     # ------------------------------------------------------------------ construction helpers
@@ -823,13 +292,17 @@ class LifelongReplayBuffer(_LifelongSampler):
         )
 
     # ------------------------------------------------------------------ sources
-    @staticmethod
-    def _check_source(source: int) -> int:
-        if not isinstance(source, (int, np.integer)) or isinstance(source, bool) or not 0 <= source <= MAX_SOURCE_ID:
-            raise ValueError(f"source ids are ints in [0, {MAX_SOURCE_ID}], got {source!r}")
-        return int(source)
+    def name_source(self, source: int, name: Optional[str] = None, metadata: Optional[dict[str, Any]] = None) -> None:
+        """
+        Make a source id known, or rename it or replace its metadata, without making it the source of the next
+        transitions (:meth:`set_source` does that too): what importers and :func:`merge_buffers` do before
+        :meth:`append_rows`.
 
-    def _ensure_source(self, source: int, name: Optional[str] = None, metadata: Optional[dict[str, Any]] = None) -> None:
+        :param source: Source id in [0, 65534]
+        :param name: Name (default: the name it has, else ``"source_<id>"``)
+        :param metadata: JSON-serialisable dict (default: the metadata it has, else ``{}``)
+        """
+        source = check_source_id(source)
         known = self.store.source(source)
         if known is None:
             self.store.set_source(source, name or f"source_{source}", metadata or {})
@@ -850,8 +323,8 @@ class LifelongReplayBuffer(_LifelongSampler):
         :param name: Name (default ``"source_<id>"``)
         :param metadata: JSON-serialisable dict (e.g. the physical parameters of this environment variant)
         """
-        self._source = self._check_source(source)
-        self._ensure_source(self._source, name, metadata)
+        self._source = check_source_id(source)
+        self.name_source(self._source, name, metadata)
 
     def _source_of(self, info: dict[str, Any]) -> int:
         stage = info.get(STAGE_KEY)
@@ -861,7 +334,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         known = self.store.source(source)
         if known is not None and known["name"] != f"source_{source}":
             return source  # named already: by an earlier transition of this stage, or by set_source(name=...)
-        source = self._check_source(source)
+        source = check_source_id(source)
         params = info.get(DYNAMICS_PARAMS_KEY)
         metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
         self.store.set_source(source, f"stage_{source}", metadata)
@@ -908,33 +381,16 @@ class LifelongReplayBuffer(_LifelongSampler):
         :param done: Episode ends (terminations and time-limit truncations)
         :param infos: One info dict per env (``"TimeLimit.truncated"``, ``"stage"``, ``"dynamics_params"``)
         """
-        if getattr(self, "_refused_writes", ""):  # (absent from pickles of earlier versions)
+        if self._refused_writes:
             raise FileExistsError(
                 f"{self._refused_writes}: adding would mix this run's data into it. Pass mode='append' to continue it "
                 "(as LifelongReplayBuffer.open does; in SB3: replay_buffer_kwargs={'path': ..., 'mode': 'append'}), "
                 "mode='overwrite' to delete it and start again, or choose another path."
             )
-        reward = np.asarray(reward, dtype=np.float32)
-        if reward.ndim != 1:
-            reward = _env_vector("rewards", reward)
-        width = len(reward)
-        if len(infos) != width:
-            raise ValueError(
-                f"add(): infos has {len(infos)} entries for {width} envs (the length of rewards): expected one info dict "
-                "per env"
-            )
-        if width != self._add_width:
-            self._set_add_shapes(width)
-        flags = np.array(done, dtype=bool)  # a copy: stored as the flags (bit 0: done), timeouts set in place below
-        if flags.shape != self._add_done:
-            flags = np.array(_conform("dones", flags, self._add_done))
-        actions = np.asarray(action)
-        if actions.shape != self._add_actions:
-            actions = self._conform_actions(actions, width)
-        if actions.dtype != self._action_dtype and self._action_dtype.kind == "f":
-            actions = actions.astype(self._action_dtype)  # stored as this: the finiteness check sees the stored values
-        rows = self._checked_rows(obs, next_obs, actions, reward, width)
+        rows = self._checks.rows(obs, next_obs, action, reward, done, infos)
         # checked: nothing of this call was stored (or changed) before
+        width = len(infos)
+        flags = rows["flags"]
         if width != self._width or self._stream_base is None:
             self._stream_base = self.store.reserve_streams(width)
             self._width = width
@@ -943,7 +399,7 @@ class LifelongReplayBuffer(_LifelongSampler):
             self._widths = np.full(width, width, dtype=np.uint16)
         source = self._source
         if self.store.source(source) is None:
-            self._ensure_source(source)
+            self.name_source(source)
         sources = self._source_rows
         if self._source_rows_of != source or len(sources) != width:
             sources = self._source_rows = np.full(width, source, dtype=np.uint16)  # append() copies it
@@ -957,122 +413,26 @@ class LifelongReplayBuffer(_LifelongSampler):
             if timeouts and info.get("TimeLimit.truncated", False):
                 flags = flags.view(np.uint8)
                 flags[i] |= FLAG_TIMEOUT
-        rows["actions"] = actions
-        rows["rewards"] = reward
         rows["flags"] = flags
         rows["sources"] = sources
         rows["streams"] = self._stream_ids
         rows["widths"] = self._widths
-        self._append_rows(rows)
+        self.append_rows(rows)
 
-    def _checked_rows(
-        self, obs: Any, next_obs: Any, actions: np.ndarray, reward: np.ndarray, width: int
-    ) -> dict[str, np.ndarray]:
-        """add(): the observation rows, shaped (or a ValueError), and a ValueError if a float value is not finite."""
-        if self._obs_keys is None:
-            target, dtype = self._add_obs, self._obs_dtype
-            observations = np.asarray(obs)
-            if observations.shape != target:
-                observations = self._conform_obs("observations", observations, target)
-            next_observations = np.asarray(next_obs)
-            if next_observations.shape != target:
-                next_observations = self._conform_obs("next_observations", next_observations, target)
-            if observations.dtype != dtype and dtype.kind == "f":
-                observations = observations.astype(dtype)
-            if next_observations.dtype != dtype and dtype.kind == "f":
-                next_observations = next_observations.astype(dtype)
-            # a cheap test of every value: a NaN or an infinity in x or y makes the dot product x.y NaN or infinite
-            # (x * 0 is NaN for x infinite, and an infinite sum never comes back). Large finite values that overflow
-            # do so too: then the exact check finds nothing
-            total = float(reward[0]) if width == 1 else float(_vdot(reward, reward))
-            if actions.dtype.kind == "f":
-                total += float(_vdot(actions, actions))
-            if dtype.kind == "f":  # both of the stored float dtype
-                total += float(_vdot(observations, next_observations))
-            else:
-                if observations.dtype.kind == "f":
-                    total += float(_vdot(observations, observations))
-                if next_observations.dtype.kind == "f":
-                    total += float(_vdot(next_observations, next_observations))
-            if not _isfinite(total):
-                self._check_finite({"observations": observations, "next_observations": next_observations}, actions, reward)
-            rows = {"observations": observations, "next_observations": next_observations}
-        else:
-            rows = {
-                **self._observation_rows("observations", obs, width),
-                **self._observation_rows("next_observations", next_obs, width),
-            }
-            self._check_finite(rows, actions, reward)
-        return rows
-
-    # class defaults, so that buffers pickled by earlier versions compute them at their first add()
-    _add_width = -1
+    # class defaults: add() makes its array of source ids at its first call, and again when the source or n_envs changes
     _source_rows = np.zeros(0, dtype=np.uint16)
     _source_rows_of = -1
 
-    def _set_add_shapes(self, width: int) -> None:
-        """The shapes add() expects for ``width`` envs, and the stored dtypes of its float fields."""
-        self._add_width = width
-        self._add_done = (width,)
-        self._add_actions = (width, self.action_dim)
-        action_shape = tuple(self.action_space.shape or ())
-        accepted = {(width, self.action_dim), (width, *action_shape)}
-        if width == 1:  # one env, unbatched: SB3 reshapes it too
-            accepted |= {(self.action_dim,), action_shape}
-        self._accepted_actions = accepted
-        self._action_dtype = np.dtype(self.store.fields["actions"][0])
-        if self._obs_keys is None:
-            self._add_obs = (width, *self.obs_shape)  # type: ignore[misc]
-            self._obs_dtype = np.dtype(self.store.fields["observations"][0])
+    def append_rows(self, rows: dict[str, np.ndarray]) -> None:
+        """
+        Append transitions as the store keeps them, without the checks and conversions of :meth:`add`: what importers
+        (``from_d4rl``, ``from_minari``) and :func:`merge_buffers` write. Each row must already hold what ``add`` would
+        have stored: normalised actions, the ``flags`` (``FLAG_DONE``, ``FLAG_TIMEOUT``), known source ids
+        (:meth:`name_source`), stream ids reserved with ``store.reserve_streams`` and the ``widths``. In a directory,
+        a failed write stores none of the call's rows (see :meth:`add`).
 
-    def _conform_actions(self, actions: np.ndarray, width: int) -> np.ndarray:
-        if actions.shape not in self._accepted_actions:
-            raise ValueError(
-                f"add(): actions have shape {actions.shape}, expected {self._add_actions} ({width} envs, the length of "
-                f"rewards; action space {self.action_space})"
-            )
-        return actions.reshape(self._add_actions)
-
-    def _conform_obs(
-        self, label: str, obs: np.ndarray, target: tuple[int, ...], space: Optional[spaces.Space] = None
-    ) -> np.ndarray:
-        """Observations of a shape other than ``target``: what SB3's ``ReplayBuffer.add`` accepts (reshaped Discrete
-        observations, numpy broadcasting otherwise), or a ``ValueError``."""
-        space = self.observation_space if space is None else space
-        if isinstance(space, spaces.Discrete):
-            if obs.size == target[0] and obs.ndim <= 2:
-                return obs.reshape(target)
-            raise ValueError(
-                f"add(): {label} have shape {obs.shape}, expected {target} or {target[:1]} ({target[0]} envs, the length "
-                f"of rewards; observation space {space})"
-            )
-        return _conform(label, obs, target, f"observation space {space}")
-
-    def _observation_rows(self, base: str, obs: Union[np.ndarray, dict[str, np.ndarray]], width: int) -> dict[str, np.ndarray]:
-        if not isinstance(obs, dict) or set(obs) != set(self._obs_keys or ()):
-            got = sorted(obs) if isinstance(obs, dict) else type(obs).__name__
-            raise ValueError(f"add(): {base}: expected a dict with the keys {list(self._obs_keys or ())}, got {got}")
-        shapes: dict[str, tuple[int, ...]] = self.obs_shape  # type: ignore[assignment]
-        subspaces = self.observation_space.spaces  # type: ignore[attr-defined]
-        rows = {}
-        for key in self._obs_keys or ():
-            name, target = f"{base}.{key}", (width, *shapes[key])
-            value = np.asarray(obs[key])
-            if value.shape != target:
-                value = self._conform_obs(f"{base}[{key!r}]", value, target, subspaces[key])
-            dtype = self.store.dtypes[name]
-            rows[name] = value.astype(dtype) if value.dtype != dtype and dtype.kind == "f" else value
-        return rows
-
-    def _check_finite(self, obs_rows: dict[str, np.ndarray], actions: np.ndarray, rewards: np.ndarray) -> None:
-        """Raise a ValueError naming the field and the envs if a float value is NaN or infinite."""
-        fields = {**obs_rows, "actions": actions, "rewards": rewards}
-        for name, values in fields.items():
-            if values.dtype.kind == "f":
-                label = name if "." not in name else "{}[{!r}]".format(*name.split(".", 1))
-                raise_if_not_finite(values, f"add(): {label} of env", "nothing of this add() was stored")
-
-    def _append_rows(self, rows: dict[str, np.ndarray]) -> None:
+        :param rows: every stored field (``buffer.store.fields``) -> array of shape (n, *row_shape)
+        """
         end = self.store.end
         try:
             self.store.append(rows)
@@ -1158,7 +518,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         if self.store.path is not None:
             raise RuntimeError("refusing to erase a persistent lifelong buffer; delete its directory instead")
         self.store.clear()
-        self._runs = _RunIndex()
+        self._runs = RunIndex()
         self._stream_base = None
 
     def __enter__(self) -> LifelongReplayBuffer:
@@ -1188,7 +548,7 @@ class LifelongReplayBuffer(_LifelongSampler):
         """The number of most recent transitions kept (older ones are evicted), or None when every one is kept."""
         return self.store.capacity
 
-    @property  # type: ignore[override]
+    @property
     def buffer_size(self) -> int:
         """``capacity`` when set; otherwise the size SB3 asked for, or the number of stored transitions if larger
         (then never a limit)."""
@@ -1212,7 +572,8 @@ class LifelongReplayBuffer(_LifelongSampler):
     def _source_runs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self._runs.runs(self.store.first)
 
-    def _read_range(self, name: str, start: int, stop: int) -> np.ndarray:
+    def read_range(self, name: str, start: int, stop: int) -> np.ndarray:
+        """Rows ``start:stop`` of a stored field, as stored (see :meth:`LifelongSampler.read_range`)."""
         return self.store.read_range(name, start, stop)
 
     def __repr__(self) -> str:

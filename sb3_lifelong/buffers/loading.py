@@ -151,7 +151,7 @@ def resolve_data(
             "offline data must be an SB3 ReplayBuffer, a LifelongReplayBuffer directory, a d4rl-style dict, the path of "
             f"a .npz file or a Minari dataset, got {type(data).__name__}"
         )
-    d4rl = load_d4rl(data)  # type: ignore[arg-type]
+    d4rl = load_d4rl(data)
     normalized = bool(normalized_actions)
     observation_space, action_space = infer_spaces(d4rl, observation_space, action_space, normalized)
     d4rl = {**d4rl, "actions": normalize_actions(d4rl, action_space, normalized)}

@@ -10,11 +10,14 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.utils import get_device
 
-from sb3_lifelong.buffers.interop import _COPY_BLOCK
-from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer, _LifelongSampler
+from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer
+from sb3_lifelong.buffers.sampling import LifelongSampler
+
+#: rows copied by merge_buffers at a time
+COPY_BLOCK = 1 << 16
 
 
-class LifelongBufferView(_LifelongSampler):
+class LifelongBufferView(LifelongSampler):
     """
     Read-only concatenation of several lifelong buffers (parallel agents, earlier lifetimes) for offline
     training, without copying: indices run over the buffers one after the other, and the view sees what the
@@ -96,7 +99,8 @@ class LifelongBufferView(_LifelongSampler):
         starts = np.concatenate([p[0] + offsets[k] for k, p in enumerate(parts)])
         return starts, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts])
 
-    def _read_range(self, name: str, start: int, stop: int) -> np.ndarray:
+    def read_range(self, name: str, start: int, stop: int) -> np.ndarray:
+        """Rows ``start:stop`` of a stored field over the buffers one after the other (streams kept apart)."""
         offsets = self._offsets()
         pieces = []
         for k, buffer in enumerate(self.buffers):
@@ -136,14 +140,14 @@ def merge_buffers(
     total_size = sum(buffer.size() - int(start) for buffer, start in zip(buffers, starts))
     merged = LifelongReplayBuffer(total_size, first.observation_space, first.action_space, path=path, **kwargs)
     for source, info in view.sources.items():
-        merged._ensure_source(source, info["name"], info["metadata"])
+        merged.name_source(source, info["name"], info["metadata"])
     for buffer, first_row in zip(buffers, starts):
         base = merged.store.reserve_streams(buffer.store.next_stream_id)  # the copy's stream ids, shifted
         total = buffer.size()
-        for start in range(int(first_row), total, _COPY_BLOCK):
-            stop = min(total, start + _COPY_BLOCK)
+        for start in range(int(first_row), total, COPY_BLOCK):
+            stop = min(total, start + COPY_BLOCK)
             rows = {name: np.asarray(buffer.store.read_range(name, start, stop)) for name in merged.store.fields}
             rows["streams"] = (rows["streams"].astype(np.int64) + base).astype(np.uint32)
-            merged._append_rows(rows)
+            merged.append_rows(rows)
     merged.flush()
     return merged

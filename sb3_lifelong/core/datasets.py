@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 REQUIRED_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals")
-#: the largest source id a transition may have: the buffer's (``sb3_lifelong.buffers.storage.MAX_SOURCE_ID``, a layer
+#: the largest source id a transition may have: the buffer's (``sb3_lifelong.buffers.manifest.MAX_SOURCE_ID``, a layer
 #: above this module; equal, tested)
 MAX_SOURCE_ID = 65534
 OPTIONAL_KEYS = ("timeouts", "sources")

@@ -50,7 +50,7 @@ except ImportError:  # pragma: no cover
 
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.buffers.storage import write_json_atomic
+from sb3_lifelong.buffers.files import write_json_atomic
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.envs import DynamicsSchedule
