@@ -34,7 +34,8 @@ from torch import nn
 
 import sb3_lifelong.crr.crr as crr_module
 from sb3_lifelong import CRR
-from sb3_lifelong.common.utils import LowPrecisionCopy, _run_mlp_no_grad, sample_gaussian
+from sb3_lifelong.common.policies import sample_gaussian
+from sb3_lifelong.common.scoring import LowPrecisionCopy, _run_mlp_no_grad
 
 CURRENT_TARGET_ACTIONS = crr_module.target_actions
 

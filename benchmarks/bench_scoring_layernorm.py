@@ -1,6 +1,6 @@
 """
 The bfloat16 scoring pass with Acme's LayerNorm torso: its cost against the plain torso's, with the LayerNorm and
-tanh fused in float32 (``sb3_lifelong.common.utils._layer_norm_no_grad``, the library's path) and unfused (the
+tanh fused in float32 (``sb3_lifelong.common.scoring._layer_norm_no_grad``, the library's path) and unfused (the
 modules called one after another, as before the fusion: ``LayerNorm(x.float())``, back to bfloat16, then ``tanh``).
 
 One process, one torch thread, the three passes interleaved round by round so that they see the same machine load;
@@ -23,8 +23,9 @@ import torch as th
 from torch import nn
 
 from sb3_lifelong import MPO
-from sb3_lifelong.common import utils
-from sb3_lifelong.common.utils import sample_gaussian, score_actions
+from sb3_lifelong.common import scoring
+from sb3_lifelong.common.policies import sample_gaussian
+from sb3_lifelong.common.scoring import score_actions
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 
@@ -64,7 +65,7 @@ def main() -> None:
     with th.no_grad():
         mean, std = models[True].actor_target.distribution_params(obs)
         actions = sample_gaussian(mean, std, args.num_samples)
-    fused_path = utils._layer_norm_no_grad
+    fused_path = scoring._layer_norm_no_grad
     variants: dict[str, tuple[MPO, Callable[..., th.Tensor]]] = {
         "plain torso": (models[False], fused_path),
         "LayerNorm, fused (library)": (models[True], fused_path),
@@ -74,11 +75,11 @@ def main() -> None:
     with th.no_grad():
         for round_index in range(args.rounds + 1):  # round 0 warms up
             for name, (model, layer_norm_pass) in variants.items():
-                utils._layer_norm_no_grad = layer_norm_pass  # type: ignore[assignment]
+                scoring._layer_norm_no_grad = layer_norm_pass  # type: ignore[assignment]
                 try:
                     elapsed = time_pass(model, obs, actions, args.calls)
                 finally:
-                    utils._layer_norm_no_grad = fused_path  # type: ignore[assignment]
+                    scoring._layer_norm_no_grad = fused_path  # type: ignore[assignment]
                 if round_index:
                     times[name].append(elapsed)
     plain = float(np.median(times["plain torso"]))

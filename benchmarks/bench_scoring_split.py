@@ -17,9 +17,9 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.torch_layers import FlattenExtractor
 
-from sb3_lifelong.common import utils
+from sb3_lifelong.common import scoring
 from sb3_lifelong.common.policies import QCritic
-from sb3_lifelong.common.utils import LowPrecisionCopy, score_actions
+from sb3_lifelong.common.scoring import LowPrecisionCopy, score_actions
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 #: (name, observation width, action width)
@@ -33,7 +33,7 @@ def main() -> None:
     parser.add_argument("--layer-norm", action="store_true", help="the LayerNorm torso (MPO's default) instead of ReLU")
     args = parser.parse_args()
     th.set_num_threads(1)
-    threshold = utils.SPLIT_MIN_FEATURES
+    threshold = scoring.SPLIT_MIN_FEATURES
     lines = [
         "| robot (obs + action) | split used | split (ms) | stacked bf16 (ms) | float32 (ms) | stacked / split "
         "| float32 / split |",
@@ -50,7 +50,7 @@ def main() -> None:
         with th.no_grad():
             for _ in range(args.rounds):
                 for mode in times:
-                    utils.SPLIT_MIN_FEATURES = threshold if mode == "split" else 10**9
+                    scoring.SPLIT_MIN_FEATURES = threshold if mode == "split" else 10**9
                     low = None if mode == "float32" else copy
                     for _ in range(3):
                         score_actions(critic, obs, actions, low)
@@ -58,9 +58,9 @@ def main() -> None:
                     for _ in range(args.calls):
                         score_actions(critic, obs, actions, low)
                     times[mode].append((time.perf_counter() - start) / args.calls * 1e3)
-        utils.SPLIT_MIN_FEATURES = threshold
+        scoring.SPLIT_MIN_FEATURES = threshold
         med = {mode: float(np.median(values)) for mode, values in times.items()}
-        used = utils._splits_first_layer(critic.q_networks[0], width, action_dim, copy)
+        used = scoring._splits_first_layer(critic.q_networks[0], width, action_dim, copy)
         lines.append(
             f"| {name} ({width} + {action_dim}) | {'yes' if used else 'no'} | {med['split']:.2f} | {med['stacked']:.2f} | "
             f"{med['float32']:.2f} | {med['stacked'] / med['split']:.2f}x | {med['float32'] / med['split']:.2f}x |"

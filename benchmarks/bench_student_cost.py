@@ -16,7 +16,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_lifelong import CRR
-from sb3_lifelong.common.utils import machine_description
+from sb3_lifelong.common.hardware import machine_description
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "student_cost.json"
 VARIANTS = {

@@ -10,8 +10,8 @@ from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback,
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_lifelong import CRR
-from sb3_lifelong.common.distributional import CategoricalCritic, categorical_projection
-from sb3_lifelong.crr.crr import advantage_baseline, advantage_weights, crr_weights
+from sb3_lifelong.crr.distributional import CategoricalCritic, categorical_projection
+from sb3_lifelong.crr.losses import advantage_baseline, advantage_weights, crr_weights
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50)
 LOGGED = ("critic_loss", "actor_loss", "advantage_mean", "weight_mean", "weight_clip_frac", "q_mean")

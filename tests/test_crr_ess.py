@@ -8,7 +8,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_lifelong import CRR
-from sb3_lifelong.crr.crr import advantage_weights, crr_weights, effective_sample_size, ess_temperature
+from sb3_lifelong.crr.losses import advantage_weights, crr_weights, effective_sample_size, ess_temperature
 from tests.test_crr import Recorder, flat_params, pendulum_data
 
 

@@ -15,9 +15,9 @@ from stable_baselines3.common.monitor import Monitor
 
 from sb3_lifelong import MPO, LifelongReplayBuffer
 from sb3_lifelong.common.base import EpisodeRngRecorder
-from sb3_lifelong.common.policies import gaussian_kl_per_dim, gaussian_log_prob
-from sb3_lifelong.common.utils import q_min, sample_gaussian, score_actions, tile_obs
-from sb3_lifelong.mpo.mpo import dual_value, inverse_softplus, m_step_loss, temperature_loss_and_weights
+from sb3_lifelong.common.policies import gaussian_kl_per_dim, gaussian_log_prob, sample_gaussian
+from sb3_lifelong.common.scoring import q_min, score_actions, tile_obs
+from sb3_lifelong.mpo.losses import dual_value, inverse_softplus, m_step_loss, temperature_loss_and_weights
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50, num_samples=8)
 

@@ -6,10 +6,10 @@ import torch as th
 from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
-from sb3_lifelong.common import utils
-from sb3_lifelong.common.policies import QCritic
-from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype, sample_gaussian, score_actions
-from sb3_lifelong.mpo.mpo import dual_value, temperature_loss_and_weights
+from sb3_lifelong.common import scoring
+from sb3_lifelong.common.policies import QCritic, mlp_layers, sample_gaussian
+from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, score_actions
+from sb3_lifelong.mpo.losses import dual_value, temperature_loss_and_weights
 
 # Stated tolerances of the bf16 pass, on a critic trained on Pendulum (256x256, 20 samples per state; measured:
 # mean error 6 % of the spread, max error 0.3 % of |Q|, max weight change 0.0034):
@@ -133,12 +133,12 @@ def test_auto_rule(monkeypatch):
     narrow = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[64, 64]), scoring_dtype="float32")
     wide = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[256, 256]), scoring_dtype="float32")
     cpu = th.device("cpu")
-    monkeypatch.setattr(utils, "cpu_has_fast_bf16", lambda: True)
+    monkeypatch.setattr(scoring, "cpu_has_fast_bf16", lambda: True)
     assert resolve_scoring_dtype("auto", wide.critic, cpu) == th.bfloat16
     assert resolve_scoring_dtype("auto", narrow.critic, cpu) == th.float32
     assert resolve_scoring_dtype("float32", wide.critic, cpu) == th.float32
     assert resolve_scoring_dtype("bfloat16", narrow.critic, cpu) == th.bfloat16
-    monkeypatch.setattr(utils, "cpu_has_fast_bf16", lambda: False)
+    monkeypatch.setattr(scoring, "cpu_has_fast_bf16", lambda: False)
     assert resolve_scoring_dtype("auto", wide.critic, cpu) == th.float32
     with pytest.raises(ValueError, match="scoring_dtype"):
         resolve_scoring_dtype("float16", wide.critic, cpu)
@@ -151,7 +151,7 @@ def test_relu_in_place_matches_relu(dtype):
     values = th.tensor([-3.5, -0.0, 0.0, 1e-30, -1e-30, 2.25, float("inf"), float("-inf"), 65280.0, -65280.0])
     x = th.cat([values, th.randn(4096)]).to(dtype).reshape(-1, 2)
     expected = th.relu(x)
-    out = utils.relu_in_place(x)
+    out = scoring.relu_in_place(x)
     assert out is x and out.dtype == dtype
     assert th.equal(out, expected) and not (out < 0).any()
     assert (out == 0).sum() == (expected == 0).sum()
@@ -170,53 +170,53 @@ def test_split_first_layer_for_wide_observations(monkeypatch, layer_norm):
     with th.no_grad():
         exact = score_actions(critic, obs, actions)
         split = score_actions(critic, obs, actions, copy)
-        monkeypatch.setattr(utils, "SPLIT_MIN_FEATURES", 10_000)  # the stacked bf16 product, for comparison
+        monkeypatch.setattr(scoring, "SPLIT_MIN_FEATURES", 10_000)  # the stacked bf16 product, for comparison
         stacked = score_actions(critic, obs, actions, copy)
     spread = exact.std(dim=0).mean()
     assert not th.equal(split, stacked)  # the split path ran
     assert (split - exact).abs().mean() <= Q_MEAN_ERROR_OF_SPREAD * spread
     assert (split - exact).abs().mean() <= 2 * (stacked - exact).abs().mean()
     monkeypatch.undo()
-    assert utils._splits_first_layer(critic.q_networks[0], 68, 20, copy)
-    assert not utils._splits_first_layer(critic.q_networks[0], 11, 3, copy)  # Hopper-sized: one product is faster
-    assert not utils._splits_first_layer(critic.q_networks[0], 68, 20, None)  # float32: the exact stacked pass
+    assert scoring._splits_first_layer(critic.q_networks[0], 68, 20, copy)
+    assert not scoring._splits_first_layer(critic.q_networks[0], 11, 3, copy)  # Hopper-sized: one product is faster
+    assert not scoring._splits_first_layer(critic.q_networks[0], 68, 20, None)  # float32: the exact stacked pass
 
 
 def test_tanh_in_place_matches_tanh():
     x = th.linspace(-12.0, 12.0, 100_001)
     expected = th.tanh(x)
-    assert utils.tanh_in_place(x.clone()).sub(expected).abs().max() <= 2e-7
+    assert scoring.tanh_in_place(x.clone()).sub(expected).abs().max() <= 2e-7
     small = th.tensor([1e-3, -1e-2, 0.0, 0.5])
-    th.testing.assert_close(utils.tanh_in_place(small.clone()), th.tanh(small), rtol=1e-3, atol=1e-7)
+    th.testing.assert_close(scoring.tanh_in_place(small.clone()), th.tanh(small), rtol=1e-3, atol=1e-7)
     double = x.double()  # other dtypes take torch's own tanh
-    assert th.equal(utils.tanh_in_place(double.clone()), th.tanh(double))
+    assert th.equal(scoring.tanh_in_place(double.clone()), th.tanh(double))
 
 
 def test_layer_norm_torso_in_low_precision_matches_its_modules():
     """The fused LayerNorm -> tanh of a bf16 pass: the modules' own float32 result, rounded to bf16 once."""
     th.manual_seed(0)
-    torso = th.nn.Sequential(*utils.mlp_layers(23, 1, [256, 256], th.nn.ReLU, layer_norm=True))
+    torso = th.nn.Sequential(*mlp_layers(23, 1, [256, 256], th.nn.ReLU, layer_norm=True))
     with th.no_grad():
         torso[1].weight.uniform_(0.5, 1.5)  # a LayerNorm with its own scale and shift
         torso[1].bias.uniform_(-0.5, 0.5)
     hidden = (th.randn(64, 256) * 3).to(th.bfloat16)  # the first Linear's output in a bf16 pass
     holder = th.nn.Module()
-    fused = utils._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True)
+    fused = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True)
     expected = th.tanh(torso[1](hidden.float())).to(th.bfloat16)
     assert fused.dtype == th.bfloat16 and fused.shape == (64, 256)
     # at most one bf16 rounding step apart (both round the same float32 value up to ~1e-7)
     assert (fused.float() - expected.float()).abs().max() <= 2**-8
-    plain = utils._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=False)
+    plain = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=False)
     assert th.equal(plain, torso[1](hidden.float()).to(th.bfloat16))
 
 
 def test_machine_description_names_the_matrix_flags_and_the_bf16_kernel(monkeypatch):
-    from sb3_lifelong.common import utils
+    from sb3_lifelong.common import hardware
 
-    flags = utils.cpu_matrix_flags()
-    assert set(flags) <= set(utils.MATRIX_FLAGS)
-    assert utils.cpu_has_fast_bf16() == ("avx512_bf16" in flags or "amx_bf16" in flags)
-    text = utils.machine_description()
+    flags = hardware.cpu_matrix_flags()
+    assert set(flags) <= set(hardware.MATRIX_FLAGS)
+    assert hardware.cpu_has_fast_bf16() == ("avx512_bf16" in flags or "amx_bf16" in flags)
+    text = hardware.machine_description()
     assert "matrix flags:" in text and "oneDNN bf16 kernel:" in text and th.__version__ in text
-    kernel = utils.onednn_bf16_kernel()
+    kernel = hardware.onednn_bf16_kernel()
     assert kernel and ("amx" not in kernel or "amx_bf16" in flags)  # an AMX kernel only where the CPU has AMX

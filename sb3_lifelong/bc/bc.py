@@ -119,18 +119,15 @@ class BC(LifelongOfflineAlgorithm):
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer])
         losses, nlls, errors, stds = [], [], [], []
+        assert self.replay_buffer is not None
         for _ in range(gradient_steps):
             self._n_updates += 1
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
             mean, std = self.actor.distribution_params(replay_data.observations)
             nll = -gaussian_log_prob(replay_data.actions, mean, std).mean()
             mse = (mean - replay_data.actions).pow(2).sum(dim=-1).mean()
             loss = nll if self.loss == "nll" else mse
-            self.actor.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if self.max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
-            self.actor.optimizer.step()
+            self._gradient_step(self.actor, loss, self.max_grad_norm)
             losses.append(loss.detach())
             nlls.append(nll.detach())
             errors.append(mse.detach())

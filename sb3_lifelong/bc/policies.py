@@ -20,9 +20,7 @@ class BCPolicy(GaussianPolicy):
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Box, lr_schedule: Schedule, **kwargs: Any):
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
         self.actor = self.make_actor()
-        self.actor.optimizer = self.optimizer_class(
-            self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
-        )
+        self.actor.optimizer = self.make_optimizer(self.actor.parameters(), lr_schedule)
 
     def set_training_mode(self, mode: bool) -> None:
         set_training_flags(self, mode, self.actor)

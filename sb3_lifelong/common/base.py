@@ -3,16 +3,12 @@ Base class of this package's off-policy algorithms: SB3's ``OffPolicyAlgorithm``
 streams of training and of the environment's resets are saved with the model and restored by ``load``).
 """
 
-import base64
 import contextvars
 import inspect
 import io
-import json
 import pathlib
-import pickletools
 import random
 import warnings
-import zipfile
 from collections.abc import Iterable
 from typing import Any, Optional, TypeVar, Union
 
@@ -24,13 +20,15 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BaseModel, ContinuousCritic
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_lifelong.common.distillation import distill
-from sb3_lifelong.common.utils import LowPrecisionCopy, resolve_scoring_dtype
+from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
-from sb3_lifelong.core.safe_load import safe_custom_objects
+from sb3_lifelong.core.safe_load import safe_custom_objects, saved_data, saved_policy_class
 
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
 
@@ -43,7 +41,8 @@ def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, 
     :param action_space: the algorithm's action space
     :return: the state, to be passed to :func:`restore_rng_state`
     """
-    np_state: tuple[Any, ...] = np.random.get_state()  # type: ignore[assignment]
+    np_state = np.random.get_state()
+    assert isinstance(np_state, tuple)  # the legacy form, get_state's default
     py_version, py_internal, py_gauss = random.getstate()
     state: dict[str, Any] = {
         "torch": th.get_rng_state().tolist(),
@@ -140,58 +139,6 @@ def _describe(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> str:
     return str(path) if isinstance(path, (str, pathlib.Path)) else "the checkpoint"
 
 
-def _saved_data(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> Optional[dict[str, Any]]:
-    """
-    The ``data`` of a saved model, parsed as JSON: its pickled entries stay base64 text, nothing is unpickled.
-
-    :param path: The zip (``.zip`` added if missing, as SB3 does) or a seekable file object (read, then put back)
-    :return: The document, or None when it cannot be read (not a zip, no ``data``: SB3's load reports it)
-    """
-    try:
-        if isinstance(path, (str, pathlib.Path)):
-            name = pathlib.Path(path)
-            if not name.exists():  # SB3 adds the suffix to a path that does not exist
-                name = name.with_name(name.name + ".zip")
-            with zipfile.ZipFile(name) as archive:
-                data = json.loads(archive.read("data"))
-        elif path.seekable():
-            position = path.tell()
-            try:
-                with zipfile.ZipFile(path) as archive:  # type: ignore[arg-type]
-                    data = json.loads(archive.read("data"))
-            finally:
-                path.seek(position)
-        else:
-            return None
-    except Exception:
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def _saved_policy_class(data: dict[str, Any]) -> Optional[tuple[str, str]]:
-    """
-    The policy class recorded in a saved model's ``data``, read without unpickling anything: the module and name that
-    the pickled class reference of ``data["policy_class"]`` pushes (the pickle's opcodes are only listed, never run).
-
-    :param data: The ``data`` of the zip (see :func:`_saved_data`)
-    :return: ``(module, name)``, or None when it cannot be told
-    """
-    try:
-        serialized = base64.b64decode(data["policy_class"][":serialized:"].encode())
-        strings: list[str] = []
-        for opcode, argument, _ in pickletools.genops(serialized):
-            if isinstance(argument, str) and opcode.name in ("SHORT_BINUNICODE", "BINUNICODE", "UNICODE", "BINUNICODE8"):
-                strings.append(argument)
-            elif opcode.name == "STACK_GLOBAL" and len(strings) >= 2:
-                return strings[-2], strings[-1]
-            elif opcode.name == "GLOBAL" and isinstance(argument, str) and " " in argument:
-                module, qualname = argument.split(" ", 1)
-                return module, qualname
-    except Exception:  # not the expected pickle: SB3's load reports it
-        return None
-    return None
-
-
 def _algorithms(base: type) -> list[type]:
     """Every algorithm class derived from ``base`` (those imported), ``base`` included."""
     found = [base]
@@ -210,10 +157,10 @@ def _check_saved_algorithm(
 
     :param cls: The class whose ``load`` was called
     :param path: The saved model, for the message
-    :param data: Its ``data`` (see :func:`_saved_data`), or None
+    :param data: Its ``data`` (see :func:`~sb3_lifelong.core.safe_load.saved_data`), or None
     :raises ValueError: e.g. ``CRR.load`` of an MPO zip
     """
-    saved = None if data is None else _saved_policy_class(data)
+    saved = None if data is None else saved_policy_class(data)
     if saved is None:
         return
 
@@ -245,8 +192,16 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     random numbers, and the first episode start, of the start of training). An env that was in the middle of an
     episode starts a new episode from its generator's saved state. The state of the environment itself (e.g.
     a dynamics schedule's step counter) is not saved; a dynamics schedule follows the model's ``num_timesteps``,
-    which ``learn`` tells it (:mod:`sb3_lifelong.core.contract`).
+    which ``learn`` tells it (:mod:`sb3_lifelong.core.contract`). It also holds what the algorithms' training steps
+    share: an optimizer step, the target networks' update, the critics' scoring copies, the check of the losses.
     """
+
+    # the networks of an algorithm with target networks (MPO, CRR), set by its _setup_model (SB3 declares ``actor``)
+    critic: th.nn.Module
+    critic_target: th.nn.Module
+    actor_target: th.nn.Module
+    #: the low-precision copy of ``critic_target`` that scores sampled actions (:meth:`_make_scoring_copy`), or None
+    _target_scoring_copy: Optional[LowPrecisionCopy] = None
 
     def _setup_model(self) -> None:
         if _LOADING_SAVED_BUFFER_KWARGS.get() and (self.replay_buffer_kwargs or {}).get("mode") == "overwrite":
@@ -363,18 +318,39 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
             "stores them; LifelongReplayBuffer refuses them at add()), or a learning rate too high"
         )
 
+    @staticmethod
+    def _gradient_step(module: BaseModel, loss: th.Tensor, max_grad_norm: Optional[float]) -> None:
+        """One step of ``module.optimizer`` down ``loss``, the gradients' norm clipped to ``max_grad_norm`` (None: not)."""
+        module.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if max_grad_norm is not None:
+            th.nn.utils.clip_grad_norm_(module.parameters(), max_grad_norm, foreach=True)
+        module.optimizer.step()
+
+    def _update_targets(self) -> None:
+        """
+        Move the target networks towards the online ones (an algorithm with targets calls it every
+        ``target_update_interval`` updates): Polyak averaging with ``tau`` (1: a copy), of the critic then of the actor,
+        and the target critic's low-precision copy follows.
+        """
+        polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+        polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+        if self._target_scoring_copy is not None:
+            self._target_scoring_copy.sync()
+
     def _make_scoring_copy(self, critic: th.nn.Module, scoring_dtype: str) -> Optional[LowPrecisionCopy]:
         """
         A low-precision copy of ``critic`` for the no-grad scoring passes, when ``scoring_dtype`` asks for one
-        (see :func:`sb3_lifelong.common.utils.resolve_scoring_dtype`); it is synchronised by
+        (see :func:`sb3_lifelong.common.scoring.resolve_scoring_dtype`); it is synchronised by
         :meth:`_sync_scoring_copies` after loads and by the algorithm after its updates.
 
-        :return: the copy, or None to score in the critic's own precision
+        :return: the copy, or None to score in the critic's own precision (always for a critic other than a
+            ``ContinuousCritic``: :func:`~sb3_lifelong.common.scoring.score_actions` scores it by calling it)
         """
         dtype = resolve_scoring_dtype(scoring_dtype, critic, self.device)
-        if dtype == th.float32:
+        if dtype == th.float32 or not isinstance(critic, ContinuousCritic):
             return None
-        copy = LowPrecisionCopy(critic, dtype)  # type: ignore[arg-type]
+        copy = LowPrecisionCopy(critic, dtype)
         self.__dict__.setdefault("_scoring_copies", []).append(copy)
         return copy
 
@@ -505,7 +481,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
                 self._env_rng = pending
 
     @classmethod
-    def load(  # type: ignore[override]
+    def load(
         cls: type[SelfLifelongAlgorithm],
         path: Union[str, pathlib.Path, io.BufferedIOBase],
         env: Optional[GymEnv] = None,
@@ -536,16 +512,10 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
             schedules, and references to policy, buffer, module and optimizer classes; anything else (a function
             pickled by value, any other global) raises ``pickle.UnpicklingError`` naming the entry and the global,
             before it runs (see :mod:`sb3_lifelong.core.safe_load`)
-        :param path: The saved model (``.zip`` added if missing) or a file object
-        :param env: As for SB3
-        :param device: As for SB3
-        :param custom_objects: As for SB3
-        :param print_system_info: As for SB3
-        :param force_reset: As for SB3
         :param kwargs: As for SB3 (e.g. ``replay_buffer_kwargs``)
         :return: The model
         """
-        data = _saved_data(path)
+        data = saved_data(path)
         _check_saved_algorithm(cls, path, data)
         if safe:
             if data is None:

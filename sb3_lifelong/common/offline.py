@@ -18,7 +18,7 @@ the path of a ``.npz`` file holding one, or a Minari dataset (id or object; need
 import time
 from collections import deque
 from collections.abc import Mapping
-from typing import Any, Optional, TypeVar
+from typing import Any, Callable, Optional, TypeVar
 
 import gymnasium as gym
 from gymnasium import spaces
@@ -33,7 +33,7 @@ from sb3_lifelong.core.datasets import (
     OfflineData,
     OfflineDataError,
 )
-from sb3_lifelong.evaluation.callbacks import EvalEnvs, MultiEnvEvalCallback, make_eval_envs
+from sb3_lifelong.evaluation.callbacks import EvalEnvs, MultiEnvEvalCallback
 
 __all__ = ["LifelongOfflineAlgorithm", "NoEnvironment", "OfflineProgressBarCallback"]
 
@@ -106,13 +106,15 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
         :return: the model
         """
         device = kwargs.get("device", "auto")
+        # the subclass's own constructor (it takes env=None and _init_setup_model, SB3's OffPolicyAlgorithm does not)
+        build: Callable[..., SelfOffline] = cls
         if env is not None:
-            model = cls(policy, env, _init_setup_model=False, **kwargs)  # type: ignore[call-arg]
+            model = build(policy, env, _init_setup_model=False, **kwargs)
             observation_space = observation_space or model.observation_space
             action_space = action_space or model.action_space
         buffer = resolve_data(data, observation_space, action_space, utils.get_device(device), normalized_actions)
         if env is None:
-            model = cls(policy, None, _init_setup_model=False, **kwargs)  # type: ignore[call-arg, arg-type]
+            model = build(policy, None, _init_setup_model=False, **kwargs)
             model.observation_space = buffer.observation_space
             model.action_space = buffer.action_space
             model.n_envs = 1

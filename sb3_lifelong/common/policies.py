@@ -1,24 +1,28 @@
-"""Policies shared by the algorithms of this package: a Gaussian actor and an actor-critic with target networks."""
+"""
+Policies shared by the algorithms of this package: a Gaussian actor and an actor-critic with target networks, the
+Gaussian's arithmetic (log-density, KL, samples) and the networks' building blocks (:func:`mlp_layers`, the
+optimizer's defaults).
+"""
 
 import copy
 import math
-from typing import Any, Optional, Union
+from collections.abc import Iterable
+from typing import Any, Callable, Optional, Union
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.policies import BaseModel, BasePolicy, ContinuousCritic
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     CombinedExtractor,
     FlattenExtractor,
+    create_mlp,
     get_actor_critic_arch,
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
-
-from sb3_lifelong.common.utils import mlp_layers, with_fast_optimizer
 
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -68,6 +72,49 @@ def gaussian_kl_per_dim(mean_p: th.Tensor, std_p: th.Tensor, mean_q: th.Tensor, 
     return 0.5 * (var_ratio + ((mean_p - mean_q) / std_q).pow(2) - 1.0 - th.log(var_ratio))
 
 
+def sample_gaussian(mean: th.Tensor, std: th.Tensor, num_samples: int) -> th.Tensor:
+    """
+    :param mean: ``[batch, action_dim]``
+    :param std: ``[batch, action_dim]``
+    :param num_samples: number of samples per state
+    :return: samples ``[num_samples, batch, action_dim]`` (not clipped)
+    """
+    noise = th.randn((num_samples, *mean.shape), dtype=mean.dtype, device=mean.device)
+    return mean.unsqueeze(0) + std.unsqueeze(0) * noise
+
+
+def mlp_layers(
+    input_dim: int, output_dim: int, net_arch: list[int], activation_fn: type[nn.Module], layer_norm: bool = False
+) -> list[nn.Module]:
+    """
+    SB3's ``create_mlp``, or with ``layer_norm`` the torso of Acme's ``LayerNormMLP`` (its MPO's actor and critic
+    networks): the first hidden layer is ``Linear -> LayerNorm -> tanh``, the others ``Linear -> activation_fn``.
+
+    :param input_dim: Input features
+    :param output_dim: Output units of a last ``Linear`` without activation (none if <= 0)
+    :param net_arch: Hidden layer widths
+    :param activation_fn: Activation of the hidden layers (all of them without ``layer_norm``; the later ones with)
+    :param layer_norm: LayerNorm and tanh after the first hidden layer
+    :return: the modules, for ``nn.Sequential``
+    """
+    if not layer_norm or not net_arch:
+        return create_mlp(input_dim, output_dim, net_arch, activation_fn)
+    first = [nn.Linear(input_dim, net_arch[0]), nn.LayerNorm(net_arch[0]), nn.Tanh()]
+    return first + create_mlp(net_arch[0], output_dim, net_arch[1:], activation_fn)
+
+
+def with_fast_optimizer(optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: Optional[dict]) -> dict:
+    """
+    :param optimizer_class: the optimizer class a policy was given
+    :param optimizer_kwargs: the keyword arguments it was given (None: none)
+    :return: the keyword arguments, with Adam's fused implementation unless the user chose an implementation
+    """
+    kwargs = dict(optimizer_kwargs or {})
+    if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(kwargs):
+        kwargs["fused"] = True
+    return kwargs
+
+
 class GaussianActor(BasePolicy):
     """
     Diagonal Gaussian actor for Box action spaces, working in the normalised action space ``[-1, 1]``.
@@ -87,7 +134,7 @@ class GaussianActor(BasePolicy):
     :param init_std: Standard deviation of the initial policy (normalised action units)
     :param min_std: Lower bound of the standard deviation
     :param layer_norm: LayerNorm and tanh after the first hidden layer, as Acme's ``LayerNormMLP`` (see
-        :func:`sb3_lifelong.common.utils.mlp_layers`)
+        :func:`mlp_layers`)
     """
 
     def __init__(
@@ -190,7 +237,7 @@ class GaussianPolicy(BasePolicy):
     :param init_std: Standard deviation of the initial policy (normalised action units)
     :param min_std: Lower bound of the policy's standard deviation
     :param layer_norm: LayerNorm and tanh after the first hidden layer of every network (actor and critics), as
-        Acme's ``LayerNormMLP`` (see :func:`sb3_lifelong.common.utils.mlp_layers`)
+        Acme's ``LayerNormMLP`` (see :func:`mlp_layers`)
     :param features_extractor_class: Features extractor to use
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
     :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
@@ -245,7 +292,8 @@ class GaussianPolicy(BasePolicy):
             "layer_norm": layer_norm,
         }
 
-    actor: GaussianActor
+    #: a :class:`GaussianActor` (see the subclasses' declarations; CRR's may be one actor per data source)
+    actor: BasePolicy
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -270,6 +318,16 @@ class GaussianPolicy(BasePolicy):
         actor_kwargs = self._update_features_extractor(self.actor_kwargs, features_extractor)
         return GaussianActor(**actor_kwargs).to(self.device)
 
+    def make_optimizer(self, parameters: Iterable[nn.Parameter], lr_schedule: Schedule) -> th.optim.Optimizer:
+        """
+        :param parameters: what the optimizer trains
+        :param lr_schedule: the learning rate schedule (its value at the start is used)
+        :return: an ``optimizer_class`` with ``optimizer_kwargs``
+        """
+        # called as the constructor it is: the learning rate is a keyword of every optimizer, not of the base class
+        optimizer_class: Callable[..., th.optim.Optimizer] = self.optimizer_class
+        return optimizer_class(parameters, lr=lr_schedule(1), **self.optimizer_kwargs)
+
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic=deterministic)
 
@@ -283,7 +341,7 @@ class QCritic(ContinuousCritic):
     layer. The parameters are ``ContinuousCritic``'s, and:
 
     :param layer_norm: LayerNorm and tanh after the first hidden layer of each Q-network (see
-        :func:`sb3_lifelong.common.utils.mlp_layers`)
+        :func:`mlp_layers`)
     """
 
     def __init__(
@@ -332,10 +390,10 @@ class GaussianActorCriticPolicy(GaussianPolicy):
         (``net_arch`` may be a dict with ``pi`` and ``qf``)
     """
 
-    actor: GaussianActor
-    actor_target: GaussianActor
-    critic: ContinuousCritic
-    critic_target: ContinuousCritic
+    # what _build makes: MPO's are a GaussianActor and a QCritic, CRR's declare theirs (CRRPolicy)
+    actor_target: BasePolicy
+    critic: BaseModel
+    critic_target: BaseModel
 
     def __init__(
         self,
@@ -362,19 +420,15 @@ class GaussianActorCriticPolicy(GaussianPolicy):
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
-        self.actor = self.make_actor()
-        self.actor.optimizer = self.optimizer_class(
-            self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
-        )
+        self.actor = self.make_trained_actor()
+        self.actor.optimizer = self.make_optimizer(self.actor.parameters(), lr_schedule)
         if self.share_features_extractor:
             self.critic = self.make_critic(features_extractor=self.actor.features_extractor)
             critic_parameters = [param for name, param in self.critic.named_parameters() if "features_extractor" not in name]
         else:
             self.critic = self.make_critic(features_extractor=None)
             critic_parameters = list(self.critic.parameters())
-        self.critic.optimizer = self.optimizer_class(
-            critic_parameters, lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
-        )
+        self.critic.optimizer = self.make_optimizer(critic_parameters, lr_schedule)
         # Target networks: exact copies, never trained by gradient
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
@@ -388,7 +442,18 @@ class GaussianActorCriticPolicy(GaussianPolicy):
         data.update(dict(n_critics=self.n_critics, share_features_extractor=self.share_features_extractor))
         return data
 
-    def make_critic(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> ContinuousCritic:
+    def make_trained_actor(self) -> BasePolicy:
+        """
+        :return: the actor that training updates (its target is a copy of it): a :meth:`make_actor`, unless a subclass
+            builds another kind (CRR: one actor per data source)
+        """
+        return self.make_actor()
+
+    def make_critic(self, features_extractor: Optional[BaseFeaturesExtractor] = None) -> BaseModel:
+        """
+        :param features_extractor: the actor's, when the critic shares it
+        :return: a :class:`QCritic` (a subclass may build another kind: CRR's categorical critic)
+        """
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return QCritic(**critic_kwargs).to(self.device)
 
@@ -401,10 +466,10 @@ class GaussianActorCriticPolicy(GaussianPolicy):
         set_training_flags(self, mode, self.actor, self.critic)
 
 
-class DictObservationsMixin:
+class DictObservationsMixin(GaussianPolicy):
     """
-    Mixed in before a policy class of this package, makes its ``features_extractor_class`` default to SB3's
-    ``CombinedExtractor``: the policy for Dict observation spaces (``MultiInputPolicy``), as in SB3.
+    Mixed in before a policy class of this package (a :class:`GaussianPolicy`), makes its ``features_extractor_class``
+    default to SB3's ``CombinedExtractor``: the policy for Dict observation spaces (``MultiInputPolicy``), as in SB3.
     """
 
     def __init__(
@@ -415,6 +480,6 @@ class DictObservationsMixin:
         features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
         **kwargs: Any,
     ):
-        super().__init__(  # type: ignore[call-arg]
+        super().__init__(
             observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
         )

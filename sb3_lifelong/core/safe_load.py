@@ -13,14 +13,21 @@ What may be rebuilt: NumPy arrays, dtypes and random generators; Gymnasium space
 called: policy classes and replay-buffer classes of SB3 and of this package, and torch module (activation) and
 optimizer classes, e.g. in ``policy_kwargs``. A schedule saved as a Python function (``learning_rate=lambda p: ...``)
 is code: refused; give it again with ``custom_objects={"learning_rate": ..., "lr_schedule": ...}``.
+
+What a zip says can also be read without unpickling anything: its ``data`` as JSON (:func:`saved_data`) and the
+policy class it records (:func:`saved_policy_class`), with which ``load`` refuses a zip of another algorithm.
 """
 
 import base64
 import importlib
 import io
+import json
+import pathlib
 import pickle
+import pickletools
+import zipfile
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Optional, Union
 
 #: globals that may be called while unpickling (data constructors that run no code of the file)
 CONSTRUCTIBLE = frozenset(
@@ -173,3 +180,55 @@ def safe_custom_objects(saved: Mapping[str, Any], custom_objects: Mapping[str, A
         raw = base64.b64decode(value[":serialized:"].encode())
         objects[key] = restricted_loads(raw, f"{where}: data[{key!r}]")
     return objects
+
+
+def saved_data(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> Optional[dict[str, Any]]:
+    """
+    The ``data`` of a saved model, parsed as JSON: its pickled entries stay base64 text, nothing is unpickled.
+
+    :param path: The zip (``.zip`` added if missing, as SB3 does) or a seekable file object (read, then put back)
+    :return: The document, or None when it cannot be read (not a zip, no ``data``: SB3's load reports it)
+    """
+    try:
+        if isinstance(path, (str, pathlib.Path)):
+            name = pathlib.Path(path)
+            if not name.exists():  # SB3 adds the suffix to a path that does not exist
+                name = name.with_name(name.name + ".zip")
+            with zipfile.ZipFile(name) as archive:
+                data = json.loads(archive.read("data"))
+        elif path.seekable():
+            position = path.tell()
+            try:
+                with zipfile.ZipFile(path) as archive:
+                    data = json.loads(archive.read("data"))
+            finally:
+                path.seek(position)
+        else:
+            return None
+    except Exception:
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def saved_policy_class(data: dict[str, Any]) -> Optional[tuple[str, str]]:
+    """
+    The policy class recorded in a saved model's ``data``, read without unpickling anything: the module and name that
+    the pickled class reference of ``data["policy_class"]`` pushes (the pickle's opcodes are only listed, never run).
+
+    :param data: The ``data`` of the zip (see :func:`saved_data`)
+    :return: ``(module, name)``, or None when it cannot be told
+    """
+    try:
+        serialized = base64.b64decode(data["policy_class"][":serialized:"].encode())
+        strings: list[str] = []
+        for opcode, argument, _ in pickletools.genops(serialized):
+            if isinstance(argument, str) and opcode.name in ("SHORT_BINUNICODE", "BINUNICODE", "UNICODE", "BINUNICODE8"):
+                strings.append(argument)
+            elif opcode.name == "STACK_GLOBAL" and len(strings) >= 2:
+                return strings[-2], strings[-1]
+            elif opcode.name == "GLOBAL" and isinstance(argument, str) and " " in argument:
+                module, qualname = argument.split(" ", 1)
+                return module, qualname
+    except Exception:  # not the expected pickle: SB3's load reports it
+        return None
+    return None

@@ -10,8 +10,8 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_lifelong.common.distributional import CategoricalCritic
-from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActor, GaussianActorCriticPolicy
+from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActor, GaussianActorCriticPolicy, QCritic
+from sb3_lifelong.crr.distributional import CategoricalCritic
 
 
 def _select_rows(obs: PyTorchObs, rows: th.Tensor) -> PyTorchObs:
@@ -47,6 +47,12 @@ class PerSourceActor(BasePolicy):
     def n_heads(self) -> int:
         return len(self.heads)
 
+    def head(self, index: int) -> GaussianActor:
+        """:return: the actor of head ``index``"""
+        actor = self.heads[index]
+        assert isinstance(actor, GaussianActor)
+        return actor
+
     def distribution_params(self, obs: PyTorchObs, heads: Optional[th.Tensor] = None) -> tuple[th.Tensor, th.Tensor]:
         """
         :param obs: Observation
@@ -54,14 +60,14 @@ class PerSourceActor(BasePolicy):
         :return: mean and standard deviation of each row's action distribution, each ``[batch, action_dim]``
         """
         if heads is None:
-            return self.heads[self.active_head].distribution_params(obs)  # type: ignore[operator]
+            return self.head(self.active_head).distribution_params(obs)
         used = th.unique(heads).tolist()
         if len(used) == 1:
-            return self.heads[used[0]].distribution_params(obs)  # type: ignore[operator]
+            return self.head(used[0]).distribution_params(obs)
         mean = std = None
         for head in used:
             rows = th.nonzero(heads == head, as_tuple=True)[0]
-            head_mean, head_std = self.heads[head].distribution_params(_select_rows(obs, rows))  # type: ignore[operator]
+            head_mean, head_std = self.head(head).distribution_params(_select_rows(obs, rows))
             if mean is None or std is None:
                 mean = head_mean.new_empty((heads.shape[0], head_mean.shape[1]))
                 std = head_std.new_empty((heads.shape[0], head_std.shape[1]))
@@ -77,9 +83,23 @@ class PerSourceActor(BasePolicy):
         return self(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
-        for head in self.heads:
-            head.set_training_mode(mode)  # type: ignore[operator]
+        for index in range(self.n_heads):
+            self.head(index).set_training_mode(mode)
         self.training = mode
+
+
+def actor_distribution(
+    actor: Union[GaussianActor, PerSourceActor], obs: PyTorchObs, heads: Optional[th.Tensor] = None
+) -> tuple[th.Tensor, th.Tensor]:
+    """
+    :param actor: the actor (one per source: ``heads`` picks each row's)
+    :param obs: observations ``[batch, ...]``
+    :param heads: with one actor per source, the actor of each row ``[batch]``
+    :return: the mean and std of the policy's Gaussian, ``[batch, action_dim]`` each
+    """
+    if isinstance(actor, PerSourceActor):
+        return actor.distribution_params(obs, heads)
+    return actor.distribution_params(obs)
 
 
 class CRRPolicy(GaussianActorCriticPolicy):
@@ -101,10 +121,10 @@ class CRRPolicy(GaussianActorCriticPolicy):
         :class:`sb3_lifelong.common.policies.GaussianActorCriticPolicy`
     """
 
-    critic: Union[ContinuousCritic, CategoricalCritic]  # type: ignore[assignment]
-    critic_target: Union[ContinuousCritic, CategoricalCritic]  # type: ignore[assignment]
-    actor: Union[GaussianActor, PerSourceActor]  # type: ignore[assignment]
-    actor_target: Union[GaussianActor, PerSourceActor]  # type: ignore[assignment]
+    critic: Union[ContinuousCritic, CategoricalCritic]
+    critic_target: Union[ContinuousCritic, CategoricalCritic]
+    actor: Union[GaussianActor, PerSourceActor]
+    actor_target: Union[GaussianActor, PerSourceActor]
     actor_average: Optional[Union[GaussianActor, PerSourceActor]]
 
     def __init__(
@@ -124,7 +144,7 @@ class CRRPolicy(GaussianActorCriticPolicy):
             raise ValueError(f"n_actors must be >= 1, got {n_actors}")
         if n_actors > 1 and kwargs.get("share_features_extractor", False):
             raise ValueError("n_actors > 1 (one actor per source) cannot share a features extractor with the critic")
-        # read by make_actor and make_critic, which the parent's constructor calls
+        # read by make_trained_actor and make_critic, which the parent's constructor calls
         self.n_actors = n_actors
         self.distributional_critic = distributional_critic
         self.n_atoms = n_atoms
@@ -156,20 +176,17 @@ class CRRPolicy(GaussianActorCriticPolicy):
         )
         return data
 
-    def make_actor(  # type: ignore[override]
-        self, features_extractor: Optional[BaseFeaturesExtractor] = None
-    ) -> Union[GaussianActor, PerSourceActor]:
+    def make_trained_actor(self) -> Union[GaussianActor, PerSourceActor]:
         if self.n_actors == 1:
-            return super().make_actor(features_extractor)
-        actors = [super(CRRPolicy, self).make_actor(features_extractor) for _ in range(self.n_actors)]
-        return PerSourceActor(actors).to(self.device)
+            return self.make_actor()
+        return PerSourceActor([self.make_actor() for _ in range(self.n_actors)]).to(self.device)
 
-    def make_critic(  # type: ignore[override]
+    def make_critic(
         self, features_extractor: Optional[BaseFeaturesExtractor] = None
     ) -> Union[ContinuousCritic, CategoricalCritic]:
-        if not self.distributional_critic:
-            return super().make_critic(features_extractor)
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        if not self.distributional_critic:
+            return QCritic(**critic_kwargs).to(self.device)
         return CategoricalCritic(**critic_kwargs, n_atoms=self.n_atoms, v_min=self.v_min, v_max=self.v_max).to(self.device)
 
 

@@ -1,150 +1,24 @@
-import math
+"""Maximum a Posteriori Policy Optimisation (MPO), online; its losses are in :mod:`sb3_lifelong.mpo.losses`."""
+
 from typing import Any, ClassVar, NamedTuple, Optional, TypeVar, Union
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
-from stable_baselines3.common.utils import polyak_update
-from torch.nn import functional as F
 from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
-from sb3_lifelong.common.policies import LOG_SQRT_2PI, GaussianActor, gaussian_kl_per_dim
-from sb3_lifelong.common.utils import SCORING_DTYPES, sample_gaussian, score_actions, with_fast_optimizer
+from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
+from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
+from sb3_lifelong.common.scoring import SCORING_DTYPES, score_actions
+from sb3_lifelong.mpo.losses import DUAL_RAW_FLOOR, dual_value, e_step, inverse_softplus, m_step_loss, trust_region
 from sb3_lifelong.mpo.policies import MlpPolicy, MPOPolicy, MultiInputPolicy
 
 SelfMPO = TypeVar("SelfMPO", bound="MPO")
-
-# Lowest raw (pre-softplus) value of a dual variable: softplus(-18) ~ 1.5e-8
-DUAL_RAW_FLOOR = -18.0
-DUAL_EPSILON = 1e-8
-
-
-def inverse_softplus(value: float) -> float:
-    """:return: ``x`` such that ``softplus(x) == value`` (``value > 0``)"""
-    if value <= 0:
-        raise ValueError(f"Dual variables must be initialised > 0, got {value}")
-    return float(value + math.log(-math.expm1(-value)))
-
-
-def dual_value(raw: th.Tensor) -> th.Tensor:
-    """:return: the positive dual variable parametrised by ``raw``: ``softplus(raw) + 1e-8``"""
-    return F.softplus(raw) + DUAL_EPSILON
-
-
-def temperature_loss_and_weights(q_values: th.Tensor, temperature: th.Tensor, epsilon: float) -> tuple[th.Tensor, th.Tensor]:
-    """
-    E-step of MPO: non-parametric improved policy over sampled actions, and the loss of the temperature dual.
-
-    ``weights = softmax_N(Q / eta)`` and
-    ``loss = eta * (epsilon + mean_B[logsumexp_N(Q / eta) - log N])`` (the gradient flows into ``eta`` only).
-
-    :param q_values: Q-values of the sampled actions, ``[num_samples, batch]`` (no gradient needed)
-    :param temperature: the temperature ``eta`` (scalar tensor, > 0)
-    :param epsilon: bound on ``KL(q || pi_old)`` per state
-    :return: the temperature loss (scalar) and the normalised weights ``[num_samples, batch]`` (detached)
-    """
-    q_values = q_values.detach()
-    num_samples = q_values.shape[0]
-    weights = th.softmax(q_values / temperature.detach(), dim=0)
-    log_normaliser = th.logsumexp(q_values / temperature, dim=0) - math.log(num_samples)
-    loss = temperature * (epsilon + log_normaliser.mean())
-    return loss, weights
-
-
-def action_penalty_q(sampled_actions: th.Tensor) -> th.Tensor:
-    """
-    The Multi-Objective MPO action penalty as a second "Q-function": ``-||a - clip(a, -1, 1)||``.
-
-    :param sampled_actions: ``[num_samples, batch, action_dim]``
-    :return: ``[num_samples, batch]``
-    """
-    return -th.linalg.vector_norm(sampled_actions - sampled_actions.clamp(-1.0, 1.0), dim=-1)
-
-
-def m_step_loss(
-    sampled_actions: th.Tensor,
-    all_weights: list[th.Tensor],
-    online_mean: th.Tensor,
-    online_std: th.Tensor,
-    target_mean: th.Tensor,
-    target_std: th.Tensor,
-) -> th.Tensor:
-    """
-    Decoupled M-step: weighted maximum likelihood of the sampled actions, the mean fitted with the target's std
-    and the std with the target's mean.
-
-    ``-mean_B sum_N w * (log N(a; mu, sigma_target) + log N(a; mu_target, sigma))``, computed exactly from the
-    weighted moments of the samples around the target mean (the log-density is quadratic in the action), so that
-    the graph autograd differentiates holds ``[batch, action_dim]`` tensors, not ``[num_samples, batch,
-    action_dim]`` ones.
-
-    :param sampled_actions: ``[num_samples, batch, action_dim]``
-    :param all_weights: the E-step weights of each objective, ``[num_samples, batch]`` each (no gradient)
-    :param online_mean: the online policy's mean ``[batch, action_dim]`` (with gradient)
-    :param online_std: the online policy's std ``[batch, action_dim]`` (with gradient)
-    :param target_mean: the target policy's mean ``[batch, action_dim]``
-    :param target_std: the target policy's std ``[batch, action_dim]``
-    :return: the policy loss (scalar), summed over the objectives
-    """
-    with th.no_grad():  # the loss is linear in the weights: the objectives' weights add up
-        weights = all_weights[0] if len(all_weights) == 1 else th.stack(all_weights).sum(dim=0)
-        offsets = sampled_actions - target_mean.unsqueeze(0)  # [N, B, A]
-        weighted = weights.unsqueeze(-1) * offsets
-        total = weights.sum(dim=0).unsqueeze(-1)  # [B, 1]: sum_N w (1 per objective)
-        first = weighted.sum(dim=0)  # [B, A]: sum_N w (a - mu_target)
-        second = (weighted * offsets).sum(dim=0)  # [B, A]: sum_N w (a - mu_target)^2
-    shift = online_mean - target_mean  # sum_N w (a - mu)^2 = second - 2 shift first + total shift^2
-    fit_mean = -0.5 * (second - 2.0 * shift * first + total * shift.square()) / target_std.square()
-    fit_mean = fit_mean - total * (th.log(target_std) + LOG_SQRT_2PI)
-    fit_std = -0.5 * second / online_std.square() - total * (th.log(online_std) + LOG_SQRT_2PI)
-    return -(fit_mean + fit_std).sum(dim=-1).mean()
-
-
-class TrustRegion(NamedTuple):
-    """The per-dimension KL constraints of the M-step, as penalties on the policy and losses of their duals."""
-
-    #: ``sum(alpha * KL)`` for the mean and the std (gradient into the policy only)
-    kl_loss: th.Tensor
-    #: ``sum(alpha * (epsilon - KL))`` for the mean and the std (gradient into the duals only)
-    dual_loss: th.Tensor
-    #: ``KL(pi_target || pi_online)`` of the mean and of the std, averaged over the batch, ``[action_dim]`` each
-    kl_mean: th.Tensor
-    kl_stddev: th.Tensor
-
-
-def trust_region(
-    target_mean: th.Tensor,
-    target_std: th.Tensor,
-    online_mean: th.Tensor,
-    online_std: th.Tensor,
-    alpha_mean: th.Tensor,
-    alpha_stddev: th.Tensor,
-    epsilon_mean: float,
-    epsilon_stddev: float,
-) -> TrustRegion:
-    """
-    :param target_mean: ``[batch, action_dim]``
-    :param target_std: ``[batch, action_dim]``
-    :param online_mean: ``[batch, action_dim]`` (with gradient)
-    :param online_std: ``[batch, action_dim]`` (with gradient)
-    :param alpha_mean: the mean's Lagrange multipliers ``[action_dim]`` (with gradient)
-    :param alpha_stddev: the std's Lagrange multipliers ``[action_dim]`` (with gradient)
-    :param epsilon_mean: per-dimension KL bound of the mean
-    :param epsilon_stddev: per-dimension KL bound of the std
-    :return: the penalties, the duals' losses and the KLs
-    """
-    kl_mean = gaussian_kl_per_dim(target_mean, target_std, online_mean, target_std).mean(dim=0)
-    kl_stddev = gaussian_kl_per_dim(target_mean, target_std, target_mean, online_std).mean(dim=0)
-    kl_loss = (alpha_mean.detach() * kl_mean).sum() + (alpha_stddev.detach() * kl_stddev).sum()
-    dual_loss = (alpha_mean * (epsilon_mean - kl_mean.detach())).sum() + (
-        alpha_stddev * (epsilon_stddev - kl_stddev.detach())
-    ).sum()
-    return TrustRegion(kl_loss, dual_loss, kl_mean, kl_stddev)
 
 
 class TargetSamples(NamedTuple):
@@ -251,6 +125,8 @@ class MPO(LifelongOffPolicyAlgorithm):
     policy: MPOPolicy
     actor: GaussianActor
     actor_target: GaussianActor
+    critic: ContinuousCritic
+    critic_target: ContinuousCritic
 
     def __init__(
         self,
@@ -369,7 +245,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             self.policy_kwargs = {"layer_norm": False, **self.policy_kwargs}
         super()._setup_model()
         self._create_aliases()
-        action_dim = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        action_dim = get_action_dim(self.action_space)
         # Dual variables, parametrised through softplus to stay positive, with their own optimizer. The ``log_*``
         # attributes hold the raw (inverse-softplus) parameters, not logarithms: ``dual_value`` gives the variables.
         # They keep these names because saved models store them under them (``_get_torch_save_params``).
@@ -407,11 +283,12 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
         logged: list[tuple[CriticFit, PolicyImprovement]] = []
+        assert self.replay_buffer is not None
 
         for _ in range(gradient_steps):
             self._n_updates += 1
             with record_function("mpo/sample_batch"):
-                replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+                replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
             with th.no_grad(), record_function("mpo/target_sample_and_score"):
                 targets = self._sample_and_score(replay_data)
             with record_function("mpo/critic_update"):
@@ -439,12 +316,6 @@ class MPO(LifelongOffPolicyAlgorithm):
                 if values:
                     self.logger.record(f"train/{key}", th.stack(values).mean().item())
 
-    def _update_targets(self) -> None:
-        polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-        polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
-        if self._target_scoring_copy is not None:
-            self._target_scoring_copy.sync()
-
     def _sample_and_score(self, replay_data: ReplayBufferSamples) -> TargetSamples:
         """
         Sample ``num_samples`` actions per state from the target policy and score them with the target critic,
@@ -454,7 +325,6 @@ class MPO(LifelongOffPolicyAlgorithm):
         :return: the critic's target and the scored samples of the target policy
         """
         num_samples, batch_size = self.num_samples, replay_data.rewards.shape[0]
-        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         obs, next_obs = replay_data.observations, replay_data.next_observations
         if self.policy_on_next_obs:
             target_mean, target_std = self.actor_target.distribution_params(next_obs)
@@ -471,35 +341,26 @@ class MPO(LifelongOffPolicyAlgorithm):
             sampled_actions, sampled_q = both_actions[:, :batch_size], both_q[:, :batch_size]
             next_q = both_q[:, batch_size:].mean(dim=0)
         # Expected SARSA over the target policy's samples (n-step discount from the buffer when it has one)
-        target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q.unsqueeze(1)
+        target_q = td_target(replay_data.rewards, bootstrap_discount(replay_data, self.gamma), next_q)
         return TargetSamples(target_q, target_mean, target_std, sampled_actions, sampled_q)
 
     def _update_critic(self, replay_data: ReplayBufferSamples, target_q: th.Tensor) -> CriticFit:
         current_q_values = self.critic(replay_data.observations, replay_data.actions)
-        critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q) for current_q in current_q_values)
-        assert isinstance(critic_loss, th.Tensor)
-        self.critic.optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm, foreach=True)
-        self.critic.optimizer.step()
+        critic_loss = q_regression_loss(current_q_values, target_q)
+        self._gradient_step(self.critic, critic_loss, self.max_grad_norm)
         return CriticFit(critic_loss=critic_loss.detach(), q_mean=current_q_values[0].detach().mean())
 
     def _update_actor_and_duals(self, policy_obs: Any, targets: TargetSamples) -> PolicyImprovement:
         # E-step: weights of the sampled actions (one set per objective), temperature duals
         temperature = dual_value(self.log_temperature)
-        dual_loss, weights = temperature_loss_and_weights(targets.q_values, temperature, self.epsilon)
-        all_weights = [weights]
-        penalty_temperature = None
-        if self.action_penalty:
-            penalty_temperature = dual_value(self.log_penalty_temperature)
-            penalty_q = action_penalty_q(targets.actions)
-            penalty_loss, penalty_weights = temperature_loss_and_weights(penalty_q, penalty_temperature, self.epsilon_penalty)
-            dual_loss = dual_loss + penalty_loss
-            all_weights.append(penalty_weights)
+        penalty_temperature = dual_value(self.log_penalty_temperature) if self.action_penalty else None
+        improved = e_step(
+            targets.q_values, targets.actions, temperature, self.epsilon, penalty_temperature, self.epsilon_penalty
+        )
 
         # M-step, decoupled, under per-dimension KL constraints
         online_mean, online_std = self.actor.distribution_params(policy_obs)
-        policy_loss = m_step_loss(targets.actions, all_weights, online_mean, online_std, targets.mean, targets.std)
+        policy_loss = m_step_loss(targets.actions, improved.weights, online_mean, online_std, targets.mean, targets.std)
         alpha_mean = dual_value(self.log_alpha_mean)
         alpha_stddev = dual_value(self.log_alpha_stddev)
         region = trust_region(
@@ -512,7 +373,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             self.epsilon_mean,
             self.epsilon_stddev,
         )
-        dual_loss = dual_loss + region.dual_loss
+        dual_loss = improved.dual_loss + region.dual_loss
 
         self.actor.optimizer.zero_grad(set_to_none=True)
         self.dual_optimizer.zero_grad(set_to_none=True)
@@ -533,7 +394,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             kl_stddev=region.kl_stddev.detach().mean(),
             std_min=online_std.detach().min(),
             std_max=online_std.detach().max(),
-            ess=(1.0 / weights.pow(2).sum(dim=0)).mean() / self.num_samples,
+            ess=(1.0 / improved.weights[0].pow(2).sum(dim=0)).mean() / self.num_samples,
             penalty_temperature=None if penalty_temperature is None else penalty_temperature.detach().squeeze(),
         )
 

@@ -2,7 +2,9 @@
 
 from typing import Any
 
-from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActorCriticPolicy
+from stable_baselines3.common.policies import ContinuousCritic
+
+from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActor, GaussianActorCriticPolicy
 
 
 class MPOPolicy(GaussianActorCriticPolicy):
@@ -16,6 +18,11 @@ class MPOPolicy(GaussianActorCriticPolicy):
         the last three evaluations) and kept Hopper-v5 where it was (852 -> 1102), both above SAC
         (``benchmarks/results/mpo_quality.md``). ``False`` gives SB3's plain MLPs (MPO's default before 2026-11-25).
     """
+
+    actor: GaussianActor
+    actor_target: GaussianActor
+    critic: ContinuousCritic
+    critic_target: ContinuousCritic
 
     def __init__(self, *args: Any, layer_norm: bool = True, **kwargs: Any):
         super().__init__(*args, layer_norm=layer_norm, **kwargs)

@@ -1,6 +1,5 @@
 """Categorical (distributional) Q-function critic, as in the CRR paper, with its TD target and loss."""
 
-from collections.abc import Iterable
 from typing import NamedTuple, Optional
 
 import torch as th
@@ -12,9 +11,11 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_lifelong.common.utils import mlp_layers, tile_obs
+from sb3_lifelong.common.losses import sum_of
+from sb3_lifelong.common.policies import mlp_layers
+from sb3_lifelong.common.scoring import tile_obs
 
-__all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection", "sum_of"]
+__all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection"]
 
 
 class CriticLoss(NamedTuple):
@@ -24,16 +25,6 @@ class CriticLoss(NamedTuple):
     loss: th.Tensor
     #: the lowest (expected) Q-value over the Q-networks of each of the batch's actions, ``[batch]`` (detached)
     q_values: th.Tensor
-
-
-def sum_of(losses: Iterable[th.Tensor]) -> th.Tensor:
-    """:return: the sum of one loss per Q-network (a typed ``sum``: the same additions, in the same order)"""
-    total: Optional[th.Tensor] = None
-    for loss in losses:
-        total = loss if total is None else total + loss
-    if total is None:
-        raise ValueError("no losses to sum")
-    return total
 
 
 def categorical_projection(next_probs: th.Tensor, rewards: th.Tensor, discounts: th.Tensor, support: th.Tensor) -> th.Tensor:
@@ -83,10 +74,11 @@ class CategoricalCritic(BaseModel):
     :param n_atoms: number of atoms of the distribution
     :param v_min: smallest return of the support
     :param v_max: largest return of the support
-    :param layer_norm: LayerNorm and tanh after the first hidden layer (see :func:`sb3_lifelong.common.utils.mlp_layers`)
+    :param layer_norm: LayerNorm and tanh after the first hidden layer (see :func:`sb3_lifelong.common.policies.mlp_layers`)
     """
 
     support: th.Tensor
+    features_extractor: BaseFeaturesExtractor
 
     def __init__(
         self,
@@ -132,7 +124,7 @@ class CategoricalCritic(BaseModel):
         """
         if features is None:
             with th.set_grad_enabled(not self.share_features_extractor):
-                features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+                features = self.extract_features(obs, self.features_extractor)
         qvalue_input = th.cat([features, actions], dim=1)
         return tuple(q_net(qvalue_input) for q_net in self.q_networks)
 
@@ -187,5 +179,5 @@ class CategoricalCritic(BaseModel):
     def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
         """:return: the expected Q-value of the first network only, ``[batch, 1]``"""
         with th.no_grad():
-            features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+            features = self.extract_features(obs, self.features_extractor)
         return self.expected(self.q_networks[0](th.cat([features, actions], dim=1)))

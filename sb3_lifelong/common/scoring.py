@@ -1,15 +1,47 @@
-"""Tensor helpers shared by the algorithms: sample many actions per state and score them in one critic call."""
+"""
+Scoring sampled actions: the Q-values of ``num_samples`` actions per state in one critic call (:func:`score_actions`),
+which MPO's E-step and target and CRR's advantage baseline and TD target all rest on, and the CPU engine that makes
+its no-grad pass cheap:
 
-import functools
-import os
-import pathlib
+- the features are extracted once per state, not once per sample;
+- the Q-networks' ``Linear`` layers write into buffers kept on the critic and reused across gradient steps, and the
+  activations run in place (:func:`_run_mlp_no_grad`), bit for bit ``mlp(inputs)``;
+- with a :class:`LowPrecisionCopy` (``scoring_dtype``, :func:`resolve_scoring_dtype`) the hidden layers run in
+  bfloat16, a LayerNorm and its tanh in float32 (:func:`_layer_norm_no_grad`), the output layer in float32; the
+  first layer is then split into a per-state and a per-sample product when the features are wide
+  (:func:`_first_layer_split`).
+
+**The reused buffers.** They live in ``critic.__dict__["_no_grad_buffers"]``, a dict keyed
+``(q-network index, slot, rows)``, where ``rows`` is the pass's ``num_samples * batch`` and ``slot`` says which
+tensor of the pass it holds, from the position ``p`` of a module in its Q-network (an ``nn.Sequential``):
+
+- ``p``: the output of the ``Linear`` at ``p`` (``0`` also for the split first layer);
+- ``-p``: the input of the ``Linear`` at ``p`` converted to its weights' precision (the float32 output layer after
+  a low-precision pass);
+- ``LAYER_NORM_INPUT - p``, ``LAYER_NORM_OUTPUT - p``, ``LAYER_NORM_MEAN - p``, ``LAYER_NORM_RSTD - p``: for the
+  LayerNorm at ``p`` in a low-precision pass, its input in float32, its normalised output in float32 (the tanh
+  applied in place), and its row statistics; ``LAYER_NORM_RESULT - p``: that output back in the pass's precision.
+
+A buffer is made again when its shape, dtype or device changes (:func:`_reused_buffer`); it is uninitialised
+when new, and every pass writes it whole before reading it.
+"""
+
 from typing import Optional, Union
 
 import torch as th
 from stable_baselines3.common.policies import ContinuousCritic
-from stable_baselines3.common.torch_layers import create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
+
+from sb3_lifelong.common.hardware import cpu_has_fast_bf16
+
+SCORING_DTYPES = ("auto", "float32", "bfloat16")
+#: narrowest hidden layer for which ``scoring_dtype="auto"`` picks bfloat16: below it the matrices are too small
+#: for the faster arithmetic to pay for the conversions (64-wide layers ran 2x slower in bf16 on an AVX-512 CPU)
+AUTO_BF16_MIN_WIDTH = 128
+
+#: the slots of a LayerNorm's buffers (see the module's description), below every ``Linear``'s ``-p``
+LAYER_NORM_INPUT, LAYER_NORM_OUTPUT, LAYER_NORM_MEAN, LAYER_NORM_RSTD, LAYER_NORM_RESULT = -1000, -2000, -3000, -4000, -5000
 
 
 def tile_obs(obs: PyTorchObs, num_samples: int) -> PyTorchObs:
@@ -22,19 +54,8 @@ def tile_obs(obs: PyTorchObs, num_samples: int) -> PyTorchObs:
     :return: observations ``[num_samples * batch, ...]``
     """
     if isinstance(obs, dict):
-        return {key: tile_obs(value, num_samples) for key, value in obs.items()}  # type: ignore[misc]
+        return {key: value.repeat(num_samples, *([1] * (value.dim() - 1))) for key, value in obs.items()}
     return obs.repeat(num_samples, *([1] * (obs.dim() - 1)))
-
-
-def sample_gaussian(mean: th.Tensor, std: th.Tensor, num_samples: int) -> th.Tensor:
-    """
-    :param mean: ``[batch, action_dim]``
-    :param std: ``[batch, action_dim]``
-    :param num_samples: number of samples per state
-    :return: samples ``[num_samples, batch, action_dim]`` (not clipped)
-    """
-    noise = th.randn((num_samples, *mean.shape), dtype=mean.dtype, device=mean.device)
-    return mean.unsqueeze(0) + std.unsqueeze(0) * noise
 
 
 def q_min(q_values: Union[tuple[th.Tensor, ...], list[th.Tensor]]) -> th.Tensor:
@@ -45,113 +66,6 @@ def q_min(q_values: Union[tuple[th.Tensor, ...], list[th.Tensor]]) -> th.Tensor:
     if len(q_values) == 1:
         return q_values[0]
     return th.min(th.cat(list(q_values), dim=1), dim=1, keepdim=True)[0]
-
-
-def mlp_layers(
-    input_dim: int, output_dim: int, net_arch: list[int], activation_fn: type[nn.Module], layer_norm: bool = False
-) -> list[nn.Module]:
-    """
-    SB3's ``create_mlp``, or with ``layer_norm`` the torso of Acme's ``LayerNormMLP`` (its MPO's actor and critic
-    networks): the first hidden layer is ``Linear -> LayerNorm -> tanh``, the others ``Linear -> activation_fn``.
-
-    :param input_dim: Input features
-    :param output_dim: Output units of a last ``Linear`` without activation (none if <= 0)
-    :param net_arch: Hidden layer widths
-    :param activation_fn: Activation of the hidden layers (all of them without ``layer_norm``; the later ones with)
-    :param layer_norm: LayerNorm and tanh after the first hidden layer
-    :return: the modules, for ``nn.Sequential``
-    """
-    if not layer_norm or not net_arch:
-        return create_mlp(input_dim, output_dim, net_arch, activation_fn)
-    first = [nn.Linear(input_dim, net_arch[0]), nn.LayerNorm(net_arch[0]), nn.Tanh()]
-    return first + create_mlp(net_arch[0], output_dim, net_arch[1:], activation_fn)
-
-
-def with_fast_optimizer(optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: Optional[dict]) -> dict:
-    """
-    :param optimizer_class: the optimizer class a policy was given
-    :param optimizer_kwargs: the keyword arguments it was given (None: none)
-    :return: the keyword arguments, with Adam's fused implementation unless the user chose an implementation
-    """
-    kwargs = dict(optimizer_kwargs or {})
-    if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(kwargs):
-        kwargs["fused"] = True
-    return kwargs
-
-
-SCORING_DTYPES = ("auto", "float32", "bfloat16")
-#: narrowest hidden layer for which ``scoring_dtype="auto"`` picks bfloat16: below it the matrices are too small
-#: for the faster arithmetic to pay for the conversions (64-wide layers ran 2x slower in bf16 on an AVX-512 CPU)
-AUTO_BF16_MIN_WIDTH = 128
-
-
-@functools.cache
-def cpu_has_fast_bf16() -> bool:
-    """:return: whether this CPU multiplies bfloat16 matrices natively (AVX-512 BF16 or AMX; Linux only)"""
-    try:
-        flags = pathlib.Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return " avx512_bf16" in flags or " amx_bf16" in flags
-
-
-#: the CPU flags that decide how fast the networks' matrix products run (what the benchmarks report)
-MATRIX_FLAGS = ("amx_bf16", "amx_tile", "amx_int8", "avx512_bf16", "avx512f", "avx2", "fma")
-
-
-def cpu_matrix_flags() -> list[str]:
-    """:return: which of :data:`MATRIX_FLAGS` this CPU has (Linux ``/proc/cpuinfo``; empty elsewhere)"""
-    try:
-        text = pathlib.Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return []
-    line = next((line for line in text.splitlines() if line.startswith("flags")), "")
-    present = set(line.partition(":")[2].split())
-    return [flag for flag in MATRIX_FLAGS if flag in present]
-
-
-def onednn_bf16_kernel(timeout: float = 120.0) -> str:
-    """
-    The oneDNN kernel that runs a bfloat16 matrix product with this torch build, read from ``ONEDNN_VERBOSE`` in a
-    child process (e.g. ``brg_matmul:avx10_1_512_amx`` on an AMX CPU).
-
-    :param timeout: seconds the child may take
-    :return: the kernel's name, or a sentence saying that oneDNN did not run the product (torch's own kernel then)
-    """
-    import subprocess
-    import sys
-
-    code = "import torch; torch.set_num_threads(1); a = torch.randn(256, 256, dtype=torch.bfloat16); a @ a"
-    env = {**os.environ, "ONEDNN_VERBOSE": "1", "OMP_NUM_THREADS": "1"}
-    try:
-        result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout)
-    except (OSError, subprocess.TimeoutExpired) as error:
-        return f"unknown ({type(error).__name__})"
-    for line in (result.stdout + result.stderr).splitlines():
-        fields = line.split(",")
-        if "exec" in fields and "matmul" in fields:
-            return fields[fields.index("matmul") + 1]
-    return "none: oneDNN did not run the bf16 product (torch's own kernel)"
-
-
-def machine_description() -> str:
-    """:return: one line for a benchmark's results: CPU, its matrix flags, the bf16 kernel, torch and its threads"""
-    import platform
-
-    model = "unknown CPU"
-    try:
-        model = next(
-            line.partition(":")[2].strip()
-            for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines()
-            if line.startswith("model name")
-        )
-    except (OSError, StopIteration):
-        model = platform.processor() or platform.machine()
-    flags = ", ".join(cpu_matrix_flags()) or "none of " + "/".join(MATRIX_FLAGS)
-    return (
-        f"{model}; matrix flags: {flags}; oneDNN bf16 kernel: {onednn_bf16_kernel()}; "
-        f"torch {th.__version__}, {th.get_num_threads()} thread(s)"
-    )
 
 
 def resolve_scoring_dtype(scoring_dtype: str, critic: nn.Module, device: th.device) -> th.dtype:
@@ -236,6 +150,21 @@ def relu_in_place(x: th.Tensor) -> th.Tensor:
     return x.relu_()
 
 
+def tanh_in_place(x: th.Tensor) -> th.Tensor:
+    """
+    ``x.tanh_()`` as ``2 sigmoid(2x) - 1``, for float32 on CPU: torch's CPU ``tanh`` ran 4x slower than its
+    ``sigmoid`` here (5.1 vs 1.2 ms on ``[5120, 256]``). The identity is exact; in float32 the two differ by about
+    1e-7 absolutely (a relative error up to about 1e-3 for ``|x| < 1e-4``, below bfloat16's rounding). Meant for
+    no-grad low-precision passes, whose output is rounded to bfloat16 next.
+
+    :param x: the tensor, changed in place
+    :return: ``x``
+    """
+    if x.dtype == th.float32 and x.device.type == "cpu":
+        return x.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)
+    return x.tanh_()
+
+
 def _reused_buffer(
     critic: nn.Module, key: tuple[int, int, int], shape: tuple[int, ...], like: th.Tensor, dtype: Optional[th.dtype] = None
 ) -> th.Tensor:
@@ -245,7 +174,7 @@ def _reused_buffer(
     device changes.
 
     :param critic: the module that keeps the buffers
-    :param key: ``(q-network index, module position, rows)``
+    :param key: ``(q-network index, slot, rows)``, the slots as in this module's description
     :param shape: the tensor's shape
     :param like: a tensor of the device (and, unless ``dtype`` is given, the dtype) wanted
     :param dtype: the dtype wanted
@@ -262,7 +191,7 @@ def _reused_buffer(
 def _run_mlp_no_grad(
     critic: nn.Module,
     index: int,
-    mlp: nn.Module,
+    mlp: nn.Sequential,
     inputs: th.Tensor,
     low_precision: Optional[LowPrecisionCopy] = None,
     first: int = 0,
@@ -278,7 +207,7 @@ def _run_mlp_no_grad(
     """
     x = inputs
     module: nn.Module
-    for position, module in enumerate(mlp):  # type: ignore[arg-type]
+    for position, module in enumerate(mlp):
         if position < first:
             continue
         if isinstance(module, nn.Linear):
@@ -300,7 +229,7 @@ def _run_mlp_no_grad(
         elif isinstance(module, nn.LayerNorm) and low_precision is not None and x.dtype == low_precision.dtype:
             # normalised in the layer's own precision (its statistics over a row need more than bf16's 8 bits); with
             # the tanh that follows it in a LayerNorm torso, both in float32 on reused buffers, then one conversion
-            after = mlp[position + 1] if position + 1 < len(mlp) else None  # type: ignore[arg-type,index]
+            after = mlp[position + 1] if position + 1 < len(mlp) else None
             followed_by_tanh = isinstance(after, nn.Tanh)
             x, owned = _layer_norm_no_grad(critic, (index, position), module, x, followed_by_tanh), True
             if followed_by_tanh:
@@ -308,21 +237,6 @@ def _run_mlp_no_grad(
         else:
             x, owned = module(x), False
     return x
-
-
-def tanh_in_place(x: th.Tensor) -> th.Tensor:
-    """
-    ``x.tanh_()`` as ``2 sigmoid(2x) - 1``, for float32 on CPU: torch's CPU ``tanh`` ran 4x slower than its
-    ``sigmoid`` here (5.1 vs 1.2 ms on ``[5120, 256]``). The identity is exact; in float32 the two differ by about
-    1e-7 absolutely (a relative error up to about 1e-3 for ``|x| < 1e-4``, below bfloat16's rounding). Meant for
-    no-grad low-precision passes, whose output is rounded to bfloat16 next.
-
-    :param x: the tensor, changed in place
-    :return: ``x``
-    """
-    if x.dtype == th.float32 and x.device.type == "cpu":
-        return x.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)
-    return x.tanh_()
 
 
 def _layer_norm_no_grad(
@@ -335,12 +249,12 @@ def _layer_norm_no_grad(
     """
     index, position = key
     rows, shape = x.shape[0], tuple(x.shape)
-    wide = _reused_buffer(critic, (index, -1000 - position, rows), shape, x, th.float32).copy_(x)
-    normed = _reused_buffer(critic, (index, -2000 - position, rows), shape, x, th.float32)
+    wide = _reused_buffer(critic, (index, LAYER_NORM_INPUT - position, rows), shape, x, th.float32).copy_(x)
+    normed = _reused_buffer(critic, (index, LAYER_NORM_OUTPUT - position, rows), shape, x, th.float32)
     stats = (rows, 1) if len(module.normalized_shape) == 1 and x.dim() == 2 else None
     if stats is not None and module.weight is not None and module.bias is not None:
-        mean = _reused_buffer(critic, (index, -3000 - position, rows), stats, x, th.float32)
-        rstd = _reused_buffer(critic, (index, -4000 - position, rows), stats, x, th.float32)
+        mean = _reused_buffer(critic, (index, LAYER_NORM_MEAN - position, rows), stats, x, th.float32)
+        rstd = _reused_buffer(critic, (index, LAYER_NORM_RSTD - position, rows), stats, x, th.float32)
         th.ops.aten.native_layer_norm.out(
             wide, list(module.normalized_shape), module.weight, module.bias, module.eps, out0=normed, out1=mean, out2=rstd
         )
@@ -348,7 +262,7 @@ def _layer_norm_no_grad(
         normed.copy_(module(wide))
     if then_tanh:
         tanh_in_place(normed)
-    return _reused_buffer(critic, (index, -5000 - position, rows), shape, x).copy_(normed)
+    return _reused_buffer(critic, (index, LAYER_NORM_RESULT - position, rows), shape, x).copy_(normed)
 
 
 #: the first layer is split into a per-state and a per-sample product (:func:`_first_layer_split`) when the
@@ -359,7 +273,12 @@ SPLIT_MIN_FEATURES = 32
 
 
 def _first_layer_split(
-    critic: nn.Module, index: int, q_net: nn.Module, features: th.Tensor, actions: th.Tensor, low_precision: LowPrecisionCopy
+    critic: nn.Module,
+    index: int,
+    q_net: nn.Sequential,
+    features: th.Tensor,
+    actions: th.Tensor,
+    low_precision: LowPrecisionCopy,
 ) -> th.Tensor:
     """
     The first ``Linear`` of a Q-network over ``num_samples`` actions per state, without repeating the state's
@@ -371,7 +290,7 @@ def _first_layer_split(
     :param actions: ``[num_samples * batch, action_dim]``, sample-major (row ``n * batch + b``), in the copy's dtype
     :return: the layer's output ``[num_samples * batch, hidden]`` (a reused buffer)
     """
-    weight_t, bias = low_precision.weights[id(q_net[0])]  # type: ignore[index]
+    weight_t, bias = low_precision.weights[id(q_net[0])]
     width = features.shape[1]
     per_state = th.mm(features, weight_t[:width])
     if bias is not None:
@@ -383,9 +302,9 @@ def _first_layer_split(
 
 
 def _splits_first_layer(
-    q_net: nn.Module, features_dim: int, action_dim: int, low_precision: Optional[LowPrecisionCopy]
+    q_net: nn.Sequential, features_dim: int, action_dim: int, low_precision: Optional[LowPrecisionCopy]
 ) -> bool:
-    modules = list(q_net)  # type: ignore[call-overload]
+    modules = list(q_net)
     return (
         low_precision is not None
         and features_dim >= max(SPLIT_MIN_FEATURES, 2 * action_dim)
@@ -396,16 +315,18 @@ def _splits_first_layer(
 
 
 def score_actions(
-    critic: ContinuousCritic, obs: PyTorchObs, actions: th.Tensor, low_precision: Optional[LowPrecisionCopy] = None
+    critic: nn.Module, obs: PyTorchObs, actions: th.Tensor, low_precision: Optional[LowPrecisionCopy] = None
 ) -> th.Tensor:
     """
     Q-values of several actions per state, in a single critic call over ``num_samples * batch`` rows.
     Actions are clipped to the normalised bounds ``[-1, 1]`` first, as the environment would clip them.
 
-    Without autograd (target computations) the features are extracted once per state rather than once per
-    sample, and the critic's MLPs run on reused buffers (see ``_run_mlp_no_grad``).
+    Without autograd (target computations) the features of a ``ContinuousCritic`` are extracted once per state
+    rather than once per sample, and its MLPs run on reused buffers (see ``_run_mlp_no_grad``).
 
-    :param critic: the critic (minimum over its Q-networks is taken)
+    :param critic: the critic (minimum over its Q-networks is taken): a ``ContinuousCritic``, or any critic called as
+        ``critic(obs, actions)`` that returns one ``[batch, 1]`` tensor per Q-network (a categorical critic's
+        expected values), scored by that call
     :param obs: observations ``[batch, ...]``
     :param actions: ``[num_samples, batch, action_dim]``
     :param low_precision: a synchronised low-precision copy of ``critic``: without autograd the Q-networks run
@@ -420,6 +341,7 @@ def score_actions(
     q_values = []
     q_input = split_inputs = None
     for index, q_net in enumerate(critic.q_networks):
+        assert isinstance(q_net, nn.Sequential), "the no-grad pass runs Q-networks built as nn.Sequential (SB3's)"
         if _splits_first_layer(q_net, features.shape[1], action_dim, low_precision):
             assert low_precision is not None
             if split_inputs is None:  # converted once for all the Q-networks

@@ -1,0 +1,80 @@
+"""
+What this machine multiplies fast: whether the CPU has native bfloat16 (what ``scoring_dtype="auto"`` asks,
+:func:`sb3_lifelong.common.scoring.resolve_scoring_dtype`), and the one line the benchmarks record of the CPU, its
+matrix flags, oneDNN's bf16 kernel and torch (:func:`machine_description`).
+"""
+
+import functools
+import os
+import pathlib
+
+import torch as th
+
+
+@functools.cache
+def cpu_has_fast_bf16() -> bool:
+    """:return: whether this CPU multiplies bfloat16 matrices natively (AVX-512 BF16 or AMX; Linux only)"""
+    try:
+        flags = pathlib.Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return " avx512_bf16" in flags or " amx_bf16" in flags
+
+
+#: the CPU flags that decide how fast the networks' matrix products run (what the benchmarks report)
+MATRIX_FLAGS = ("amx_bf16", "amx_tile", "amx_int8", "avx512_bf16", "avx512f", "avx2", "fma")
+
+
+def cpu_matrix_flags() -> list[str]:
+    """:return: which of :data:`MATRIX_FLAGS` this CPU has (Linux ``/proc/cpuinfo``; empty elsewhere)"""
+    try:
+        text = pathlib.Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return []
+    line = next((line for line in text.splitlines() if line.startswith("flags")), "")
+    present = set(line.partition(":")[2].split())
+    return [flag for flag in MATRIX_FLAGS if flag in present]
+
+
+def onednn_bf16_kernel(timeout: float = 120.0) -> str:
+    """
+    The oneDNN kernel that runs a bfloat16 matrix product with this torch build, read from ``ONEDNN_VERBOSE`` in a
+    child process (e.g. ``brg_matmul:avx10_1_512_amx`` on an AMX CPU).
+
+    :param timeout: seconds the child may take
+    :return: the kernel's name, or a sentence saying that oneDNN did not run the product (torch's own kernel then)
+    """
+    import subprocess
+    import sys
+
+    code = "import torch; torch.set_num_threads(1); a = torch.randn(256, 256, dtype=torch.bfloat16); a @ a"
+    env = {**os.environ, "ONEDNN_VERBOSE": "1", "OMP_NUM_THREADS": "1"}
+    try:
+        result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        return f"unknown ({type(error).__name__})"
+    for line in (result.stdout + result.stderr).splitlines():
+        fields = line.split(",")
+        if "exec" in fields and "matmul" in fields:
+            return fields[fields.index("matmul") + 1]
+    return "none: oneDNN did not run the bf16 product (torch's own kernel)"
+
+
+def machine_description() -> str:
+    """:return: one line for a benchmark's results: CPU, its matrix flags, the bf16 kernel, torch and its threads"""
+    import platform
+
+    model = "unknown CPU"
+    try:
+        model = next(
+            line.partition(":")[2].strip()
+            for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines()
+            if line.startswith("model name")
+        )
+    except (OSError, StopIteration):
+        model = platform.processor() or platform.machine()
+    flags = ", ".join(cpu_matrix_flags()) or "none of " + "/".join(MATRIX_FLAGS)
+    return (
+        f"{model}; matrix flags: {flags}; oneDNN bf16 kernel: {onednn_bf16_kernel()}; "
+        f"torch {th.__version__}, {th.get_num_threads()} thread(s)"
+    )
