@@ -15,7 +15,7 @@ Layers, from the bottom:
 - :mod:`~sb3_lifelong.buffers.sampling`: the read side shared by buffers and views (sampling with per-source weights
   and reward scales, n-step returns, next actions, exports); :mod:`~sb3_lifelong.buffers.lifelong`:
   :class:`LifelongReplayBuffer`, the SB3 ``ReplayBuffer`` over a store (``add`` from SB3's collection loop, sources,
-  commits).
+  commits), with :mod:`~sb3_lifelong.buffers.add_checks`, what ``add`` accepts.
 - :mod:`~sb3_lifelong.buffers.views`: several buffers as one, read-only (:class:`LifelongBufferView`) or merged
   into a new buffer (:func:`merge_buffers`); :mod:`~sb3_lifelong.buffers.loading`: the one way in of offline data.
 
