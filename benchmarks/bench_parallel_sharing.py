@@ -25,7 +25,7 @@ import numpy as np
 
 from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.buffers import merge_buffers
-from sb3_lifelong.experiments.sequential import PRESETS
+from sb3_lifelong.experiments.sequential import EXAMPLE_CONFIGS
 from sb3_lifelong.experiments.sharing import run_sharing
 
 STAGES = [{}, {"hip_deformation": 0.3}, {"friction": 0.1}]
@@ -64,7 +64,7 @@ def main() -> None:
     parser.add_argument("--output", default="benchmarks/results", help="where parallel_sharing.{md,json} go")
     args = parser.parse_args()
 
-    config = dict(PRESETS["quick"], stage_steps=[args.stage1, args.steps], distill_steps=0, preset="quick")
+    config = dict(EXAMPLE_CONFIGS["quick"], stage_steps=[args.stage1, args.steps], distill_steps=0, preset="quick")
     config["learning_starts"] = min(config["learning_starts"], args.stage1 // 2)
     config["eval_freq"] = args.stage1 + args.steps  # evaluate once, at the end
     results = []

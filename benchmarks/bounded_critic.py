@@ -23,16 +23,10 @@ import shutil
 
 import pandas as pd
 
-from sb3_lifelong.experiments.protocol import (
-    PRESETS,
-    STUDENTS,
-    Preset,
-    Student,
-    distill_on_study,
-    same_settings,
-    value_support,
-)
-from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean, write_report
+from sb3_lifelong.experiments.presets import PRESETS, STUDENTS, Preset, Student, same_settings
+from sb3_lifelong.experiments.protocol import distill_on_study, value_support
+from sb3_lifelong.experiments.report import write_report
+from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean
 
 #: the study's CRR students, by their job names there, and what this script replaces them with
 CATEGORICAL = {"distributional_critic": True}

@@ -55,7 +55,7 @@ LEARNT_MARGIN = 1000.0
 
 def student_settings(support: dict[str, float]) -> dict[str, Any]:
     """The seven students of a seed, all with the same categorical support (it holds the x3 rewards)."""
-    from sb3_lifelong.experiments.protocol import Student
+    from sb3_lifelong.experiments.presets import Student
 
     network = {"policy_kwargs": dict(support)}
     students = {"A_only": Student("CRR", {**TRANSFORMS["ind"], **network}, ratio=(1, 0), about="indicator, Env-A only")}
@@ -92,13 +92,14 @@ def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Any, se
     from stable_baselines3.common.monitor import Monitor
 
     from sb3_lifelong import MPO
+    from sb3_lifelong.envs import stage_envs
     from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
     from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
-    from sb3_lifelong.experiments.protocol import make_eval_envs
 
     agent = MPO.load(run_dir / "collect" / f"{name}.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
     out: dict[str, Any] = {}
-    for env_name, env in make_eval_envs(preset).items():
+    envs = stage_envs(preset.env_id, list(preset.stages), preset.env_names, preset.env_kwargs, append_params=True)
+    for env_name, env in envs.items():
         monitored = Monitor(env)
         monitored.reset(seed=EVAL_SEED_OFFSET + seed)
         out[f"{name}_same_episodes_{env_name}"] = float(evaluate_policy(agent, monitored, episodes, deterministic=True)[0])
@@ -114,7 +115,7 @@ def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int)
     """The collector's side of the preconditions and claims C1, C5; the data's Monte-Carlo value per source."""
     from sb3_lifelong import LifelongReplayBuffer
     from sb3_lifelong.evaluation.overestimation import discounted_returns
-    from sb3_lifelong.experiments.protocol import PRESETS
+    from sb3_lifelong.experiments.presets import PRESETS
 
     preset = PRESETS[ROBOTS[robot][0]]
     run_dir = study / f"seed_{seed}"
@@ -170,7 +171,7 @@ def screen(args: argparse.Namespace) -> None:
     Monte-Carlo value. Works on a collection still running in Env-B (it reads the Stage-1 agent and buffer).
     """
     from sb3_lifelong import LifelongReplayBuffer
-    from sb3_lifelong.experiments.protocol import PRESETS
+    from sb3_lifelong.experiments.presets import PRESETS
 
     preset = PRESETS[ROBOTS[args.robot][0]]
     run_dir = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}") / f"seed_{args.seed}"
@@ -199,7 +200,8 @@ def copy_collection_curve(run_dir: pathlib.Path, results: pathlib.Path) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from sb3_lifelong import LifelongReplayBuffer
-    from sb3_lifelong.experiments.protocol import PRESETS, distill_on_study, value_support
+    from sb3_lifelong.experiments.presets import PRESETS
+    from sb3_lifelong.experiments.protocol import distill_on_study, value_support
 
     preset_name, _ = ROBOTS[args.robot]
     preset = dataclasses.replace(PRESETS[preset_name], distill_steps=args.updates)
@@ -246,7 +248,8 @@ def branch(args: argparse.Namespace) -> None:
 
     from sb3_lifelong import MPO, LifelongReplayBuffer
     from sb3_lifelong.buffers import merge_buffers
-    from sb3_lifelong.experiments.protocol import PRESETS, _callbacks, _describe, make_env, switch_points
+    from sb3_lifelong.experiments.presets import PRESETS, describe_stage, switch_points
+    from sb3_lifelong.experiments.protocol import job_callbacks, make_env
 
     change = json.loads(args.change)
     if not isinstance(change, dict) or len(change) != 1:
@@ -277,10 +280,10 @@ def branch(args: argparse.Namespace) -> None:
     with LifelongReplayBuffer.open(source / "buffer_stage1", read_only=True) as stage1:
         merge_buffers([stage1], path=run_dir / "buffer_stage1").close()
         buffer = merge_buffers([stage1], path=run_dir / "buffer")
-    buffer.set_source(1, name=preset.env_names[1], metadata=dict(setting=_describe(preset.stages[1])))
+    buffer.set_source(1, name=preset.env_names[1], metadata=dict(setting=describe_stage(preset.stages[1])))
     model.replay_buffer = buffer
     start = time.perf_counter()
-    model.learn(args.steps, callback=_callbacks(preset, directory, preset.eval_freq, args.seed), reset_num_timesteps=False)
+    model.learn(args.steps, callback=job_callbacks(preset, directory, preset.eval_freq, args.seed), reset_num_timesteps=False)
     model.save(directory / "final.zip")
     buffer.close()
     (directory / "done.json").write_text(json.dumps(dict(seconds=time.perf_counter() - start)))
@@ -405,7 +408,7 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
     plt = pyplot()
     import pandas as pd
 
-    from sb3_lifelong.experiments.protocol import PRESETS
+    from sb3_lifelong.experiments.presets import PRESETS
 
     preset = PRESETS[ROBOTS[robot][0]]
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -459,7 +462,7 @@ def change_screen(robot: str, curves: list[pathlib.Path], root: pathlib.Path) ->
     plt = pyplot()
     import pandas as pd
 
-    from sb3_lifelong.experiments.protocol import PRESETS
+    from sb3_lifelong.experiments.presets import PRESETS
 
     preset = PRESETS[ROBOTS[robot][0]]
     switch = preset.stage_steps[0]

@@ -29,7 +29,8 @@ from typing import Optional
 import numpy as np
 import pandas as pd
 
-from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean, seeds_of, split_repeat
+from sb3_lifelong.experiments.presets import split_repeat
+from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean, seeds_of
 
 #: the difference R1 reads: the indicator student minus the exp beta=1 student, in Env-A (claim T3a's two students)
 PAIR = ("CRR_indicator", "CRR_exp_beta1")

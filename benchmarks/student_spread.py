@@ -28,8 +28,9 @@ import numpy as np
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.experiments.protocol import PRESETS, STUDENTS, distill_on_study
-from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean
+from sb3_lifelong.experiments.presets import PRESETS, STUDENTS
+from sb3_lifelong.experiments.protocol import distill_on_study
+from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean
 
 ENV = "Env-A"
 #: the difference whose spread the criteria of ``results/student_spread.md`` judge

@@ -24,7 +24,8 @@ import numpy as np
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.experiments.protocol import EXP, PRESETS, Student, distill_on_study
+from sb3_lifelong.experiments.presets import EXP, PRESETS, Student
+from sb3_lifelong.experiments.protocol import distill_on_study
 
 #: variant name -> (the student's CRR settings, the preset's fields changed)
 VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {

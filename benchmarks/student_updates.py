@@ -1,7 +1,7 @@
 """
 Are the CPU protocol's students undertrained? The same students on the same lifetime buffer with more updates.
 
-Trains students of the ``cpu`` preset (``sb3_lifelong/experiments/protocol.py``) on a finished seed's buffer with
+Trains students of the ``cpu`` preset (``sb3_lifelong/experiments/presets.py``) on a finished seed's buffer with
 ``--updates`` gradient steps instead of the preset's 30,000, evaluated every ``--eval-freq`` updates in both
 environments (the same evaluation as the study), into ``<output>/seed_<k>/distill_<student>/``; ``--report`` prints
 and writes the table of returns against updates for every seed and student found.
@@ -22,7 +22,8 @@ import pandas as pd
 import torch as th
 
 from sb3_lifelong.buffers.files import write_json_atomic
-from sb3_lifelong.experiments.protocol import PRESETS, distill_student
+from sb3_lifelong.experiments.presets import PRESETS
+from sb3_lifelong.experiments.protocol import distill_student
 
 
 def train(study: pathlib.Path, seed: int, students: list[str], updates: int, eval_freq: int, output: pathlib.Path) -> None:

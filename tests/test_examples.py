@@ -109,9 +109,9 @@ def test_seeds_of_separate_runs_are_summarised_together(tmp_path):
 
 
 def test_a_rerun_never_mixes_runs_silently(tmp_path):
-    from sb3_lifelong.experiments.sequential import PRESETS, prepare_output
+    from sb3_lifelong.experiments.sequential import EXAMPLE_CONFIGS, prepare_output
 
-    config = dict(PRESETS["tiny"], seeds=[0], preset="tiny")
+    config = dict(EXAMPLE_CONFIGS["tiny"], seeds=[0], preset="tiny")
     prepare_output(tmp_path, config)
     (tmp_path / "seed_0").mkdir()
     with pytest.raises(FileExistsError, match=r"seed\(s\) \[0\] already in .*--overwrite"):

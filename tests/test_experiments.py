@@ -301,6 +301,8 @@ def test_demo_preset_jobs():
 
 
 def test_cli_list_and_errors(capsys, tmp_path):
+    import dataclasses
+
     assert main(["list", "--preset", "cpu"]) == 0
     out = capsys.readouterr().out
     for job in job_names():
@@ -311,13 +313,18 @@ def test_cli_list_and_errors(capsys, tmp_path):
         run_seed(PRESETS["tiny"], 0, tmp_path, jobs=["distill_nothing"])
     with pytest.raises(SystemExit):
         main(["run", "--preset", "tiny", "--output", str(tmp_path)])  # --seed is required
+    with pytest.raises(SystemExit):
+        main(["run", "--preset", "tiny", "--seed", "0", "--output", str(tmp_path), "--stage-steps", "100"])
+    assert "one value per stage" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="one step count and one name per stage"):
+        dataclasses.replace(PRESETS["tiny"], env_names=("Env-A", "Env-B", "Env-C"))
 
 
 def test_a_ratio_with_a_non_positive_denominator_is_left_out():
-    from sb3_lifelong.experiments.report import _ratio, undefined_ratios
+    from sb3_lifelong.experiments.report import ratio, undefined_ratios
 
     numerator, denominator = {0: 180.0, 1: 630.0, 2: 360.0}, {0: 480.0, 1: 0.0, 2: -2.3}
-    assert _ratio(numerator, denominator) == {0: 0.375}  # not 360 / -2.3 = -157, which would swamp the mean
+    assert ratio(numerator, denominator) == {0: 0.375}  # not 360 / -2.3 = -157, which would swamp the mean
     assert undefined_ratios(numerator, denominator) == {1: 0.0, 2: -2.3}
 
 
@@ -448,7 +455,7 @@ def test_bounded_critic_diagnostic(study, tmp_path):
 
 
 def test_job_names_with_student_repeats():
-    from sb3_lifelong.experiments.report import split_repeat
+    from sb3_lifelong.experiments.presets import split_repeat
 
     jobs = job_names(["CRR_exp_beta1", "BC"], online=False, student_repeats=3)
     assert jobs == [
@@ -475,8 +482,8 @@ def test_student_repeats_are_scored_by_their_mean(study, tmp_path):
     import dataclasses
     import shutil
 
-    from sb3_lifelong.experiments.protocol import REPEAT_SEED_STRIDE
-    from sb3_lifelong.experiments.report import STUDENT_LAST, last_mean
+    from sb3_lifelong.experiments.presets import REPEAT_SEED_STRIDE
+    from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean
 
     source, _ = study
     preset = dataclasses.replace(PRESETS["tiny"], students=("CRR_exp_beta1",), online=False, student_repeats=2)
@@ -502,7 +509,8 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
     """A study recorded before a Preset field existed resumes; more student repeats may be added; nothing else."""
     import dataclasses
 
-    from sb3_lifelong.experiments.protocol import LATER_SETTINGS, record_settings
+    from sb3_lifelong.experiments.presets import LATER_SETTINGS
+    from sb3_lifelong.experiments.protocol import record_settings
 
     preset = PRESETS["tiny"]
     old = json.loads(json.dumps(preset.describe()))
@@ -525,7 +533,8 @@ def test_collection_reused_by_a_study_of_other_students(study, tmp_path):
     import dataclasses
 
     from sb3_lifelong import CRR
-    from sb3_lifelong.experiments.protocol import Preset, value_support
+    from sb3_lifelong.experiments.presets import Preset
+    from sb3_lifelong.experiments.protocol import value_support
     from sb3_lifelong.experiments.report import incomplete_repeats
 
     source, _ = study

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from sb3_lifelong.experiments.plots import draw_figure, experiment_figures, load_experiment, plot_experiment
-from sb3_lifelong.experiments.sequential import PRESETS, add_common_arguments, resolve_config, write_layout
+from sb3_lifelong.experiments.sequential import EXAMPLE_CONFIGS, add_common_arguments, resolve_config, write_layout
 
 ENVS = ["Env-A", "Env-B"]
 
@@ -135,7 +135,7 @@ def test_command_line_writes_the_figures_without_a_display(experiment_dir):
     assert sorted(path.name for path in written) == sorted(path.name for path in experiment_dir.glob("*.png"))
 
 
-@pytest.mark.parametrize("preset", sorted(PRESETS))
+@pytest.mark.parametrize("preset", sorted(EXAMPLE_CONFIGS))
 def test_every_preset_draws_distillation_curves(preset):
     parser = argparse.ArgumentParser()
     add_common_arguments(parser)
@@ -146,7 +146,7 @@ def test_every_preset_draws_distillation_curves(preset):
 
 
 def test_one_style_for_every_method():
-    from sb3_lifelong.experiments.protocol import ONLINE, STUDENTS
+    from sb3_lifelong.experiments.presets import ONLINE, STUDENTS
     from sb3_lifelong.experiments.style import METHODS, SEQUENTIAL_METHODS, method_color
 
     known = ["MPO", *(f"online {name}" for name in ONLINE), *STUDENTS]

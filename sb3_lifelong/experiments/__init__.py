@@ -1,11 +1,14 @@
 """
-The paper's experiments on this package: the two-stage protocol (and its three-stage variant) as jobs
-(:mod:`.protocol`), the report with the pre-registered claims (:mod:`.report`) and the figures (:mod:`.figures`).
-Command line: ``python -m sb3_lifelong.experiments {run,report,list}``.
+The paper's experiments on this package: what a study runs (its presets, students and jobs, :mod:`.presets`), the
+two-stage protocol (and its three-stage variant) as jobs (:mod:`.protocol`), a study's scores (:mod:`.scores`), the
+report with the pre-registered claims (:mod:`.report`) and the figures (:mod:`.figures`).
+Command line: ``python -m sb3_lifelong.experiments {run,study,report,list}``.
 """
 
-from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, Preset, Student, job_names, run_seed
-from sb3_lifelong.experiments.report import CLAIMS, THREE_STAGE_CLAIMS, claims_of, load_study, write_report
+from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Preset, Student, job_names
+from sb3_lifelong.experiments.protocol import run_seed
+from sb3_lifelong.experiments.report import CLAIMS, THREE_STAGE_CLAIMS, claims_of, write_report
+from sb3_lifelong.experiments.scores import load_study
 
 __all__ = [
     "CLAIMS",

@@ -28,8 +28,9 @@ from typing import Any, Optional
 
 import torch as th
 
-from sb3_lifelong.experiments.protocol import ONLINE, PRESETS, STUDENTS, run_seed
-from sb3_lifelong.experiments.report import export_results, split_repeat, write_report
+from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, split_repeat
+from sb3_lifelong.experiments.protocol import run_seed
+from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
 REPEATS_HELP = "train each student this many times per seed (its own student seed each); the report scores the mean"
@@ -106,6 +107,10 @@ def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) 
     bad = [seed for seed in seeds if not 0 <= seed <= MAX_SEED]
     if bad:
         parser.error(f"seeds are ints in [0, 2**32 - 1] (numpy's range), got {bad[0]}")
+    if args.command == "run" and args.stage_steps is not None:
+        stages = len(PRESETS[args.preset].stages)
+        if len(args.stage_steps) != stages:
+            parser.error(f"--stage-steps needs one value per stage: preset {args.preset} has {stages}, got {args.stage_steps}")
     if args.command in ("run", "study"):
         output = pathlib.Path(args.output)
         if output.exists() and not output.is_dir():

@@ -5,14 +5,14 @@ method in every figure). Every figure's title names the study's set-up (its pres
 the figures of a variant study are not read as another's.
 """
 
-import json
 import pathlib
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from sb3_lifelong.experiments.report import split_repeat, stage_ends
+from sb3_lifelong.experiments.presets import STUDENTS, preset_name, split_repeat, stage_ends
+from sb3_lifelong.experiments.scores import Study
 from sb3_lifelong.experiments.style import (
     band,
     method_color,
@@ -27,7 +27,7 @@ from sb3_lifelong.experiments.style import (
 )
 
 
-def _curves(study: Any, job: str) -> pd.DataFrame:
+def _curves(study: Study, job: str) -> pd.DataFrame:
     frames = []
     for seed in study.seeds:
         path = study.output / f"seed_{seed}" / job / "eval.csv"
@@ -36,7 +36,7 @@ def _curves(study: Any, job: str) -> pd.DataFrame:
     return pd.concat(frames) if frames else pd.DataFrame()
 
 
-def _describe_stage(stage: Any) -> str:
+def _stage_text(stage: Any) -> str:
     if isinstance(stage, str):
         return stage
     return ", ".join(
@@ -44,29 +44,16 @@ def _describe_stage(stage: Any) -> str:
     )
 
 
-def preset_name(preset: dict[str, Any]) -> str:
+def study_title(study: Study) -> str:
     """
-    :param preset: a study's recorded settings (``preset.json``)
-    :return: the name of the preset it was run with (:data:`~sb3_lifelong.experiments.protocol.PRESETS`), or ``""``
-    """
-    from sb3_lifelong.experiments.protocol import PRESETS, same_settings
-
-    for name, candidate in PRESETS.items():
-        if same_settings(preset, json.loads(json.dumps(candidate.describe()))):
-            return name
-    return ""
-
-
-def study_title(study: Any) -> str:
-    """
-    :param study: a loaded study (:func:`~sb3_lifelong.experiments.report.load_study`)
+    :param study: a loaded study (:func:`~sb3_lifelong.experiments.scores.load_study`)
     :return: what sets the study apart, for the figures' titles: its preset (or directory), robot, the environments
         after the first (what changes), and the students' critic and repeats when they are not the default
     """
     preset = study.preset
     name = preset_name(preset) or study.output.name
     changes = [
-        f"{env} = {_describe_stage(stage) or 'default'}" for env, stage in zip(preset["env_names"][1:], preset["stages"][1:])
+        f"{env} = {_stage_text(stage) or 'default'}" for env, stage in zip(preset["env_names"][1:], preset["stages"][1:])
     ]
     extras = []
     if preset.get("student_critic", "mse") != "mse":
@@ -84,7 +71,7 @@ ONLINE_JOBS = {
 }
 
 
-def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+def plot_online(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
     """Paper Fig. 2: online curves per environment, each switch labelled, the distilled students' finals dotted."""
     plt = pyplot()
     envs = study.preset["env_names"]
@@ -115,7 +102,7 @@ def plot_online(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     return [save(plt, fig, directory / "fig_online.png")]
 
 
-def _mpo_references(study: Any, env: str, index: int, last: bool) -> list[tuple[str, float, str]]:
+def _mpo_references(study: Study, env: str, index: int, last: bool) -> list[tuple[str, float, str]]:
     """:return: (label, value, line style) of MPO's returns in ``env``: at the end, and when it left ``env``"""
     references = []
     final = [v for v in study.score("MPO", env).values() if np.isfinite(v)]
@@ -128,15 +115,13 @@ def _mpo_references(study: Any, env: str, index: int, last: bool) -> list[tuple[
     return references
 
 
-def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+def plot_students(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
     """
     Paper Fig. 4: the final return of every offline student, one panel per environment (a horizontal bar per
     student: the mean over seeds, each seed a dot), with MPO's return at the end of the collection and when it left
     the environment as reference lines.
     """
     envs = study.preset["env_names"]
-    from sb3_lifelong.experiments.protocol import STUDENTS
-
     present = set(study.finals[study.finals["kind"] == "student"]["method"])
     students = [name for name in STUDENTS if name in present] + sorted(present - set(STUDENTS))
     if not students:
@@ -177,7 +162,7 @@ def plot_students(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
 Q_STUDENTS = ("CRR_indicator", "CRR_indicator_A_only", "CRR_indicator_B_only", "CRR_exp_beta1")
 
 
-def _q_frame(study: Any, method: str) -> pd.DataFrame:
+def _q_frame(study: Study, method: str) -> pd.DataFrame:
     """:return: rows ``seed, timesteps, env, q_mean`` of a student's finished runs (its repeats averaged per seed)"""
     frames = []
     for seed in study.seeds:
@@ -192,7 +177,7 @@ def _q_frame(study: Any, method: str) -> pd.DataFrame:
     return frame.groupby(["seed", "timesteps", "env"], as_index=False)["q_mean"].mean()  # repeats: one per seed
 
 
-def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+def plot_q(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
     """
     Paper Fig. 5: average Q per source during distillation, sources named by environment: one thin line per seed
     (and the median with its interquartile range from three seeds on), so that one diverging seed shows as itself.
@@ -228,7 +213,7 @@ def plot_q(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
 RATIOS = (("1:1", "_ratio_1to1"), ("1:5 (raw)", ""), ("1:10", "_ratio_1to10"))
 
 
-def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
+def plot_ratios(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
     """Paper Fig. 6: Env-A return against the Env-A : Env-B sampling ratio (the two series side by side)."""
     env = study.preset["env_names"][0]
     bases = ("CRR_indicator", "CRR_exp_beta1")
@@ -242,8 +227,8 @@ def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     counts = set()
     for offset, base in zip((-0.09, 0.09), bases):
         per_ratio = [[v for v in study.score(base + suffix, env).values() if np.isfinite(v)] for _, suffix in RATIOS]
-        means = [np.mean(values) if values else np.nan for values in per_ratio]
-        stds = [np.std(values) if values else 0.0 for values in per_ratio]
+        means = [float(np.mean(values)) if values else np.nan for values in per_ratio]
+        stds = [float(np.std(values)) if values else 0.0 for values in per_ratio]
         if not np.isfinite(means).any():
             continue
         n = max(len(values) for values in per_ratio)
@@ -265,7 +250,7 @@ def plot_ratios(study: Any, directory: pathlib.Path) -> list[pathlib.Path]:
     return [save(plt, fig, directory / "fig_sampling_ratio.png")]
 
 
-def plot_study(study: Any) -> list[pathlib.Path]:
+def plot_study(study: Study) -> list[pathlib.Path]:
     """:return: the paths of every figure written into the study's directory"""
     paths = []
     for plot in (plot_online, plot_students, plot_q, plot_ratios):

@@ -1,15 +1,9 @@
 """
-Gather the seeds of a two-stage (or three-stage) study into tables, the pre-registered claims and the paper's figures.
+The report of a two-stage (or three-stage) study: its score tables, the pre-registered claims with their verdicts,
+and ``report.md`` with the paper's figures (:mod:`sb3_lifelong.experiments.figures`).
 
-Scores (each seed's, then mean +- std over seeds and a 95 % BCa bootstrap interval of the mean, from
-``scipy.stats.bootstrap``):
-
-* an online method's final return in an environment: the mean of its last ``ONLINE_LAST`` evaluations;
-* MPO's return in an environment *at the switch* (when it leaves that environment): the mean of its last
-  ``ONLINE_LAST_STAGE1`` evaluations of that environment's stage;
-* Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
-* a student's final return: the mean of its last ``STUDENT_LAST`` evaluations;
-* Q per source: the student's last average Q-value over each environment's data.
+The scores are each seed's (:mod:`sb3_lifelong.experiments.scores`); a table gives their mean +- std over seeds and
+a 95 % BCa bootstrap interval of the mean, from ``scipy.stats.bootstrap``.
 
 A claim that compares two methods also reports their paired difference: per seed (both from the same seed's
 collection), its mean with a BCa interval, and on how many seeds the first is higher (rliable's "probability of
@@ -19,6 +13,7 @@ improvement" over seeds). The verdicts themselves are the pre-registered tests o
 import inspect
 import json
 import pathlib
+import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
@@ -26,9 +21,9 @@ from typing import Any, Callable, Optional
 import numpy as np
 import pandas as pd
 
-ONLINE_LAST = 3
-ONLINE_LAST_STAGE1 = 2
-STUDENT_LAST = 2
+from sb3_lifelong.experiments.figures import plot_study
+from sb3_lifelong.experiments.scores import ONLINE_LAST, STUDENT_LAST, Study, load_study
+
 BOOTSTRAP_RESAMPLES = 10_000
 
 
@@ -93,130 +88,6 @@ def describe(values: Sequence[float]) -> str:
     return f"{data.mean():.0f} +- {data.std():.0f} [{low:.0f}, {high:.0f}]"
 
 
-# ------------------------------------------------------------------------------------------------- reading
-def seeds_of(output: pathlib.Path) -> list[int]:
-    return sorted(int(path.name.split("_")[1]) for path in output.glob("seed_*") if (path / "collect" / "done.json").exists())
-
-
-def read_eval(output: pathlib.Path, seed: int, job: str) -> Optional[pd.DataFrame]:
-    path = output / f"seed_{seed}" / job / "eval.csv"
-    if not (output / f"seed_{seed}" / job / "done.json").exists() or not path.exists():
-        return None
-    return pd.read_csv(path)
-
-
-def stage_ends(stage_steps: Sequence[int]) -> list[int]:
-    """
-    :param stage_steps: the environment steps of each stage
-    :return: the timestep at which each stage ends (all but the last are the switches to the next environment)
-    """
-    return [int(t) for t in np.cumsum(stage_steps)]
-
-
-def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = None, after: Optional[int] = None) -> float:
-    rows = frame[frame["env"] == env]
-    if until is not None:
-        rows = rows[rows["timesteps"] <= until]
-    if after is not None:
-        rows = rows[rows["timesteps"] > after]
-    rows = rows.sort_values("timesteps")
-    return float(rows["mean_reward"].tail(count).mean()) if len(rows) else float("nan")
-
-
-#: a student's repeat ``k >= 1`` on the same buffer is the job ``distill_<student>__r<k>``
-REPEAT_MARK = "__r"
-
-
-def split_repeat(student_job: str) -> tuple[str, int]:
-    """
-    :param student_job: a distillation job's name without ``distill_``, e.g. ``"CRR_exp_beta1__r2"``
-    :return: the student's name and the repeat (0 for the first training), e.g. ``("CRR_exp_beta1", 2)``
-    """
-    name, mark, repeat = student_job.rpartition(REPEAT_MARK)
-    if mark and name and repeat.isdigit():
-        return name, int(repeat)
-    return student_job, 0
-
-
-@dataclass
-class Study:
-    """The scores of every seed of a study, as long tables."""
-
-    output: pathlib.Path
-    preset: dict[str, Any]
-    seeds: list[int]
-    finals: pd.DataFrame  # seed, method, kind (online / student), env, score
-    extras: pd.DataFrame  # seed, metric, value (switch scores, Stage-2 areas, Q per source)
-
-    def score(self, method: str, env: str) -> dict[int, float]:
-        rows = self.finals[(self.finals["method"] == method) & (self.finals["env"] == env)]
-        return {int(r.seed): float(r.score) for r in rows.itertuples()}
-
-    def extra(self, metric: str) -> dict[int, float]:
-        rows = self.extras[self.extras["metric"] == metric]
-        return {int(r.seed): float(r.value) for r in rows.itertuples()}
-
-
-def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> Study:
-    """
-    Read every finished job of every seed of ``output``.
-
-    :param output: the study's directory
-    :param seeds: only these seeds (default: every seed whose collection has finished)
-    :return: the scores; a student's score on a seed is the mean over its finished repeats, and ``finals`` counts
-        them in its column ``repeats``
-    """
-    preset = json.loads((output / "preset.json").read_text())
-    envs = preset["env_names"]
-    ends = stage_ends(preset["stage_steps"])
-    switch = ends[0]
-    finished = seeds_of(output)
-    if seeds is not None:
-        missing = sorted(set(seeds) - set(finished))
-        if missing:
-            raise ValueError(f"seeds {missing} of {output} have no finished collection (finished: {finished})")
-    seeds = finished if seeds is None else sorted(set(seeds))
-    finals, extras = [], []
-    for seed in seeds:
-        run_dir = output / f"seed_{seed}"
-        for job_dir in sorted(p for p in run_dir.iterdir() if (p / "done.json").exists()):
-            job = job_dir.name
-            frame = read_eval(output, seed, job)
-            if frame is None:
-                continue
-            if job == "collect" or job.startswith("online_"):
-                method = "MPO" if job == "collect" else f"online {job[len('online_'):]}"
-                for env in envs:
-                    finals.append(
-                        dict(seed=seed, method=method, kind="online", env=env, score=last_mean(frame, env, ONLINE_LAST))
-                    )
-                    area = last_mean(frame, env, 10**9, after=switch, until=ends[1])  # Stage 2 only (of 2 or 3)
-                    extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
-                if job == "collect":  # each environment's return when MPO leaves it (the end of its stage)
-                    for env, end in zip(envs[:-1], ends[:-1]):
-                        value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
-                        extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
-            elif job.startswith("distill_"):
-                method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
-                for env in envs:
-                    score = last_mean(frame, env, STUDENT_LAST)
-                    finals.append(dict(seed=seed, method=method, kind="student", env=env, score=score))
-                q_path = job_dir / "q_sources.csv"
-                if q_path.exists():
-                    q = pd.read_csv(q_path)
-                    if len(q):
-                        last = q[q["timesteps"] == q["timesteps"].max()]
-                        for row in last.itertuples():
-                            extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
-    finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
-    if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
-        groups = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"]
-        finals_frame = groups.agg(score="mean", repeats="size")  # finished jobs, a NaN score (no evaluation) included
-    if len(extras_frame):
-        extras_frame = extras_frame.groupby(["seed", "metric"], as_index=False, sort=False)["value"].mean()
-    return Study(output, preset, seeds, finals_frame, extras_frame)
-
-
 # ------------------------------------------------------------------------------------------------- claims
 @dataclass
 class Claim:
@@ -253,7 +124,7 @@ def _mean(series: dict[int, float]) -> float:
     return float(np.mean(values)) if values else float("nan")
 
 
-def _ratio(numerator: dict[int, float], denominator: dict[int, float]) -> dict[int, float]:
+def ratio(numerator: dict[int, float], denominator: dict[int, float]) -> dict[int, float]:
     """
     Per-seed ratios of two returns. A seed whose denominator is not positive has no ratio ("reaches 80 % of a
     return of -2" means nothing, and such a ratio flips sign and swamps the mean): it is left out, and
@@ -263,7 +134,7 @@ def _ratio(numerator: dict[int, float], denominator: dict[int, float]) -> dict[i
 
 
 def undefined_ratios(numerator: dict[int, float], denominator: dict[int, float]) -> dict[int, float]:
-    """:return: seed -> denominator, for the seeds :func:`_ratio` leaves out (denominator <= 0)"""
+    """:return: seed -> denominator, for the seeds :func:`ratio` leaves out (denominator <= 0)"""
     return {s: denominator[s] for s in numerator if s in denominator and not denominator[s] > 0}
 
 
@@ -284,7 +155,7 @@ CLAIMS: list[Claim] = [
     Claim(
         "C1 forgetting",
         "MPO's Env-A return at the end of Stage 2 is <= 70 % of its Env-A return at the switch",
-        lambda s: {"end / switch": _ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
+        lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
     ),
     Claim(
@@ -315,13 +186,13 @@ CLAIMS: list[Claim] = [
     Claim(
         "C4a the imbalance drop",
         "the indicator student on Env-A + Env-B reaches <= 80 % of the Env-A-only indicator student in Env-A",
-        lambda s: {"indicator / A-only": _ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
+        lambda s: {"indicator / A-only": ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
         lambda m: m["indicator / A-only"] <= 0.8,
     ),
     Claim(
         "C4b beta=1 fixes it",
         "the exp beta=1 student on Env-A + Env-B reaches >= 90 % of the Env-A-only indicator student in Env-A",
-        lambda s: {"exp beta=1 / A-only": _ratio(s.score("CRR_exp_beta1", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
+        lambda s: {"exp beta=1 / A-only": ratio(s.score("CRR_exp_beta1", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
         lambda m: m["exp beta=1 / A-only"] >= 0.9,
     ),
     Claim(
@@ -357,7 +228,7 @@ CLAIMS: list[Claim] = [
         "C5e beta=1 is robust to the ratio",
         "the exp beta=1 student's Env-A return at 1:10 is >= 90 % of its return at 1:1",
         lambda s: {
-            "1:10 / 1:1": _ratio(s.score("CRR_exp_beta1_ratio_1to10", "Env-A"), s.score("CRR_exp_beta1_ratio_1to1", "Env-A"))
+            "1:10 / 1:1": ratio(s.score("CRR_exp_beta1_ratio_1to10", "Env-A"), s.score("CRR_exp_beta1_ratio_1to1", "Env-A"))
         },
         lambda m: m["1:10 / 1:1"] >= 0.9,
     ),
@@ -376,13 +247,13 @@ THREE_STAGE_CLAIMS: list[Claim] = [
     Claim(
         "T1a forgetting Env-A",
         "MPO's Env-A return at the end of Stage 3 is <= 70 % of its Env-A return at the end of Stage 1",
-        lambda s: {"end / switch": _ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
+        lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
     ),
     Claim(
         "T1b forgetting Env-B",
         "MPO's Env-B return at the end of Stage 3 is <= 70 % of its Env-B return at the end of Stage 2",
-        lambda s: {"end / switch": _ratio(s.score("MPO", "Env-B"), s.extra("MPO|switch|Env-B"))},
+        lambda s: {"end / switch": ratio(s.score("MPO", "Env-B"), s.extra("MPO|switch|Env-B"))},
         lambda m: m["end / switch"] <= 0.7,
     ),
     Claim(
@@ -397,13 +268,13 @@ THREE_STAGE_CLAIMS: list[Claim] = [
     Claim(
         "T2b distillation keeps the last environment",
         "the CRR exp beta=1 student's Env-C return is >= 80 % of MPO's final Env-C return",
-        lambda s: {"student / MPO": _ratio(s.score("CRR_exp_beta1", "Env-C"), s.score("MPO", "Env-C"))},
+        lambda s: {"student / MPO": ratio(s.score("CRR_exp_beta1", "Env-C"), s.score("MPO", "Env-C"))},
         lambda m: m["student / MPO"] >= 0.8,
     ),
     Claim(
         "T3a the imbalance drop",
         "the indicator student's Env-A return is <= 80 % of the exp beta=1 student's",
-        lambda s: {"indicator / exp beta=1": _ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_exp_beta1", "Env-A"))},
+        lambda s: {"indicator / exp beta=1": ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_exp_beta1", "Env-A"))},
         lambda m: m["indicator / exp beta=1"] <= 0.8,
     ),
     Claim(
@@ -435,7 +306,7 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
         verdict = ("reproduced" if claim.test(means) else "not reproduced") if complete else "no data"
         details = []
         for name, values in series.items():
-            # a seed without a value has no score yet, or no ratio (its denominator is not positive, see _ratio)
+            # a seed without a value has no score yet, or no ratio (its denominator is not positive, see ratio)
             per_seed = ", ".join(
                 "s{}: {}".format(
                     s, "n/a" if s not in values else f"{values[s]:.2f}" if abs(values[s]) < 10 else f"{values[s]:.0f}"
@@ -572,8 +443,6 @@ def write_report(output: pathlib.Path, plots: bool = True, seeds: Optional[Seque
         + "\n"
     )
     if plots:
-        from sb3_lifelong.experiments.figures import plot_study
-
         paths = plot_study(study)
         text += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in paths) + "\n"
     (output / f"report{suffix}.md").write_text(text)
@@ -591,8 +460,6 @@ def export_results(output: pathlib.Path, destination: pathlib.Path) -> list[path
 
     :return: the copied files
     """
-    import shutil
-
     copied = []
     for pattern in SMALL_FILES:
         for path in output.rglob(pattern):

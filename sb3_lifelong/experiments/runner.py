@@ -21,7 +21,8 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
-from sb3_lifelong.experiments.protocol import Preset, adopt_collection, record_settings, run_seed
+from sb3_lifelong.experiments.presets import Preset
+from sb3_lifelong.experiments.protocol import adopt_collection, record_settings, run_seed
 
 BACKENDS = ("auto", "ray", "process")
 

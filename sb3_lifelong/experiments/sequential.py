@@ -1,7 +1,8 @@
 """
 The sequential and parallel lifelong experiments of ``examples/`` (three stages, parallel sharing, continuous
-drift): presets, environment factories, the online stages and the distillation. The paper's two-stage protocol,
-with its diagnostics and claims, is :mod:`sb3_lifelong.experiments.protocol`.
+drift): their configurations (:data:`EXAMPLE_CONFIGS`), environment factories, the online stages and the
+distillation. The paper's two-stage protocol, with its diagnostics and claims, is
+:mod:`sb3_lifelong.experiments.protocol` (its study presets: :mod:`sb3_lifelong.experiments.presets`).
 
 Layout of an experiment's output directory::
 
@@ -39,7 +40,7 @@ import torch as th
 
 import sb3_lifelong.envs  # noqa: F401  (registers the OP3 task)
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
-from sb3_lifelong.envs import DynamicsSchedule
+from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 
 Stage = Union[str, Mapping[str, float]]
@@ -49,7 +50,8 @@ DISTILL_EVALUATIONS = 10
 #: per seed: what the figures need to know about the experiment (see :func:`write_layout`)
 LAYOUT_FILE = "stages.json"
 
-PRESETS: dict[str, dict[str, Any]] = {
+#: the examples' configurations, by name (``--preset``): what :func:`resolve_config` starts from
+EXAMPLE_CONFIGS: dict[str, dict[str, Any]] = {
     # minutes on 2 CPU cores: HalfCheetah, small networks
     "quick": dict(
         env_id="HalfCheetah-v5",
@@ -99,7 +101,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--preset",
-        choices=sorted(PRESETS),
+        choices=sorted(EXAMPLE_CONFIGS),
         default="quick",
         help="quick: HalfCheetah, small networks, minutes on a CPU; paper: the OP3 set-up of the paper (GPU-scale); "
         "tiny: seconds, for the tests",
@@ -138,7 +140,7 @@ def add_per_source_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
-    config = dict(PRESETS[args.preset])
+    config = dict(EXAMPLE_CONFIGS[args.preset])
     overrides = dict(
         env_id=args.env,
         seeds=args.seeds,
@@ -240,22 +242,18 @@ def make_schedule(
     **kwargs: Any,
 ) -> Any:
     """The robot with its lifetime of stages; the true physical parameters are appended to the observation."""
-    make_kwargs: dict[str, Any] = {} if max_episode_steps is None else dict(max_episode_steps=max_episode_steps)
     return DynamicsSchedule(
-        gym.make(env_id, **make_kwargs), stages=list(stages), switch_at=switch_at, append_params=True, **kwargs
+        gym.make(env_id, **episode_limit(max_episode_steps)),
+        stages=list(stages),
+        switch_at=switch_at,
+        append_params=True,
+        **kwargs,
     )
 
 
-def make_eval_envs(
-    env_id: str, stages: Sequence[Stage], names: Sequence[str], max_episode_steps: Optional[int] = None
-) -> dict[str, Any]:
-    """One environment per stage, pinned to it (same observation layout as the training env)."""
-    envs = {}
-    for index, name in enumerate(names):
-        env = make_schedule(env_id, stages, max_episode_steps=max_episode_steps)
-        env.set_stage(index, immediate=True)
-        envs[name] = env
-    return envs
+def episode_limit(max_episode_steps: Optional[int]) -> dict[str, Any]:
+    """:return: the keyword arguments of ``gym.make`` that cut episodes at ``max_episode_steps`` (None: the env's own)"""
+    return {} if max_episode_steps is None else dict(max_episode_steps=max_episode_steps)
 
 
 def algo_kwargs(config: dict[str, Any], seed: int) -> dict[str, Any]:
@@ -458,7 +456,8 @@ def run_sequential(
     for seed in config["seeds"]:
         run_dir = output / f"seed_{seed}"
         episode_steps = config.get("max_episode_steps")
-        eval_envs = make_eval_envs(config["env_id"], stages, env_names, episode_steps)
+        # one copy of the robot per stage, pinned to it, with the training env's observation layout
+        eval_envs = stage_envs(config["env_id"], list(stages), env_names, episode_limit(episode_steps), append_params=True)
 
         # Online: MPO through every stage, one buffer for the whole life
         env = make_schedule(config["env_id"], stages, switch_at, episode_steps)

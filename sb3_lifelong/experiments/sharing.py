@@ -27,14 +27,15 @@ import torch as th
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
 from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
 from sb3_lifelong.distill import distill
+from sb3_lifelong.envs import stage_envs
 from sb3_lifelong.experiments.runner import map_parallel
 from sb3_lifelong.experiments.sequential import (
     Stage,
     algo_kwargs,
+    episode_limit,
     eval_callbacks,
     final_returns,
     make_collector,
-    make_eval_envs,
     make_schedule,
     write_layout,
 )
@@ -86,7 +87,8 @@ def collect(
         model.set_random_seed(seed)
         env.reset(seed=seed)
         model.learning_starts = 0
-    eval_envs = make_eval_envs(config["env_id"], stages, NAMES[: len(stages)], config.get("max_episode_steps"))
+    limit = episode_limit(config.get("max_episode_steps"))
+    eval_envs = stage_envs(config["env_id"], list(stages), NAMES[: len(stages)], limit, append_params=True)
     callbacks = eval_callbacks(pathlib.Path(method_dir), eval_envs, config, seed=seed)
     model.learn(steps, callback=callbacks, reset_num_timesteps=model_path is None, tb_log_name=tb_log_name)
     if save_path is not None:
@@ -165,7 +167,8 @@ def run_sharing(
             students = (("distilled", dict(beta=1.0)), ("distilled_indicator", dict(advantage_transform="indicator")))
             for method, kwargs in students:
                 log(f"seed {seed}: distilling {config['distill_steps']:,} updates: {method}")
-                eval_envs = make_eval_envs(config["env_id"], stages, NAMES, config.get("max_episode_steps"))
+                limit = episode_limit(config.get("max_episode_steps"))
+                eval_envs = stage_envs(config["env_id"], list(stages), NAMES, limit, append_params=True)
                 callbacks = eval_callbacks(run_dir / method, eval_envs, config, source_q=True, offline=True, seed=seed)
                 distill(data, CRR, gradient_steps=config["distill_steps"], callback=callbacks,
                         tensorboard_log=tensorboard_log, tb_log_name=f"{method}_s{seed}",

@@ -1,0 +1,435 @@
+"""
+What a study of the paper's protocol is: its settings (:class:`Preset`, and the study presets by name,
+:data:`PRESETS`), its offline students (:data:`STUDENTS`) and online baselines (:data:`ONLINE`), the names of one
+seed's jobs (:func:`job_names`), and how a study's recorded settings (``preset.json``) compare with a preset.
+
+Plain data and small functions of it: the jobs that run a preset are :mod:`sb3_lifelong.experiments.protocol`, the
+report that reads a study is :mod:`sb3_lifelong.experiments.report`; both read this module, and it imports neither.
+A new study preset goes here (and its pre-registered claims in :mod:`~sb3_lifelong.experiments.report`).
+"""
+
+import dataclasses
+import itertools
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Optional, Union
+
+Stage = Union[str, Mapping[str, float]]
+
+#: the critics a preset's CRR students can have
+STUDENT_CRITICS = ("mse", "categorical")
+
+
+@dataclass(frozen=True)
+class Preset:
+    """
+    Settings of the protocol (two stages, or more: one per entry of ``stages``).
+
+    :param env_id: the robot (gymnasium id)
+    :param stages: the physical setting of each environment (Env-A first), a dict of perturbations or a named stage
+        (:data:`~sb3_lifelong.envs.NAMED_STAGES`)
+    :param stage_steps: environment steps of each stage (the paper: Env-B five times Env-A)
+    :param distill_steps: gradient updates of every offline student
+    :param eval_freq: evaluation period of the online methods, in environment steps
+    :param distill_eval_freq: evaluation period of the students, in updates
+    :param eval_episodes: episodes per environment and evaluation
+    :param net_arch: hidden layers of every actor and critic
+    :param batch_size: minibatch of the online methods
+    :param student_batch_size: minibatch of the students
+    :param num_samples: MPO's actions sampled per state
+    :param learning_rate: learning rate of the online methods
+    :param student_learning_rate: learning rate of the students
+    :param learning_starts: MPO's random steps before learning
+    :param env_names: names of the environments, in the order of ``stages``
+    :param max_episode_steps: episode length limit (None: the environment's own)
+    :param minutes_per_seed: measured wall time of one seed of ``run`` on one core of the reference machine (None:
+        not measured), for the estimate printed before a run
+    :param students: the students a seed trains (None: every one of :data:`STUDENTS`)
+    :param online: whether a seed runs the online CRR baselines
+    :param layer_norm: the LayerNorm torso for every network of the study (collector, students, online
+        baselines); the presets run before MPO's default changed keep ``False``, the setting they ran with
+    :param student_repeats: how many times each student is trained on a seed's buffer (each with its own student
+        seed); the report scores a student by the mean of its repeats (``benchmarks/results/student_spread.md``: most
+        of a student's seed-to-seed spread is its own training)
+    :param student_critic: the CRR students' critic: ``"mse"`` (regression on the TD target) or ``"categorical"``
+        (the paper's kind: 51 atoms on a support that holds every return of the seed's buffer,
+        :func:`~sb3_lifelong.experiments.protocol.value_support`, so it cannot diverge;
+        ``benchmarks/results/paper_cpu_three/bounded_critic``)
+    :param note: what a run of this preset can and cannot show (printed with the report)
+    """
+
+    env_id: str
+    stages: tuple[Stage, ...]
+    stage_steps: tuple[int, ...]
+    distill_steps: int
+    eval_freq: int
+    distill_eval_freq: int
+    eval_episodes: int
+    net_arch: tuple[int, ...] = (256, 256)
+    batch_size: int = 256
+    student_batch_size: int = 256
+    num_samples: int = 20
+    learning_rate: float = 3e-4
+    student_learning_rate: float = 3e-4
+    learning_starts: int = 10_000
+    env_names: tuple[str, ...] = ("Env-A", "Env-B")
+    max_episode_steps: Optional[int] = None
+    minutes_per_seed: Optional[float] = None
+    students: Optional[tuple[str, ...]] = None
+    online: bool = True
+    layer_norm: bool = False
+    student_repeats: int = 1
+    student_critic: str = "mse"
+    note: str = ""
+
+    def __post_init__(self) -> None:
+        if not len(self.stages) == len(self.stage_steps) == len(self.env_names):
+            raise ValueError(
+                f"a preset needs one step count and one name per stage: {len(self.stages)} stages, stage_steps "
+                f"{self.stage_steps}, env_names {self.env_names}"
+            )
+        if self.student_repeats < 1:
+            raise ValueError(f"student_repeats must be >= 1, got {self.student_repeats}")
+        if self.student_critic not in STUDENT_CRITICS:
+            raise ValueError(f"student_critic must be one of {STUDENT_CRITICS}, got {self.student_critic!r}")
+
+    def jobs(self) -> list[str]:
+        """:return: the jobs of one seed of this preset, in the order they run"""
+        return job_names(self.students, self.online, self.student_repeats)
+
+    @property
+    def env_kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of ``gym.make`` for the robot: its episode length limit, when the preset sets one."""
+        return {} if self.max_episode_steps is None else dict(max_episode_steps=self.max_episode_steps)
+
+    def describe(self) -> dict[str, Any]:
+        """:return: the settings as JSON-friendly values"""
+        data = dataclasses.asdict(self)
+        data["stages"] = [describe_stage(stage) for stage in self.stages]
+        return data
+
+
+PRESETS: dict[str, Preset] = {
+    # one core of a CPU machine: Hopper with the hip deformed, Env-B five times Env-A
+    "cpu": Preset(
+        env_id="Hopper-v5",
+        stages=({}, {"hip_deformation": 0.3}),
+        stage_steps=(50_000, 250_000),
+        distill_steps=30_000,
+        eval_freq=10_000,
+        distill_eval_freq=5_000,
+        eval_episodes=5,
+        net_arch=(128, 128),
+        batch_size=128,
+        student_batch_size=256,
+        num_samples=10,
+        learning_rate=1e-3,
+        learning_starts=2_000,
+    ),
+    # the paper's scale: OP3 walking, 0.2M steps in Env-A then 1M in Env-B (a GPU machine, or days of CPU)
+    "paper": Preset(
+        env_id="sb3_lifelong/OP3Walk-v0",
+        stages=("default", "hip_0.3"),
+        stage_steps=(200_000, 1_000_000),
+        distill_steps=500_000,
+        eval_freq=20_000,
+        distill_eval_freq=25_000,
+        eval_episodes=5,
+        note=(
+            "The paper's scale. Estimated on one core of a 2-core AMD EPYC CPU from measured update rates (MPO and "
+            "CRR at 256x256, about 40 updates per second there): roughly 8 h of collection, 14 h of online baselines and "
+            "17 h for the twelve students, about 40 h per seed; not run end to end here. Use a GPU machine, or "
+            "`study --workers N` / `--address` to spread seeds and students over many cores."
+        ),
+    ),
+    # seconds: for the tests
+    "tiny": Preset(
+        env_id="Hopper-v5",
+        stages=({}, {"hip_deformation": 0.3}),
+        stage_steps=(200, 400),
+        distill_steps=100,
+        eval_freq=100,
+        distill_eval_freq=50,
+        eval_episodes=1,
+        net_arch=(16, 16),
+        batch_size=32,
+        student_batch_size=32,
+        num_samples=4,
+        learning_rate=1e-3,
+        learning_starts=100,
+        max_episode_steps=50,
+    ),
+}
+
+# the cpu protocol with the one Env-B of the env-pair table that hurt in both directions, the foot twice as long
+# (benchmarks/results/env_pairs); evaluated on 10 episodes, as the 5 of `cpu` left the students' scores noisy
+PRESETS["cpu_foot"] = dataclasses.replace(
+    PRESETS["cpu"],
+    stages=({}, {"foot_scale": 2.0}),
+    eval_episodes=10,
+    note=(
+        "Env-B: the foot twice as long, the candidate with a zero-shot drop in both directions (Env-A policy in "
+        "Env-B -87 %, Env-B policy in Env-A -42 %, one seed each at 50k steps). Claims pre-registered in "
+        "benchmarks/results/paper_cpu_foot/README.md before any seed ran."
+    ),
+)
+
+# the paper's three-stage set-up (its appendix: Env-A 0.2M, Env-B 0.2M, Env-C 1M steps) at the cpu budgets: 0.2 : 0.2 : 1
+# of 250k steps; the order follows the env-pair table: each switch hurts the policy of the stage before, and the
+# Env-C (foot x2) policy is poor in both earlier environments (benchmarks/results/env_pairs)
+PRESETS["cpu_three"] = dataclasses.replace(
+    PRESETS["cpu"],
+    stages=({}, {"friction": 0.2}, {"foot_scale": 2.0}),
+    stage_steps=(50_000, 50_000, 250_000),
+    env_names=("Env-A", "Env-B", "Env-C"),
+    eval_episodes=10,
+    students=("CRR_exp_beta1", "CRR_indicator", "BC"),
+    online=False,
+    note=(
+        "Three stages (the paper's appendix): default robot, then the floor's friction 0.2, then the foot twice as long, "
+        "in the proportions 0.2 : 0.2 : 1; the students that need no task boundaries only, no online baselines. Claims "
+        "pre-registered in benchmarks/results/paper_cpu_three/README.md before any seed ran."
+    ),
+)
+
+# cpu_three again with what its first study asked for: the paper's kind of critic for the CRR students (a categorical
+# one on the data's return bounds: no student diverged with it, benchmarks/results/paper_cpu_three/bounded_critic) and
+# every student trained three times per buffer and scored by the mean (most of a student's spread is its own training,
+# benchmarks/results/student_spread.md); its collection is cpu_three's, so cpu_three's buffers can be reused
+PRESETS["cpu_three_c51"] = dataclasses.replace(
+    PRESETS["cpu_three"],
+    student_critic="categorical",
+    student_repeats=3,
+    note=(
+        "cpu_three's set-up and claims, with categorical-critic CRR students each trained three times per buffer and "
+        "scored by the mean. Pre-registered in benchmarks/results/paper_cpu_three_c51/README.md before any seed ran."
+    ),
+)
+
+# the same at the paper's scale, one preset per environment combination of its appendix (OP3; a GPU machine)
+for _number, _stages in enumerate(
+    (
+        ("default", "hip_0.2", "hip_0.2+foot_1.6"),
+        ("default", "hip_0.3", "hip_0.3+foot_1.6"),
+        ("default", "foot_1.2", "foot_1.2+ground_0.1"),
+    ),
+    start=1,
+):
+    PRESETS[f"paper_three_{_number}"] = dataclasses.replace(
+        PRESETS["paper"],
+        stages=_stages,
+        stage_steps=(200_000, 200_000, 1_000_000),
+        env_names=("Env-A", "Env-B", "Env-C"),
+        students=PRESETS["cpu_three"].students,
+        online=False,
+        note=f"The paper's three-stage set-up, its environment combination {_number}, at its scale (a GPU machine).",
+    )
+
+# the dose-response study of the imbalance (benchmarks/results/imbalance_dose/README.md, pre-registered before any run):
+# the collector at MPO's defaults (256x256 LayerNorm torso, 20 samples), Env-A and Env-B 100k steps each; the
+# imbalance is a dose applied by the students (Env-B sampling share, Env-B reward scale), not by the collection
+PRESETS["dose_hopper"] = Preset(
+    env_id="Hopper-v5",
+    stages=({}, {"foot_scale": 2.0}),
+    stage_steps=(100_000, 100_000),
+    distill_steps=200_000,
+    eval_freq=10_000,
+    distill_eval_freq=25_000,
+    eval_episodes=10,
+    learning_starts=5_000,
+    layer_norm=True,
+    students=(),
+    online=False,
+    student_critic="categorical",
+    note="Collection of the imbalance dose study (Hopper, foot x2); students: benchmarks/imbalance_dose.py.",
+)
+# the natural-value-gap candidate (no healthy reward); its episodes are 1000 steps long, so 5 evaluation episodes
+PRESETS["dose_cheetah"] = dataclasses.replace(
+    PRESETS["dose_hopper"],
+    env_id="HalfCheetah-v5",
+    eval_episodes=5,
+    note="Collection of the imbalance dose study (HalfCheetah, foot x2); students: benchmarks/imbalance_dose.py.",
+)
+
+# `make demo`: the cpu preset, shortened to minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
+PRESETS["demo"] = dataclasses.replace(
+    PRESETS["cpu"],
+    stage_steps=(8_000, 24_000),
+    distill_steps=5_000,
+    eval_freq=4_000,
+    distill_eval_freq=1_000,
+    eval_episodes=3,
+    students=("CRR_exp_beta1", "CRR_indicator", "CRR_indicator_A_only", "BC"),
+    online=False,
+    note=(
+        "This is the demo preset: 8k + 24k steps and 5k updates per student, a few minutes on a laptop CPU. At this "
+        "budget MPO has not learnt Env-A yet, so there is little to forget and the students copy weak data: the "
+        "claims are evaluated for the record, not expected to hold. The study that tests them is the 'cpu' preset "
+        "(collection and students about 80 min per seed on one core, the online baselines about as long again): "
+        "see benchmarks/results/paper_cpu/report.md."
+    ),
+)
+
+
+# ------------------------------------------------------------------------------------------------- students and jobs
+@dataclass(frozen=True)
+class Student:
+    """
+    One offline student of the lifetime buffer.
+
+    :param algorithm: "CRR" or "BC"
+    :param kwargs: the student's hyperparameters (``advantage_transform``, ``beta``, ``actor_per_source``)
+    :param ratio: sampling ratio Env-A : Env-B as ``(a, b)`` (None: the raw sizes); ``(1, 0)``: Env-A only
+    :param reward_scale: per-source reward scale, by environment index
+    :param uses_boundaries: whether the variant needs to know which environment each transition came from
+        (a diagnostic, not a lifelong method)
+    :param about: one line for the reports
+    """
+
+    algorithm: str
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    ratio: Optional[tuple[float, float]] = None
+    reward_scale: Optional[dict[int, float]] = None
+    uses_boundaries: bool = False
+    about: str = ""
+
+
+EXP = dict(advantage_transform="exp", beta=1.0)
+INDICATOR = dict(advantage_transform="indicator")
+
+#: the offline students of a seed, by name (the job is ``distill_<name>``)
+STUDENTS: dict[str, Student] = {
+    "CRR_exp_beta1": Student("CRR", EXP, about="the pipeline: CRR, exp transform, beta=1, whole buffer"),
+    "CRR_indicator": Student("CRR", INDICATOR, about="the imbalance baseline: CRR, indicator transform, whole buffer"),
+    "CRR_indicator_A_only": Student("CRR", INDICATOR, ratio=(1, 0), uses_boundaries=True, about="Env-A data only"),
+    "CRR_indicator_B_only": Student("CRR", INDICATOR, ratio=(0, 1), uses_boundaries=True, about="Env-B data only"),
+    "CRR_exp_beta1_A_only": Student("CRR", EXP, ratio=(1, 0), uses_boundaries=True, about="Env-A data only, exp beta=1"),
+    "BC": Student("BC", about="behaviour cloning on the whole buffer"),
+    "CRR_indicator_scale_rwd_B": Student(
+        "CRR", INDICATOR, reward_scale={1: 0.5}, uses_boundaries=True, about="Env-B rewards scaled by 0.5"
+    ),
+    "CRR_indicator_two_actors": Student(
+        "CRR", {**INDICATOR, "actor_per_source": True}, uses_boundaries=True, about="one actor per environment"
+    ),
+    "CRR_indicator_ratio_1to1": Student("CRR", INDICATOR, ratio=(1, 1), uses_boundaries=True, about="sampled 1:1"),
+    "CRR_indicator_ratio_1to10": Student("CRR", INDICATOR, ratio=(1, 10), uses_boundaries=True, about="sampled 1:10"),
+    "CRR_exp_beta1_ratio_1to1": Student("CRR", EXP, ratio=(1, 1), uses_boundaries=True, about="sampled 1:1"),
+    "CRR_exp_beta1_ratio_1to10": Student("CRR", EXP, ratio=(1, 10), uses_boundaries=True, about="sampled 1:10"),
+}
+
+#: the online methods continuing from the Stage-1 agent (MPO itself continues in the ``collect`` job)
+ONLINE: dict[str, dict[str, Any]] = {"CRR_indicator": INDICATOR, "CRR_exp_beta1": EXP}
+
+
+#: repeat ``k`` of a student of seed ``s`` trains and evaluates with the student seed ``s + k * REPEAT_SEED_STRIDE``
+#: (repeat 0 with ``s`` itself, as a study without repeats), far from the seeds of other buffers
+REPEAT_SEED_STRIDE = 1000
+
+#: a student's repeat ``k >= 1`` on the same buffer is the job ``distill_<student>__r<k>``
+REPEAT_MARK = "__r"
+
+
+def split_repeat(student_job: str) -> tuple[str, int]:
+    """
+    :param student_job: a distillation job's name without ``distill_``, e.g. ``"CRR_exp_beta1__r2"``
+    :return: the student's name and the repeat (0 for the first training), e.g. ``("CRR_exp_beta1", 2)``
+    """
+    name, mark, repeat = student_job.rpartition(REPEAT_MARK)
+    if mark and name and repeat.isdigit():
+        return name, int(repeat)
+    return student_job, 0
+
+
+def job_names(students: Optional[Sequence[str]] = None, online: bool = True, student_repeats: int = 1) -> list[str]:
+    """
+    :param students: the students (default: every one of :data:`STUDENTS`)
+    :param online: with the online CRR baselines
+    :param student_repeats: how many times each student is trained on the seed's buffer
+    :return: the jobs of one seed, in the order they run (a student's repeats after all the first trainings)
+    """
+    if student_repeats < 1:
+        raise ValueError(f"student_repeats must be >= 1, got {student_repeats}")
+    names = list(students if students is not None else STUDENTS)
+    jobs = ["collect"]
+    jobs += [f"distill_{name}" for name in names]
+    jobs += [f"distill_{name}{REPEAT_MARK}{k}" for k in range(1, student_repeats) for name in names]
+    jobs += [f"online_{name}" for name in ONLINE] if online else []
+    return jobs
+
+
+# ------------------------------------------------------------------------------------------------- stages
+def describe_stage(stage: Stage) -> Any:
+    """:return: a stage as a JSON-friendly value (a named stage's name, or a dict of parameter values)"""
+    return stage if isinstance(stage, str) else dict(stage)
+
+
+def stage_ends(stage_steps: Sequence[int]) -> list[int]:
+    """
+    :param stage_steps: the environment steps of each stage
+    :return: the timestep at which each stage ends (all but the last are the switches to the next environment)
+    """
+    return list(itertools.accumulate(int(steps) for steps in stage_steps))
+
+
+def switch_points(preset: Preset) -> list[int]:
+    """:return: the timesteps at which the collector's environment changes"""
+    return stage_ends(preset.stage_steps)[:-1]
+
+
+# ------------------------------------------------------------------------------------------------- recorded settings
+#: settings added to :class:`Preset` after studies were recorded, with the value those studies ran with
+LATER_SETTINGS: dict[str, Any] = {"layer_norm": False, "student_repeats": 1, "student_critic": "mse"}
+
+
+def same_settings(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> bool:
+    """
+    :param recorded: a study's ``preset.json``
+    :param described: :meth:`Preset.describe` of a preset, through JSON
+    :return: whether they are one study's settings: equal but for the number of student repeats, with settings
+        that a recorded file predates read as the value it ran with (:data:`LATER_SETTINGS`)
+    """
+
+    def comparable(data: Mapping[str, Any]) -> dict[str, Any]:
+        filled = {**LATER_SETTINGS, **data}
+        filled.pop("student_repeats")
+        return filled
+
+    return comparable(recorded) == comparable(described)
+
+
+#: the settings that only the students and the report read: two studies that differ in nothing else collect alike
+STUDENT_SETTINGS = (
+    "distill_steps",
+    "distill_eval_freq",
+    "student_batch_size",
+    "student_learning_rate",
+    "students",
+    "online",
+    "student_repeats",
+    "student_critic",
+    "note",
+    "minutes_per_seed",
+)
+
+
+def collection_differences(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> list[str]:
+    """
+    :param recorded: a study's ``preset.json``
+    :param described: :meth:`Preset.describe` of a preset, through JSON
+    :return: the settings of the collection (everything but :data:`STUDENT_SETTINGS`) in which they differ
+    """
+    filled = {**LATER_SETTINGS, **recorded}, {**LATER_SETTINGS, **described}
+    keys = sorted((set(filled[0]) | set(filled[1])) - set(STUDENT_SETTINGS))
+    return [key for key in keys if filled[0].get(key) != filled[1].get(key)]
+
+
+def preset_name(recorded: Mapping[str, Any]) -> str:
+    """
+    :param recorded: a study's recorded settings (``preset.json``)
+    :return: the name of the preset it was run with (:data:`PRESETS`), or ``""``
+    """
+    for name, candidate in PRESETS.items():
+        if same_settings(recorded, json.loads(json.dumps(candidate.describe()))):
+            return name
+    return ""

@@ -1,0 +1,132 @@
+"""
+A study's directory read into scores: every finished job of every seed, as the long tables of a :class:`Study`
+(:func:`load_study`), which the report (:mod:`sb3_lifelong.experiments.report`: tables, the pre-registered claims)
+and the figures (:mod:`sb3_lifelong.experiments.figures`) read.
+
+A seed's scores:
+
+* an online method's final return in an environment: the mean of its last ``ONLINE_LAST`` evaluations;
+* MPO's return in an environment *at the switch* (when it leaves that environment): the mean of its last
+  ``ONLINE_LAST_STAGE1`` evaluations of that environment's stage;
+* Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
+* a student's final return: the mean of its last ``STUDENT_LAST`` evaluations (of each repeat, then the mean over its
+  repeats);
+* Q per source: the student's last average Q-value over each environment's data.
+"""
+
+import json
+import pathlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import pandas as pd
+
+from sb3_lifelong.experiments.presets import split_repeat, stage_ends
+
+ONLINE_LAST = 3
+ONLINE_LAST_STAGE1 = 2
+STUDENT_LAST = 2
+
+
+def seeds_of(output: pathlib.Path) -> list[int]:
+    """:return: the seeds of the study in ``output`` whose collection has finished, in order"""
+    return sorted(int(path.name.split("_")[1]) for path in output.glob("seed_*") if (path / "collect" / "done.json").exists())
+
+
+def read_eval(output: pathlib.Path, seed: int, job: str) -> Optional[pd.DataFrame]:
+    """:return: a finished job's evaluations (its ``eval.csv``), or None when the job has not finished"""
+    path = output / f"seed_{seed}" / job / "eval.csv"
+    if not (output / f"seed_{seed}" / job / "done.json").exists() or not path.exists():
+        return None
+    return pd.read_csv(path)
+
+
+def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = None, after: Optional[int] = None) -> float:
+    """:return: the mean return of the last ``count`` evaluations in ``env`` at timesteps in ``(after, until]`` (or NaN)"""
+    rows = frame[frame["env"] == env]
+    if until is not None:
+        rows = rows[rows["timesteps"] <= until]
+    if after is not None:
+        rows = rows[rows["timesteps"] > after]
+    rows = rows.sort_values("timesteps")
+    return float(rows["mean_reward"].tail(count).mean()) if len(rows) else float("nan")
+
+
+@dataclass
+class Study:
+    """The scores of every seed of a study, as long tables."""
+
+    output: pathlib.Path
+    preset: dict[str, Any]
+    seeds: list[int]
+    finals: pd.DataFrame  # seed, method, kind (online / student), env, score
+    extras: pd.DataFrame  # seed, metric, value (switch scores, Stage-2 areas, Q per source)
+
+    def score(self, method: str, env: str) -> dict[int, float]:
+        rows = self.finals[(self.finals["method"] == method) & (self.finals["env"] == env)]
+        return {int(r.seed): float(r.score) for r in rows.itertuples()}
+
+    def extra(self, metric: str) -> dict[int, float]:
+        rows = self.extras[self.extras["metric"] == metric]
+        return {int(r.seed): float(r.value) for r in rows.itertuples()}
+
+
+def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> Study:
+    """
+    Read every finished job of every seed of ``output``.
+
+    :param output: the study's directory
+    :param seeds: only these seeds (default: every seed whose collection has finished)
+    :return: the scores; a student's score on a seed is the mean over its finished repeats, and ``finals`` counts
+        them in its column ``repeats``
+    """
+    preset = json.loads((output / "preset.json").read_text())
+    envs = preset["env_names"]
+    ends = stage_ends(preset["stage_steps"])
+    switch = ends[0]
+    finished = seeds_of(output)
+    if seeds is not None:
+        missing = sorted(set(seeds) - set(finished))
+        if missing:
+            raise ValueError(f"seeds {missing} of {output} have no finished collection (finished: {finished})")
+    seeds = finished if seeds is None else sorted(set(seeds))
+    finals, extras = [], []
+    for seed in seeds:
+        run_dir = output / f"seed_{seed}"
+        for job_dir in sorted(p for p in run_dir.iterdir() if (p / "done.json").exists()):
+            job = job_dir.name
+            frame = read_eval(output, seed, job)
+            if frame is None:
+                continue
+            if job == "collect" or job.startswith("online_"):
+                method = "MPO" if job == "collect" else f"online {job[len('online_'):]}"
+                for env in envs:
+                    finals.append(
+                        dict(seed=seed, method=method, kind="online", env=env, score=last_mean(frame, env, ONLINE_LAST))
+                    )
+                    area = last_mean(frame, env, 10**9, after=switch, until=ends[1])  # Stage 2 only (of 2 or 3)
+                    extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
+                if job == "collect":  # each environment's return when MPO leaves it (the end of its stage)
+                    for env, end in zip(envs[:-1], ends[:-1]):
+                        value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
+                        extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
+            elif job.startswith("distill_"):
+                method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
+                for env in envs:
+                    score = last_mean(frame, env, STUDENT_LAST)
+                    finals.append(dict(seed=seed, method=method, kind="student", env=env, score=score))
+                q_path = job_dir / "q_sources.csv"
+                if q_path.exists():
+                    q = pd.read_csv(q_path)
+                    if len(q):
+                        last = q[q["timesteps"] == q["timesteps"].max()]
+                        for row in last.itertuples():
+                            extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
+    finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
+    if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
+        groups = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"]
+        finals_frame = groups.agg(score="mean", repeats="size")  # finished jobs, a NaN score (no evaluation) included
+    if len(extras_frame):
+        extras_frame = extras_frame.groupby(["seed", "metric"], as_index=False, sort=False)["value"].mean()
+    return Study(output, preset, seeds, finals_frame, extras_frame)
