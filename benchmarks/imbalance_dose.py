@@ -472,7 +472,8 @@ def change_screen(robot: str, curves: list[pathlib.Path], root: pathlib.Path) ->
     lines = [
         f"## {robot}: the change screen (`branch`, seed 0; criterion in the README)",
         "",
-        "| Env-B | steps | Stage-1 in A (last 5) | end in A (last 5) | end / Stage-1 | P2 (<= 0.8) | first in B -> end in B "
+        "| Env-B | steps | Stage-1 in A (last 5) | last in A (last 5) | last / Stage-1 | P2 (<= 0.8) "
+        "| first in B -> last in B "
         "| learnt B | qualifies |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
@@ -480,11 +481,14 @@ def change_screen(robot: str, curves: list[pathlib.Path], root: pathlib.Path) ->
     for index, (path, change) in enumerate(named):
         v = change_verdict(path, switch)
         name = ", ".join(f"{k}={x:g}" for k, x in change.items())
-        done = "" if v["end_step"] >= sum(preset.stage_steps) else f" (to {v['end_step'] // 1000}k: unfinished)"
+        finished = v["end_step"] >= sum(preset.stage_steps)
+        done = "" if finished else f" (stopped at {v['end_step'] // 1000}k)"
+        so_far = "" if finished else " so far"
+        verdict = ("**yes**" if v["qualifies"] else "no") if finished else "undecided (unfinished)"
         lines.append(
             f"| {name}{done} | {v['end_step']:,} | {v['stage1_Env-A']:.0f} | {v['end_Env-A']:.0f} | {v['ratio_A']:.2f} "
-            f"| {'held' if v['P2'] else 'failed'} | {v['first_Env-B']:.0f} -> {v['end_Env-B']:.0f} "
-            f"| {'yes' if v['learnt_B'] else 'no'} | {'**yes**' if v['qualifies'] else 'no'} |"
+            f"| {('held' if v['P2'] else 'failed') + so_far} | {v['first_Env-B']:.0f} -> {v['end_Env-B']:.0f} "
+            f"| {('yes' if v['learnt_B'] else 'no') + so_far} | {verdict} |"
         )
         frame = pd.read_csv(path)
         for ax, env in zip(axes, ("Env-A", "Env-B")):
