@@ -729,3 +729,42 @@ def test_imbalance_dose_study(study, tmp_path):
     assert set(claims["result"]) <= {"reproduced", "not reproduced", "not testable"}
     assert (claims["result"] == "not testable").all()  # one seed: no claim is testable
     assert (results / "dose_tiny.png").exists() and "P1" in (results / "results.md").read_text()
+
+
+def test_a_collection_runs_in_parts(tmp_path):
+    """``until`` pauses the collection with a checkpoint; the same call continues it, through the switch, to the end."""
+    messages: list = []
+    preset = PRESETS["tiny"]  # 200 steps of Env-A, 400 of Env-B
+    run_dir = tmp_path / "seed_0"
+    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=messages.append, until=150) == []
+    assert (run_dir / "collect" / "paused.zip").exists() and not (run_dir / "collect" / "stage1.zip").exists()
+    assert not (run_dir / "collect" / "done.json").exists()
+    assert any("paused at step 150" in m for m in messages)
+    assert json.loads((run_dir / "collect" / "paused.json").read_text()) == dict(timesteps=150, transitions=150)
+    with open(run_dir / "collect" / "eval.csv", "a") as handle:  # a part killed after logging past the pause
+        handle.write("300,Env-A,1.0,0.0,1\n")
+    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=messages.append, until=450) == []  # through the switch
+    with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1:
+        assert stage1.size() == 200
+    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=messages.append) == ["collect"]
+    assert not (run_dir / "collect" / "paused.zip").exists() and (run_dir / "collect" / "final.zip").exists()
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        counts = buffer.source_counts()  # the robot changes at the first episode start from step 200 on
+        assert buffer.size() == 600 and sorted(counts) == [0, 1] and 200 <= counts[0] < 600
+    steps = pd.read_csv(run_dir / "collect" / "eval.csv").groupby("env")["timesteps"].apply(list)
+    assert all(list(s) == list(range(100, 601, 100)) for s in steps)  # every evaluation once, none repeated
+    train = pd.read_csv(run_dir / "collect" / "train.csv")  # one header, its rows in order across the parts
+    assert list(train["timesteps"]) == sorted(set(train["timesteps"])) and train["timesteps"].max() == 600
+    assert train["timesteps"].min() <= 200  # the parts before the last pause are kept
+
+
+def test_a_paused_collection_that_moved_on_is_not_deleted(tmp_path):
+    """An attempt continued from a pause and stopped unrecorded: resuming refuses, naming what to remove; data kept."""
+    preset = PRESETS["tiny"]
+    run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=150)
+    record = tmp_path / "seed_0" / "collect" / "paused.json"
+    record.write_text(json.dumps(dict(timesteps=120, transitions=120)))  # the buffer now holds more than recorded
+    with pytest.raises(RuntimeError, match="Nothing was deleted"):
+        run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None)
+    with LifelongReplayBuffer.open(tmp_path / "seed_0" / "buffer", read_only=True) as buffer:
+        assert buffer.size() == 150

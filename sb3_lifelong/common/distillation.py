@@ -136,7 +136,7 @@ def distill(
     else:
         data = source  # a buffer directory is opened read-only by from_offline_data
 
-    student = student_class.from_offline_data(data, policy=policy, **student_kwargs)  # type: ignore[attr-defined]
+    student = student_class.from_offline_data(data, policy=policy, **student_kwargs)
 
     logger = _logger_beside(teacher, tb_log_name, student.verbose) if teacher is not None and not own_tensorboard_log else None
     if logger is not None:

@@ -32,6 +32,14 @@ EVAL_SEED_OFFSET = 10_000
 EvalEnvs = Union[GymEnv, str, Sequence[Union[GymEnv, str]], Mapping[str, Union[GymEnv, str]]]
 
 
+def _csv_header(path: pathlib.Path) -> list[str]:
+    """:return: the first row of the CSV file at ``path`` (empty when there is none)"""
+    if not path.is_file():
+        return []
+    with open(path, newline="") as handle:
+        return next(csv.reader(handle), [])
+
+
 def _env_name(env: Any, index: int) -> str:
     if isinstance(env, str):
         return env
@@ -451,10 +459,14 @@ class TrainLogCallback(BaseCallback):
         if not values:
             return True
         if self._fields is None:
-            self._fields = ["timesteps", *sorted(values)]
-            self.log_path.parent.mkdir(parents=True, exist_ok=True)
-            with open(self.log_path, "w", newline="") as handle:
-                csv.writer(handle).writerow(self._fields)
+            header = _csv_header(self.log_path)
+            if header and header[0] == "timesteps":  # a resumed run goes on in the same file, with its columns
+                self._fields = header
+            else:
+                self._fields = ["timesteps", *sorted(values)]
+                self.log_path.parent.mkdir(parents=True, exist_ok=True)
+                with open(self.log_path, "w", newline="") as handle:
+                    csv.writer(handle).writerow(self._fields)
         with open(self.log_path, "a", newline="") as handle:
             row = {"timesteps": self.num_timesteps, **values}
             csv.DictWriter(handle, fieldnames=self._fields, extrasaction="ignore").writerow(row)

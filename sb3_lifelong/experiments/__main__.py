@@ -58,6 +58,13 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--distill-steps", type=int, default=None, help="override the updates of every student")
     run.add_argument("--student-repeats", type=int, default=None, help=REPEATS_HELP)
     run.add_argument("--collection-from", default=None, metavar="STUDY", help=REUSE_HELP)
+    run.add_argument(
+        "--until",
+        type=int,
+        default=None,
+        metavar="STEPS",
+        help="pause the collection after this many environment steps (a checkpoint); the same command continues it",
+    )
     run.add_argument("--progress-bar", action="store_true", help="a progress bar for every job (needs tqdm and rich)")
     run.add_argument("--threads", type=int, default=1, help="torch threads (default 1: more only slows small networks down)")
 
@@ -218,6 +225,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         progress_bar=args.progress_bar,
         log=lambda m: print(m, flush=True),
         collection_from=None if args.collection_from is None else pathlib.Path(args.collection_from),
+        until=args.until,
     )
     run_dir = output / f"seed_{args.seed}"
     minutes = (time.perf_counter() - start) / 60

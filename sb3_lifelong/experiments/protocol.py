@@ -33,8 +33,10 @@ Layout of ``<output>/seed_<k>/``::
 """
 
 import contextlib
+import csv
 import dataclasses
 import json
+import os
 import pathlib
 import shutil
 import sys
@@ -65,6 +67,7 @@ from sb3_lifelong.experiments.presets import (
     job_names,
     same_settings,
     split_repeat,
+    stage_ends,
     switch_points,
 )
 from sb3_lifelong.mpo import MPO
@@ -163,8 +166,107 @@ def job_callbacks(
     return callbacks
 
 
-def collect(preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False, log: Callable = print) -> None:
-    """MPO through both stages into one lifetime buffer on disk; keeps the Stage-1 agent and buffer."""
+#: a paused collection (``collect(..., until=...)``): its checkpoint (the model, which commits the lifetime buffer) and
+#: what the pause recorded (timesteps, the buffer's transitions), in the ``collect`` directory
+PAUSED_MODEL, PAUSED_RECORD = "paused.zip", "paused.json"
+
+
+def collect(
+    preset: Preset,
+    seed: int,
+    run_dir: pathlib.Path,
+    progress_bar: bool = False,
+    log: Callable = print,
+    until: Optional[int] = None,
+) -> bool:
+    """
+    MPO through both stages into one lifetime buffer on disk; keeps the Stage-1 agent and buffer.
+
+    A collection longer than a session runs in parts: with ``until``, it stops cleanly after that many environment
+    steps (a checkpoint, ``collect/paused.zip``, which commits the buffer), and the next call continues from there
+    (the loaded model starts a new episode, as any resumed SB3 model). An attempt that neither finished nor paused is
+    started again, unless it had continued from a pause: then it raises (its buffer holds transitions the pause did
+    not record) and deletes nothing.
+
+    :param until: stop after this many environment steps of the whole collection (None: collect to the end)
+    :return: True when the collection is finished, False when it paused at ``until``
+    """
+    directory = run_dir / "collect"
+    if (directory / PAUSED_MODEL).exists():
+        model = _resume_collection(preset, run_dir, log)
+    else:
+        model = _new_collection(preset, seed, run_dir)
+    buffer: Any = model.replay_buffer
+    callbacks = job_callbacks(preset, directory, preset.eval_freq, seed)
+    ends = stage_ends(preset.stage_steps)
+    for stage, end in enumerate(ends):
+        stop = end if until is None else min(end, until)
+        if model.num_timesteps < stop:
+            log(f"  stage {stage + 1}/{len(ends)}: {preset.env_names[stage]}, to step {stop:,} of {end:,} (MPO)")
+            model.learn(stop - model.num_timesteps, callback=callbacks, reset_num_timesteps=model.num_timesteps == 0,
+                        progress_bar=progress_bar)  # fmt: skip
+        if model.num_timesteps < end:  # paused inside this stage
+            break
+        if stage == 0 and not (directory / "stage1.zip").exists():
+            model.save(directory / "stage1.zip")
+            merge_buffers([buffer], path=run_dir / "buffer_stage1").close()
+    if model.num_timesteps < ends[-1]:
+        model.save(directory / PAUSED_MODEL)  # commits the buffer first
+        record = dict(timesteps=int(model.num_timesteps), transitions=int(buffer.size()))
+        write_json_atomic(str(directory / PAUSED_RECORD), record)
+        buffer.close()
+        return False
+    model.save(directory / "final.zip")
+    buffer.close()
+    for name in (PAUSED_MODEL, PAUSED_RECORD):
+        (directory / name).unlink(missing_ok=True)
+    return True
+
+
+def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> MPO:
+    """The paused collection's model, with its lifetime buffer reopened to append, when the two still agree."""
+    directory = run_dir / "collect"
+    record = json.loads((directory / PAUSED_RECORD).read_text()) if (directory / PAUSED_RECORD).exists() else None
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as held:
+        transitions = held.size()
+    if record is None or transitions != record["transitions"]:
+        recorded = "no record of the pause" if record is None else f"{record['transitions']:,} at the pause"
+        raise RuntimeError(
+            f"{run_dir}: the collection paused at {directory / PAUSED_MODEL}, but its buffer holds {transitions:,} "
+            f"transitions ({recorded}): an attempt continued from the pause and stopped without finishing or pausing "
+            f"again. Nothing was deleted; to collect this seed again from the start, remove {directory}, "
+            f"{run_dir / 'buffer'} and {run_dir / 'buffer_stage1'}"
+        )
+    for name in ("eval.csv", "q_sources.csv", "train.csv"):  # a killed part may have logged past the pause
+        _drop_rows_after(directory / name, record["timesteps"])
+    log(f"  continuing the paused collection at step {record['timesteps']:,}")
+    return MPO.load(
+        directory / PAUSED_MODEL,
+        env=make_env(preset, switch_at=switch_points(preset)),
+        device="cpu",
+        replay_buffer_kwargs=dict(path=run_dir / "buffer", mode="append"),
+    )
+
+
+def _drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
+    """Keep the rows of a job's CSV log (a ``timesteps`` column) up to ``timesteps``; the file is replaced atomically."""
+    if not path.is_file():
+        return
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    if not rows or "timesteps" not in rows[0]:
+        return
+    column = rows[0].index("timesteps")
+    kept = [rows[0], *(row for row in rows[1:] if int(float(row[column])) <= timesteps)]
+    if len(kept) < len(rows):
+        staging = path.with_name(path.name + ".tmp")
+        with open(staging, "w", newline="") as handle:
+            csv.writer(handle).writerows(kept)
+        os.replace(staging, path)
+
+
+def _new_collection(preset: Preset, seed: int, run_dir: pathlib.Path) -> MPO:
+    """A fresh collector and its lifetime buffer (an unfinished attempt's directories are removed first)."""
     directory = run_dir / "collect"
     for stale in (directory, run_dir / "buffer", run_dir / "buffer_stage1"):  # an unfinished attempt: start again
         if stale.is_symlink():  # a link to another study's buffer (an unfinished adopt_collection): not ours to delete
@@ -187,15 +289,7 @@ def collect(preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool
     buffer: Any = model.replay_buffer
     for index in reversed(range(len(preset.env_names))):  # names in the manifest; transitions carry their stage
         buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=describe_stage(preset.stages[index])))
-    callbacks = job_callbacks(preset, directory, preset.eval_freq, seed)
-    for stage, steps in enumerate(preset.stage_steps):
-        log(f"  stage {stage + 1}/{len(preset.stage_steps)}: {preset.env_names[stage]}, {steps:,} steps of MPO")
-        model.learn(steps, callback=callbacks, reset_num_timesteps=stage == 0, progress_bar=progress_bar)
-        if stage == 0:
-            model.save(directory / "stage1.zip")
-            merge_buffers([buffer], path=run_dir / "buffer_stage1").close()
-    model.save(directory / "final.zip")
-    buffer.close()
+    return model
 
 
 def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False) -> None:
@@ -510,6 +604,7 @@ def run_seed(
     progress_bar: bool = False,
     log: Callable = print,
     collection_from: Optional[pathlib.Path] = None,
+    until: Optional[int] = None,
 ) -> list[str]:
     """
     Run the jobs of one seed that have not finished yet (each writes ``done.json`` when it finishes). A job that
@@ -522,7 +617,9 @@ def run_seed(
     :param progress_bar: show a progress bar per job
     :param log: where the one-line messages go
     :param collection_from: another study whose collection of this seed to reuse (:func:`adopt_collection`)
-    :return: the jobs that ran
+    :param until: pause the collection after this many environment steps (:func:`collect`); the other jobs wait
+        for a finished collection, so none runs while it is paused
+    :return: the jobs that ran (a paused collection is not among them)
     """
     record_settings(preset, output)
     run_dir = output / f"seed_{seed}"
@@ -537,7 +634,7 @@ def run_seed(
         raise ValueError(f"unknown jobs {unknown}; the jobs are {known}")
     if "collect" not in wanted and not (run_dir / "collect" / "done.json").exists():
         wanted.insert(0, "collect")
-    ran = []
+    ran: list[str] = []
     todo = [job for job in known if job in wanted and not (run_dir / job / "done.json").exists()]
     skipped = [job for job in wanted if job not in todo]
     if skipped:
@@ -558,7 +655,9 @@ def run_seed(
             log(f"seed {seed}: job {position + 1}/{len(todo)} {job} ...")
             start = time.perf_counter()
             if job == "collect":
-                collect(preset, seed, run_dir, progress_bar, log)
+                if not collect(preset, seed, run_dir, progress_bar, log, until=until):
+                    log(f"seed {seed}: collection paused at step {until:,}: run the command again to continue it")
+                    return ran
             elif job.startswith("online_"):
                 online(job[len("online_") :], preset, seed, run_dir, progress_bar)
             else:
