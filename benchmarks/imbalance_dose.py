@@ -32,7 +32,12 @@ RESULTS = pathlib.Path(__file__).parent / "results" / "imbalance_dose"
 
 #: robot -> (the collection's preset, P1's Env-A return threshold)
 #: (``tiny``: the tests' smoke run, no threshold)
-ROBOTS = {"hopper": ("dose_hopper", 1000.0), "cheetah": ("dose_cheetah", 1500.0), "tiny": ("tiny", 0.0)}
+ROBOTS = {
+    "hopper": ("dose_hopper", 1000.0),
+    "cheetah": ("dose_cheetah", 1500.0),
+    "cheetah_hip": ("dose_cheetah_hip", 1500.0),  # the long Env-B design (README, "Long Env-B")
+    "tiny": ("tiny", 0.0),
+}
 #: the conservative student's effective sample size, as a fraction of the batch
 TARGET_ESS = 0.9
 #: the doses: Env-B reward scale and the Env-A : Env-B sampling share

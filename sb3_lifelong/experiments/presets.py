@@ -252,6 +252,19 @@ PRESETS["dose_cheetah"] = dataclasses.replace(
     note="Collection of the imbalance dose study (HalfCheetah, foot x2); students: benchmarks/imbalance_dose.py.",
 )
 
+# the dose study's HalfCheetah pair with a long Env-B (benchmarks/results/imbalance_dose/README.md, "Long Env-B"): the
+# hip turned by 1 rad (the Env-A gait fails in Env-B: 4635 -> 199) and Env-B five times Env-A, as the paper's 200k : 1M;
+# about 8 hours of collection on one core: run it in parts (`run --until STEPS`)
+PRESETS["dose_cheetah_hip"] = dataclasses.replace(
+    PRESETS["dose_cheetah"],
+    stages=({}, {"hip_deformation": 1.0}),
+    stage_steps=(100_000, 500_000),
+    note=(
+        "Collection of the imbalance dose study, long Env-B (HalfCheetah, hip +1 rad, 100k : 500k steps); about 8 hours "
+        "on one core, so run it in parts with --until; students: benchmarks/imbalance_dose.py --robot cheetah_hip."
+    ),
+)
+
 # `make demo`: the cpu preset, shortened to minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
 PRESETS["demo"] = dataclasses.replace(
     PRESETS["cpu"],
