@@ -299,6 +299,56 @@ def branch(args: argparse.Namespace) -> None:
     print(f"branch {change} finished -> {run_dir}; its curve -> {results}")
 
 
+def adopt_stage1(args: argparse.Namespace) -> None:
+    """
+    A collection of ``--robot``'s preset, paused at its switch, made of another collection's finished Stage-1 (the
+    same robot, seed and Env-A, a one-parameter Env-B: see :func:`branch` for why Env-A is the same). The protocol's
+    ``run --preset <preset> --seed K --output <output> --until STEPS`` then continues it in Env-B, in parts.
+    """
+    import shutil
+
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.buffers import merge_buffers
+    from sb3_lifelong.buffers.files import write_json_atomic
+    from sb3_lifelong.experiments.presets import PRESETS, describe_stage
+    from sb3_lifelong.experiments.protocol import PAUSED_MODEL, PAUSED_RECORD, record_settings
+
+    preset = PRESETS[ROBOTS[args.robot][0]]
+    source = pathlib.Path(args.source) / f"seed_{args.seed}"
+    output = pathlib.Path(args.output)
+    run_dir = output / f"seed_{args.seed}"
+    if run_dir.exists():
+        raise FileExistsError(f"{run_dir} exists: the Stage-1 is adopted into a new seed directory only")
+    switch = preset.stage_steps[0]
+    with LifelongReplayBuffer.open(source / "buffer_stage1", read_only=True) as stage1:
+        if stage1.size() != switch or set(stage1.source_counts()) != {0}:
+            raise ValueError(f"{source / 'buffer_stage1'} holds {stage1.source_counts()}, not {switch:,} Env-A steps")
+        record_settings(preset, output)
+        directory = run_dir / "collect"
+        directory.mkdir(parents=True)
+        merge_buffers([stage1], path=run_dir / "buffer_stage1").close()
+        buffer = merge_buffers([stage1], path=run_dir / "buffer")
+    for index in reversed(range(len(preset.env_names))):
+        buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=describe_stage(preset.stages[index])))
+    buffer.flush()
+    buffer.close()
+    for name in ("stage1.zip", "train.csv"):  # (collections before TrainLogCallback have no train.csv)
+        if (source / "collect" / name).exists():
+            shutil.copy(source / "collect" / name, directory / name)
+    shutil.copy(source / "collect" / "stage1.zip", directory / PAUSED_MODEL)
+    for name, keep in (("eval.csv", "env"), ("q_sources.csv", "name")):  # Env-A's rows: the other Env-B was not this one
+        with open(source / "collect" / name, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        with open(directory / name, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(r for r in rows if int(r["timesteps"]) <= switch and r[keep] == preset.env_names[0])
+    write_json_atomic(str(directory / PAUSED_RECORD), dict(timesteps=switch, transitions=switch))
+    (run_dir / "adopted.json").write_text(json.dumps(dict(stage1_from=str(source)), indent=1))
+    print(f"{run_dir}: paused at the switch ({switch:,} steps); continue with `python -m sb3_lifelong.experiments run "
+          f"--preset {ROBOTS[args.robot][0]} --seed {args.seed} --output {output} --until STEPS`")  # fmt: skip
+
+
 # ------------------------------------------------------------------------------------------------- the report
 def t_interval(values: list[float]) -> tuple[float, float, float, float]:
     """:return: mean, std (ddof 1), and the 95 % t-interval of the mean (NaN with fewer than two values)"""
@@ -722,13 +772,18 @@ def main() -> None:
     branch_parser.add_argument("--study", default=None, help="the Stage-1 collection (default: <runs>/imbalance_dose_<robot>)")
     branch_parser.add_argument("--output", required=True, help="the new collection's directory")
     branch_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
+    adopt_parser = sub.add_parser("adopt-stage1", help="a paused collection of --robot's preset from another's Stage-1")
+    adopt_parser.add_argument("--robot", choices=sorted(ROBOTS), required=True)
+    adopt_parser.add_argument("--seed", type=int, required=True)
+    adopt_parser.add_argument("--source", required=True, help="the study whose finished Stage-1 is adopted")
+    adopt_parser.add_argument("--output", required=True, help="the new study's directory")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
     import torch as th
 
     th.set_num_threads(1)
-    {"run": run, "screen": screen, "branch": branch, "report": report}[args.command](args)
+    {"run": run, "screen": screen, "branch": branch, "adopt-stage1": adopt_stage1, "report": report}[args.command](args)
 
 
 if __name__ == "__main__":
