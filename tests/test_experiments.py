@@ -768,3 +768,38 @@ def test_a_paused_collection_that_moved_on_is_not_deleted(tmp_path):
         run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None)
     with LifelongReplayBuffer.open(tmp_path / "seed_0" / "buffer", read_only=True) as buffer:
         assert buffer.size() == 150
+
+
+def test_imbalance_dose_adopts_a_stage1_and_branches(study, tmp_path):
+    """imbalance_dose.py: another change's collection, paused at the switch from a finished Stage-1, continues in parts;
+    ``branch`` runs another Env-B from it; the change screen reports both."""
+    import argparse
+
+    dose = benchmark_module("imbalance_dose")
+    output, _ = study
+    adopted = tmp_path / "adopted"
+    dose.adopt_stage1(argparse.Namespace(robot="tiny", seed=0, source=str(output), output=str(adopted)))
+    preset = PRESETS["tiny"]
+    switch = preset.stage_steps[0]
+    record = json.loads((adopted / "seed_0" / "collect" / "paused.json").read_text())
+    assert record == dict(timesteps=switch, transitions=switch)
+    with pytest.raises(FileExistsError):  # written once
+        dose.adopt_stage1(argparse.Namespace(robot="tiny", seed=0, source=str(output), output=str(adopted)))
+    assert run_seed(preset, 0, adopted, jobs=["collect"], log=lambda m: None, until=switch + 100) == []
+    assert run_seed(preset, 0, adopted, jobs=["collect"], log=lambda m: None) == ["collect"]
+    with LifelongReplayBuffer.open(adopted / "seed_0" / "buffer", read_only=True) as buffer, LifelongReplayBuffer.open(
+        output / "seed_0" / "buffer_stage1", read_only=True
+    ) as stage1:
+        assert buffer.size() == sum(preset.stage_steps)
+        np.testing.assert_array_equal(
+            buffer.store.read_range("observations", 0, switch), stage1.store.read_range("observations", 0, switch)
+        )
+    evals = pd.read_csv(adopted / "seed_0" / "collect" / "eval.csv")
+    assert (evals[evals["timesteps"] <= switch]["env"] == "Env-A").all()  # the other Env-B's evaluations are not kept
+    results = tmp_path / "results"
+    dose.branch(argparse.Namespace(robot="tiny", seed=0, change='{"hip_deformation": -0.3}', steps=200, runs=str(tmp_path),
+                                   study=str(output), output=str(tmp_path / "branched"), results=str(results)))  # fmt: skip
+    curve = results / "tiny" / "changes" / "branched" / "seed_0" / "collect_eval.csv"
+    assert pd.read_csv(curve)["timesteps"].max() == switch + 200
+    dose.report(argparse.Namespace(results=str(results)))
+    assert "change screen" in (results / "results.md").read_text() and (results / "change_screen_tiny.png").exists()
