@@ -731,15 +731,16 @@ def test_imbalance_dose_study(study, tmp_path):
     assert (results / "dose_tiny.png").exists() and "P1" in (results / "results.md").read_text()
 
 
-def test_a_collection_runs_in_parts(tmp_path):
+def test_a_collection_runs_in_parts(tmp_path, capsys):
     """``until`` pauses the collection with a checkpoint; the same call continues it, through the switch, to the end."""
     messages: list = []
     preset = PRESETS["tiny"]  # 200 steps of Env-A, 400 of Env-B
     run_dir = tmp_path / "seed_0"
-    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=messages.append, until=150) == []
+    main(["run", "--preset", "tiny", "--seed", "0", "--output", str(tmp_path), "--jobs", "collect", "--until", "150"])
+    out = capsys.readouterr().out
+    assert "paused at step 150" in out and "The collection is paused" in out and "report" not in out.split("paused")[-1]
     assert (run_dir / "collect" / "paused.zip").exists() and not (run_dir / "collect" / "stage1.zip").exists()
     assert not (run_dir / "collect" / "done.json").exists()
-    assert any("paused at step 150" in m for m in messages)
     assert json.loads((run_dir / "collect" / "paused.json").read_text()) == dict(timesteps=150, transitions=150)
     with open(run_dir / "collect" / "eval.csv", "a") as handle:  # a part killed after logging past the pause
         handle.write("300,Env-A,1.0,0.0,1\n")

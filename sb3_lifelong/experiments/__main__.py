@@ -227,14 +227,22 @@ def main(argv: Optional[list[str]] = None) -> int:
         collection_from=None if args.collection_from is None else pathlib.Path(args.collection_from),
         until=args.until,
     )
-    run_dir = output / f"seed_{args.seed}"
-    minutes = (time.perf_counter() - start) / 60
-    print(f"Seed {args.seed}: {len(ran)} job(s) finished in {minutes:.1f} min; results in {run_dir}")
+    print(_closing(output, args.seed, len(ran), (time.perf_counter() - start) / 60))
+    return 0
+
+
+def _closing(output: pathlib.Path, seed: int, ran: int, minutes: float) -> str:
+    """:return: what ``run`` prints at the end: what finished, where, and what comes next"""
+    run_dir = output / f"seed_{seed}"
+    lines = [f"Seed {seed}: {ran} job(s) finished in {minutes:.1f} min; results in {run_dir}"]
     student = run_dir / "distill_CRR_exp_beta1" / "student.zip"
     if student.exists():
-        print(f"The distilled policy (CRR exp beta=1): sb3_lifelong.CRR.load('{student}')")
-    print(f"Tables, claims and figures: python -m sb3_lifelong.experiments report {output}")
-    return 0
+        lines.append(f"The distilled policy (CRR exp beta=1): sb3_lifelong.CRR.load('{student}')")
+    if (run_dir / "collect" / "done.json").exists():
+        lines.append(f"Tables, claims and figures: python -m sb3_lifelong.experiments report {output}")
+    else:  # paused (--until): nothing to report yet
+        lines.append("The collection is paused: the same command (with a later --until, or none) continues it")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
