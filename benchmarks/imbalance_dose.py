@@ -244,17 +244,12 @@ def branch(args: argparse.Namespace) -> None:
 
     Env-A does not depend on the change: its appended parameter column is the nominal value (0 after normalisation)
     whatever the change is, so the Stage-1 agent (weights, optimisers, dual variables) and the Stage-1 buffer of
-    ``--study`` are what a collection with ``--change`` (one parameter) would hold at the switch. The new collection
-    continues from them in Env-B = ``--change`` and writes ``collect/`` (Stage-1 Env-A evaluations copied, then both
-    environments every ``eval_freq``), ``buffer`` and ``buffer_stage1`` under ``--output``/``seed_<k>``, like a full
-    collection; its Env-A return after Env-B is P2's test of the change (the change screen, README).
+    ``--study`` are what a collection with ``--change`` (one parameter) would hold at the switch. They are laid out as
+    that collection paused at its switch (:func:`adopt`), which the protocol's ``collect`` continues in Env-B; its
+    Env-A return after Env-B is P2's test of the change (the change screen, README).
     """
-    import shutil
-
-    from sb3_lifelong import MPO, LifelongReplayBuffer
-    from sb3_lifelong.buffers import merge_buffers
-    from sb3_lifelong.experiments.presets import PRESETS, describe_stage, switch_points
-    from sb3_lifelong.experiments.protocol import job_callbacks, make_env
+    from sb3_lifelong.experiments.presets import PRESETS
+    from sb3_lifelong.experiments.protocol import collect
 
     change = json.loads(args.change)
     if not isinstance(change, dict) or len(change) != 1:
@@ -265,33 +260,11 @@ def branch(args: argparse.Namespace) -> None:
     preset = dataclasses.replace(base, stages=({}, change), stage_steps=(base.stage_steps[0], args.steps))
     source = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}") / f"seed_{args.seed}"
     run_dir = pathlib.Path(args.output) / f"seed_{args.seed}"
-    if run_dir.exists():
-        raise FileExistsError(f"{run_dir} exists: a branch is written once (remove it to run it again)")
-    directory = run_dir / "collect"
-    directory.mkdir(parents=True)
-    shutil.copy(source / "collect" / "stage1.zip", directory / "stage1.zip")
-    switch = preset.stage_steps[0]
-    with open(source / "collect" / "eval.csv") as handle:  # the Stage-1 Env-A curve (the same Env-A)
-        rows = list(csv.reader(handle))
-    kept = [rows[0]] + [r for r in rows[1:] if int(r[0]) <= switch and r[1] == preset.env_names[0]]
-    with open(directory / "eval.csv", "w", newline="") as handle:
-        csv.writer(handle).writerows(kept)
+    adopt(preset, source, run_dir)
     (run_dir / "branch.json").write_text(json.dumps(dict(source=str(source), change=change, steps=args.steps), indent=1))
-    env = make_env(preset, switch_at=switch_points(preset))
-    model = MPO.load(directory / "stage1.zip", env=env, device="cpu", custom_objects={"replay_buffer_kwargs": {}})
-    if model.observation_space != env.observation_space:
-        raise ValueError(f"the Stage-1 agent observes {model.observation_space}, the new pair {env.observation_space}")
-    model.set_random_seed(args.seed)
-    with LifelongReplayBuffer.open(source / "buffer_stage1", read_only=True) as stage1:
-        merge_buffers([stage1], path=run_dir / "buffer_stage1").close()
-        buffer = merge_buffers([stage1], path=run_dir / "buffer")
-    buffer.set_source(1, name=preset.env_names[1], metadata=dict(setting=describe_stage(preset.stages[1])))
-    model.replay_buffer = buffer
     start = time.perf_counter()
-    model.learn(args.steps, callback=job_callbacks(preset, directory, preset.eval_freq, args.seed), reset_num_timesteps=False)
-    model.save(directory / "final.zip")
-    buffer.close()
-    (directory / "done.json").write_text(json.dumps(dict(seconds=time.perf_counter() - start)))
+    collect(preset, args.seed, run_dir)
+    (run_dir / "collect" / "done.json").write_text(json.dumps(dict(seconds=time.perf_counter() - start)))
     results = pathlib.Path(args.results) / args.robot / "changes" / pathlib.Path(args.output).name / f"seed_{args.seed}"
     results.mkdir(parents=True, exist_ok=True)
     (results / "branch.json").write_text((run_dir / "branch.json").read_text())
@@ -299,31 +272,26 @@ def branch(args: argparse.Namespace) -> None:
     print(f"branch {change} finished -> {run_dir}; its curve -> {results}")
 
 
-def adopt_stage1(args: argparse.Namespace) -> None:
+def adopt(preset: Any, source: pathlib.Path, run_dir: pathlib.Path) -> None:
     """
-    A collection of ``--robot``'s preset, paused at its switch, made of another collection's finished Stage-1 (the
-    same robot, seed and Env-A, a one-parameter Env-B: see :func:`branch` for why Env-A is the same). The protocol's
-    ``run --preset <preset> --seed K --output <output> --until STEPS`` then continues it in Env-B, in parts.
+    Lay out ``preset``'s collection in ``run_dir``, paused at its switch, from the finished Stage-1 of the seed
+    directory ``source`` (the same robot, seed and Env-A; :func:`branch` says why Env-A is the same): the Stage-1
+    agent as the pause's checkpoint, the Stage-1 buffer as the lifetime buffer, Env-A's evaluations.
     """
     import shutil
 
     from sb3_lifelong import LifelongReplayBuffer
     from sb3_lifelong.buffers import merge_buffers
     from sb3_lifelong.buffers.files import write_json_atomic
-    from sb3_lifelong.experiments.presets import PRESETS, describe_stage
-    from sb3_lifelong.experiments.protocol import PAUSED_MODEL, PAUSED_RECORD, record_settings
+    from sb3_lifelong.experiments.presets import describe_stage
+    from sb3_lifelong.experiments.protocol import PAUSED_MODEL, PAUSED_RECORD
 
-    preset = PRESETS[ROBOTS[args.robot][0]]
-    source = pathlib.Path(args.source) / f"seed_{args.seed}"
-    output = pathlib.Path(args.output)
-    run_dir = output / f"seed_{args.seed}"
     if run_dir.exists():
-        raise FileExistsError(f"{run_dir} exists: the Stage-1 is adopted into a new seed directory only")
+        raise FileExistsError(f"{run_dir} exists: a Stage-1 is adopted into a new seed directory only")
     switch = preset.stage_steps[0]
     with LifelongReplayBuffer.open(source / "buffer_stage1", read_only=True) as stage1:
         if stage1.size() != switch or set(stage1.source_counts()) != {0}:
             raise ValueError(f"{source / 'buffer_stage1'} holds {stage1.source_counts()}, not {switch:,} Env-A steps")
-        record_settings(preset, output)
         directory = run_dir / "collect"
         directory.mkdir(parents=True)
         merge_buffers([stage1], path=run_dir / "buffer_stage1").close()
@@ -345,8 +313,27 @@ def adopt_stage1(args: argparse.Namespace) -> None:
             writer.writerows(r for r in rows if int(r["timesteps"]) <= switch and r[keep] == preset.env_names[0])
     write_json_atomic(str(directory / PAUSED_RECORD), dict(timesteps=switch, transitions=switch))
     (run_dir / "adopted.json").write_text(json.dumps(dict(stage1_from=str(source)), indent=1))
-    print(f"{run_dir}: paused at the switch ({switch:,} steps); continue with `python -m sb3_lifelong.experiments run "
-          f"--preset {ROBOTS[args.robot][0]} --seed {args.seed} --output {output} --until STEPS`")  # fmt: skip
+
+
+def adopt_stage1(args: argparse.Namespace) -> None:
+    """
+    A collection of ``--robot``'s preset, paused at its switch, made of another collection's finished Stage-1
+    (:func:`adopt`). The protocol's ``run --preset <preset> --seed K --output <output> --until STEPS`` then continues
+    it in Env-B, in parts.
+    """
+    from sb3_lifelong.experiments.presets import PRESETS
+    from sb3_lifelong.experiments.protocol import record_settings
+
+    preset = PRESETS[ROBOTS[args.robot][0]]
+    output = pathlib.Path(args.output)
+    run_dir = output / f"seed_{args.seed}"
+    if run_dir.exists():
+        raise FileExistsError(f"{run_dir} exists: the Stage-1 is adopted into a new seed directory only")
+    record_settings(preset, output)
+    adopt(preset, pathlib.Path(args.source) / f"seed_{args.seed}", run_dir)
+    print(f"{run_dir}: paused at the switch ({preset.stage_steps[0]:,} steps); continue with `python -m "
+          f"sb3_lifelong.experiments run --preset {ROBOTS[args.robot][0]} --seed {args.seed} --output {output} "
+          "--until STEPS`")  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------- the report
