@@ -5,6 +5,7 @@ from gymnasium import spaces
 
 from sb3_lifelong import BC
 from sb3_lifelong.bc.policies import BCPolicy
+from sb3_lifelong.common.fast_ops import Tanh
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32)
 
@@ -40,7 +41,7 @@ def test_policy_has_only_an_actor():
 
 def test_layer_norm_actor_learns():
     model = bc_model(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True))
-    assert [type(m) for m in model.actor.latent_pi][:3] == [th.nn.Linear, th.nn.LayerNorm, th.nn.Tanh]
+    assert [type(m) for m in model.actor.latent_pi][:3] == [th.nn.Linear, th.nn.LayerNorm, Tanh]
     before = [p.clone() for p in model.actor.parameters()]
     model.learn_offline(20, log_interval=0)
     assert any(not th.equal(a, b) for a, b in zip(before, model.actor.parameters()))

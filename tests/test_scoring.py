@@ -1,4 +1,5 @@
-"""The low-precision (bfloat16) scoring pass: accuracy against float32, synchronisation, the "auto" rule, resume."""
+"""The scoring engine: the low-precision (bfloat16) pass (accuracy against float32, synchronisation, the "auto" rule,
+resume), the categorical critic in it, and the fast elementwise operations."""
 
 import gymnasium as gym
 import pytest
@@ -6,7 +7,7 @@ import torch as th
 from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
-from sb3_lifelong.common import scoring
+from sb3_lifelong.common import fast_ops, scoring
 from sb3_lifelong.common.policies import QCritic, mlp_layers, sample_gaussian
 from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, score_actions
 from sb3_lifelong.mpo.losses import dual_value, temperature_loss_and_weights
@@ -151,7 +152,7 @@ def test_relu_in_place_matches_relu(dtype):
     values = th.tensor([-3.5, -0.0, 0.0, 1e-30, -1e-30, 2.25, float("inf"), float("-inf"), 65280.0, -65280.0])
     x = th.cat([values, th.randn(4096)]).to(dtype).reshape(-1, 2)
     expected = th.relu(x)
-    out = scoring.relu_in_place(x)
+    out = fast_ops.relu_in_place(x)
     assert out is x and out.dtype == dtype
     assert th.equal(out, expected) and not (out < 0).any()
     assert (out == 0).sum() == (expected == 0).sum()
@@ -185,11 +186,11 @@ def test_split_first_layer_for_wide_observations(monkeypatch, layer_norm):
 def test_tanh_in_place_matches_tanh():
     x = th.linspace(-12.0, 12.0, 100_001)
     expected = th.tanh(x)
-    assert scoring.tanh_in_place(x.clone()).sub(expected).abs().max() <= 2e-7
+    assert fast_ops.tanh_in_place(x.clone()).sub(expected).abs().max() <= 2e-7
     small = th.tensor([1e-3, -1e-2, 0.0, 0.5])
-    th.testing.assert_close(scoring.tanh_in_place(small.clone()), th.tanh(small), rtol=1e-3, atol=1e-7)
+    th.testing.assert_close(fast_ops.tanh_in_place(small.clone()), th.tanh(small), rtol=1e-3, atol=1e-7)
     double = x.double()  # other dtypes take torch's own tanh
-    assert th.equal(scoring.tanh_in_place(double.clone()), th.tanh(double))
+    assert th.equal(fast_ops.tanh_in_place(double.clone()), th.tanh(double))
 
 
 def test_layer_norm_torso_in_low_precision_matches_its_modules():
@@ -220,3 +221,105 @@ def test_machine_description_names_the_matrix_flags_and_the_bf16_kernel(monkeypa
     assert "matrix flags:" in text and "oneDNN bf16 kernel:" in text and th.__version__ in text
     kernel = hardware.onednn_bf16_kernel()
     assert kernel and ("amx" not in kernel or "amx_bf16" in flags)  # an AMX kernel only where the CPU has AMX
+
+
+def test_fast_tanh_matches_torch_values_and_gradients():
+    x = th.linspace(-12.0, 12.0, 100_001, requires_grad=True)
+    y = fast_ops.fast_tanh(x)
+    assert (y - th.tanh(x)).abs().max() <= 2e-7
+    y.sum().backward()
+    fast_grad, x.grad = x.grad, None
+    th.tanh(x).sum().backward()
+    assert (fast_grad - x.grad).abs().max() <= 5e-7  # 1 - y^2 of outputs 2e-7 apart
+    double = th.randn(100, dtype=th.float64, requires_grad=True)  # other dtypes take torch's own tanh
+    assert th.equal(fast_ops.fast_tanh(double), th.tanh(double))
+    assert th.autograd.gradcheck(fast_ops._TanhBySigmoid.apply, (double,))  # the backward is the derivative
+    module = fast_ops.Tanh()
+    assert isinstance(module, th.nn.Tanh) and th.equal(module(x.detach()), fast_ops.fast_tanh(x.detach()))
+    torso = mlp_layers(8, 1, [16, 16], th.nn.ReLU, layer_norm=True)
+    assert isinstance(torso[2], fast_ops.Tanh)
+
+
+def _categorical_critic(layer_norm: bool, n_critics: int = 2, width: int = 64):
+    from sb3_lifelong.crr.distributional import CategoricalCritic
+
+    obs_space, act_space = gym.spaces.Box(-1, 1, (11,)), gym.spaces.Box(-1, 1, (3,))
+    th.manual_seed(0)
+    return CategoricalCritic(
+        obs_space,
+        act_space,
+        [width, width],
+        FlattenExtractor(obs_space),
+        11,
+        n_critics=n_critics,
+        n_atoms=51,
+        v_min=-10.0,
+        v_max=10.0,
+        layer_norm=layer_norm,
+    )
+
+
+@pytest.mark.parametrize("layer_norm", [False, True], ids=["plain", "layer_norm"])
+def test_categorical_critic_runs_the_engine_bit_for_bit(layer_norm):
+    """A critic with ``q_values_of`` is scored by the engine: in float32 exactly what calling it gives."""
+    critic = _categorical_critic(layer_norm)
+    assert scoring.runs_no_grad_pass(critic)
+    obs, actions = th.rand(32, 11) * 2 - 1, th.rand(4, 32, 3) * 2 - 1
+    called = scoring.q_min(critic(scoring.tile_obs(obs, 4), actions.reshape(-1, 3))).reshape(4, 32).detach()
+    with th.no_grad():
+        scored = score_actions(critic, obs, actions)
+        assert critic.__dict__.get("_no_grad_buffers")  # the engine ran, on its reused buffers
+        rewards, discounts = th.randn(32, 1), th.full((32, 1), 0.99)
+        target = critic.td_target(obs, actions[:2], rewards, discounts)
+    assert th.equal(scored, called)
+    with th.enable_grad():  # the logits path, by calling the Q-networks
+        target_called = critic.td_target(obs, actions[:2], rewards, discounts).detach()
+    assert th.equal(target, target_called)
+    th.testing.assert_close(target.sum(dim=1), th.ones(32))
+
+
+def test_categorical_critic_in_bf16_within_stated_tolerance():
+    critic = _categorical_critic(layer_norm=True, width=256)
+    with th.no_grad():  # logits that spread over the support, as a trained critic's do
+        critic.q_networks[0][-1].weight.mul_(20.0)
+        critic.q_networks[1][-1].weight.mul_(20.0)
+    copy = LowPrecisionCopy(critic, th.bfloat16)
+    assert id(critic.q_networks[0][-1]) not in copy.weights  # the logits stay float32
+    obs, actions = th.rand(256, 11) * 2 - 1, th.rand(4, 256, 3) * 2 - 1
+    rewards, discounts = th.randn(256, 1), th.full((256, 1), 0.99)
+    with th.no_grad():
+        q32, q16 = score_actions(critic, obs, actions), score_actions(critic, obs, actions, copy)
+        p32 = critic.td_target(obs, actions[:1], rewards, discounts)
+        p16 = critic.td_target(obs, actions[:1], rewards, discounts, copy)
+    spread, error = q32.std(dim=0).mean(), (q16 - q32).abs()
+    assert spread > 0 and error.max() > 0  # the bf16 pass ran
+    assert error.mean() <= Q_MEAN_ERROR_OF_SPREAD * spread, (float(error.mean()), float(spread))
+    # a categorical Q is a mean over the support, and near 0 here: its error is stated against the support's width
+    # (measured: 0.5 %); so is the target distributions' mean
+    width = critic.v_max - critic.v_min
+    assert error.max() <= 0.01 * width, float(error.max())
+    assert ((p16 - p32) * critic.support).sum(dim=1).abs().max() <= 0.01 * width
+    # their total variation is small (measured: 0.6 % at the median) except where the two Q-networks' values are so
+    # close that bf16 picks the other network's distribution (the target's mean then stays within the bound above)
+    assert (p16 - p32).abs().sum(dim=1).median() <= 0.02
+
+
+def test_crr_categorical_student_scores_in_bf16_when_asked_or_native(monkeypatch):
+    kwargs = dict(policy_kwargs=dict(net_arch=[128, 128], distributional_critic=True, v_min=-50.0, v_max=50.0))
+    exact = CRR("MlpPolicy", "Pendulum-v1", scoring_dtype="float32", **kwargs)
+    assert exact._online_scoring_copy is None and exact._target_scoring_copy is None
+    monkeypatch.setattr(scoring, "cpu_has_fast_bf16", lambda: True)
+    native = CRR("MlpPolicy", "Pendulum-v1", **kwargs)  # "auto" on a CPU with native bf16
+    assert native._online_scoring_copy is not None and native._online_scoring_copy.dtype == th.bfloat16
+    model = CRR(
+        "MlpPolicy",
+        "Pendulum-v1",
+        scoring_dtype="bfloat16",
+        batch_size=32,
+        learning_starts=50,
+        target_update_interval=5,
+        **kwargs,
+    )
+    model.learn(100)
+    assert _copy_matches(model._target_scoring_copy)  # the online copy is synced before each use (then it lags)
+    assert th.isfinite(th.cat([p.flatten() for p in model.policy.parameters()])).all()

@@ -20,13 +20,13 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.policies import BaseModel, ContinuousCritic
+from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_lifelong.common.distillation import distill
-from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype
+from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, runs_no_grad_pass
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.core.safe_load import safe_custom_objects, saved_data, saved_policy_class
 
@@ -344,11 +344,11 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         (see :func:`sb3_lifelong.common.scoring.resolve_scoring_dtype`); it is synchronised by
         :meth:`_sync_scoring_copies` after loads and by the algorithm after its updates.
 
-        :return: the copy, or None to score in the critic's own precision (always for a critic other than a
-            ``ContinuousCritic``: :func:`~sb3_lifelong.common.scoring.score_actions` scores it by calling it)
+        :return: the copy, or None to score in the critic's own precision (always for a critic that the scoring
+            engine does not run, :func:`~sb3_lifelong.common.scoring.runs_no_grad_pass`: it is scored by calling it)
         """
         dtype = resolve_scoring_dtype(scoring_dtype, critic, self.device)
-        if dtype == th.float32 or not isinstance(critic, ContinuousCritic):
+        if dtype == th.float32 or not runs_no_grad_pass(critic):
             return None
         copy = LowPrecisionCopy(critic, dtype)
         self.__dict__.setdefault("_scoring_copies", []).append(copy)

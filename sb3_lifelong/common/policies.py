@@ -24,6 +24,8 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
+from sb3_lifelong.common.fast_ops import Tanh
+
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
@@ -88,7 +90,8 @@ def mlp_layers(
 ) -> list[nn.Module]:
     """
     SB3's ``create_mlp``, or with ``layer_norm`` the torso of Acme's ``LayerNormMLP`` (its MPO's actor and critic
-    networks): the first hidden layer is ``Linear -> LayerNorm -> tanh``, the others ``Linear -> activation_fn``.
+    networks): the first hidden layer is ``Linear -> LayerNorm -> tanh``, the others ``Linear -> activation_fn``. The
+    tanh is :class:`sb3_lifelong.common.fast_ops.Tanh` (an ``nn.Tanh``, faster on a CPU, within about 1e-7 of it).
 
     :param input_dim: Input features
     :param output_dim: Output units of a last ``Linear`` without activation (none if <= 0)
@@ -99,7 +102,7 @@ def mlp_layers(
     """
     if not layer_norm or not net_arch:
         return create_mlp(input_dim, output_dim, net_arch, activation_fn)
-    first = [nn.Linear(input_dim, net_arch[0]), nn.LayerNorm(net_arch[0]), nn.Tanh()]
+    first = [nn.Linear(input_dim, net_arch[0]), nn.LayerNorm(net_arch[0]), Tanh()]
     return first + create_mlp(net_arch[0], output_dim, net_arch[1:], activation_fn)
 
 

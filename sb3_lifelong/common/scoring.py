@@ -1,7 +1,9 @@
 """
 Scoring sampled actions: the Q-values of ``num_samples`` actions per state in one critic call (:func:`score_actions`),
 which MPO's E-step and target and CRR's advantage baseline and TD target all rest on, and the CPU engine that makes
-its no-grad pass cheap:
+its no-grad pass cheap (:func:`network_outputs`), for SB3's ``ContinuousCritic`` and for any critic that says how its
+Q-networks' outputs become Q-values (a ``q_values_of`` method: the categorical critic's expected value, see
+:func:`runs_no_grad_pass`):
 
 - the features are extracted once per state, not once per sample;
 - the Q-networks' ``Linear`` layers write into buffers kept on the critic and reused across gradient steps, and the
@@ -26,13 +28,14 @@ A buffer is made again when its shape, dtype or device changes (:func:`_reused_b
 when new, and every pass writes it whole before reading it.
 """
 
-from typing import Optional, Union
+from typing import Callable, Optional, Union, cast
 
 import torch as th
-from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.policies import BaseModel, ContinuousCritic
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
+from sb3_lifelong.common.fast_ops import relu_in_place, tanh_in_place
 from sb3_lifelong.common.hardware import cpu_has_fast_bf16
 
 SCORING_DTYPES = ("auto", "float32", "bfloat16")
@@ -68,6 +71,27 @@ def q_min(q_values: Union[tuple[th.Tensor, ...], list[th.Tensor]]) -> th.Tensor:
     return th.min(th.cat(list(q_values), dim=1), dim=1, keepdim=True)[0]
 
 
+def runs_no_grad_pass(critic: nn.Module) -> bool:
+    """
+    Whether :func:`score_actions` runs ``critic``'s no-grad pass itself (features once per state, reused buffers, a
+    low-precision copy): for SB3's ``ContinuousCritic``, and for an SB3 ``BaseModel`` with ``q_networks`` (``nn.Sequential``
+    each, called on ``[features, actions]`` as SB3's are) and a ``q_values_of(output)`` method that turns a
+    Q-network's output ``[rows, ...]`` into Q-values ``[rows, 1]`` (the categorical critic's expected value). Any
+    other critic is scored by calling it.
+
+    :param critic: the critic
+    :return: whether the engine runs it
+    """
+    if isinstance(critic, ContinuousCritic):
+        return True
+    return isinstance(critic, BaseModel) and callable(getattr(critic, "q_values_of", None)) and bool(_q_networks(critic))
+
+
+def _q_networks(critic: nn.Module) -> list[nn.Module]:
+    """:return: the critic's Q-networks (its ``q_networks`` list; empty without one)"""
+    return list(getattr(critic, "q_networks", []))
+
+
 def resolve_scoring_dtype(scoring_dtype: str, critic: nn.Module, device: th.device) -> th.dtype:
     """
     The precision of the no-grad passes that score sampled actions.
@@ -83,10 +107,10 @@ def resolve_scoring_dtype(scoring_dtype: str, critic: nn.Module, device: th.devi
         raise ValueError(f"scoring_dtype must be one of {SCORING_DTYPES}, got {scoring_dtype!r}")
     if scoring_dtype != "auto":
         return getattr(th, scoring_dtype)
-    if not isinstance(critic, ContinuousCritic):
+    if not runs_no_grad_pass(critic):
         return th.float32
     hidden: list[int] = []
-    for q_net in critic.q_networks:
+    for q_net in _q_networks(critic):
         hidden += [m.out_features for m in q_net.modules() if isinstance(m, nn.Linear)][:-1]
     wide = bool(hidden) and min(hidden) >= AUTO_BF16_MIN_WIDTH
     native = th.cuda.is_bf16_supported() if device.type == "cuda" else device.type == "cpu" and cpu_has_fast_bf16()
@@ -99,11 +123,11 @@ class LowPrecisionCopy:
     many sampled actions. The copy does not follow the critic by itself: call :meth:`sync` after every change
     of the critic's weights (a target update, an optimizer step, a load).
 
-    :param critic: the critic (``ContinuousCritic``)
+    :param critic: a critic the engine runs (:func:`runs_no_grad_pass`)
     :param dtype: the precision of the copy
     """
 
-    def __init__(self, critic: ContinuousCritic, dtype: th.dtype = th.bfloat16) -> None:
+    def __init__(self, critic: nn.Module, dtype: th.dtype = th.bfloat16) -> None:
         self.critic = critic
         self.dtype = dtype
         self.weights: dict[int, tuple[th.Tensor, Optional[th.Tensor]]] = {}
@@ -119,7 +143,7 @@ class LowPrecisionCopy:
         so that Q is not rounded to bf16 as a whole (bf16 keeps 8 bits: a Q of 300 would be off by up to 1).
         """
         layers = []
-        for q_net in self.critic.q_networks:
+        for q_net in _q_networks(self.critic):
             linears = [module for module in q_net.modules() if isinstance(module, nn.Linear)]
             layers += linears[:-1]
         return layers
@@ -132,37 +156,6 @@ class LowPrecisionCopy:
             weight.copy_(module.weight.t())
             if bias is not None:
                 bias.copy_(module.bias)
-
-
-def relu_in_place(x: th.Tensor) -> th.Tensor:
-    """
-    ``x.relu_()``, faster for bfloat16 on CPU: bfloat16's elementwise kernels convert every element to float32 and
-    back (``relu_`` on ``[5120, 256]`` took 2.5x as long as the same bits clamped as int16). A bfloat16 with its sign
-    bit set is a negative int16, so clamping the int16 view at 0 zeroes exactly the negative numbers (and -0.0,
-    and NaNs with the sign bit set; a NaN in a target pass is lost anyway).
-
-    :param x: the tensor, changed in place
-    :return: ``x``
-    """
-    if x.dtype == th.bfloat16 and x.device.type == "cpu" and x.is_contiguous():
-        x.view(th.int16).clamp_min_(0)
-        return x
-    return x.relu_()
-
-
-def tanh_in_place(x: th.Tensor) -> th.Tensor:
-    """
-    ``x.tanh_()`` as ``2 sigmoid(2x) - 1``, for float32 on CPU: torch's CPU ``tanh`` ran 4x slower than its
-    ``sigmoid`` here (5.1 vs 1.2 ms on ``[5120, 256]``). The identity is exact; in float32 the two differ by about
-    1e-7 absolutely (a relative error up to about 1e-3 for ``|x| < 1e-4``, below bfloat16's rounding). Meant for
-    no-grad low-precision passes, whose output is rounded to bfloat16 next.
-
-    :param x: the tensor, changed in place
-    :return: ``x``
-    """
-    if x.dtype == th.float32 and x.device.type == "cpu":
-        return x.mul_(2.0).sigmoid_().mul_(2.0).sub_(1.0)
-    return x.tanh_()
 
 
 def _reused_buffer(
@@ -314,6 +307,49 @@ def _splits_first_layer(
     )
 
 
+def network_outputs(
+    critic: BaseModel,
+    obs: PyTorchObs,
+    flat_actions: th.Tensor,
+    num_samples: int,
+    low_precision: Optional[LowPrecisionCopy] = None,
+) -> tuple[th.Tensor, list[th.Tensor]]:
+    """
+    The no-grad pass of a critic the engine runs (:func:`runs_no_grad_pass`) over ``num_samples`` actions per state:
+    the features are extracted once per state, each Q-network runs on reused buffers (see ``_run_mlp_no_grad``), in
+    the copy's precision with ``low_precision``. In float32 the outputs are, bit for bit, the Q-networks' outputs on
+    ``[tile_obs(features), flat_actions]``.
+
+    :param critic: the critic
+    :param obs: observations ``[batch, ...]``
+    :param flat_actions: ``[num_samples * batch, action_dim]``, sample-major (row ``n * batch + b``)
+    :param num_samples: actions per state
+    :param low_precision: a synchronised low-precision copy of ``critic``
+    :return: the features ``[batch, features_dim]`` and each Q-network's output ``[num_samples * batch, ...]``, in
+        float32 (the output layer runs in float32); the outputs are buffers that the next pass overwrites
+    """
+    assert critic.features_extractor is not None, "a critic scored by the engine has its features extractor"
+    features = critic.extract_features(obs, critic.features_extractor)
+    action_dim = flat_actions.shape[1]
+    outputs = []
+    q_input = split_inputs = None
+    for index, q_net in enumerate(_q_networks(critic)):
+        assert isinstance(q_net, nn.Sequential), "the no-grad pass runs Q-networks built as nn.Sequential (SB3's)"
+        if _splits_first_layer(q_net, features.shape[1], action_dim, low_precision):
+            assert low_precision is not None
+            if split_inputs is None:  # converted once for all the Q-networks
+                split_inputs = (features.to(low_precision.dtype), flat_actions.to(low_precision.dtype))
+            hidden = _first_layer_split(critic, index, q_net, *split_inputs, low_precision)
+            outputs.append(_run_mlp_no_grad(critic, index, q_net, hidden, low_precision, first=1, owned=True))
+            continue
+        if q_input is None:
+            q_input = th.cat([features.repeat(num_samples, 1), flat_actions], dim=1)
+            if low_precision is not None:
+                q_input = q_input.to(low_precision.dtype)
+        outputs.append(_run_mlp_no_grad(critic, index, q_net, q_input, low_precision))
+    return features, outputs
+
+
 def score_actions(
     critic: nn.Module, obs: PyTorchObs, actions: th.Tensor, low_precision: Optional[LowPrecisionCopy] = None
 ) -> th.Tensor:
@@ -321,12 +357,12 @@ def score_actions(
     Q-values of several actions per state, in a single critic call over ``num_samples * batch`` rows.
     Actions are clipped to the normalised bounds ``[-1, 1]`` first, as the environment would clip them.
 
-    Without autograd (target computations) the features of a ``ContinuousCritic`` are extracted once per state
-    rather than once per sample, and its MLPs run on reused buffers (see ``_run_mlp_no_grad``).
+    Without autograd (target computations) a critic the engine runs (:func:`runs_no_grad_pass`: SB3's
+    ``ContinuousCritic``, the categorical critic) is scored by :func:`network_outputs`: features once per state,
+    reused buffers, the low-precision copy.
 
-    :param critic: the critic (minimum over its Q-networks is taken): a ``ContinuousCritic``, or any critic called as
-        ``critic(obs, actions)`` that returns one ``[batch, 1]`` tensor per Q-network (a categorical critic's
-        expected values), scored by that call
+    :param critic: the critic (minimum over its Q-networks is taken): any critic called as ``critic(obs, actions)``
+        that returns one ``[batch, 1]`` tensor per Q-network
     :param obs: observations ``[batch, ...]``
     :param actions: ``[num_samples, batch, action_dim]``
     :param low_precision: a synchronised low-precision copy of ``critic``: without autograd the Q-networks run
@@ -335,24 +371,11 @@ def score_actions(
     """
     num_samples, batch_size, action_dim = actions.shape
     flat_actions = actions.reshape(num_samples * batch_size, action_dim).clamp(-1.0, 1.0)
-    if th.is_grad_enabled() or not isinstance(critic, ContinuousCritic):
+    if th.is_grad_enabled() or not runs_no_grad_pass(critic):
         return q_min(critic(tile_obs(obs, num_samples), flat_actions)).reshape(num_samples, batch_size)
-    features = critic.extract_features(obs, critic.features_extractor)
-    q_values = []
-    q_input = split_inputs = None
-    for index, q_net in enumerate(critic.q_networks):
-        assert isinstance(q_net, nn.Sequential), "the no-grad pass runs Q-networks built as nn.Sequential (SB3's)"
-        if _splits_first_layer(q_net, features.shape[1], action_dim, low_precision):
-            assert low_precision is not None
-            if split_inputs is None:  # converted once for all the Q-networks
-                split_inputs = (features.to(low_precision.dtype), flat_actions.to(low_precision.dtype))
-            hidden = _first_layer_split(critic, index, q_net, *split_inputs, low_precision)
-            q_values.append(_run_mlp_no_grad(critic, index, q_net, hidden, low_precision, first=1, owned=True))
-            continue
-        if q_input is None:
-            q_input = th.cat([features.repeat(num_samples, 1), flat_actions], dim=1)
-            if low_precision is not None:
-                q_input = q_input.to(low_precision.dtype)
-        q_values.append(_run_mlp_no_grad(critic, index, q_net, q_input, low_precision))
+    assert isinstance(critic, BaseModel)
+    features, outputs = network_outputs(critic, obs, flat_actions, num_samples, low_precision)
+    head = None if isinstance(critic, ContinuousCritic) else cast(Callable[[th.Tensor], th.Tensor], critic.q_values_of)
+    q_values = outputs if head is None else [head(output) for output in outputs]
     # copy out of the reused buffer (the result outlives the next call), in the critic's own precision
     return q_min(q_values).reshape(num_samples, batch_size).to(features.dtype, copy=True)

@@ -123,8 +123,8 @@ class CRR(LifelongOfflineAlgorithm):
         after every actor update (e.g. ``1e-3``: an average over about the last 1,000 updates); ``predict`` and
         evaluation then use the averaged actor (``policy.actor_average``), while training is unchanged. None: off
     :param scoring_dtype: precision of the no-grad critic passes over sampled actions (advantage baseline, TD
-        target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; categorical critics
-        always score in float32)
+        target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; a categorical critic's
+        hidden layers too, its logits and their softmax stay float32)
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (e.g. ``net_arch``,

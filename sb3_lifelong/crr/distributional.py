@@ -13,7 +13,7 @@ from torch.nn import functional as F
 
 from sb3_lifelong.common.losses import sum_of
 from sb3_lifelong.common.policies import mlp_layers
-from sb3_lifelong.common.scoring import tile_obs
+from sb3_lifelong.common.scoring import LowPrecisionCopy, network_outputs, tile_obs
 
 __all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection"]
 
@@ -128,23 +128,34 @@ class CategoricalCritic(BaseModel):
         qvalue_input = th.cat([features, actions], dim=1)
         return tuple(q_net(qvalue_input) for q_net in self.q_networks)
 
-    def td_target(self, next_obs: PyTorchObs, next_actions: th.Tensor, rewards: th.Tensor, discounts: th.Tensor) -> th.Tensor:
+    def td_target(
+        self,
+        next_obs: PyTorchObs,
+        next_actions: th.Tensor,
+        rewards: th.Tensor,
+        discounts: th.Tensor,
+        low_precision: Optional[LowPrecisionCopy] = None,
+    ) -> th.Tensor:
         """
         The distributional TD target: per transition and next action, the distribution of the Q-network with the
         lowest expected value, averaged over the next actions, shifted by ``rewards + discounts * Z`` and projected
-        back onto the support. Call it on the target critic, without autograd.
+        back onto the support. Call it on the target critic, without autograd: the logits are then the scoring
+        engine's (:func:`~sb3_lifelong.common.scoring.network_outputs`: bit for bit :meth:`logits` in float32).
 
         :param next_obs: next observations ``[batch, ...]``
         :param next_actions: normalised next actions ``[n_next_actions, batch, action_dim]``
         :param rewards: ``[batch, 1]``
         :param discounts: ``gamma * (1 - done)`` (or the n-step discount), ``[batch, 1]``
+        :param low_precision: a synchronised low-precision copy of this critic, to compute the logits with
         :return: target probabilities ``[batch, n_atoms]``
         """
         n_next_actions = next_actions.shape[0]
-        if n_next_actions > 1:
-            next_obs = tile_obs(next_obs, n_next_actions)
         flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
-        next_probs = th.softmax(th.stack(self.logits(next_obs, flat_next_actions)), dim=-1)  # [C, T*B, K]
+        if th.is_grad_enabled():
+            logits = self.logits(tile_obs(next_obs, n_next_actions) if n_next_actions > 1 else next_obs, flat_next_actions)
+        else:
+            logits = tuple(network_outputs(self, next_obs, flat_next_actions, n_next_actions, low_precision)[1])
+        next_probs = th.softmax(th.stack(logits), dim=-1)  # [C, T*B, K]
         lowest = (next_probs * self.support).sum(-1).argmin(dim=0)  # [T*B]
         next_probs = next_probs.gather(0, lowest.view(1, -1, 1).expand(1, *next_probs.shape[1:]))[0]
         next_probs = next_probs.view(n_next_actions, -1, next_probs.shape[-1]).mean(dim=0)
@@ -172,6 +183,15 @@ class CategoricalCritic(BaseModel):
         :return: expected return ``[..., 1]``
         """
         return (th.softmax(logits, dim=-1) * self.support).sum(dim=-1, keepdim=True)
+
+    def q_values_of(self, output: th.Tensor) -> th.Tensor:
+        """
+        What a Q-network's output means, for the scoring engine (:func:`~sb3_lifelong.common.scoring.runs_no_grad_pass`).
+
+        :param output: a Q-network's logits ``[rows, n_atoms]``
+        :return: the expected Q-values ``[rows, 1]``
+        """
+        return self.expected(output)
 
     def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
         return tuple(self.expected(logits) for logits in self.logits(obs, actions))

@@ -201,11 +201,11 @@ def critic_td_target(
     :param next_actions: ``[n_next_actions, batch, action_dim]``
     :param rewards: ``[batch, 1]``
     :param bootstrap: ``(1 - done) * discount``, ``[batch, 1]``
-    :param scoring_copy: a low-precision copy of a regression ``critic_target`` to score the actions with
+    :param scoring_copy: a low-precision copy of ``critic_target`` to score the actions with
     :return: ``[batch, 1]`` (regression) or ``[batch, n_atoms]`` (categorical)
     """
     if isinstance(critic_target, CategoricalCritic):
-        return critic_target.td_target(next_obs, next_actions, rewards, bootstrap)
+        return critic_target.td_target(next_obs, next_actions, rewards, bootstrap, scoring_copy)
     return td_target(rewards, bootstrap, score_actions(critic_target, next_obs, next_actions, scoring_copy).mean(0))
 
 

@@ -1,0 +1,85 @@
+"""
+Elementwise operations that torch runs slowly on a CPU, written faster with the same result: ReLU on bfloat16 (an
+integer clamp), and tanh (``2 sigmoid(2x) - 1``) for the no-grad passes (:func:`tanh_in_place`) and, with its exact
+gradient, for the networks' LayerNorm torsos (:class:`Tanh`). Each falls back to torch's own operation wherever the
+faster form does not apply (another dtype or device).
+"""
+
+import torch as th
+from torch import nn
+
+
+def relu_in_place(x: th.Tensor) -> th.Tensor:
+    """
+    ``x.relu_()``, faster for bfloat16 on CPU: bfloat16's elementwise kernels convert every element to float32 and
+    back (``relu_`` on ``[5120, 256]`` took 2.5x as long as the same bits clamped as int16). A bfloat16 with its sign
+    bit set is a negative int16, so clamping the int16 view at 0 zeroes exactly the negative numbers (and -0.0,
+    and NaNs with the sign bit set; a NaN in a target pass is lost anyway).
+
+    :param x: the tensor, changed in place
+    :return: ``x``
+    """
+    if x.dtype == th.bfloat16 and x.device.type == "cpu" and x.is_contiguous():
+        x.view(th.int16).clamp_min_(0)
+        return x
+    return x.relu_()
+
+
+def tanh_in_place(x: th.Tensor) -> th.Tensor:
+    """
+    ``x.tanh_()`` as ``2 sigmoid(2x) - 1``, for float32 on CPU: torch's CPU ``tanh`` ran 3-4x slower than its
+    ``sigmoid`` here (5.1 vs 1.2 ms on ``[5120, 256]``). The identity is exact; in float32 the two differ by about
+    1e-7 absolutely (a relative error up to about 1e-3 for ``|x| < 1e-4``: what follows a tanh in a network is a
+    ``Linear``, which sees the absolute error).
+
+    :param x: the tensor, changed in place
+    :return: ``x``
+    """
+    if x.dtype == th.float32 and x.device.type == "cpu":
+        return _tanh_of_doubled(x.mul_(2.0))
+    return x.tanh_()
+
+
+def _tanh_of_doubled(doubled: th.Tensor) -> th.Tensor:
+    """:return: ``tanh(x)`` from ``doubled = 2x``, in place: ``2 sigmoid(2x) - 1``"""
+    return doubled.sigmoid_().mul_(2.0).sub_(1.0)
+
+
+class _TanhBySigmoid(th.autograd.Function):
+    """``tanh(x) = 2 sigmoid(2x) - 1`` forward; backward from the output, ``grad * (1 - y^2)``, as torch's tanh."""
+
+    @staticmethod
+    def forward(ctx: th.autograd.function.FunctionCtx, x: th.Tensor) -> th.Tensor:  # type: ignore[override]
+        y = _tanh_of_doubled(x.mul(2.0))
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx: th.autograd.function.FunctionCtx, grad: th.Tensor) -> th.Tensor:  # type: ignore[override]
+        (y,) = ctx.saved_tensors  # type: ignore[attr-defined]
+        return th.ops.aten.tanh_backward(grad, y)
+
+
+def fast_tanh(x: th.Tensor) -> th.Tensor:
+    """
+    ``th.tanh(x)``, differentiable, computed as :func:`tanh_in_place` does for a float32 CPU tensor (torch's own
+    ``tanh`` elsewhere). Its gradient is torch's formula on the output, ``1 - y^2``.
+
+    :param x: the input (not changed)
+    :return: ``tanh(x)``
+    """
+    if x.dtype == th.float32 and x.device.type == "cpu":
+        return _TanhBySigmoid.apply(x)
+    return th.tanh(x)
+
+
+class Tanh(nn.Tanh):
+    """
+    ``nn.Tanh`` computed by :func:`fast_tanh`, the tanh of the LayerNorm torsos
+    (:func:`sb3_lifelong.common.policies.mlp_layers`). Forward and backward on ``[1024, 256]`` float32 took about half
+    of torch's time on an AMD EPYC (AVX2); within about 2e-7 of it. A subclass, so that code that looks for
+    ``nn.Tanh`` finds it.
+    """
+
+    def forward(self, input: th.Tensor) -> th.Tensor:
+        return fast_tanh(input)
