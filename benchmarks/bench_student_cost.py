@@ -9,6 +9,7 @@ this tree's per block pair (the speed-up; median and range), so that a shared, n
 
     OMP_NUM_THREADS=1 python benchmarks/bench_student_cost.py      # -> benchmarks/results/student_cost.json
     git worktree add /tmp/peer <commit> && OMP_NUM_THREADS=1 python benchmarks/bench_student_cost.py --peer /tmp/peer
+    OMP_NUM_THREADS=1 python benchmarks/bench_student_cost.py --peer /tmp/peer --compile-losses   # this tree compiled
 """
 
 import argparse
@@ -42,7 +43,7 @@ def random_data(rows: int, obs_dim: int, action_dim: int) -> dict[str, np.ndarra
     )
 
 
-def make_students(scoring_dtype: str) -> dict:
+def make_students(scoring_dtype: str, compile_losses: bool = False) -> dict:
     """The study's students on random HalfCheetah-sized data (with its 2 physical parameters appended), warmed up."""
     from sb3_lifelong import CRR
 
@@ -59,11 +60,12 @@ def make_students(scoring_dtype: str) -> dict:
             seed=0,
             scoring_dtype=scoring_dtype,
             **kw,
+            **(dict(compile_losses=True) if compile_losses else {}),
         )
         for name, kw in VARIANTS.items()
     }
     for model in models.values():
-        model.learn_offline(50, log_interval=0)  # warm-up
+        model.learn_offline(50, log_interval=0)  # warm-up (and the compilation)
     return models
 
 
@@ -77,10 +79,10 @@ def time_block(models: dict, updates: int) -> dict[str, float]:
     return seconds
 
 
-def worker(scoring_dtype: str) -> None:
+def worker(scoring_dtype: str, compile_losses: bool) -> None:
     """One tree's students in a child process: a block per ``block N`` line on stdin, its times as JSON on stdout."""
     th.set_num_threads(1)
-    models = make_students(scoring_dtype)
+    models = make_students(scoring_dtype, compile_losses)
     import sb3_lifelong
 
     print(json.dumps({"ready": str(pathlib.Path(sb3_lifelong.__file__).parent.parent)}), flush=True)
@@ -88,9 +90,10 @@ def worker(scoring_dtype: str) -> None:
         print(json.dumps(time_block(models, int(line.split()[1]))), flush=True)
 
 
-def start_worker(tree: pathlib.Path, scoring_dtype: str) -> subprocess.Popen:
+def start_worker(tree: pathlib.Path, scoring_dtype: str, compile_losses: bool) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
     command = [sys.executable, __file__, "--worker", "--scoring-dtype", scoring_dtype]
+    command += ["--compile-losses"] if compile_losses else []
     child = subprocess.Popen(command, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=tree)
     assert child.stdout is not None
     ready = json.loads(child.stdout.readline())["ready"]
@@ -112,17 +115,23 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=200, help="updates per block")
     parser.add_argument("--peer", default=None, help="another checkout of the package, timed interleaved with this one")
     parser.add_argument("--scoring-dtype", default="auto", help="the students' scoring_dtype")
+    parser.add_argument(
+        "--compile-losses", action="store_true", help="this tree's students with compile_losses=True (not the peer's)"
+    )
     parser.add_argument("--output", default=str(RESULTS))
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        worker(args.scoring_dtype)
+        worker(args.scoring_dtype, args.compile_losses)
         return
     from sb3_lifelong.common.hardware import machine_description
 
     here = pathlib.Path(__file__).resolve().parent.parent
     trees = {"this tree": here} | ({"peer": pathlib.Path(args.peer)} if args.peer else {})
-    children = {name: start_worker(tree, args.scoring_dtype) for name, tree in trees.items()}
+    children = {
+        name: start_worker(tree, args.scoring_dtype, args.compile_losses and name == "this tree")
+        for name, tree in trees.items()
+    }
     seconds: dict[str, dict[str, list[float]]] = {tree: {name: [] for name in VARIANTS} for tree in trees}
     for _ in range(args.blocks):
         for tree, child in children.items():
@@ -132,8 +141,12 @@ def main() -> None:
         assert child.stdin is not None
         child.stdin.close()
         child.wait()
-    command = "OMP_NUM_THREADS=1 python benchmarks/bench_student_cost.py" + " ".join(
-        [""] + [f"--{key} {value}" for key, value in (("peer", args.peer), ("scoring-dtype", args.scoring_dtype)) if value]
+    command = (
+        "OMP_NUM_THREADS=1 python benchmarks/bench_student_cost.py"
+        + " ".join(
+            [""] + [f"--{key} {value}" for key, value in (("peer", args.peer), ("scoring-dtype", args.scoring_dtype)) if value]
+        )
+        + (" --compile-losses" if args.compile_losses else "")
     )
     result: dict = {"machine": machine_description(), "command": command, "blocks": args.blocks, "updates": args.updates}
     lines = [result["machine"], "", f"`{command}`", ""]

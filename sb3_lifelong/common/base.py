@@ -327,6 +327,24 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
             th.nn.utils.clip_grad_norm_(module.parameters(), max_grad_norm, foreach=True)
         module.optimizer.step()
 
+    @staticmethod
+    def _joint_gradient_step(*parts: tuple[BaseModel, th.Tensor], max_grad_norm: Optional[float] = None) -> None:
+        """
+        One step of each module's optimizer down its loss, with one backward pass of the losses' sum: the same
+        gradients as a :meth:`_gradient_step` per module when no loss reaches another's module (one backward through a
+        compiled graph, rather than one per loss).
+
+        :param parts: ``(module, loss)`` pairs
+        :param max_grad_norm: each module's gradients' norm is clipped to it (None: not)
+        """
+        for module, _ in parts:
+            module.optimizer.zero_grad(set_to_none=True)
+        sum(loss for _, loss in parts).backward()  # type: ignore[union-attr]
+        for module, _ in parts:
+            if max_grad_norm is not None:
+                th.nn.utils.clip_grad_norm_(module.parameters(), max_grad_norm, foreach=True)
+            module.optimizer.step()
+
     def _update_targets(self) -> None:
         """
         Move the target networks towards the online ones (an algorithm with targets calls it every

@@ -74,14 +74,17 @@ def gaussian_kl_per_dim(mean_p: th.Tensor, std_p: th.Tensor, mean_q: th.Tensor, 
     return 0.5 * (var_ratio + ((mean_p - mean_q) / std_q).pow(2) - 1.0 - th.log(var_ratio))
 
 
-def sample_gaussian(mean: th.Tensor, std: th.Tensor, num_samples: int) -> th.Tensor:
+def sample_gaussian(mean: th.Tensor, std: th.Tensor, num_samples: int, noise: Optional[th.Tensor] = None) -> th.Tensor:
     """
     :param mean: ``[batch, action_dim]``
     :param std: ``[batch, action_dim]``
     :param num_samples: number of samples per state
+    :param noise: standard normal draws ``[num_samples, batch, action_dim]`` to use (None: drawn here, the same
+        draws as ``th.randn((num_samples, *mean.shape))`` would give)
     :return: samples ``[num_samples, batch, action_dim]`` (not clipped)
     """
-    noise = th.randn((num_samples, *mean.shape), dtype=mean.dtype, device=mean.device)
+    if noise is None:
+        noise = th.randn((num_samples, *mean.shape), dtype=mean.dtype, device=mean.device)
     return mean.unsqueeze(0) + std.unsqueeze(0) * noise
 
 

@@ -87,6 +87,15 @@ def runs_no_grad_pass(critic: nn.Module) -> bool:
     return isinstance(critic, BaseModel) and callable(getattr(critic, "q_values_of", None)) and bool(_q_networks(critic))
 
 
+def uses_engine(critic: nn.Module) -> bool:
+    """
+    :return: whether a pass of ``critic`` now runs on the engine: without autograd, for a critic it runs
+        (:func:`runs_no_grad_pass`), and not while ``torch.compile`` traces the code (inductor plans its own buffers;
+        the engine's reused buffers and ``out=`` products would break its graph)
+    """
+    return not th.is_grad_enabled() and not th.compiler.is_compiling() and runs_no_grad_pass(critic)
+
+
 def _q_networks(critic: nn.Module) -> list[nn.Module]:
     """:return: the critic's Q-networks (its ``q_networks`` list; empty without one)"""
     return list(getattr(critic, "q_networks", []))
@@ -359,7 +368,7 @@ def score_actions(
 
     Without autograd (target computations) a critic the engine runs (:func:`runs_no_grad_pass`: SB3's
     ``ContinuousCritic``, the categorical critic) is scored by :func:`network_outputs`: features once per state,
-    reused buffers, the low-precision copy.
+    reused buffers, the low-precision copy (not while ``torch.compile`` traces: see :func:`uses_engine`).
 
     :param critic: the critic (minimum over its Q-networks is taken): any critic called as ``critic(obs, actions)``
         that returns one ``[batch, 1]`` tensor per Q-network
@@ -371,7 +380,7 @@ def score_actions(
     """
     num_samples, batch_size, action_dim = actions.shape
     flat_actions = actions.reshape(num_samples * batch_size, action_dim).clamp(-1.0, 1.0)
-    if th.is_grad_enabled() or not runs_no_grad_pass(critic):
+    if not uses_engine(critic):
         return q_min(critic(tile_obs(obs, num_samples), flat_actions)).reshape(num_samples, batch_size)
     assert isinstance(critic, BaseModel)
     features, outputs = network_outputs(critic, obs, flat_actions, num_samples, low_precision)

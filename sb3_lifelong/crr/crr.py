@@ -13,6 +13,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_lifelong.buffers.loading import as_lifelong_data
+from sb3_lifelong.common.compiling import AUTO_MIN_UPDATES, COMPILE_CHOICES, LazyCompiled, can_compile
 from sb3_lifelong.common.losses import bootstrap_discount
 from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian
@@ -125,6 +126,13 @@ class CRR(LifelongOfflineAlgorithm):
     :param scoring_dtype: precision of the no-grad critic passes over sampled actions (advantage baseline, TD
         target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; a categorical critic's
         hidden layers too, its logits and their softmax stay float32)
+    :param compile_losses: compile the update's forward pass (TD target, critic loss, policy, advantage baseline)
+        with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` / ``learn_offline`` call under
+        way has at least 50,000 updates to go and inductor can compile here (a C++ compiler on a CPU). Measured on a
+        study student: 1.2x faster updates after about 30 s of compiling once per process
+        (:mod:`sb3_lifelong.common.compiling`). The sampling noise is drawn outside the compiled graph, from the same
+        generator as the eager update; the arithmetic differs from eager's by rounding. With one actor per source it
+        stays eager. A compilation that fails warns once and leaves the update eager
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (e.g. ``net_arch``,
@@ -176,6 +184,7 @@ class CRR(LifelongOfflineAlgorithm):
         max_grad_norm: Optional[float] = None,
         actor_averaging: Optional[float] = None,
         scoring_dtype: str = "auto",
+        compile_losses: Union[bool, str] = "auto",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[dict[str, Any]] = None,
@@ -234,6 +243,7 @@ class CRR(LifelongOfflineAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.actor_averaging = actor_averaging
         self.scoring_dtype = scoring_dtype
+        self.compile_losses = compile_losses
         self._check_hyperparameters()
         if _init_setup_model:
             self._setup_model()
@@ -253,6 +263,7 @@ class CRR(LifelongOfflineAlgorithm):
             "actor_averaging": self.actor_averaging is None or 0.0 < self.actor_averaging <= 1.0,
             "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
             "target_ess": self.target_ess is None or 0.0 < self.target_ess < 1.0,
+            "compile_losses": isinstance(self.compile_losses, bool) or self.compile_losses == "auto",
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
@@ -262,7 +273,7 @@ class CRR(LifelongOfflineAlgorithm):
                 f"Invalid CRR hyperparameters: {values} (num_samples, n_target_samples and target_update_interval must "
                 f"be >= 1, beta > 0, max_weight >= 1, tau and actor_averaging in (0, 1], advantage_baseline in "
                 f"{ADVANTAGE_BASELINES}, advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS}, "
-                f"scoring_dtype in {SCORING_DTYPES}, target_ess None or in (0, 1))"
+                f"scoring_dtype in {SCORING_DTYPES}, target_ess None or in (0, 1), compile_losses in {COMPILE_CHOICES})"
             )
         if self.target_ess is not None and (self.advantage_transform != "exp" or self.normalize_advantages):
             raise ValueError(
@@ -283,6 +294,7 @@ class CRR(LifelongOfflineAlgorithm):
         # low-precision copies of the target critic (TD targets) and the online critic (advantage baselines)
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
         self._online_scoring_copy = self._make_scoring_copy(self.critic, self.scoring_dtype)
+        self._forward = LazyCompiled(self._forward_pass, "CRR's forward pass")
         if self.actor_per_source:
             assert self.source_ids is not None
             self._head_of_source = np.full(max(self.source_ids) + 1, -1, dtype=np.int64)
@@ -365,19 +377,23 @@ class CRR(LifelongOfflineAlgorithm):
         if self._head_of_source is not None and "return_sources" not in inspect.signature(sample).parameters:
             raise ValueError("actor_per_source=True needs a replay buffer that records sources (a LifelongReplayBuffer)")
 
+        compiled = self._compiles_now()
         for _ in range(gradient_steps):
             self._n_updates += 1
             replay_data, heads = self._sample(batch_size)
-            obs, actions = replay_data.observations, replay_data.actions
-            with th.no_grad():
-                target = self._critic_target_values(replay_data, heads)
-            # the critic's loss, and the Q-values of the data's actions for the advantage (the same, pre-update critic)
-            fit = critic_loss(self.critic, obs, actions, target)
-            mean, std = actor_distribution(self.actor, obs, heads)
+            actions = replay_data.actions
+            # the samples' noise, drawn in the order the eager update always drew it (target's, then baseline's)
+            noise_shape = tuple(actions.shape)
+            target_noise = th.randn((self.n_target_samples, *noise_shape), device=self.device)
+            sample_noise = th.randn((self.num_samples, *noise_shape), device=self.device)
+            if self._online_scoring_copy is not None:
+                self._online_scoring_copy.sync()
+            # the critic's loss and the Q-values of the data's actions for the advantage (the same, pre-update critic)
+            fit, mean, std, sampled_q = self._forward(compiled, replay_data, heads, target_noise, sample_noise)
             with th.no_grad():
                 advantage = advantage_weights(
                     fit.q_values,
-                    self._policy_action_values(obs, mean, std),
+                    sampled_q,
                     self.advantage_baseline,
                     self.advantage_transform,
                     self.beta,
@@ -388,9 +404,14 @@ class CRR(LifelongOfflineAlgorithm):
                 )
                 if self.target_ess is not None:
                     self._ess_beta = float(advantage.beta)
-            self._gradient_step(self.critic, fit.loss, self.max_grad_norm)
             regression_loss = actor_loss(actions, mean, std, advantage.weights)
-            self._gradient_step(self.actor, regression_loss, self.max_grad_norm)
+            if compiled:  # one backward through the compiled graph (the two losses reach disjoint networks)
+                self._joint_gradient_step(
+                    (self.critic, fit.loss), (self.actor, regression_loss), max_grad_norm=self.max_grad_norm
+                )
+            else:
+                self._gradient_step(self.critic, fit.loss, self.max_grad_norm)
+                self._gradient_step(self.actor, regression_loss, self.max_grad_norm)
             # one check per update, before the average and the targets take anything non-finite
             self._raise_if_not_finite(critic_loss=fit.loss, actor_loss=regression_loss)
             if self.actor_averaging is not None:
@@ -403,7 +424,40 @@ class CRR(LifelongOfflineAlgorithm):
         for key, values in zip(CRRStepStats._fields, zip(*steps)):
             self.logger.record_mean(f"train/{key}", th.stack(values).mean().item())
 
-    def _critic_target_values(self, replay_data: Any, heads: Optional[th.Tensor]) -> th.Tensor:
+    def _compiles_now(self) -> bool:
+        """:return: whether this ``train`` call runs the compiled forward pass (see ``compile_losses``)"""
+        if self.compile_losses is False or self.actor_per_source or self._forward.failed:
+            return False
+        if self.compile_losses is True:
+            return True
+        to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
+        return self._forward.compiled is not None or (to_go >= AUTO_MIN_UPDATES and can_compile(self.device))
+
+    def _forward_pass(
+        self, replay_data: Any, heads: Optional[th.Tensor], target_noise: th.Tensor, sample_noise: th.Tensor
+    ) -> tuple[CriticLoss, th.Tensor, th.Tensor, th.Tensor]:
+        """
+        An update's forward pass, up to the advantages' weights: what ``compile_losses`` compiles.
+
+        :param replay_data: the batch
+        :param heads: with one actor per source, the actor of each row
+        :param target_noise: the TD target's standard normal draws ``[n_target_samples, batch, action_dim]``
+        :param sample_noise: the advantage baseline's ``[num_samples, batch, action_dim]``
+        :return: the critic's loss (with the data's actions' Q-values), the policy's mean and std (differentiable),
+            and the Q-values of the policy's samples ``[num_samples, batch]``
+        """
+        obs = replay_data.observations
+        with th.no_grad():
+            target = self._critic_target_values(replay_data, heads, target_noise)
+        fit = critic_loss(self.critic, obs, replay_data.actions, target)
+        mean, std = actor_distribution(self.actor, obs, heads)
+        with th.no_grad():
+            sampled_q = self._policy_action_values(obs, mean, std, sample_noise)
+        return fit, mean, std, sampled_q
+
+    def _critic_target_values(
+        self, replay_data: Any, heads: Optional[th.Tensor], noise: Optional[th.Tensor] = None
+    ) -> th.Tensor:
         """:return: the critic's TD target of the batch (see :func:`critic_td_target`)"""
         bootstrap = bootstrap_discount(replay_data, self.gamma)  # [B, 1]
         next_actions = target_actions(
@@ -412,6 +466,7 @@ class CRR(LifelongOfflineAlgorithm):
             heads,
             self.n_target_samples,
             data_next_actions=self.critic_target_type == "sarsa",
+            noise=noise,
         )
         return critic_td_target(
             self.critic_target,
@@ -422,14 +477,12 @@ class CRR(LifelongOfflineAlgorithm):
             self._target_scoring_copy,
         )
 
-    def _policy_action_values(self, obs: Any, mean: th.Tensor, std: th.Tensor) -> th.Tensor:
+    def _policy_action_values(self, obs: Any, mean: th.Tensor, std: th.Tensor, noise: Optional[th.Tensor] = None) -> th.Tensor:
         """
         :return: Q-values ``[num_samples, batch]`` of ``num_samples`` actions per state sampled from the policy,
-            by the online critic (the advantage's baseline)
+            by the online critic (the advantage's baseline; its low-precision copy is synchronised by the caller)
         """
-        sampled_actions = sample_gaussian(mean, std, self.num_samples)  # [N, B, A]
-        if self._online_scoring_copy is not None:
-            self._online_scoring_copy.sync()
+        sampled_actions = sample_gaussian(mean, std, self.num_samples, noise)  # [N, B, A]
         return score_actions(self.critic, obs, sampled_actions, self._online_scoring_copy)
 
     def _update_actor_average(self) -> None:
@@ -468,6 +521,7 @@ class CRR(LifelongOfflineAlgorithm):
             "_head_of_source",
             "_target_scoring_copy",
             "_online_scoring_copy",
+            "_forward",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -13,7 +13,7 @@ from torch.nn import functional as F
 
 from sb3_lifelong.common.losses import sum_of
 from sb3_lifelong.common.policies import mlp_layers
-from sb3_lifelong.common.scoring import LowPrecisionCopy, network_outputs, tile_obs
+from sb3_lifelong.common.scoring import LowPrecisionCopy, network_outputs, tile_obs, uses_engine
 
 __all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection"]
 
@@ -140,7 +140,8 @@ class CategoricalCritic(BaseModel):
         The distributional TD target: per transition and next action, the distribution of the Q-network with the
         lowest expected value, averaged over the next actions, shifted by ``rewards + discounts * Z`` and projected
         back onto the support. Call it on the target critic, without autograd: the logits are then the scoring
-        engine's (:func:`~sb3_lifelong.common.scoring.network_outputs`: bit for bit :meth:`logits` in float32).
+        engine's (:func:`~sb3_lifelong.common.scoring.network_outputs`: bit for bit :meth:`logits` in float32;
+        :func:`~sb3_lifelong.common.scoring.uses_engine`).
 
         :param next_obs: next observations ``[batch, ...]``
         :param next_actions: normalised next actions ``[n_next_actions, batch, action_dim]``
@@ -151,7 +152,7 @@ class CategoricalCritic(BaseModel):
         """
         n_next_actions = next_actions.shape[0]
         flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
-        if th.is_grad_enabled():
+        if not uses_engine(self):
             logits = self.logits(tile_obs(next_obs, n_next_actions) if n_next_actions > 1 else next_obs, flat_next_actions)
         else:
             logits = tuple(network_outputs(self, next_obs, flat_next_actions, n_next_actions, low_precision)[1])

@@ -158,6 +158,7 @@ def target_actions(
     heads: Optional[th.Tensor],
     n_target_samples: int,
     data_next_actions: bool = False,
+    noise: Optional[th.Tensor] = None,
 ) -> th.Tensor:
     """
     The next actions of the TD target: samples of the target policy, or (``data_next_actions``, SARSA) the data's
@@ -168,10 +169,11 @@ def target_actions(
     :param heads: with one actor per source, the actor of each row ``[batch]``
     :param n_target_samples: number of target-policy actions per transition
     :param data_next_actions: use the data's next actions (``critic_target="sarsa"``)
+    :param noise: the standard normal draws of the samples (:func:`sample_gaussian`; None: drawn here)
     :return: ``[n_target_samples, batch, action_dim]``, in ``[-1, 1]``
     """
     mean, std = actor_distribution(actor_target, replay_data.next_observations, heads)
-    actions = sample_gaussian(mean, std, n_target_samples).clamp(-1.0, 1.0)
+    actions = sample_gaussian(mean, std, n_target_samples, noise).clamp(-1.0, 1.0)
     if data_next_actions:
         next_actions = getattr(replay_data, "next_actions", None)
         if next_actions is None:
