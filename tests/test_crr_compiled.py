@@ -6,8 +6,9 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_lifelong import CRR
-from sb3_lifelong.common import compiling
+from sb3_lifelong.common import compiling, scoring
 from sb3_lifelong.crr import crr as crr_module
+from sb3_lifelong.crr import distributional
 from tests.test_crr import flat_params, pendulum_data
 
 KWARGS = dict(
@@ -76,3 +77,25 @@ def test_failed_compilation_warns_and_trains_eagerly(data, monkeypatch):
     eager = student(data, compile_losses=False).learn_offline(6, log_interval=0)
     # the first update took one joint backward, the others the eager steps: the same arithmetic
     th.testing.assert_close(flat_params(model), flat_params(eager), rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
+def test_compiled_training_keeps_the_bf16_scoring_passes(data, monkeypatch):
+    """With a bf16 copy, the scoring passes run on the engine, eagerly, inside the compiled update (a graph break)."""
+    calls = []
+    eager_twin = scoring.eager_network_outputs
+
+    @th.compiler.disable
+    def counting(*args):
+        calls.append(th.compiler.is_compiling())
+        return eager_twin(*args)
+
+    monkeypatch.setattr(scoring, "eager_network_outputs", counting)
+    monkeypatch.setattr(distributional, "eager_network_outputs", counting)
+    eager = student(data, compile_losses=False, scoring_dtype="bfloat16").learn_offline(6, log_interval=0)
+    eager_calls = len(calls)
+    compiled = student(data, compile_losses=True, scoring_dtype="bfloat16").learn_offline(6, log_interval=0)
+    assert compiled._forward.compiled is not None and not compiled._forward.failed
+    assert eager_calls == 12 and len(calls) == 24 and not any(calls)  # target and baseline, each update, eagerly
+    difference = (flat_params(compiled) - flat_params(eager)).abs().max()
+    assert difference <= 1e-4, float(difference)

@@ -87,13 +87,17 @@ def runs_no_grad_pass(critic: nn.Module) -> bool:
     return isinstance(critic, BaseModel) and callable(getattr(critic, "q_values_of", None)) and bool(_q_networks(critic))
 
 
-def uses_engine(critic: nn.Module) -> bool:
+def uses_engine(critic: nn.Module, low_precision: Optional["LowPrecisionCopy"] = None) -> bool:
     """
     :return: whether a pass of ``critic`` now runs on the engine: without autograd, for a critic it runs
-        (:func:`runs_no_grad_pass`), and not while ``torch.compile`` traces the code (inductor plans its own buffers;
-        the engine's reused buffers and ``out=`` products would break its graph)
+        (:func:`runs_no_grad_pass`). While ``torch.compile`` traces the code, only a pass with a low-precision copy
+        does (run eagerly, a break in the graph: the compiled graph would lose the bf16 products); a float32 pass is
+        then traced as the critic's own call (inductor plans its buffers; the engine's reused buffers and ``out=``
+        products would break its graph)
     """
-    return not th.is_grad_enabled() and not th.compiler.is_compiling() and runs_no_grad_pass(critic)
+    if th.is_grad_enabled() or not runs_no_grad_pass(critic):
+        return False
+    return low_precision is not None or not th.compiler.is_compiling()
 
 
 def _q_networks(critic: nn.Module) -> list[nn.Module]:
@@ -380,11 +384,15 @@ def score_actions(
     """
     num_samples, batch_size, action_dim = actions.shape
     flat_actions = actions.reshape(num_samples * batch_size, action_dim).clamp(-1.0, 1.0)
-    if not uses_engine(critic):
+    if not uses_engine(critic, low_precision):
         return q_min(critic(tile_obs(obs, num_samples), flat_actions)).reshape(num_samples, batch_size)
     assert isinstance(critic, BaseModel)
-    features, outputs = network_outputs(critic, obs, flat_actions, num_samples, low_precision)
+    features, outputs = eager_network_outputs(critic, obs, flat_actions, num_samples, low_precision)
     head = None if isinstance(critic, ContinuousCritic) else cast(Callable[[th.Tensor], th.Tensor], critic.q_values_of)
     q_values = outputs if head is None else [head(output) for output in outputs]
     # copy out of the reused buffer (the result outlives the next call), in the critic's own precision
     return q_min(q_values).reshape(num_samples, batch_size).to(features.dtype, copy=True)
+
+
+#: :func:`network_outputs`, run eagerly where ``torch.compile`` traces the code (a break in its graph)
+eager_network_outputs = th.compiler.disable(network_outputs)

@@ -13,7 +13,7 @@ from torch.nn import functional as F
 
 from sb3_lifelong.common.losses import sum_of
 from sb3_lifelong.common.policies import mlp_layers
-from sb3_lifelong.common.scoring import LowPrecisionCopy, network_outputs, tile_obs, uses_engine
+from sb3_lifelong.common.scoring import LowPrecisionCopy, eager_network_outputs, tile_obs, uses_engine
 
 __all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection"]
 
@@ -152,10 +152,10 @@ class CategoricalCritic(BaseModel):
         """
         n_next_actions = next_actions.shape[0]
         flat_next_actions = next_actions.reshape(-1, next_actions.shape[-1])
-        if not uses_engine(self):
+        if not uses_engine(self, low_precision):
             logits = self.logits(tile_obs(next_obs, n_next_actions) if n_next_actions > 1 else next_obs, flat_next_actions)
         else:
-            logits = tuple(network_outputs(self, next_obs, flat_next_actions, n_next_actions, low_precision)[1])
+            logits = tuple(eager_network_outputs(self, next_obs, flat_next_actions, n_next_actions, low_precision)[1])
         next_probs = th.softmax(th.stack(logits), dim=-1)  # [C, T*B, K]
         lowest = (next_probs * self.support).sum(-1).argmin(dim=0)  # [T*B]
         next_probs = next_probs.gather(0, lowest.view(1, -1, 1).expand(1, *next_probs.shape[1:]))[0]
