@@ -30,7 +30,9 @@ from sb3_lifelong.common.hardware import machine_description
 RESULTS = pathlib.Path(__file__).parent / "results"
 
 
-def make(algo: str, env_id: str, num_samples: int, scoring_dtype: str = "auto", layer_norm: bool = False) -> Any:
+def make(
+    algo: str, env_id: str, num_samples: int, scoring_dtype: str = "auto", layer_norm: bool = False, compiled: bool = False
+) -> Any:
     common = dict(batch_size=256, learning_starts=1000, train_freq=1, gradient_steps=1, seed=0, verbose=0)
     if algo == "SAC":
         return SAC("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[256, 256]), **common)
@@ -40,6 +42,7 @@ def make(algo: str, env_id: str, num_samples: int, scoring_dtype: str = "auto", 
         policy_kwargs=dict(net_arch=[256, 256], layer_norm=layer_norm),
         num_samples=num_samples,
         scoring_dtype=scoring_dtype,
+        compile_losses=compiled,
         **common,
     )
 
@@ -68,8 +71,10 @@ def run_env(env_id: str, args: argparse.Namespace) -> tuple[list[str], dict[str,
     for n in args.num_samples:
         for dtype in args.scoring_dtypes:
             for layer_norm in args.layer_norms:
-                name = f"MPO (N={n}, {dtype}" + (", LayerNorm)" if layer_norm == "on" else ")")
-                models[name] = make("MPO", env_id, n, dtype, layer_norm == "on")
+                for compiled in args.compile_losses:
+                    name = f"MPO (N={n}, {dtype}" + (", LayerNorm" if layer_norm == "on" else "")
+                    name += ", compiled)" if compiled == "on" else ")"
+                    models[name] = make("MPO", env_id, n, dtype, layer_norm == "on", compiled == "on")
     for model in models.values():  # warm-up: fill learning_starts and run some updates
         model.learn(1200)
     speeds: dict[str, list[float]] = {name: [] for name in models}
@@ -107,6 +112,13 @@ def main() -> None:
     parser.add_argument("--num-samples", type=int, nargs="+", default=[20], help="MPO num_samples values to time")
     parser.add_argument("--scoring-dtypes", nargs="+", default=["float32", "auto"], help="MPO scoring precisions to time")
     parser.add_argument("--layer-norms", nargs="+", default=["off"], choices=["off", "on"], help="MPO torsos to time")
+    parser.add_argument(
+        "--compile-losses",
+        nargs="+",
+        default=["off"],
+        choices=["off", "on"],
+        help="MPO eager and/or compiled (compile_losses)",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a 2-core machine)")
     parser.add_argument("--output", default=str(RESULTS / "mpo_throughput"))
     args = parser.parse_args()
@@ -128,6 +140,7 @@ def main() -> None:
         + f"--envs {' '.join(args.envs)} --rounds {args.rounds} --steps {args.steps} --num-samples "
         + " ".join(map(str, args.num_samples))
         + f" --scoring-dtypes {' '.join(args.scoring_dtypes)} --layer-norms {' '.join(args.layer_norms)}"
+        + f" --compile-losses {' '.join(args.compile_losses)}"
         + f" --threads {args.threads}",
         "machine": machine_description(),  # CPU, its matrix flags (AMX, AVX-512 BF16), oneDNN's bf16 kernel, torch
     }

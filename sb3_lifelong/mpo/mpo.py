@@ -12,6 +12,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayB
 from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+from sb3_lifelong.common.compiling import AUTO_MIN_UPDATES, COMPILE_CHOICES, LazyCompiled, can_compile
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
 from sb3_lifelong.common.scoring import SCORING_DTYPES, score_actions
@@ -106,6 +107,12 @@ class MPO(LifelongOffPolicyAlgorithm):
         critic, refreshed at every target update; Q within about 1 % of float32), or ``"auto"``: bfloat16 where
         the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16) and the critic's
         layers are at least 128 wide, float32 otherwise
+    :param compile_losses: compile the update's forward pass (the target, the critic's loss, the E-step, the M-step
+        and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under
+        way has at least 50,000 steps to go and inductor can compile here (a C++ compiler on a CPU); see
+        :mod:`sb3_lifelong.common.compiling`. The sampling noise is drawn outside the graph, as the eager update draws
+        it; a bf16 scoring pass stays on the engine, eagerly. A compilation that fails warns once and leaves the
+        update eager
     :param policy_on_next_obs: improve the policy on the batch's next observations, so that one target critic
         call serves both the E-step and the critic target; if False the policy is improved on the observations
         (still one call, over both observations and next observations)
@@ -159,6 +166,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         max_grad_norm: float = 40.0,
         policy_on_next_obs: bool = True,
         scoring_dtype: str = "auto",
+        compile_losses: Union[bool, str] = "auto",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[dict[str, Any]] = None,
@@ -207,6 +215,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.policy_on_next_obs = policy_on_next_obs
         self.scoring_dtype = scoring_dtype
+        self.compile_losses = compile_losses
         if self._policy_has_torso_choice():
             # the torso is written into policy_kwargs, so that every save says which one it has (see _setup_model)
             self.policy_kwargs = {"layer_norm": True, **self.policy_kwargs}
@@ -225,13 +234,15 @@ class MPO(LifelongOffPolicyAlgorithm):
             "target_update_interval": self.target_update_interval >= 1,
             "tau": 0.0 < self.tau <= 1.0,
             "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
+            "compile_losses": isinstance(self.compile_losses, bool) or self.compile_losses == "auto",
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
             values = ", ".join(f"{name}={getattr(self, name)!r}" for name in bad)
             raise ValueError(
                 f"Invalid MPO hyperparameters: {values} (num_samples and target_update_interval must be >= 1, "
-                f"epsilons and dual_learning_rate > 0, tau in (0, 1], scoring_dtype in {SCORING_DTYPES})"
+                f"epsilons and dual_learning_rate > 0, tau in (0, 1], scoring_dtype in {SCORING_DTYPES}, compile_losses in "
+                f"{COMPILE_CHOICES})"
             )
 
     def _policy_has_torso_choice(self) -> bool:
@@ -266,6 +277,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             dual_params, lr=self.dual_learning_rate, **with_fast_optimizer(th.optim.Adam, None)
         )
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
+        self._forward = LazyCompiled(self._forward_pass, "MPO's forward pass")
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -285,17 +297,32 @@ class MPO(LifelongOffPolicyAlgorithm):
         logged: list[tuple[CriticFit, PolicyImprovement]] = []
         assert self.replay_buffer is not None
 
+        compiled = self._compiles_now()
         for _ in range(gradient_steps):
             self._n_updates += 1
             with record_function("mpo/sample_batch"):
                 replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
-            with th.no_grad(), record_function("mpo/target_sample_and_score"):
-                targets = self._sample_and_score(replay_data)
-            with record_function("mpo/critic_update"):
-                critic_fit = self._update_critic(replay_data, targets.critic_target)
-            with record_function("mpo/actor_and_dual_update"):
-                policy_obs = replay_data.next_observations if self.policy_on_next_obs else replay_data.observations
-                improvement = self._update_actor_and_duals(policy_obs, targets)
+                noise = self._sampling_noise(replay_data)
+            with record_function("mpo/forward"):
+                critic_fit, improvement, actor_and_dual_loss = self._forward(compiled, replay_data, noise)
+            with record_function("mpo/backward_and_steps"):
+                self.actor.optimizer.zero_grad(set_to_none=True)
+                self.dual_optimizer.zero_grad(set_to_none=True)
+                if compiled:  # one backward through the compiled graph (the losses reach disjoint parameters)
+                    self.critic.optimizer.zero_grad(set_to_none=True)
+                    (critic_fit.critic_loss + actor_and_dual_loss).backward()
+                    th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm, foreach=True)
+                    self.critic.optimizer.step()
+                else:
+                    self._gradient_step(self.critic, critic_fit.critic_loss, self.max_grad_norm)
+                    actor_and_dual_loss.backward()
+                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
+                self.actor.optimizer.step()
+                self.dual_optimizer.step()
+                with th.no_grad():
+                    for raw in self.dual_optimizer.param_groups[0]["params"]:
+                        raw.clamp_(min=DUAL_RAW_FLOOR)
+            critic_fit = critic_fit._replace(critic_loss=critic_fit.critic_loss.detach())
             logged.append((critic_fit, improvement))
             # one check per update, before the targets take anything non-finite (the duals: after their step)
             self._raise_if_not_finite(
@@ -316,26 +343,61 @@ class MPO(LifelongOffPolicyAlgorithm):
                 if values:
                     self.logger.record(f"train/{key}", th.stack(values).mean().item())
 
-    def _sample_and_score(self, replay_data: ReplayBufferSamples) -> TargetSamples:
+    def _compiles_now(self) -> bool:
+        """:return: whether this ``train`` call runs the compiled forward pass (see ``compile_losses``)"""
+        if self.compile_losses is False or self._forward.failed:
+            return False
+        if self.compile_losses is True:
+            return True
+        to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
+        return self._forward.compiled is not None or (to_go >= AUTO_MIN_UPDATES and can_compile(self.device))
+
+    def _sampling_noise(self, replay_data: ReplayBufferSamples) -> th.Tensor:
+        """:return: the standard normal draws of the target policy's samples ``[num_samples, rows, action_dim]``"""
+        rows = replay_data.rewards.shape[0] * (1 if self.policy_on_next_obs else 2)
+        return th.randn((self.num_samples, rows, get_action_dim(self.action_space)), device=self.device)
+
+    def _forward_pass(
+        self, replay_data: ReplayBufferSamples, noise: th.Tensor
+    ) -> tuple[CriticFit, PolicyImprovement, th.Tensor]:
+        """
+        An update's forward pass: what ``compile_losses`` compiles.
+
+        :param replay_data: the batch
+        :param noise: the target policy's samples' standard normal draws (:meth:`_sampling_noise`)
+        :return: the critic's fit (its loss differentiable), what the policy improvement logs, and the loss of the
+            actor and the duals (the M-step's, the trust region's and the duals', differentiable)
+        """
+        with th.no_grad(), record_function("mpo/target_sample_and_score"):
+            targets = self._sample_and_score(replay_data, noise)
+        with record_function("mpo/critic_loss"):
+            critic_fit = self._critic_fit(replay_data, targets.critic_target)
+        with record_function("mpo/actor_and_dual_loss"):
+            policy_obs = replay_data.next_observations if self.policy_on_next_obs else replay_data.observations
+            improvement, loss = self._policy_improvement(policy_obs, targets)
+        return critic_fit, improvement, loss
+
+    def _sample_and_score(self, replay_data: ReplayBufferSamples, noise: Optional[th.Tensor] = None) -> TargetSamples:
         """
         Sample ``num_samples`` actions per state from the target policy and score them with the target critic,
         in one critic call that serves both the critic's target and the E-step.
 
         :param replay_data: the batch
+        :param noise: the samples' standard normal draws (None: drawn here)
         :return: the critic's target and the scored samples of the target policy
         """
         num_samples, batch_size = self.num_samples, replay_data.rewards.shape[0]
         obs, next_obs = replay_data.observations, replay_data.next_observations
         if self.policy_on_next_obs:
             target_mean, target_std = self.actor_target.distribution_params(next_obs)
-            sampled_actions = sample_gaussian(target_mean, target_std, num_samples)  # [N, B, A]
+            sampled_actions = sample_gaussian(target_mean, target_std, num_samples, noise)  # [N, B, A]
             sampled_q = score_actions(self.critic_target, next_obs, sampled_actions, self._target_scoring_copy)  # [N, B]
             next_q = sampled_q.mean(dim=0)
         else:
             # One actor call and one critic call over [obs; next_obs]
             both_obs = _concat_obs(obs, next_obs)
             both_mean, both_std = self.actor_target.distribution_params(both_obs)
-            both_actions = sample_gaussian(both_mean, both_std, num_samples)  # [N, 2B, A]
+            both_actions = sample_gaussian(both_mean, both_std, num_samples, noise)  # [N, 2B, A]
             both_q = score_actions(self.critic_target, both_obs, both_actions, self._target_scoring_copy)  # [N, 2B]
             target_mean, target_std = both_mean[:batch_size], both_std[:batch_size]
             sampled_actions, sampled_q = both_actions[:, :batch_size], both_q[:, :batch_size]
@@ -344,13 +406,17 @@ class MPO(LifelongOffPolicyAlgorithm):
         target_q = td_target(replay_data.rewards, bootstrap_discount(replay_data, self.gamma), next_q)
         return TargetSamples(target_q, target_mean, target_std, sampled_actions, sampled_q)
 
-    def _update_critic(self, replay_data: ReplayBufferSamples, target_q: th.Tensor) -> CriticFit:
+    def _critic_fit(self, replay_data: ReplayBufferSamples, target_q: th.Tensor) -> CriticFit:
+        """:return: the critic's loss on the batch (differentiable) and its mean Q"""
         current_q_values = self.critic(replay_data.observations, replay_data.actions)
         critic_loss = q_regression_loss(current_q_values, target_q)
-        self._gradient_step(self.critic, critic_loss, self.max_grad_norm)
-        return CriticFit(critic_loss=critic_loss.detach(), q_mean=current_q_values[0].detach().mean())
+        return CriticFit(critic_loss=critic_loss, q_mean=current_q_values[0].detach().mean())
 
-    def _update_actor_and_duals(self, policy_obs: Any, targets: TargetSamples) -> PolicyImprovement:
+    def _policy_improvement(self, policy_obs: Any, targets: TargetSamples) -> tuple[PolicyImprovement, th.Tensor]:
+        """
+        :return: what the policy improvement logs, and the loss of the actor and the duals: the M-step's, its trust
+            region's and the duals' (differentiable; the caller steps the actor's and the duals' optimizers)
+        """
         # E-step: weights of the sampled actions (one set per objective), temperature duals
         temperature = dual_value(self.log_temperature)
         penalty_temperature = dual_value(self.log_penalty_temperature) if self.action_penalty else None
@@ -374,18 +440,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             self.epsilon_stddev,
         )
         dual_loss = improved.dual_loss + region.dual_loss
-
-        self.actor.optimizer.zero_grad(set_to_none=True)
-        self.dual_optimizer.zero_grad(set_to_none=True)
-        (policy_loss + region.kl_loss + dual_loss).backward()
-        th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
-        self.actor.optimizer.step()
-        self.dual_optimizer.step()
-        with th.no_grad():
-            for raw in self.dual_optimizer.param_groups[0]["params"]:
-                raw.clamp_(min=DUAL_RAW_FLOOR)
-
-        return PolicyImprovement(
+        improvement = PolicyImprovement(
             actor_loss=policy_loss.detach(),
             temperature=temperature.detach().squeeze(),
             alpha_mean=alpha_mean.detach().mean(),
@@ -397,6 +452,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             ess=(1.0 / improved.weights[0].pow(2).sum(dim=0)).mean() / self.num_samples,
             penalty_temperature=None if penalty_temperature is None else penalty_temperature.detach().squeeze(),
         )
+        return improvement, policy_loss + region.kl_loss + dual_loss
 
     def learn(
         self: SelfMPO,
@@ -417,7 +473,15 @@ class MPO(LifelongOffPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "actor", "critic", "actor_target", "critic_target", "_target_scoring_copy"]
+        return [
+            *super()._excluded_save_params(),
+            "actor",
+            "critic",
+            "actor_target",
+            "critic_target",
+            "_target_scoring_copy",
+            "_forward",
+        ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer", "dual_optimizer"]

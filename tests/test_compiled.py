@@ -1,14 +1,15 @@
-"""CRR's compiled forward pass (``compile_losses``): the same training as eager up to rounding, the "auto" rule, and
-the eager fallback when compiling fails."""
+"""The compiled forward passes of CRR and MPO (``compile_losses``): the same training as eager up to rounding, the
+"auto" rule, the eager fallback when compiling fails, the bf16 scoring passes kept."""
 
 import pytest
 import torch as th
 from gymnasium import spaces
 
-from sb3_lifelong import CRR
+from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import compiling, scoring
 from sb3_lifelong.crr import crr as crr_module
 from sb3_lifelong.crr import distributional
+from sb3_lifelong.mpo import mpo as mpo_module
 from tests.test_crr import flat_params, pendulum_data
 
 KWARGS = dict(
@@ -99,3 +100,44 @@ def test_compiled_training_keeps_the_bf16_scoring_passes(data, monkeypatch):
     assert eager_calls == 12 and len(calls) == 24 and not any(calls)  # target and baseline, each update, eagerly
     difference = (flat_params(compiled) - flat_params(eager)).abs().max()
     assert difference <= 1e-4, float(difference)
+
+
+def mpo(compile_losses, **kwargs) -> MPO:
+    return MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        policy_kwargs=dict(net_arch=[32, 32]),
+        batch_size=32,
+        learning_starts=40,
+        target_update_interval=5,
+        compile_losses=compile_losses,
+        seed=0,
+        **kwargs,
+    )
+
+
+def mpo_params(model: MPO) -> th.Tensor:
+    return th.cat([p.detach().flatten() for p in model.policy.parameters()] + [model.log_temperature.detach()])
+
+
+@pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
+def test_mpo_compiled_training_matches_eager(tmp_path):
+    eager = mpo(False).learn(60)
+    compiled = mpo(True).learn(60)  # 20 updates, 4 target updates
+    assert compiled._forward.compiled is not None and not compiled._forward.failed
+    difference = (mpo_params(compiled) - mpo_params(eager)).abs().max()
+    assert difference <= 1e-4, float(difference)
+    assert compiled.logger.name_to_value.keys() == eager.logger.name_to_value.keys()
+    compiled.save(tmp_path / "mpo.zip")
+    assert th.equal(mpo_params(MPO.load(tmp_path / "mpo.zip")), mpo_params(compiled))
+
+
+def test_mpo_auto_compiles_only_a_long_run(monkeypatch):
+    model = mpo("auto")
+    model._total_timesteps, model.num_timesteps = compiling.AUTO_MIN_UPDATES - 1, 0
+    monkeypatch.setattr(mpo_module, "can_compile", lambda device: True)
+    assert not model._compiles_now()
+    model._total_timesteps = compiling.AUTO_MIN_UPDATES
+    assert model._compiles_now()
+    with pytest.raises(ValueError, match="compile_losses"):
+        mpo("always")
