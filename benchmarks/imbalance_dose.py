@@ -454,12 +454,14 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
 
     preset = PRESETS[ROBOTS[robot][0]]
     fig, ax = plt.subplots(figsize=(7, 4))
-    for path in curves:
+    for index, path in enumerate(curves):
         frame = pd.read_csv(path)
         seed = path.parent.name.split("_")[1]
+        style = ("-", "--", ":", "-.")[index % 4]  # one line style per seed, one colour per environment
         for env, color in (("Env-A", "C0"), ("Env-B", "C1")):
             rows = frame[frame["env"] == env]
-            ax.plot(rows["timesteps"], rows["mean_reward"], color=color, marker=".", label=f"evaluated in {env} (seed {seed})")
+            label = f"evaluated in {env} (seed {seed})"
+            ax.plot(rows["timesteps"], rows["mean_reward"], color=color, ls=style, marker=".", label=label)
     ax.axvline(preset.stage_steps[0], color="k", ls="--", lw=1, label="switch: the robot changes (Env-A -> Env-B)")
     ax.axhline(ROBOTS[robot][1], color="grey", ls=":", lw=1, label="P1: competent Env-A")
     ax.set_xlabel("environment steps of the collection")

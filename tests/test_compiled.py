@@ -30,8 +30,9 @@ def student(data: dict, **kwargs) -> CRR:
 
 @pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
 def test_compiled_training_matches_eager_and_saves(data, tmp_path):
-    eager = student(data, compile_losses=False).learn_offline(12, log_interval=0)
-    compiled = student(data, compile_losses=True).learn_offline(12, log_interval=0)
+    # a gradient clip that binds at every step, so that the joint backward's clipping is compared too
+    eager = student(data, compile_losses=False, max_grad_norm=1e-3).learn_offline(12, log_interval=0)
+    compiled = student(data, compile_losses=True, max_grad_norm=1e-3).learn_offline(12, log_interval=0)
     assert compiled._forward.compiled is not None and not compiled._forward.failed  # it ran compiled
     assert eager._forward.compiled is None
     # the same batches and noise: the parameters differ by rounding only, after 12 updates and 3 target updates
@@ -76,8 +77,8 @@ def test_failed_compilation_warns_and_trains_eagerly(data, monkeypatch):
         model.learn_offline(6, log_interval=0)
     assert model._forward.failed and not model._compiles_now()
     eager = student(data, compile_losses=False).learn_offline(6, log_interval=0)
-    # the first update took one joint backward, the others the eager steps: the same arithmetic
-    th.testing.assert_close(flat_params(model), flat_params(eager), rtol=1e-6, atol=1e-7)
+    # the first update took one joint backward, the others the eager steps: the same arithmetic, bit for bit
+    assert th.equal(flat_params(model), flat_params(eager))
 
 
 @pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
@@ -97,9 +98,33 @@ def test_compiled_training_keeps_the_bf16_scoring_passes(data, monkeypatch):
     eager_calls = len(calls)
     compiled = student(data, compile_losses=True, scoring_dtype="bfloat16").learn_offline(6, log_interval=0)
     assert compiled._forward.compiled is not None and not compiled._forward.failed
-    assert eager_calls == 12 and len(calls) == 24 and not any(calls)  # target and baseline, each update, eagerly
+    assert eager_calls == 12 and len(calls) == 24  # target and baseline, each update, on the engine
     difference = (flat_params(compiled) - flat_params(eager)).abs().max()
     assert difference <= 1e-4, float(difference)
+
+
+def test_noise_is_drawn_as_the_eager_updates_always_drew_it(data, monkeypatch):
+    """The order and shapes of an update's standard normal draws, which the eager training's reproducibility rests on."""
+    shapes = []
+    randn = th.randn
+
+    def recording(*args, **kwargs):
+        shapes.append(tuple(args[0]) if args and isinstance(args[0], (tuple, list, th.Size)) else args)
+        return randn(*args, **kwargs)
+
+    model = student(data, n_target_samples=2)
+    model.learn_offline(1, log_interval=0)
+    monkeypatch.setattr(th, "randn", recording)
+    model.train(1, 32)
+    assert shapes == [(2, 32, 1), (4, 32, 1)]  # the TD target's samples, then the advantage baseline's
+    for on_next_obs, rows in ((True, 32), (False, 64)):
+        shapes.clear()
+        online = mpo(False, policy_on_next_obs=on_next_obs)
+        monkeypatch.setattr(th, "randn", randn)
+        online.learn(45)
+        monkeypatch.setattr(th, "randn", recording)
+        online.train(1, 32)
+        assert shapes == [(20, rows, 1)]  # the target policy's samples, over next observations (and observations)
 
 
 def mpo(compile_losses, **kwargs) -> MPO:
@@ -121,9 +146,14 @@ def mpo_params(model: MPO) -> th.Tensor:
 
 
 @pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
-def test_mpo_compiled_training_matches_eager(tmp_path):
-    eager = mpo(False).learn(60)
-    compiled = mpo(True).learn(60)  # 20 updates, 4 target updates
+@pytest.mark.parametrize(
+    "kwargs",
+    [{}, dict(policy_on_next_obs=False, action_penalty=True, max_grad_norm=1e-3)],
+    ids=["defaults", "obs_penalty_clipped"],
+)
+def test_mpo_compiled_training_matches_eager(tmp_path, kwargs):
+    eager = mpo(False, **kwargs).learn(60)
+    compiled = mpo(True, **kwargs).learn(60)  # 20 updates, 4 target updates
     assert compiled._forward.compiled is not None and not compiled._forward.failed
     difference = (mpo_params(compiled) - mpo_params(eager)).abs().max()
     assert difference <= 1e-4, float(difference)
@@ -141,3 +171,24 @@ def test_mpo_auto_compiles_only_a_long_run(monkeypatch):
     assert model._compiles_now()
     with pytest.raises(ValueError, match="compile_losses"):
         mpo("always")
+
+
+def test_clipping_counts_the_parameters_each_optimizer_steps(data):
+    """A features extractor shared with the actor is the actor's to step: the critic's clip leaves it out."""
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+    from sb3_lifelong.common.base import optimized_parameters
+
+    class Learnt(BaseFeaturesExtractor):
+        def __init__(self, observation_space):
+            super().__init__(observation_space, features_dim=8)
+            self.linear = th.nn.Linear(observation_space.shape[0], 8)
+
+        def forward(self, observations):
+            return self.linear(observations)
+
+    model = student(data, policy_kwargs=dict(net_arch=[16], features_extractor_class=Learnt, share_features_extractor=True))
+    shared = {id(p) for p in model.actor.features_extractor.parameters()}
+    assert shared and shared <= {id(p) for p in model.critic.parameters()}
+    assert not shared & {id(p) for p in optimized_parameters(model.critic)}
+    assert shared <= {id(p) for p in optimized_parameters(model.actor)}

@@ -268,9 +268,10 @@ def test_categorical_critic_runs_the_engine_bit_for_bit(layer_norm):
     called = scoring.q_min(critic(scoring.tile_obs(obs, 4), actions.reshape(-1, 3))).reshape(4, 32).detach()
     with th.no_grad():
         scored = score_actions(critic, obs, actions)
-        assert critic.__dict__.get("_no_grad_buffers")  # the engine ran, on its reused buffers
+        assert {key[2] for key in critic.__dict__["_no_grad_buffers"]} == {4 * 32}  # the engine ran, on its buffers
         rewards, discounts = th.randn(32, 1), th.full((32, 1), 0.99)
         target = critic.td_target(obs, actions[:2], rewards, discounts)
+        assert 2 * 32 in {key[2] for key in critic.__dict__["_no_grad_buffers"]}  # the target's pass too
     assert th.equal(scored, called)
     with th.enable_grad():  # the logits path, by calling the Q-networks
         target_called = critic.td_target(obs, actions[:2], rewards, discounts).detach()

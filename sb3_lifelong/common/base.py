@@ -178,6 +178,15 @@ def _check_saved_algorithm(
         )
 
 
+def optimized_parameters(module: BaseModel) -> list[th.Tensor]:
+    """
+    :return: the parameters ``module.optimizer`` steps, in its order: a critic's own, without a features extractor it
+        shares with the actor (SB3 leaves that one to the actor's optimizer), so that clipping a critic's gradients
+        never counts, or scales, the gradients the actor's loss put into the shared extractor
+    """
+    return [parameter for group in module.optimizer.param_groups for parameter in group["params"]]
+
+
 class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     """
     SB3's ``OffPolicyAlgorithm`` whose ``save``/``load`` also carry the random streams, so that ``load`` (with an
@@ -320,11 +329,14 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
 
     @staticmethod
     def _gradient_step(module: BaseModel, loss: th.Tensor, max_grad_norm: Optional[float]) -> None:
-        """One step of ``module.optimizer`` down ``loss``, the gradients' norm clipped to ``max_grad_norm`` (None: not)."""
+        """
+        One step of ``module.optimizer`` down ``loss``, the gradients' norm clipped to ``max_grad_norm`` (None: not):
+        the norm of the parameters that optimizer steps (:func:`optimized_parameters`).
+        """
         module.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if max_grad_norm is not None:
-            th.nn.utils.clip_grad_norm_(module.parameters(), max_grad_norm, foreach=True)
+            th.nn.utils.clip_grad_norm_(optimized_parameters(module), max_grad_norm, foreach=True)
         module.optimizer.step()
 
     @staticmethod
@@ -342,7 +354,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         sum(loss for _, loss in parts).backward()  # type: ignore[union-attr]
         for module, _ in parts:
             if max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(module.parameters(), max_grad_norm, foreach=True)
+                th.nn.utils.clip_grad_norm_(optimized_parameters(module), max_grad_norm, foreach=True)
             module.optimizer.step()
 
     def _update_targets(self) -> None:

@@ -3,21 +3,23 @@ A loss computation compiled with ``torch.compile`` (inductor) once a run is long
 and eager everywhere else (:class:`LazyCompiled`).
 
 Compiling fuses the elementwise work around the matrix products (the LayerNorm, tanh, softmax, log-likelihood) and
-plans the buffers of the forward and backward passes. Measured on one CRR student of the imbalance dose study
-(``benchmarks/bench_compiled_losses.py``; AMD EPYC, AVX2, one thread): 1.21x faster updates (rounds 1.16-1.35x), after
-31 s of compiling once per process. A short run (the tests, a demo) would spend more on compiling than it saves, so
-``"auto"`` compiles only when the ``learn`` call under way has at least :data:`AUTO_MIN_UPDATES` updates to go.
+plans the buffers of the forward and backward passes. Measured on an AMD EPYC without AMX, one thread
+(``benchmarks/results/fast_paths.md``): a CRR student of the imbalance dose study 1.21-1.31x faster per update than
+before, MPO 1.09x (0.77x -> 0.84x SAC on Walker2d), after 30-40 s of compiling once per process. A short run (the
+tests, a demo) would spend more on compiling than it saves, so ``"auto"`` compiles only when the ``learn`` call under
+way has at least :data:`AUTO_MIN_UPDATES` steps to go (environment steps online, updates offline).
 """
 
+import contextlib
 import shutil
 import warnings
-from typing import Any, Callable, Optional
+from typing import Any, Callable, ContextManager, Optional
 
 import torch as th
 
 COMPILE_CHOICES = ("auto", True, False)
-#: ``compile_losses="auto"`` compiles when the run under way has at least this many updates left: the compilation
-#: (30-60 s on a 2-core machine) is then under 5 % of the run's time at a student's 25 ms per update
+#: ``compile_losses="auto"`` compiles when the ``learn`` call under way has at least this many steps left (updates
+#: offline): the compilation (30-60 s on a 2-core machine) is then under 5 % of the run's time at 25 ms per update
 AUTO_MIN_UPDATES = 50_000
 
 
@@ -36,8 +38,11 @@ def can_compile(device: th.device) -> bool:
 
 class LazyCompiled:
     """
-    ``function``, compiled with ``torch.compile`` on first use when asked to, eager otherwise. A compilation or a
-    first compiled call that fails warns once and leaves the function eager for good (same results, the eager speed).
+    ``function``, compiled with ``torch.compile`` on first use when asked to, eager otherwise. A call of the compiled
+    function that fails (the compilation of its forward or backward graph, or a recompilation) warns once and leaves
+    the function eager for good: that call runs eagerly, with the same arguments. The backward graph is compiled with
+    the forward one (torch compiles it lazily, at the first ``backward``, by default), so that its failure is caught
+    here too; a failure later inside ``backward`` itself is not.
 
     :param function: a pure computation of tensors (its inputs' shapes fixed: compiled with ``dynamic=False``)
     :param name: what the warning calls it
@@ -58,15 +63,24 @@ class LazyCompiled:
         """
         if not compile_now or self.failed:
             return self.function(*args)
-        first = self.compiled is None
-        if first:
+        if self.compiled is None:
             self.compiled = th.compile(self.function, dynamic=False)
-        assert self.compiled is not None
-        if not first:
-            return self.compiled(*args)
         try:
-            return self.compiled(*args)
+            with _backward_compiled_with_forward():
+                return self.compiled(*args)
         except Exception as error:  # inductor's failures are of many kinds; the eager function is always right
             self.failed, self.compiled = True, None
             warnings.warn(f"torch.compile of {self.name} failed ({type(error).__name__}: {error}); it runs eagerly")
             return self.function(*args)
+
+
+def _backward_compiled_with_forward() -> ContextManager:
+    """
+    A context in which torch compiles a graph's backward with its forward (``force_non_lazy_backward_lowering``, a
+    setting of torch's private ``_functorch.config``); a context that does nothing where this torch has no such
+    setting (the backward is then compiled at the first ``backward``).
+    """
+    config = getattr(getattr(th, "_functorch", None), "config", None)
+    if config is None or not hasattr(config, "force_non_lazy_backward_lowering"):
+        return contextlib.nullcontext()
+    return config.patch(force_non_lazy_backward_lowering=True)

@@ -128,7 +128,7 @@ class CRR(LifelongOfflineAlgorithm):
         hidden layers too, its logits and their softmax stay float32)
     :param compile_losses: compile the update's forward pass (TD target, critic loss, policy, advantage baseline)
         with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` / ``learn_offline`` call under
-        way has at least 50,000 updates to go and inductor can compile here (a C++ compiler on a CPU). Measured on a
+        way has at least 50,000 steps to go (updates offline) and inductor can compile here (a C++ compiler on a CPU). Measured on a
         study student: 1.2x faster updates after about 30 s of compiling once per process
         (:mod:`sb3_lifelong.common.compiling`). The sampling noise is drawn outside the compiled graph, from the same
         generator as the eager update; the arithmetic differs from eager's by rounding. With one actor per source it

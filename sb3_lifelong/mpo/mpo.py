@@ -11,7 +11,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
 from torch.profiler import record_function
 
-from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm, optimized_parameters
 from sb3_lifelong.common.compiling import AUTO_MIN_UPDATES, COMPILE_CHOICES, LazyCompiled, can_compile
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
@@ -311,12 +311,12 @@ class MPO(LifelongOffPolicyAlgorithm):
                 if compiled:  # one backward through the compiled graph (the losses reach disjoint parameters)
                     self.critic.optimizer.zero_grad(set_to_none=True)
                     (critic_fit.critic_loss + actor_and_dual_loss).backward()
-                    th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm, foreach=True)
+                    th.nn.utils.clip_grad_norm_(optimized_parameters(self.critic), self.max_grad_norm, foreach=True)
                     self.critic.optimizer.step()
                 else:
                     self._gradient_step(self.critic, critic_fit.critic_loss, self.max_grad_norm)
                     actor_and_dual_loss.backward()
-                th.nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm, foreach=True)
+                th.nn.utils.clip_grad_norm_(optimized_parameters(self.actor), self.max_grad_norm, foreach=True)
                 self.actor.optimizer.step()
                 self.dual_optimizer.step()
                 with th.no_grad():
