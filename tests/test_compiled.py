@@ -7,9 +7,7 @@ from gymnasium import spaces
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import compiling, scoring
-from sb3_lifelong.crr import crr as crr_module
 from sb3_lifelong.crr import distributional
-from sb3_lifelong.mpo import mpo as mpo_module
 from tests.test_crr import flat_params, pendulum_data
 
 KWARGS = dict(
@@ -49,11 +47,11 @@ def test_auto_compiles_only_a_long_run_where_it_can(data, monkeypatch):
     model = student(data)
     assert model.compile_losses == "auto"
     model._total_timesteps, model.num_timesteps = compiling.AUTO_MIN_UPDATES - 1, 0
-    monkeypatch.setattr(crr_module, "can_compile", lambda device: True)
+    monkeypatch.setattr(compiling, "can_compile", lambda device: True)
     assert not model._compiles_now()  # too short to pay for the compilation
     model._total_timesteps = compiling.AUTO_MIN_UPDATES
     assert model._compiles_now()
-    monkeypatch.setattr(crr_module, "can_compile", lambda device: False)
+    monkeypatch.setattr(compiling, "can_compile", lambda device: False)
     assert not model._compiles_now()  # no compiler here
     model.learn_offline(3, log_interval=0)  # a short run stays eager
     assert model._forward.compiled is None
@@ -165,7 +163,7 @@ def test_mpo_compiled_training_matches_eager(tmp_path, kwargs):
 def test_mpo_auto_compiles_only_a_long_run(monkeypatch):
     model = mpo("auto")
     model._total_timesteps, model.num_timesteps = compiling.AUTO_MIN_UPDATES - 1, 0
-    monkeypatch.setattr(mpo_module, "can_compile", lambda device: True)
+    monkeypatch.setattr(compiling, "can_compile", lambda device: True)
     assert not model._compiles_now()
     model._total_timesteps = compiling.AUTO_MIN_UPDATES
     assert model._compiles_now()

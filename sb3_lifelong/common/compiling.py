@@ -13,7 +13,7 @@ way has at least :data:`AUTO_MIN_UPDATES` steps to go (environment steps online,
 import contextlib
 import shutil
 import warnings
-from typing import Any, Callable, ContextManager, Optional
+from typing import Any, Callable, ContextManager, Optional, Union
 
 import torch as th
 
@@ -54,6 +54,20 @@ class LazyCompiled:
         #: the compiled function once compiled; None before, and for good after a failure
         self.compiled: Optional[Callable] = None
         self.failed = False
+
+    def wanted(self, setting: Union[bool, str], steps_to_go: int, device: th.device) -> bool:
+        """
+        :param setting: the algorithm's ``compile_losses``: ``True``, ``False`` or ``"auto"``
+        :param steps_to_go: what the ``learn`` call under way has left to do
+        :param device: where the function runs
+        :return: whether a ``train`` call runs the compiled function: never after a failure; with ``"auto"``, once
+            compiled, or when ``steps_to_go`` is at least :data:`AUTO_MIN_UPDATES` and inductor can compile here
+        """
+        if setting is False or self.failed:
+            return False
+        if setting is True or self.compiled is not None:
+            return True
+        return steps_to_go >= AUTO_MIN_UPDATES and can_compile(device)
 
     def __call__(self, compile_now: bool, *args: Any) -> Any:
         """

@@ -12,7 +12,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayB
 from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm, optimized_parameters
-from sb3_lifelong.common.compiling import AUTO_MIN_UPDATES, COMPILE_CHOICES, LazyCompiled, can_compile
+from sb3_lifelong.common.compiling import COMPILE_CHOICES, LazyCompiled
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
 from sb3_lifelong.common.scoring import SCORING_DTYPES, score_actions
@@ -345,12 +345,8 @@ class MPO(LifelongOffPolicyAlgorithm):
 
     def _compiles_now(self) -> bool:
         """:return: whether this ``train`` call runs the compiled forward pass (see ``compile_losses``)"""
-        if self.compile_losses is False or self._forward.failed:
-            return False
-        if self.compile_losses is True:
-            return True
         to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
-        return self._forward.compiled is not None or (to_go >= AUTO_MIN_UPDATES and can_compile(self.device))
+        return self._forward.wanted(self.compile_losses, to_go, self.device)
 
     def _sampling_noise(self, replay_data: ReplayBufferSamples) -> th.Tensor:
         """:return: the standard normal draws of the target policy's samples ``[num_samples, rows, action_dim]``"""
