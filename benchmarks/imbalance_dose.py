@@ -470,7 +470,7 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
     stages = " -> ".join(f"{name} ({setting})" for name, setting in zip(preset.env_names, settings))
     ax.set_title(f"{robot} ({preset.env_id}): MPO collecting, {stages}", fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, handlelength=4)  # long enough to show each seed's line style
     fig.tight_layout()
     fig.savefig(root / f"collection_{robot}.png", dpi=110)
     plt.close(fig)
