@@ -127,7 +127,7 @@ class BC(LifelongOfflineAlgorithm):
             nll = -gaussian_log_prob(replay_data.actions, mean, std).mean()
             mse = (mean - replay_data.actions).pow(2).sum(dim=-1).mean()
             loss = nll if self.loss == "nll" else mse
-            self._gradient_step(self.actor, loss, self.max_grad_norm)
+            self._gradient_step((self.actor, loss), max_grad_norm=self.max_grad_norm)
             losses.append(loss.detach())
             nlls.append(nll.detach())
             errors.append(mse.detach())

@@ -9,7 +9,7 @@ import io
 import pathlib
 import random
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from typing import Any, Optional, TypeVar, Union
 
 import gymnasium as gym
@@ -25,7 +25,9 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_lifelong.common.compiling import LazyCompiled
 from sb3_lifelong.common.distillation import distill
+from sb3_lifelong.common.losses import sum_of
 from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, runs_no_grad_pass
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.core.safe_load import safe_custom_objects, saved_data, saved_policy_class
@@ -211,6 +213,10 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     actor_target: th.nn.Module
     #: the low-precision copy of ``critic_target`` that scores sampled actions (:meth:`_make_scoring_copy`), or None
     _target_scoring_copy: Optional[LowPrecisionCopy] = None
+    #: the update's forward pass, compiled when ``compile_losses`` asks for it (:meth:`_compiles_now`); None for an
+    #: algorithm without one
+    _forward: Optional[LazyCompiled] = None
+    compile_losses: Union[bool, str] = False
 
     def _setup_model(self) -> None:
         if _LOADING_SAVED_BUFFER_KWARGS.get() and (self.replay_buffer_kwargs or {}).get("mode") == "overwrite":
@@ -328,34 +334,36 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         )
 
     @staticmethod
-    def _gradient_step(module: BaseModel, loss: th.Tensor, max_grad_norm: Optional[float]) -> None:
+    def _gradient_step(
+        *parts: tuple[BaseModel, th.Tensor], max_grad_norm: Optional[float], also_step: Sequence[th.optim.Optimizer] = ()
+    ) -> None:
         """
-        One step of ``module.optimizer`` down ``loss``, the gradients' norm clipped to ``max_grad_norm`` (None: not):
-        the norm of the parameters that optimizer steps (:func:`optimized_parameters`).
-        """
-        module.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if max_grad_norm is not None:
-            th.nn.utils.clip_grad_norm_(optimized_parameters(module), max_grad_norm, foreach=True)
-        module.optimizer.step()
-
-    @staticmethod
-    def _joint_gradient_step(*parts: tuple[BaseModel, th.Tensor], max_grad_norm: Optional[float] = None) -> None:
-        """
-        One step of each module's optimizer down its loss, with one backward pass of the losses' sum: the same
-        gradients as a :meth:`_gradient_step` per module when no loss reaches another's module (one backward through a
-        compiled graph, rather than one per loss).
+        One step of each module's optimizer down its loss, with one backward pass of the losses' sum: one part is the
+        usual step; several are one backward through a compiled graph, with the same gradients when no loss reaches
+        another part's module. Each module's gradients' norm is clipped over the parameters its optimizer steps
+        (:func:`optimized_parameters`).
 
         :param parts: ``(module, loss)`` pairs
-        :param max_grad_norm: each module's gradients' norm is clipped to it (None: not)
+        :param max_grad_norm: the clip of each module's gradients' norm (None: not clipped)
+        :param also_step: optimizers of parameters outside the modules (e.g. MPO's duals), zeroed and stepped with
+            them, not clipped
         """
-        for module, _ in parts:
-            module.optimizer.zero_grad(set_to_none=True)
-        sum(loss for _, loss in parts).backward()  # type: ignore[union-attr]
-        for module, _ in parts:
-            if max_grad_norm is not None:
+        optimizers = [module.optimizer for module, _ in parts] + list(also_step)
+        for optimizer in optimizers:
+            optimizer.zero_grad(set_to_none=True)
+        sum_of(loss for _, loss in parts).backward()
+        if max_grad_norm is not None:
+            for module, _ in parts:
                 th.nn.utils.clip_grad_norm_(optimized_parameters(module), max_grad_norm, foreach=True)
-            module.optimizer.step()
+        for optimizer in optimizers:
+            optimizer.step()
+
+    def _compiles_now(self) -> bool:
+        """:return: whether this ``train`` call runs the compiled forward pass (see the algorithm's ``compile_losses``)"""
+        if self._forward is None:
+            return False
+        to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
+        return self._forward.wanted(self.compile_losses, to_go, self.device)
 
     def _update_targets(self) -> None:
         """
@@ -393,7 +401,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         self._sync_scoring_copies()
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng"]
+        return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng", "_forward"]
 
     def distill(self, student_class: type, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
         """

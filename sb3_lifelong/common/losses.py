@@ -11,7 +11,7 @@ from torch.nn import functional as F
 
 
 def sum_of(losses: Iterable[th.Tensor]) -> th.Tensor:
-    """:return: the sum of one loss per Q-network (a typed ``sum``: the same additions, in the same order)"""
+    """:return: the sum of the losses (a typed ``sum``: the same additions, in the same order; one loss is itself)"""
     total: Union[th.Tensor, None] = None
     for loss in losses:
         total = loss if total is None else total + loss

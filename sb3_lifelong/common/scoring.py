@@ -388,10 +388,11 @@ def score_actions(
         return q_min(critic(tile_obs(obs, num_samples), flat_actions)).reshape(num_samples, batch_size)
     assert isinstance(critic, BaseModel)
     features, outputs = eager_network_outputs(critic, obs, flat_actions, num_samples, low_precision)
-    head = None if isinstance(critic, ContinuousCritic) else cast(Callable[[th.Tensor], th.Tensor], critic.q_values_of)
-    q_values = outputs if head is None else [head(output) for output in outputs]
+    if not isinstance(critic, ContinuousCritic):  # the outputs are not Q-values yet (a categorical critic's logits)
+        q_values_of = cast(Callable[[th.Tensor], th.Tensor], critic.q_values_of)
+        outputs = [q_values_of(output) for output in outputs]
     # copy out of the reused buffer (the result outlives the next call), in the critic's own precision
-    return q_min(q_values).reshape(num_samples, batch_size).to(features.dtype, copy=True)
+    return q_min(outputs).reshape(num_samples, batch_size).to(features.dtype, copy=True)
 
 
 #: :func:`network_outputs`, run eagerly where ``torch.compile`` traces the code (a break in its graph)

@@ -152,6 +152,7 @@ class CRR(LifelongOfflineAlgorithm):
     actor_target: Union[GaussianActor, PerSourceActor]
     critic: Union[ContinuousCritic, CategoricalCritic]
     critic_target: Union[ContinuousCritic, CategoricalCritic]
+    _forward: LazyCompiled
 
     def __init__(
         self,
@@ -405,13 +406,12 @@ class CRR(LifelongOfflineAlgorithm):
                 if self.target_ess is not None:
                     self._ess_beta = float(advantage.beta)
             regression_loss = actor_loss(actions, mean, std, advantage.weights)
+            critic_part, actor_part = (self.critic, fit.loss), (self.actor, regression_loss)
             if compiled:  # one backward through the compiled graph (the two losses reach disjoint networks)
-                self._joint_gradient_step(
-                    (self.critic, fit.loss), (self.actor, regression_loss), max_grad_norm=self.max_grad_norm
-                )
+                self._gradient_step(critic_part, actor_part, max_grad_norm=self.max_grad_norm)
             else:
-                self._gradient_step(self.critic, fit.loss, self.max_grad_norm)
-                self._gradient_step(self.actor, regression_loss, self.max_grad_norm)
+                self._gradient_step(critic_part, max_grad_norm=self.max_grad_norm)
+                self._gradient_step(actor_part, max_grad_norm=self.max_grad_norm)
             # one check per update, before the average and the targets take anything non-finite
             self._raise_if_not_finite(critic_loss=fit.loss, actor_loss=regression_loss)
             if self.actor_averaging is not None:
@@ -425,9 +425,7 @@ class CRR(LifelongOfflineAlgorithm):
             self.logger.record_mean(f"train/{key}", th.stack(values).mean().item())
 
     def _compiles_now(self) -> bool:
-        """:return: whether this ``train`` call runs the compiled forward pass (see ``compile_losses``)"""
-        to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
-        return not self.actor_per_source and self._forward.wanted(self.compile_losses, to_go, self.device)
+        return not self.actor_per_source and super()._compiles_now()  # one actor per source stays eager
 
     def _forward_pass(
         self, replay_data: Any, heads: Optional[th.Tensor], target_noise: th.Tensor, sample_noise: th.Tensor
@@ -517,7 +515,6 @@ class CRR(LifelongOfflineAlgorithm):
             "_head_of_source",
             "_target_scoring_copy",
             "_online_scoring_copy",
-            "_forward",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

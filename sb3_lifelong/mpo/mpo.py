@@ -11,7 +11,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
 from torch.profiler import record_function
 
-from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm, optimized_parameters
+from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.compiling import COMPILE_CHOICES, LazyCompiled
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
@@ -134,6 +134,7 @@ class MPO(LifelongOffPolicyAlgorithm):
     actor_target: GaussianActor
     critic: ContinuousCritic
     critic_target: ContinuousCritic
+    _forward: LazyCompiled
 
     def __init__(
         self,
@@ -306,19 +307,13 @@ class MPO(LifelongOffPolicyAlgorithm):
             with record_function("mpo/forward"):
                 critic_fit, improvement, actor_and_dual_loss = self._forward(compiled, replay_data, noise)
             with record_function("mpo/backward_and_steps"):
-                self.actor.optimizer.zero_grad(set_to_none=True)
-                self.dual_optimizer.zero_grad(set_to_none=True)
+                critic_part, actor_part = (self.critic, critic_fit.critic_loss), (self.actor, actor_and_dual_loss)
+                duals = [self.dual_optimizer]  # stepped with the actor, not clipped
                 if compiled:  # one backward through the compiled graph (the losses reach disjoint parameters)
-                    self.critic.optimizer.zero_grad(set_to_none=True)
-                    (critic_fit.critic_loss + actor_and_dual_loss).backward()
-                    th.nn.utils.clip_grad_norm_(optimized_parameters(self.critic), self.max_grad_norm, foreach=True)
-                    self.critic.optimizer.step()
+                    self._gradient_step(critic_part, actor_part, max_grad_norm=self.max_grad_norm, also_step=duals)
                 else:
-                    self._gradient_step(self.critic, critic_fit.critic_loss, self.max_grad_norm)
-                    actor_and_dual_loss.backward()
-                th.nn.utils.clip_grad_norm_(optimized_parameters(self.actor), self.max_grad_norm, foreach=True)
-                self.actor.optimizer.step()
-                self.dual_optimizer.step()
+                    self._gradient_step(critic_part, max_grad_norm=self.max_grad_norm)
+                    self._gradient_step(actor_part, max_grad_norm=self.max_grad_norm, also_step=duals)
                 with th.no_grad():
                     for raw in self.dual_optimizer.param_groups[0]["params"]:
                         raw.clamp_(min=DUAL_RAW_FLOOR)
@@ -343,15 +338,10 @@ class MPO(LifelongOffPolicyAlgorithm):
                 if values:
                     self.logger.record(f"train/{key}", th.stack(values).mean().item())
 
-    def _compiles_now(self) -> bool:
-        """:return: whether this ``train`` call runs the compiled forward pass (see ``compile_losses``)"""
-        to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
-        return self._forward.wanted(self.compile_losses, to_go, self.device)
-
     def _sampling_noise(self, replay_data: ReplayBufferSamples) -> th.Tensor:
         """:return: the standard normal draws of the target policy's samples ``[num_samples, rows, action_dim]``"""
         rows = replay_data.rewards.shape[0] * (1 if self.policy_on_next_obs else 2)
-        return th.randn((self.num_samples, rows, get_action_dim(self.action_space)), device=self.device)
+        return th.randn((self.num_samples, rows, replay_data.actions.shape[1]), device=self.device)
 
     def _forward_pass(
         self, replay_data: ReplayBufferSamples, noise: th.Tensor
@@ -476,7 +466,6 @@ class MPO(LifelongOffPolicyAlgorithm):
             "actor_target",
             "critic_target",
             "_target_scoring_copy",
-            "_forward",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
