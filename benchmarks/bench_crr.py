@@ -70,6 +70,7 @@ def make_ours(data: dict, env_id: str, seed: int) -> Any:
         target_update_interval=100,
         policy_kwargs=dict(net_arch=HIDDEN, n_critics=1),
         seed=seed,
+        device="cpu",  # as d3rlpy's: the CPU even where a GPU is present
     )
 
 

@@ -58,6 +58,7 @@ def make_students(scoring_dtype: str, compile_losses: bool = False) -> dict:
             policy_kwargs=policy_kwargs,
             batch_size=256,
             seed=0,
+            device="cpu",  # the CPU even where a GPU is present
             scoring_dtype=scoring_dtype,
             **kw,
             **(dict(compile_losses=True) if compile_losses else {}),
@@ -91,7 +92,10 @@ def worker(scoring_dtype: str, compile_losses: bool) -> None:
 
 
 def start_worker(tree: pathlib.Path, scoring_dtype: str, compile_losses: bool) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
+    tree = tree.resolve()  # the worker runs in the tree: a relative path would be read from there
+    # the tree first, then whatever path the caller had (where its dependencies may live)
+    path = os.pathsep.join([str(tree)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else []))
+    env = {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1"}
     command = [sys.executable, __file__, "--worker", "--scoring-dtype", scoring_dtype]
     command += ["--compile-losses"] if compile_losses else []
     child = subprocess.Popen(command, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=tree)

@@ -10,7 +10,10 @@ from sb3_lifelong.common import compiling, scoring
 from sb3_lifelong.crr import distributional
 from tests.test_crr import flat_params, pendulum_data
 
+# on the CPU even where a GPU is present: these tests pin the CPU's arithmetic (bit-identical eager steps, inductor's
+# C++ kernels); tests/test_cuda.py covers a GPU
 KWARGS = dict(
+    device="cpu",
     batch_size=32,
     policy_kwargs=dict(net_arch=[32, 32], layer_norm=True, distributional_critic=True, v_min=-100.0, v_max=10.0),
     target_update_interval=4,
@@ -134,6 +137,7 @@ def mpo(compile_losses, **kwargs) -> MPO:
         learning_starts=40,
         target_update_interval=5,
         compile_losses=compile_losses,
+        device="cpu",
         seed=0,
         **kwargs,
     )

@@ -1,0 +1,111 @@
+"""
+What the CPU's matrix units give the networks' shapes: float32 against bfloat16 matrix products, one thread.
+
+The shapes are the passes of an update (batch 256, 256-wide hidden layers, N=20 action samples per state, an
+OP3/HalfCheetah-sized input): the target pass's hidden layer ``5120 x 256 x 256``, its first layer
+``5120 x 23 x 256``, its output layer ``5120 x 256 x 1`` and a batch pass ``256 x 256 x 256``. For each shape, four
+ways to multiply, timed in interleaved rounds so that a shared machine slows all alike:
+
+- ``fp32``: ``torch.matmul(a, w, out=...)`` in float32;
+- ``bf16``: the same in bfloat16 (oneDNN's AMX kernel on a CPU that has AMX);
+- ``bf16 addmm``: ``torch.addmm(bias, a, w, out=...)`` in bfloat16 (the bias added by the product);
+- ``bf16 autocast``: ``nn.Linear`` under ``torch.autocast("cpu", bfloat16)`` (casts input and weight every call).
+
+The table gives GFLOP/s (median over rounds) and each bf16 way's speed over float32's. The machine line names the
+CPU, its matrix flags and the oneDNN kernel that ran the bf16 product.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_matmul.py      # -> benchmarks/results/matmul.json
+"""
+
+import argparse
+import json
+import pathlib
+import statistics
+import time
+from typing import Callable
+
+import torch as th
+
+from sb3_lifelong.common.hardware import machine_description
+
+RESULTS = pathlib.Path(__file__).parent / "results" / "matmul.json"
+SHAPES = {
+    "target hidden 5120x256x256": (5120, 256, 256),
+    "target first 5120x23x256": (5120, 23, 256),
+    "target output 5120x256x1": (5120, 256, 1),
+    "batch hidden 256x256x256": (256, 256, 256),
+}
+WAYS = ("fp32", "bf16", "bf16 addmm", "bf16 autocast")
+
+
+def make_call(way: str, m: int, k: int, n: int) -> Callable[[], object]:
+    """:return: a function that runs one product of shape ``m x k x n`` the given way, outputs allocated once"""
+    generator = th.Generator().manual_seed(0)
+    a = th.randn(m, k, generator=generator)
+    w = th.randn(k, n, generator=generator) / k**0.5
+    bias = th.randn(n, generator=generator)
+    if way == "fp32":
+        out = th.empty(m, n)
+        return lambda: th.matmul(a, w, out=out)
+    if way == "bf16":
+        a16, w16, out16 = a.bfloat16(), w.bfloat16(), th.empty(m, n, dtype=th.bfloat16)
+        return lambda: th.matmul(a16, w16, out=out16)
+    if way == "bf16 addmm":
+        a16, w16, b16, out16 = a.bfloat16(), w.bfloat16(), bias.bfloat16(), th.empty(m, n, dtype=th.bfloat16)
+        return lambda: th.addmm(b16, a16, w16, out=out16)
+    if way == "bf16 autocast":
+        layer = th.nn.Linear(k, n)
+
+        def call() -> object:
+            with th.no_grad(), th.autocast("cpu", dtype=th.bfloat16):
+                return layer(a)
+
+        return call
+    raise ValueError(f"unknown way {way!r}; expected one of {WAYS}")
+
+
+def seconds_per_call(call: Callable[[], object], min_time: float) -> float:
+    """:return: the mean seconds of one call, over as many calls as fill ``min_time``"""
+    call()
+    calls, start = 0, time.perf_counter()
+    while True:
+        call()
+        calls += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= min_time:
+            return elapsed / calls
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds")
+    parser.add_argument("--min-time", type=float, default=0.2, help="seconds per timing")
+    parser.add_argument("--output", default=str(RESULTS))
+    args = parser.parse_args()
+    th.set_num_threads(1)
+
+    calls = {(shape, way): make_call(way, *dims) for shape, dims in SHAPES.items() for way in WAYS}
+    times: dict[tuple[str, str], list[float]] = {key: [] for key in calls}
+    for _ in range(args.rounds):
+        for key, call in calls.items():
+            times[key].append(seconds_per_call(call, args.min_time))
+
+    machine = machine_description()
+    print(machine)
+    rows = []
+    header = "| shape (M x K x N) | " + " | ".join(f"{way} GFLOP/s" for way in WAYS) + " | bf16 / fp32 |"
+    print(header)
+    print("|" + " --- |" * (len(WAYS) + 2))
+    for shape, (m, k, n) in SHAPES.items():
+        rate = {way: 2 * m * k * n / statistics.median(times[shape, way]) / 1e9 for way in WAYS}
+        rows.append(dict(shape=shape, m=m, k=k, n=n, gflops=rate))
+        cells = " | ".join(f"{rate[way]:.0f}" for way in WAYS)
+        print(f"| {shape} | {cells} | {rate['bf16'] / rate['fp32']:.2f}x |")
+    result = dict(command=f"OMP_NUM_THREADS=1 python benchmarks/bench_matmul.py --rounds {args.rounds}", machine=machine)
+    result["rows"] = rows
+    pathlib.Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    pathlib.Path(args.output).write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""MPO and CRR on a CUDA GPU: training, the "auto" scoring precision, the compiled update and save/load. Skipped
+where torch sees no GPU (CI); run them on a machine that has one."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+
+from sb3_lifelong import CRR, MPO
+from sb3_lifelong.common import compiling
+from tests.test_crr import flat_params, pendulum_data
+
+pytestmark = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
+CUDA = th.device("cuda")
+STUDENT = dict(
+    batch_size=32,
+    policy_kwargs=dict(net_arch=[64, 64], layer_norm=True, distributional_critic=True, v_min=-100.0, v_max=10.0),
+    target_update_interval=4,
+    device="cuda",
+)
+
+
+def test_mpo_trains_predicts_and_loads_on_cuda(tmp_path):
+    model = MPO("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=64, batch_size=32, device="cuda", seed=0)
+    model.learn(160)
+    assert model.device.type == "cuda" and next(model.policy.parameters()).is_cuda
+    assert all(th.isfinite(p).all() for p in model.policy.parameters())
+    observation = np.zeros(3, np.float32)
+    action, _ = model.predict(observation, deterministic=True)
+    assert action.shape == (1,) and np.all(np.abs(action) <= 2)
+    model.save(tmp_path / "mpo.zip")
+    loaded = MPO.load(tmp_path / "mpo.zip", device="cuda")
+    np.testing.assert_array_equal(loaded.predict(observation, deterministic=True)[0], action)
+
+
+def test_auto_scoring_on_cuda_follows_the_gpu_and_the_width():
+    space = spaces.Box(-2, 2, (1,))
+    narrow = CRR.from_offline_data(pendulum_data(200), env=None, action_space=space, seed=0, **STUDENT)
+    assert narrow._target_scoring_copy is None  # 64 wide: below "auto"'s width, float32 on any device
+    wide_kwargs = {**STUDENT, "policy_kwargs": {**STUDENT["policy_kwargs"], "net_arch": [256, 256]}}
+    wide = CRR.from_offline_data(pendulum_data(200), env=None, action_space=space, seed=0, **wide_kwargs)
+    if th.cuda.is_bf16_supported():
+        assert wide._target_scoring_copy is not None and wide._target_scoring_copy.dtype == th.bfloat16
+    else:
+        assert wide._target_scoring_copy is None
+    wide.learn_offline(8, log_interval=0)
+    assert th.isfinite(flat_params(wide)).all()
+
+
+@pytest.mark.skipif(not compiling.can_compile(CUDA), reason="inductor needs triton for a GPU")
+def test_compiled_student_matches_eager_on_cuda():
+    data = pendulum_data(300)
+    space = spaces.Box(-2, 2, (1,))
+    # a clip that binds at every step keeps rounding differences from growing through Adam's normalisation
+    common = dict(env=None, action_space=space, seed=0, max_grad_norm=1e-3, **STUDENT)
+    # each built and trained before the next is built: both draw the same noise from the seeded global generator
+    eager = CRR.from_offline_data(data, compile_losses=False, **common).learn_offline(12, log_interval=0)
+    compiled = CRR.from_offline_data(data, compile_losses=True, **common).learn_offline(12, log_interval=0)
+    assert compiled._forward.compiled is not None and not compiled._forward.failed
+    difference = (flat_params(compiled) - flat_params(eager)).abs().max()
+    assert difference <= 1e-4, float(difference)
