@@ -46,8 +46,12 @@ def evaluate(act, env_id: str, episodes: int) -> tuple[float, float]:
     return float(np.mean(returns)), float(np.std(returns))
 
 
-def make_ours(data: dict, env_id: str, seed: int) -> Any:
-    """:return: sb3-lifelong's CRR on ``data`` with the settings shared with d3rlpy (see the module docstring)"""
+def make_ours(data: dict, env_id: str, seed: int, compile_losses: bool = False) -> Any:
+    """
+    :return: sb3-lifelong's CRR on ``data`` with the settings shared with d3rlpy (see the module docstring); with
+        ``compile_losses`` its update's forward pass compiled (``compile_losses=True``; eager otherwise, as "auto" is
+        for runs this short)
+    """
     import gymnasium as gym
 
     from sb3_lifelong import CRR
@@ -71,6 +75,7 @@ def make_ours(data: dict, env_id: str, seed: int) -> Any:
         policy_kwargs=dict(net_arch=HIDDEN, n_critics=1),
         seed=seed,
         device="cpu",  # as d3rlpy's: the CPU even where a GPU is present
+        compile_losses=compile_losses,
     )
 
 
@@ -78,15 +83,21 @@ def run_ours(args: argparse.Namespace, data: dict) -> dict:
     import torch as th
 
     th.set_num_threads(1)
-    model = make_ours(data, args.env, args.seed)
-    model.learn_offline(20, log_interval=0)  # warm-up, not timed
+    model = make_ours(data, args.env, args.seed, args.compile_losses)
+    model.learn_offline(20, log_interval=0)  # warm-up (and the compilation), not timed
     start = time.perf_counter()
     model.learn_offline(args.updates, log_interval=0)
     seconds = time.perf_counter() - start
     mean, std = (np.nan, np.nan)
     if args.eval_episodes > 0:
         mean, std = evaluate(lambda obs: model.predict(obs, deterministic=True)[0], args.env, args.eval_episodes)
-    return {"impl": "sb3-lifelong CRR", "updates": args.updates, "seconds": seconds, "return": mean, "return_std": std}
+    return {
+        "impl": "sb3-lifelong CRR" + (" (compiled)" if args.compile_losses else ""),
+        "updates": args.updates,
+        "seconds": seconds,
+        "return": mean,
+        "return_std": std,
+    }
 
 
 def run_d3rlpy(args: argparse.Namespace, data: dict) -> dict:
@@ -150,6 +161,7 @@ def main() -> None:
     parser.add_argument("--output", default="benchmarks/results/crr_hopper.md")
     parser.add_argument("--speed-rounds", type=int, default=3, help="interleaved throughput-only rounds (0: none)")
     parser.add_argument("--speed-updates", type=int, default=300, help="updates per throughput-only round")
+    parser.add_argument("--compile-losses", action="store_true", help="our CRR with compile_losses=True")
     args = parser.parse_args()
     with np.load(args.data) as npz:
         data = {key: npz[key] for key in npz.files}

@@ -469,6 +469,13 @@ def test_view_and_merge(tmp_path):
     np.testing.assert_array_equal(rp["observations"], np.concatenate([ra["observations"], rb["observations"][20:]]))
     with pytest.raises(ValueError, match="starts"):
         merge_buffers([a, b], starts=[0, 61])
+    head = merge_buffers([a, b], path=tmp_path / "head", starts=[0, 20], stops=[25, 20])  # a's first 25 rows alone
+    rh = all_rows(head)
+    for name in ("observations", "actions", "rewards", "flags", "sources"):
+        np.testing.assert_array_equal(rh[name], ra[name][:25])
+    assert head.size() == 25 and set(head.sources) == {0, 1}  # the sources' names and metadata are all kept
+    with pytest.raises(ValueError, match="stops"):
+        merge_buffers([a, b], starts=[0, 20], stops=[40, 10])
     fill(b, 5, 1, seed=9)
     assert view.size() == 105  # a view follows its buffers
     with pytest.raises(RuntimeError):

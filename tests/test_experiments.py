@@ -2,6 +2,7 @@
 
 import importlib.util
 import json
+import os
 import pathlib
 import re
 import types
@@ -14,7 +15,7 @@ import torch as th
 from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import CLAIMS, PRESETS, STUDENTS, job_names, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
-from sb3_lifelong.experiments.protocol import job_lock, sampling_weights
+from sb3_lifelong.experiments.protocol import REWIND_STAGING, job_lock, sampling_weights
 from sb3_lifelong.experiments.report import bootstrap_ci, evaluate_claims
 
 JOBS = [
@@ -759,13 +760,55 @@ def test_a_collection_runs_in_parts(tmp_path, capsys):
     assert train["timesteps"].min() <= 200  # the parts before the last pause are kept
 
 
-def test_a_paused_collection_that_moved_on_is_not_deleted(tmp_path):
-    """An attempt continued from a pause and stopped unrecorded: resuming refuses, naming what to remove; data kept."""
+def test_a_part_that_stopped_without_pausing_continues_from_the_pause(tmp_path):
+    """A part continued from a pause, committed transitions and was killed: the next call cuts the buffer back to the
+    pause (the later transitions kept beside it), continues from there and ends as an uninterrupted collection."""
+    preset = PRESETS["tiny"]
+    run_dir = tmp_path / "seed_0"
+    run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=150)
+    pause = {name: (run_dir / "collect" / name).read_bytes() for name in ("paused.zip", "paused.json")}
+    # the killed part: it committed up to step 250 (here: paused there) and left the pause at 150 as it was
+    run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=250)
+    for name, content in pause.items():
+        (run_dir / "collect" / name).write_bytes(content)
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        assert buffer.size() == 250
+        later = buffer.store.read_range("observations", 0, 250).copy()
+    messages: list = []
+    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=messages.append, until=300) == []
+    assert any("250 transitions, 100 past the pause" in m for m in messages)
+    aside = run_dir / "buffer.after_pause_150"
+    with LifelongReplayBuffer.open(aside, read_only=True) as kept, LifelongReplayBuffer.open(
+        run_dir / "buffer", read_only=True
+    ) as buffer:
+        np.testing.assert_array_equal(kept.store.read_range("observations", 0, 250), later)  # nothing lost
+        assert buffer.size() == 300 and buffer.sources == kept.sources  # 150 kept, then 150 collected again
+        np.testing.assert_array_equal(buffer.store.read_range("observations", 0, 150), later[:150])
+    assert not (run_dir / REWIND_STAGING).exists()
+    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None) == ["collect"]
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        assert buffer.size() == 600
+    steps = pd.read_csv(run_dir / "collect" / "eval.csv").groupby("env")["timesteps"].apply(list)
+    assert all(list(s) == list(range(100, 601, 100)) for s in steps)  # every evaluation once, none repeated
+
+
+def test_a_rewind_that_stopped_between_its_renames_is_finished(tmp_path):
+    preset = PRESETS["tiny"]
+    run_dir = tmp_path / "seed_0"
+    run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=150)
+    os.replace(run_dir / "buffer", run_dir / REWIND_STAGING)  # as if stopped after moving the old buffer aside
+    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=200) == []
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        assert buffer.size() == 200
+
+
+def test_a_paused_collection_whose_buffer_lost_rows_is_not_deleted(tmp_path):
+    """A buffer holding fewer transitions than its pause committed: resuming refuses, naming what to remove; data kept."""
     preset = PRESETS["tiny"]
     run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=150)
     record = tmp_path / "seed_0" / "collect" / "paused.json"
-    record.write_text(json.dumps(dict(timesteps=120, transitions=120)))  # the buffer now holds more than recorded
-    with pytest.raises(RuntimeError, match="Nothing was deleted"):
+    record.write_text(json.dumps(dict(timesteps=180, transitions=180)))  # the buffer now holds fewer than recorded
+    with pytest.raises(RuntimeError, match=r"fewer than the 180 the pause committed.*Nothing was deleted"):
         run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None)
     with LifelongReplayBuffer.open(tmp_path / "seed_0" / "buffer", read_only=True) as buffer:
         assert buffer.size() == 150

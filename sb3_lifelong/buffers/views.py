@@ -115,6 +115,7 @@ def merge_buffers(
     buffers: Sequence[LifelongReplayBuffer],
     path: Optional[Union[str, os.PathLike]] = None,
     starts: Optional[Sequence[int]] = None,
+    stops: Optional[Sequence[int]] = None,
     **kwargs: Any,
 ) -> LifelongReplayBuffer:
     """
@@ -126,6 +127,8 @@ def merge_buffers(
     :param starts: For each buffer, the index of its first transition to copy (default 0: all of it). For
         agents copied from a common ancestor (buffer included), pass the ancestor's size for the copies so that
         the shared transitions are kept once.
+    :param stops: For each buffer, the index after its last transition to copy (default: its size). E.g. the
+        transitions a collection had committed when it was checkpointed: ``stops=[record["transitions"]]``.
     :param kwargs: Further constructor arguments of the new buffer (``chunk_size``, ``n_steps``, ``read_mode``, ...)
     :return: The merged buffer
     """
@@ -135,15 +138,22 @@ def merge_buffers(
         raise ValueError(
             f"starts must give one index in [0, size] per buffer: got {list(starts)} for sizes {[b.size() for b in buffers]}"
         )
+    if stops is None:
+        stops = [buffer.size() for buffer in buffers]
+    if len(stops) != len(buffers) or any(not int(a) <= int(z) <= b.size() for a, z, b in zip(starts, stops, buffers)):
+        raise ValueError(
+            f"stops must give one index in [start, size] per buffer: got {list(stops)} for starts {list(starts)} and "
+            f"sizes {[b.size() for b in buffers]}"
+        )
     view = LifelongBufferView(buffers)
     first = buffers[0]
-    total_size = sum(buffer.size() - int(start) for buffer, start in zip(buffers, starts))
+    total_size = sum(int(stop) - int(start) for start, stop in zip(starts, stops))
     merged = LifelongReplayBuffer(total_size, first.observation_space, first.action_space, path=path, **kwargs)
     for source, info in view.sources.items():
         merged.name_source(source, info["name"], info["metadata"])
-    for buffer, first_row in zip(buffers, starts):
+    for buffer, first_row, total in zip(buffers, starts, stops):
         base = merged.store.reserve_streams(buffer.store.next_stream_id)  # the copy's stream ids, shifted
-        total = buffer.size()
+        total = int(total)
         for start in range(int(first_row), total, COPY_BLOCK):
             stop = min(total, start + COPY_BLOCK)
             rows = {name: np.asarray(buffer.store.read_range(name, start, stop)) for name in merged.store.fields}

@@ -185,8 +185,9 @@ def collect(
     A collection longer than a session runs in parts: with ``until``, it stops cleanly after that many environment
     steps (a checkpoint, ``collect/paused.zip``, which commits the buffer), and the next call continues from there
     (the loaded model starts a new episode, as any resumed SB3 model). An attempt that neither finished nor paused is
-    started again, unless it had continued from a pause: then it raises (its buffer holds transitions the pause did
-    not record) and deletes nothing.
+    started again. One that had continued from a pause (killed, say) continues from that pause: its buffer is cut
+    back to the transitions the pause recorded, and the directory with the later ones is kept beside it
+    (:func:`_rewind_to_pause`).
 
     :param until: stop after this many environment steps of the whole collection (None: collect to the end)
     :return: True when the collection is finished, False when it paused at ``until``
@@ -227,14 +228,22 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
     """The paused collection's model, with its lifetime buffer reopened to append, when the two still agree."""
     directory = run_dir / "collect"
     record = json.loads((directory / PAUSED_RECORD).read_text()) if (directory / PAUSED_RECORD).exists() else None
+    _finish_rewind(run_dir)
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as held:
         transitions = held.size()
+    if record is not None and transitions > record["transitions"] and not (run_dir / "buffer").is_symlink():
+        _rewind_to_pause(run_dir, record["transitions"], transitions, log)
+        transitions = record["transitions"]
     if record is None or transitions != record["transitions"]:
-        recorded = "no record of the pause" if record is None else f"{record['transitions']:,} at the pause"
+        if record is None:
+            why = "the record of the pause is missing"
+        elif transitions < record["transitions"]:
+            why = f"fewer than the {record['transitions']:,} the pause committed (an older copy of the directory?)"
+        else:
+            why = f"more than the {record['transitions']:,} at the pause, in a linked buffer, which is not cut back here"
         raise RuntimeError(
             f"{run_dir}: the collection paused at {directory / PAUSED_MODEL}, but its buffer holds {transitions:,} "
-            f"transitions ({recorded}): an attempt continued from the pause and stopped without finishing or pausing "
-            f"again. Nothing was deleted; to collect this seed again from the start, remove {directory}, "
+            f"transitions: {why}. Nothing was deleted; to collect this seed again from the start, remove {directory}, "
             f"{run_dir / 'buffer'} and {run_dir / 'buffer_stage1'}"
         )
     for name in ("eval.csv", "q_sources.csv", "train.csv"):  # a killed part may have logged past the pause
@@ -246,6 +255,41 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
         device="cpu",
         replay_buffer_kwargs=dict(path=run_dir / "buffer", mode="append"),
     )
+
+
+REWIND_STAGING = "buffer.rewinding"
+
+
+def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callable) -> None:
+    """
+    Cut a paused collection's buffer back to the ``paused`` transitions its pause recorded, when a later part
+    committed more (``held``) and stopped without pausing again. Nothing is deleted: the first ``paused`` transitions
+    are copied into a new directory, which then takes the buffer's place; the old directory, with all ``held``, is
+    kept beside it as ``buffer.after_pause_<paused>``. A stop in between is finished by :func:`_finish_rewind`.
+    """
+    buffer, staging = run_dir / "buffer", run_dir / REWIND_STAGING
+    if staging.exists():  # a copy of an earlier attempt that stopped while copying: only ever a partial copy
+        shutil.rmtree(staging)
+    with LifelongReplayBuffer.open(buffer, read_only=True) as whole:
+        merge_buffers([whole], path=staging, stops=[paused], chunk_size=whole.store.chunk_size).close()
+    aside = run_dir / f"buffer.after_pause_{paused}"
+    for attempt in range(1, 1000):
+        if not aside.exists():
+            break
+        aside = run_dir / f"buffer.after_pause_{paused}.{attempt}"
+    os.replace(buffer, aside)
+    os.replace(staging, buffer)
+    log(
+        f"  the buffer held {held:,} transitions, {held - paused:,} past the pause (a part that stopped without "
+        f"pausing): continuing from the pause with its first {paused:,}; all {held:,} are kept in {aside}"
+    )
+
+
+def _finish_rewind(run_dir: pathlib.Path) -> None:
+    """Complete a :func:`_rewind_to_pause` that stopped between its two renames (the copy is then complete)."""
+    buffer, staging = run_dir / "buffer", run_dir / REWIND_STAGING
+    if not buffer.exists() and staging.exists():
+        os.replace(staging, buffer)
 
 
 def _drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
