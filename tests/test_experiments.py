@@ -767,8 +767,10 @@ def test_a_part_that_stopped_without_pausing_continues_from_the_pause(tmp_path):
     run_dir = tmp_path / "seed_0"
     run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=150)
     pause = {name: (run_dir / "collect" / name).read_bytes() for name in ("paused.zip", "paused.json")}
-    # the killed part: it committed up to step 250 (here: paused there) and left the pause at 150 as it was
+    # the killed part: it committed up to step 250, past the switch at 200 (here: paused there), and left the pause at
+    # 150 as it was
     run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=250)
+    assert (run_dir / "buffer_stage1").exists() and (run_dir / "collect" / "stage1.zip").exists()
     for name, content in pause.items():
         (run_dir / "collect" / name).write_bytes(content)
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
@@ -785,6 +787,17 @@ def test_a_part_that_stopped_without_pausing_continues_from_the_pause(tmp_path):
         assert buffer.size() == 300 and buffer.sources == kept.sources  # 150 kept, then 150 collected again
         np.testing.assert_array_equal(buffer.store.read_range("observations", 0, 150), later[:150])
     assert not (run_dir / REWIND_STAGING).exists()
+    # the Stage-1 agent and buffer are the resumed collection's, the stopped part's kept beside them
+    assert (run_dir / "buffer_stage1.after_pause_150").is_dir() and (
+        run_dir / "collect" / "stage1.after_pause_150.zip"
+    ).exists()
+    with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1, LifelongReplayBuffer.open(
+        run_dir / "buffer", read_only=True
+    ) as buffer:
+        assert stage1.size() == 200
+        np.testing.assert_array_equal(
+            stage1.store.read_range("observations", 0, 200), buffer.store.read_range("observations", 0, 200)
+        )
     assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None) == ["collect"]
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
         assert buffer.size() == 600

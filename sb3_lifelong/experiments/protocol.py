@@ -234,6 +234,11 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
     if record is not None and transitions > record["transitions"] and not (run_dir / "buffer").is_symlink():
         _rewind_to_pause(run_dir, record["transitions"], transitions, log)
         transitions = record["transitions"]
+        if record["timesteps"] < stage_ends(preset.stage_steps)[0]:
+            # the stopped part passed the switch: its Stage-1 agent and buffer are not this collection's
+            for stage1 in (directory / "stage1.zip", run_dir / "buffer_stage1"):
+                if stage1.exists():
+                    os.replace(stage1, stage1.with_name(f"{stage1.stem}.after_pause_{record['transitions']}{stage1.suffix}"))
     if record is None or transitions != record["transitions"]:
         if record is None:
             why = "the record of the pause is missing"
