@@ -815,6 +815,28 @@ def test_a_rewind_that_stopped_between_its_renames_is_finished(tmp_path):
         assert buffer.size() == 200
 
 
+def test_rewind_copies_the_head_and_keeps_the_whole_buffer(tmp_path):
+    from sb3_lifelong.experiments.protocol import _rewind_to_pause
+    from tests.test_buffers import ACT, OBS, all_rows, fill
+
+    with LifelongReplayBuffer(0, OBS, ACT, path=tmp_path / "buffer", chunk_size=16) as buffer:
+        fill(buffer, 40, 1, stage=0)
+        whole = all_rows(buffer)
+    _rewind_to_pause(tmp_path, 25, 40, log=lambda m: None)
+    with LifelongReplayBuffer.open(tmp_path / "buffer", read_only=True) as head:
+        assert head.size() == 25
+        for name, values in all_rows(head).items():
+            np.testing.assert_array_equal(values, whole[name][:25])
+    with LifelongReplayBuffer.open(tmp_path / "buffer.after_pause_25", read_only=True) as kept:
+        assert kept.size() == 40
+    with LifelongReplayBuffer(0, OBS, ACT, path=tmp_path / "evicting" / "buffer", capacity=30) as buffer:
+        fill(buffer, 40, 1, stage=0)
+    with pytest.raises(RuntimeError, match=r"it evicts.*Nothing was deleted"):
+        _rewind_to_pause(tmp_path / "evicting", 20, 30, log=lambda m: None)
+    with LifelongReplayBuffer.open(tmp_path / "evicting" / "buffer", read_only=True) as buffer:
+        assert buffer.size() == 30
+
+
 def test_a_paused_collection_whose_buffer_lost_rows_is_not_deleted(tmp_path):
     """A buffer holding fewer transitions than its pause committed: resuming refuses, naming what to remove; data kept."""
     preset = PRESETS["tiny"]

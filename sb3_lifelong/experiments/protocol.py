@@ -276,6 +276,11 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
     if staging.exists():  # a copy of an earlier attempt that stopped while copying: only ever a partial copy
         shutil.rmtree(staging)
     with LifelongReplayBuffer.open(buffer, read_only=True) as whole:
+        if whole.capacity is not None:  # its indices are not the transitions collected: a pause's count is not one
+            raise RuntimeError(
+                f"{buffer} holds {held:,} transitions, more than the {paused:,} its pause recorded, and it evicts "
+                f"(capacity {whole.capacity:,}): it cannot be cut back to the pause. Nothing was deleted"
+            )
         merge_buffers([whole], path=staging, stops=[paused], chunk_size=whole.store.chunk_size).close()
     aside = run_dir / f"buffer.after_pause_{paused}"
     for attempt in range(1, 1000):
