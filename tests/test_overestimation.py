@@ -96,17 +96,26 @@ def test_source_q_callback_logs_overestimation(tmp_path):
     )
 
 
-def test_source_q_callback_appends_to_an_older_file_with_its_columns(tmp_path):
+def test_source_q_callback_widens_an_older_file_and_keeps_its_rows(tmp_path):
     from sb3_lifelong import CRR
-    from sb3_lifelong.evaluation.callbacks import SourceQCallback
+    from sb3_lifelong.evaluation.callbacks import Q_CSV_FIELDS, SourceQCallback
 
     path = tmp_path / "q.csv"
     path.write_text("timesteps,source,name,q_mean,n\n0,0,a,1.0,3\n")
     buffer = two_source_buffer()
     model = CRR.from_offline_data(buffer, batch_size=4, policy_kwargs=dict(net_arch=[8]), seed=0)
     model.learn_offline(5, callback=SourceQCallback(log_freq=5, batch_size=64, log_path=path, data=buffer), log_interval=0)
-    lines = path.read_text().splitlines()
-    assert lines[0] == "timesteps,source,name,q_mean,n" and all(len(line.split(",")) == 5 for line in lines)
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0]) == Q_CSV_FIELDS and all(len(row) == len(Q_CSV_FIELDS) for row in rows)
+    assert rows[0] == dict(timesteps="0", source="0", name="a", q_mean="1.0", n="3", q_probe="", mc_return="",
+                           overestimation="", n_mc="")  # fmt: skip
+    assert len(rows) == 3 and all(float(row["overestimation"]) == pytest.approx(
+        float(row["q_probe"]) - float(row["mc_return"]), abs=1e-4) for row in rows[1:])  # fmt: skip
+    other = tmp_path / "other.csv"  # a file of other columns keeps them
+    other.write_text("timesteps,source,name,q_mean,n,extra\n")
+    model.learn_offline(5, callback=SourceQCallback(log_freq=5, batch_size=64, log_path=other, data=buffer), log_interval=0)
+    assert other.read_text().splitlines()[0] == "timesteps,source,name,q_mean,n,extra"
 
 
 def test_probe_applies_the_observation_normaliser():

@@ -314,6 +314,19 @@ class MultiEnvEvalCallback(BaseCallback):
         return means
 
 
+def _widen_csv(path: pathlib.Path, fields: list[str]) -> None:
+    """Rewrite the CSV file ``path`` with the header ``fields`` (which extends its own), its rows padded with empty
+    values; the file is replaced atomically."""
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))[1:]
+    staging = path.with_name(path.name + ".tmp")
+    with open(staging, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(fields)
+        writer.writerows(row + [""] * (len(fields) - len(row)) for row in rows)
+    os.replace(staging, path)
+
+
 class SourceQCallback(BaseCallback):
     """
     Diagnostic (needs source tags): every ``log_freq`` timesteps, the average Q-value the model's critic gives to
@@ -382,7 +395,13 @@ class SourceQCallback(BaseCallback):
                 with open(self.log_path, "w", newline="") as handle:
                     csv.writer(handle).writerow(Q_CSV_FIELDS)
             with open(self.log_path, newline="") as handle:
-                self._fields = next(csv.reader(handle), Q_CSV_FIELDS[:5])  # a file from an older run keeps its columns
+                header = next(csv.reader(handle), [])
+            if header and header != Q_CSV_FIELDS and header == Q_CSV_FIELDS[: len(header)]:
+                # an older run's file, without the Monte-Carlo columns: widened (its rows keep their values, the new
+                # columns empty), so that a resumed run does not drop what it measures
+                _widen_csv(self.log_path, Q_CSV_FIELDS)
+                header = list(Q_CSV_FIELDS)
+            self._fields = header or Q_CSV_FIELDS[:5]  # a file of other columns keeps them
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
