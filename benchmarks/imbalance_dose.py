@@ -199,8 +199,12 @@ def screen(args: argparse.Namespace) -> None:
 
 
 def copy_collection_curve(run_dir: pathlib.Path, results: pathlib.Path) -> None:
-    """Keep the collector's evaluations (small) beside the results: the collection figure is drawn from them."""
+    """Keep the collector's evaluations and per-source Q log (small) beside the results: the collection figure is
+    drawn from them."""
     (results / "collect_eval.csv").write_text((run_dir / "collect" / "eval.csv").read_text())
+    q_log = run_dir / "collect" / "q_sources.csv"
+    if q_log.exists():
+        (results / "collect_q_sources.csv").write_text(q_log.read_text())
 
 
 def run(args: argparse.Namespace) -> None:
@@ -444,7 +448,11 @@ def screen_table(robot: str, screens: list[dict[str, Any]]) -> list[str]:
 
 
 def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path) -> None:
-    """MPO's evaluations in both environments through the collection, one line per seed, the switch marked."""
+    """
+    MPO's evaluations in both environments through the collection, one line per seed, the switch marked; below, where
+    a seed's ``collect_q_sources.csv`` has them, its critic's overestimation on each environment's data (mean Q minus
+    the discounted return that followed in the stored episodes).
+    """
     from sb3_lifelong.experiments.style import pyplot
 
     plt = pyplot()
@@ -453,7 +461,13 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
     from sb3_lifelong.experiments.presets import PRESETS
 
     preset = PRESETS[ROBOTS[robot][0]]
-    fig, ax = plt.subplots(figsize=(7, 4))
+    q_logs = [path.with_name("collect_q_sources.csv") for path in curves]
+    q_frames = {path: pd.read_csv(path) for path in q_logs if path.exists()}
+    q_frames = {path: frame for path, frame in q_frames.items() if frame.get("overestimation", pd.Series()).notna().any()}
+    if q_frames:
+        fig, (ax, low) = plt.subplots(2, 1, figsize=(7, 6.5), sharex=True, gridspec_kw=dict(height_ratios=[3, 2]))
+    else:
+        fig, ax = plt.subplots(figsize=(7, 4))
     for index, path in enumerate(curves):
         frame = pd.read_csv(path)
         seed = path.parent.name.split("_")[1]
@@ -464,13 +478,35 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
             ax.plot(rows["timesteps"], rows["mean_reward"], color=color, ls=style, marker=".", label=label)
     ax.axvline(preset.stage_steps[0], color="k", ls="--", lw=1, label="switch: the robot changes (Env-A -> Env-B)")
     ax.axhline(ROBOTS[robot][1], color="grey", ls=":", lw=1, label="P1: competent Env-A")
-    ax.set_xlabel("environment steps of the collection")
+    if not q_frames:  # else the panel below names the axis
+        ax.set_xlabel("environment steps of the collection")
     ax.set_ylabel("MPO's return (deterministic)")
     settings = [", ".join(f"{k}={v:g}" for k, v in dict(stage).items()) or "default" for stage in preset.stages]
     stages = " -> ".join(f"{name} ({setting})" for name, setting in zip(preset.env_names, settings))
     ax.set_title(f"{robot} ({preset.env_id}): MPO collecting, {stages}", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, handlelength=4)  # long enough to show each seed's line style
+    if q_frames:
+        for index, path in enumerate(curves):
+            frame = q_frames.get(path.with_name("collect_q_sources.csv"))
+            if frame is None:
+                continue
+            seed, style = path.parent.name.split("_")[1], ("-", "--", ":", "-.")[index % 4]
+            for env, color in (("Env-A", "C0"), ("Env-B", "C1")):
+                rows = frame[(frame["name"] == env) & frame["overestimation"].notna()]
+                label = f"on {env} data (seed {seed})"
+                low.plot(rows["timesteps"], rows["overestimation"], color=color, ls=style, marker=".", label=label)
+        low.axvline(preset.stage_steps[0], color="k", ls="--", lw=1)
+        low.axhline(0, color="grey", lw=0.8)
+        missing = [
+            path.parent.name.split("_")[1] for path in curves if path.with_name("collect_q_sources.csv") not in q_frames
+        ]
+        note = f" (not recorded for seed {', '.join(missing)})" if missing else ""
+        low.set_title(f"MPO's critic: mean Q minus the data's discounted return{note}", fontsize=9)
+        low.set_ylabel("overestimation")
+        low.set_xlabel("environment steps of the collection")
+        low.grid(alpha=0.3)
+        low.legend(fontsize=7, handlelength=4)
     fig.tight_layout()
     fig.savefig(root / f"collection_{robot}.png", dpi=110)
     plt.close(fig)

@@ -730,6 +730,8 @@ def test_imbalance_dose_study(study, tmp_path):
     assert set(claims["result"]) <= {"reproduced", "not reproduced", "not testable"}
     assert (claims["result"] == "not testable").all()  # one seed: no claim is testable
     assert (results / "dose_tiny.png").exists() and "P1" in (results / "results.md").read_text()
+    q_log = pd.read_csv(results / "tiny" / "seed_0" / "collect_q_sources.csv")  # the collection figure's lower panel
+    assert q_log["overestimation"].notna().any() and (results / "collection_tiny.png").exists()
 
 
 def test_a_collection_runs_in_parts(tmp_path, capsys):
