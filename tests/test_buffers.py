@@ -476,6 +476,11 @@ def test_view_and_merge(tmp_path):
     assert head.size() == 25 and set(head.sources) == {0, 1}  # the sources' names and metadata are all kept
     with pytest.raises(ValueError, match="stops"):
         merge_buffers([a, b], starts=[0, 20], stops=[40, 10])
+    head.close()
+    with pytest.raises(FileExistsError, match=r"held 25 transitions.*mix"):  # never merged into a buffer holding data
+        merge_buffers([a], path=tmp_path / "head")
+    with LifelongReplayBuffer.open(tmp_path / "head", read_only=True) as kept:
+        assert kept.size() == 25
     fill(b, 5, 1, seed=9)
     assert view.size() == 105  # a view follows its buffers
     with pytest.raises(RuntimeError):

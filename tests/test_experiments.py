@@ -13,6 +13,7 @@ import pytest
 import torch as th
 
 from sb3_lifelong import LifelongReplayBuffer
+from sb3_lifelong.buffers import merge_buffers
 from sb3_lifelong.experiments import CLAIMS, PRESETS, STUDENTS, job_names, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
 from sb3_lifelong.experiments.protocol import REWIND_STAGING, job_lock, sampling_weights
@@ -807,14 +808,37 @@ def test_a_part_that_stopped_without_pausing_continues_from_the_pause(tmp_path):
     assert all(list(s) == list(range(100, 601, 100)) for s in steps)  # every evaluation once, none repeated
 
 
-def test_a_rewind_that_stopped_between_its_renames_is_finished(tmp_path):
-    preset = PRESETS["tiny"]
-    run_dir = tmp_path / "seed_0"
+def test_rewinds_that_stopped_half_way_or_repeat_keep_everything(tmp_path):
+    """A rewind stopped between its renames is finished; a part killed again from the same pause is cut back again;
+    each time the Stage-1 agent and buffer of a part that passed the switch are set aside under a free name."""
+    preset = PRESETS["tiny"]  # the switch at 200
+    run_dir, collect = tmp_path / "seed_0", tmp_path / "seed_0" / "collect"
     run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=150)
-    os.replace(run_dir / "buffer", run_dir / REWIND_STAGING)  # as if stopped after moving the old buffer aside
-    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=200) == []
-    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
-        assert buffer.size() == 200
+    pause = {name: (collect / name).read_bytes() for name in ("paused.zip", "paused.json")}
+
+    def killed_part(until: int) -> None:  # a part from the pause that committed up to `until` and stopped unrecorded
+        run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=until)
+        for name, content in pause.items():
+            (collect / name).write_bytes(content)
+
+    killed_part(250)
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as whole:  # the rewind, stopped between renames
+        merge_buffers([whole], path=run_dir / REWIND_STAGING, stops=[150]).close()
+    os.replace(run_dir / "buffer", run_dir / "buffer.after_pause_150")
+    killed_part(260)  # finishes the rewind, sets the Stage-1 files aside, then goes on to 260 and is "killed" again
+    assert (run_dir / "buffer_stage1.after_pause_150").is_dir() and (collect / "stage1.after_pause_150.zip").exists()
+    assert run_seed(preset, 0, tmp_path, jobs=["collect"], log=lambda m: None, until=300) == []
+    for kept, size in (("buffer.after_pause_150", 250), ("buffer.after_pause_150.1", 260)):
+        with LifelongReplayBuffer.open(run_dir / kept, read_only=True) as buffer:
+            assert buffer.size() == size
+    assert (run_dir / "buffer_stage1.after_pause_150.1").is_dir() and (collect / "stage1.after_pause_150.1.zip").exists()
+    with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1, LifelongReplayBuffer.open(
+        run_dir / "buffer", read_only=True
+    ) as buffer:
+        assert stage1.size() == 200 and buffer.size() == 300
+        np.testing.assert_array_equal(
+            stage1.store.read_range("observations", 0, 200), buffer.store.read_range("observations", 0, 200)
+        )
 
 
 def test_rewind_copies_the_head_and_keeps_the_whole_buffer(tmp_path):

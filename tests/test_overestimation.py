@@ -116,6 +116,10 @@ def test_source_q_callback_widens_an_older_file_and_keeps_its_rows(tmp_path):
     other.write_text("timesteps,source,name,q_mean,n,extra\n")
     model.learn_offline(5, callback=SourceQCallback(log_freq=5, batch_size=64, log_path=other, data=buffer), log_interval=0)
     assert other.read_text().splitlines()[0] == "timesteps,source,name,q_mean,n,extra"
+    empty = tmp_path / "empty.csv"  # an empty file (a run stopped before its first row) is written as a new one
+    empty.write_text("")
+    model.learn_offline(5, callback=SourceQCallback(log_freq=5, batch_size=64, log_path=empty, data=buffer), log_interval=0)
+    assert empty.read_text().splitlines()[0] == ",".join(Q_CSV_FIELDS)
 
 
 def test_probe_applies_the_observation_normaliser():

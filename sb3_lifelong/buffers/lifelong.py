@@ -381,12 +381,7 @@ class LifelongReplayBuffer(LifelongSampler):
         :param done: Episode ends (terminations and time-limit truncations)
         :param infos: One info dict per env (``"TimeLimit.truncated"``, ``"stage"``, ``"dynamics_params"``)
         """
-        if self._refused_writes:
-            raise FileExistsError(
-                f"{self._refused_writes}: adding would mix this run's data into it. Pass mode='append' to continue it "
-                "(as LifelongReplayBuffer.open does; in SB3: replay_buffer_kwargs={'path': ..., 'mode': 'append'}), "
-                "mode='overwrite' to delete it and start again, or choose another path."
-            )
+        self._refuse_mixing()
         rows = self._checks.rows(obs, next_obs, action, reward, done, infos)
         # checked: nothing of this call was stored (or changed) before
         width = len(infos)
@@ -423,6 +418,15 @@ class LifelongReplayBuffer(LifelongSampler):
     _source_rows = np.zeros(0, dtype=np.uint16)
     _source_rows_of = -1
 
+    def _refuse_mixing(self) -> None:
+        """Raise before the first write into a directory that held transitions when it was opened with mode="new"."""
+        if self._refused_writes:
+            raise FileExistsError(
+                f"{self._refused_writes}: adding would mix this run's data into it. Pass mode='append' to continue it "
+                "(as LifelongReplayBuffer.open does; in SB3: replay_buffer_kwargs={'path': ..., 'mode': 'append'}), "
+                "mode='overwrite' to delete it and start again, or choose another path."
+            )
+
     def append_rows(self, rows: dict[str, np.ndarray]) -> None:
         """
         Append transitions as the store keeps them, without the checks and conversions of :meth:`add`: what importers
@@ -433,6 +437,7 @@ class LifelongReplayBuffer(LifelongSampler):
 
         :param rows: every stored field (``buffer.store.fields``) -> array of shape (n, *row_shape)
         """
+        self._refuse_mixing()
         end = self.store.end
         try:
             self.store.append(rows)

@@ -149,6 +149,11 @@ def merge_buffers(
     first = buffers[0]
     total_size = sum(int(stop) - int(start) for start, stop in zip(starts, stops))
     merged = LifelongReplayBuffer(total_size, first.observation_space, first.action_space, path=path, **kwargs)
+    try:
+        merged._refuse_mixing()  # before the sources are named: a directory that holds transitions is left as it was
+    except FileExistsError:
+        merged.close()
+        raise
     for source, info in view.sources.items():
         merged.name_source(source, info["name"], info["metadata"])
     for buffer, first_row, total in zip(buffers, starts, stops):

@@ -390,7 +390,7 @@ class SourceQCallback(BaseCallback):
             gamma = float(getattr(self.model, "gamma", 0.99))
             self._probe = MonteCarloProbe(buffer, gamma, self.batch_size, reward_scale=self.reward_scale)
         if self.log_path is not None:
-            if not self.log_path.exists():
+            if not self.log_path.exists() or self.log_path.stat().st_size == 0:
                 self.log_path.parent.mkdir(parents=True, exist_ok=True)
                 with open(self.log_path, "w", newline="") as handle:
                     csv.writer(handle).writerow(Q_CSV_FIELDS)

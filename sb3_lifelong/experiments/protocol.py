@@ -229,16 +229,17 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
     directory = run_dir / "collect"
     record = json.loads((directory / PAUSED_RECORD).read_text()) if (directory / PAUSED_RECORD).exists() else None
     _finish_rewind(run_dir)
+    if record is not None and record["timesteps"] < stage_ends(preset.stage_steps)[0]:
+        # paused before the switch: a Stage-1 agent or buffer here was made by a part that passed the switch and
+        # stopped without pausing, so it is not this collection's (the resumed one makes them again)
+        for stage1 in (directory / "stage1.zip", run_dir / "buffer_stage1"):
+            if stage1.exists() and not stage1.is_symlink():
+                _set_aside(stage1, record["transitions"])
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as held:
         transitions = held.size()
     if record is not None and transitions > record["transitions"] and not (run_dir / "buffer").is_symlink():
         _rewind_to_pause(run_dir, record["transitions"], transitions, log)
         transitions = record["transitions"]
-        if record["timesteps"] < stage_ends(preset.stage_steps)[0]:
-            # the stopped part passed the switch: its Stage-1 agent and buffer are not this collection's
-            for stage1 in (directory / "stage1.zip", run_dir / "buffer_stage1"):
-                if stage1.exists():
-                    os.replace(stage1, stage1.with_name(f"{stage1.stem}.after_pause_{record['transitions']}{stage1.suffix}"))
     if record is None or transitions != record["transitions"]:
         if record is None:
             why = "the record of the pause is missing"
@@ -275,24 +276,31 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
     buffer, staging = run_dir / "buffer", run_dir / REWIND_STAGING
     if staging.exists():  # a copy of an earlier attempt that stopped while copying: only ever a partial copy
         shutil.rmtree(staging)
-    with LifelongReplayBuffer.open(buffer, read_only=True) as whole:
+    # opened as its writer: a process still writing to it holds the lock, and the open refuses
+    with LifelongReplayBuffer.open(buffer) as whole:
         if whole.capacity is not None:  # its indices are not the transitions collected: a pause's count is not one
             raise RuntimeError(
                 f"{buffer} holds {held:,} transitions, more than the {paused:,} its pause recorded, and it evicts "
                 f"(capacity {whole.capacity:,}): it cannot be cut back to the pause. Nothing was deleted"
             )
-        merge_buffers([whole], path=staging, stops=[paused], chunk_size=whole.store.chunk_size).close()
-    aside = run_dir / f"buffer.after_pause_{paused}"
-    for attempt in range(1, 1000):
-        if not aside.exists():
-            break
-        aside = run_dir / f"buffer.after_pause_{paused}.{attempt}"
-    os.replace(buffer, aside)
+        merge_buffers([whole], path=staging, stops=[paused]).close()
+    aside = _set_aside(buffer, paused)
     os.replace(staging, buffer)
     log(
         f"  the buffer held {held:,} transitions, {held - paused:,} past the pause (a part that stopped without "
         f"pausing): continuing from the pause with its first {paused:,}; all {held:,} are kept in {aside}"
     )
+
+
+def _set_aside(path: pathlib.Path, paused: int) -> pathlib.Path:
+    """Rename ``path`` to ``<stem>.after_pause_<paused>[.k]<suffix>``, the first such name that is free, and return it."""
+    for attempt in range(1000):
+        tag = f".after_pause_{paused}" + (f".{attempt}" if attempt else "")
+        aside = path.with_name(f"{path.stem}{tag}{path.suffix}")
+        if not aside.exists():
+            os.replace(path, aside)
+            return aside
+    raise FileExistsError(f"no free name to set {path} aside")
 
 
 def _finish_rewind(run_dir: pathlib.Path) -> None:
