@@ -908,3 +908,60 @@ def test_imbalance_dose_adopts_a_stage1_and_branches(study, tmp_path):
     assert pd.read_csv(curve)["timesteps"].max() == switch + 200
     dose.report(argparse.Namespace(results=str(results)))
     assert "change screen" in (results / "results.md").read_text() and (results / "change_screen_tiny.png").exists()
+
+
+def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path, monkeypatch):
+    """A student pauses at each evaluation; stopped after a pause, it continues from there as if never stopped."""
+    import dataclasses
+
+    from sb3_lifelong.experiments import protocol
+    from sb3_lifelong.experiments.protocol import distill_on_study
+
+    output, _ = study
+    preset = dataclasses.replace(PRESETS["tiny"], distill_steps=150, distill_eval_freq=50)
+    student = {"ind": STUDENTS["CRR_indicator"]}
+    distill_on_study(output, 0, tmp_path / "whole", student, preset, log=lambda _: None)
+
+    recorded = protocol._generator_states
+    calls = []
+
+    def stop_at_the_second_pause() -> dict:
+        calls.append(1)
+        if len(calls) == 2:  # its checkpoint is written, its record is not: the first pause's record still holds
+            raise KeyboardInterrupt
+        return recorded()
+
+    monkeypatch.setattr(protocol, "_generator_states", stop_at_the_second_pause)
+    with pytest.raises(KeyboardInterrupt):
+        distill_on_study(output, 0, tmp_path / "parts", student, preset, log=lambda _: None)
+    monkeypatch.setattr(protocol, "_generator_states", recorded)
+    directory = tmp_path / "parts" / "seed_0" / "distill_ind"
+    assert json.loads((directory / "paused.json").read_text())["updates"] == 50
+    assert sorted(p.name for p in directory.glob("paused_*.zip")) == ["paused_100.zip", "paused_50.zip"]
+    assert "100" in (directory / "eval.csv").read_text().split("\n", 2)[-1]  # the evaluation at 100 was written
+
+    messages: list[str] = []
+    th.manual_seed(123), np.random.seed(123)  # the pause's generators are restored, whatever they are now
+    assert distill_on_study(output, 0, tmp_path / "parts", student, preset, log=messages.append) == ["ind"]
+    assert any("continuing the student paused at 50 of 150 updates" in m for m in messages)
+    whole = tmp_path / "whole" / "seed_0" / "distill_ind"
+    for name in ("eval.csv", "train.csv", "q_sources.csv"):
+        assert (directory / name).read_text() == (whole / name).read_text(), name
+    kept = pd.read_csv(directory / "eval.after_pause_50.csv")  # the stopped part's log, whole
+    assert sorted(set(kept["timesteps"])) == [50, 100]
+    from sb3_lifelong import CRR
+
+    params = [CRR.load(d / "student.zip").policy.state_dict() for d in (whole, directory)]
+    for key, value in params[0].items():
+        assert th.equal(value, params[1][key]), key
+    assert not list(directory.glob("paused*")) and (directory / "done.json").exists()
+    done = json.loads((directory / "done.json").read_text())
+    assert done["seconds"] > 0
+
+    # a pause of other settings is refused, and nothing is touched
+    other = dataclasses.replace(preset, distill_steps=200)
+    (directory / "done.json").unlink()
+    (directory / "paused.json").write_text(json.dumps(dict(updates=50, model="student.zip", settings={"other": 1})))
+    with pytest.raises(ValueError, match="paused at 50 updates with other settings"):
+        distill_on_study(output, 0, tmp_path / "parts", student, other, log=lambda _: None)
+    assert (directory / "student.zip").exists()

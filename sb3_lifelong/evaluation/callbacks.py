@@ -109,6 +109,9 @@ class MultiEnvEvalCallback(BaseCallback):
         ``select_source`` is called before each of these environments and the model's own selection is restored after
     :param seed: seed of the evaluation environments: the k-th is seeded with ``seed + k`` before the first
         evaluation and its episodes follow from there, so that a run's evaluations are reproducible (None: not seeded)
+    :param same_episodes: with ``seed``, seed the environments again before every evaluation, so that every
+        evaluation plays the same episodes (differences between evaluations are then the policy's alone, and a run
+        resumed in a new process evaluates as an uninterrupted one)
     :param verbose: 1 prints each evaluation
     :param best_model_save_path: folder where the model is saved as ``best_model.zip`` whenever
         ``eval/mean_over_envs`` beats every earlier evaluation of this callback (None: not saved)
@@ -131,6 +134,7 @@ class MultiEnvEvalCallback(BaseCallback):
         eval_at_start: bool = False,
         sources: Optional[Mapping[str, int]] = None,
         seed: Optional[int] = None,
+        same_episodes: bool = False,
         verbose: int = 0,
         best_model_save_path: Optional[Union[str, os.PathLike]] = None,
         evaluations_dir: Optional[Union[str, os.PathLike]] = None,
@@ -159,7 +163,10 @@ class MultiEnvEvalCallback(BaseCallback):
                 raise ValueError(f"sources names environments {unknown} that are not evaluated ({list(self.eval_envs)})")
         self.results: list[dict[str, Any]] = []
         self._next_eval = 0
+        if same_episodes and seed is None:
+            raise ValueError("same_episodes=True needs a seed: the evaluation environments are seeded before every evaluation")
         self.seed = seed
+        self.same_episodes = same_episodes
         self._seeded = False
         self.best_model_save_path = pathlib.Path(best_model_save_path) if best_model_save_path is not None else None
         self.evaluations_dir = pathlib.Path(evaluations_dir) if evaluations_dir is not None else None
@@ -263,6 +270,9 @@ class MultiEnvEvalCallback(BaseCallback):
         training_normalization = unwrap_vec_normalize(training_env) if training_env is not None else None
         all_rewards: list[list[float]] = []
         all_lengths: list[list[int]] = []
+        if self.same_episodes and self.seed is not None:
+            for index, env in enumerate(self.eval_envs.values()):
+                env.seed(self.seed + index)
         for name, env in self.eval_envs.items():
             if self.sources is not None and name in self.sources:
                 model.select_source(self.sources[name])

@@ -45,6 +45,8 @@ from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, Callable, Optional
 
 import gymnasium as gym
+import numpy as np
+import torch
 
 if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skipped elsewhere
     import fcntl
@@ -135,7 +137,8 @@ def job_callbacks(
 ) -> list[Any]:
     """
     The callbacks of one job: its ``train/`` values (``train.csv``), its evaluations in one copy of the robot per
-    stage (:func:`~sb3_lifelong.envs.stage_envs`, ``eval.csv``, seeded from ``EVAL_SEED_OFFSET + seed``) and, with a
+    stage (:func:`~sb3_lifelong.envs.stage_envs`, ``eval.csv``, the same episodes at every evaluation, seeded from
+    ``EVAL_SEED_OFFSET + seed``) and, with a
     critic, its average Q per source (``q_sources.csv``).
 
     :param preset: the protocol's settings
@@ -157,6 +160,7 @@ def job_callbacks(
             preset.eval_episodes,
             log_path=directory / "eval.csv",
             seed=EVAL_SEED_OFFSET + seed,
+            same_episodes=True,
             **eval_kwargs,
         ),
     ]
@@ -292,15 +296,21 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
     )
 
 
-def _set_aside(path: pathlib.Path, paused: int) -> pathlib.Path:
-    """Rename ``path`` to ``<stem>.after_pause_<paused>[.k]<suffix>``, the first such name that is free, and return it."""
+def _aside_name(path: pathlib.Path, paused: int) -> pathlib.Path:
+    """:return: ``<stem>.after_pause_<paused>[.k]<suffix>`` beside ``path``, the first such name that is free"""
     for attempt in range(1000):
         tag = f".after_pause_{paused}" + (f".{attempt}" if attempt else "")
         aside = path.with_name(f"{path.stem}{tag}{path.suffix}")
         if not aside.exists():
-            os.replace(path, aside)
             return aside
     raise FileExistsError(f"no free name to set {path} aside")
+
+
+def _set_aside(path: pathlib.Path, paused: int) -> pathlib.Path:
+    """Rename ``path`` to :func:`_aside_name`'s name and return it."""
+    aside = _aside_name(path, paused)
+    os.replace(path, aside)
+    return aside
 
 
 def _finish_rewind(run_dir: pathlib.Path) -> None:
@@ -399,6 +409,75 @@ def sampling_weights(ratio: tuple[float, float], counts: Mapping[int, int]) -> d
     return {0: a / n_a if n_a else 0.0, 1: b / n_b if n_b else 0.0}
 
 
+#: a paused student (``distill_student(..., pause_every=...)``), in the student's directory: what the pause recorded
+#: (updates, the random generators' states, the student's settings, its checkpoint ``paused_<updates>.zip``)
+PAUSED_STUDENT_RECORD = "paused.json"
+
+
+def _generator_states() -> dict[str, Any]:
+    """The global random generators that offline training draws from (torch's and numpy's), as JSON."""
+    kind, keys, position, has_gauss, gauss = np.random.get_state()
+    return dict(
+        torch=torch.get_rng_state().tolist(),
+        numpy=[kind, np.asarray(keys).tolist(), int(position), int(has_gauss), float(gauss)],
+    )
+
+
+def _restore_generators(states: Mapping[str, Any]) -> None:
+    """Set the generators recorded by :func:`_generator_states`."""
+    torch.set_rng_state(torch.tensor(states["torch"], dtype=torch.uint8))
+    kind, keys, position, has_gauss, gauss = states["numpy"]
+    np.random.set_state((kind, np.asarray(keys, dtype=np.uint32), position, has_gauss, gauss))
+
+
+def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None]) -> None:
+    """
+    Cut the logs (``*.csv`` with a ``timesteps`` column) of a paused student back to the rows of its first
+    ``updates`` updates: rows past the pause were written by a part that stopped without pausing again. Nothing is
+    deleted: a log that had such rows is kept whole beside it as ``<stem>.after_pause_<updates>[.k].csv``.
+    """
+    for path in sorted(directory.glob("*.csv")):
+        if ".after_pause_" in path.name:
+            continue
+        with open(path, newline="") as handle:
+            reader = csv.DictReader(handle)
+            fields, rows = reader.fieldnames, list(reader)
+        if not fields or "timesteps" not in fields:
+            continue
+        kept = [row for row in rows if int(float(row["timesteps"])) <= updates]
+        if len(kept) == len(rows):
+            continue
+        staging = path.with_name(path.name + ".staging")
+        with open(staging, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(kept)
+        aside = _aside_name(path, updates)
+        shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
+        os.replace(staging, path)
+        log(f"  {path.name}: {len(rows) - len(kept)} rows past the pause at {updates:,} updates (all kept in {aside.name})")
+
+
+def _paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Optional[dict[str, Any]]:
+    """
+    :return: the pause record of the student in ``directory``, or None when it has none (a new student)
+    :raises ValueError: the pause was recorded for other settings (the directory is left as it is)
+    """
+    record_path = directory / PAUSED_STUDENT_RECORD
+    if not record_path.exists() or (directory / "done.json").exists():
+        return None
+    record = json.loads(record_path.read_text())
+    if not (directory / record["model"]).exists():
+        return None
+    recorded = record.get("settings")
+    if recorded != json.loads(json.dumps(settings)):
+        raise ValueError(
+            f"{directory} holds a student paused at {record.get('updates', 0):,} updates with other settings "
+            f"({recorded}) than these ({dict(settings)}): move it away to train this one"
+        )
+    return record
+
+
 def distill_student(
     name: str,
     preset: Preset,
@@ -407,9 +486,16 @@ def distill_student(
     progress_bar: bool = False,
     student: Optional[Student] = None,
     student_seed: Optional[int] = None,
-) -> None:
+    pause_every: Optional[int] = None,
+    log: Callable[[str], None] = print,
+) -> float:
     """
     Train one offline student on the lifetime buffer (opened read-only) and save it in ``run_dir/distill_<name>``.
+
+    With ``pause_every``, the student pauses every that many updates (a checkpoint, ``paused_<updates>.zip``, and the
+    record that names it, with the random generators' states, ``paused.json``), and a later call continues it from
+    its last pause with the same result as an uninterrupted run; rows its logs gained after that pause are set aside.
+    Without a pause the student starts anew; a pause of other settings is refused.
 
     :param name: the student's name (its settings are ``STUDENTS[name]`` unless ``student`` is given)
     :param preset: the protocol's settings
@@ -419,11 +505,24 @@ def distill_student(
     :param student: settings of a student that is not in :data:`STUDENTS` (e.g. a benchmark's variant)
     :param student_seed: the seed of the student's own training and of its evaluation environments (default:
         ``seed``), to train the same student several times on one buffer
+    :param pause_every: pause (checkpoint) every this many updates (None: never)
+    :param log: where progress messages go
+    :return: the seconds the student took, its earlier parts' included
+    :raises ValueError: ``pause_every`` is not positive, or the student's directory holds a pause of other settings
     """
+    if pause_every is not None and pause_every <= 0:
+        raise ValueError(f"pause_every must be a positive number of updates or None, got {pause_every}")
     student = STUDENTS[name] if student is None else student
+    seed = seed if student_seed is None else student_seed
     directory = run_dir / f"distill_{name}"
-    shutil.rmtree(directory, ignore_errors=True)
-    directory.mkdir(parents=True)
+    settings = dict(student=dataclasses.asdict(student), seed=seed, updates=preset.distill_steps)
+    paused = _paused_student(directory, settings)
+    if paused is None:
+        shutil.rmtree(directory, ignore_errors=True)
+        directory.mkdir(parents=True)
+    else:
+        _rows_up_to(directory, paused["updates"], log)
+        log(f"  continuing the student paused at {paused['updates']:,} of {preset.distill_steps:,} updates")
     data = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)
     everything = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)  # unweighted, for Q per source
     if student.ratio is not None:
@@ -435,7 +534,6 @@ def distill_student(
     if kwargs.get("actor_per_source"):
         sources = {env_name: index for index, env_name in enumerate(preset.env_names)}
     algorithm = BC if student.algorithm == "BC" else CRR
-    seed = seed if student_seed is None else student_seed
     common = _common(preset, seed)
     if algorithm is CRR and preset.student_critic == "categorical":
         common["policy_kwargs"]["distributional_critic"] = True
@@ -453,22 +551,48 @@ def distill_student(
         reward_scale=student.reward_scale,
         sources=sources,
     )
-    model = distill(
-        data,
-        student_class=algorithm,
-        gradient_steps=preset.distill_steps,
-        callback=callbacks,
-        progress_bar=progress_bar,
-        batch_size=preset.student_batch_size,
-        learning_rate=preset.student_learning_rate,
-        tensorboard_log=tensorboard_dir(directory),
-        tb_log_name=algorithm.__name__,
-        **kwargs,
-        **common,
-    )
+    learning = dict(callback=callbacks, progress_bar=progress_bar, tb_log_name=algorithm.__name__)
+    done = 0 if paused is None else int(paused["updates"])
+    seconds = 0.0 if paused is None else float(paused.get("seconds", 0.0))
+    model: Any = None
+    if paused is not None:
+        model = algorithm.load(directory / paused["model"])
+        model.set_offline_data(data)
+        model.tensorboard_log = tensorboard_dir(directory)
+        _restore_generators(paused["generators"])
+    while model is None or done < preset.distill_steps:
+        part = preset.distill_steps - done if pause_every is None else min(pause_every, preset.distill_steps - done)
+        start = time.perf_counter()
+        if model is None:
+            model = distill(
+                data,
+                student_class=algorithm,
+                gradient_steps=part,
+                batch_size=preset.student_batch_size,
+                learning_rate=preset.student_learning_rate,
+                tensorboard_log=tensorboard_dir(directory),
+                **learning,
+                **kwargs,
+                **common,
+            )
+        else:
+            model.learn_offline(part, reset_num_timesteps=False, **learning)
+        done += part
+        seconds += time.perf_counter() - start
+        if done < preset.distill_steps:  # a pause: the checkpoint, the record that names it, then the older ones go
+            checkpoint = f"paused_{done}.zip"
+            model.save(directory / checkpoint)
+            record = dict(updates=done, model=checkpoint, settings=settings, seconds=seconds, generators=_generator_states())
+            write_json_atomic(str(directory / PAUSED_STUDENT_RECORD), record)
+            for older in directory.glob("paused_*.zip"):
+                if older.name != checkpoint:
+                    older.unlink()
     model.save(directory / "student.zip")
+    for pause in [*directory.glob("paused_*.zip"), directory / PAUSED_STUDENT_RECORD]:  # finished: no pause is left
+        pause.unlink(missing_ok=True)
     data.close()
     everything.close()
+    return seconds
 
 
 def distill_on_study(
@@ -483,8 +607,9 @@ def distill_on_study(
 ) -> list[str]:
     """
     Train students that are not the study's own on one finished seed's lifetime buffer of ``study`` (linked,
-    read-only), each in ``output/seed_<seed>/distill_<name>``; a finished one (``done.json``) is skipped, so a
-    stopped command is simply run again. For the benchmarks that vary the students of a study.
+    read-only), each in ``output/seed_<seed>/distill_<name>``; a finished one (``done.json``) is skipped and a stopped
+    one continues from its last evaluation (it pauses at each), so a stopped command is simply run again. For the
+    benchmarks that vary the students of a study.
 
     :param study: the study's output directory
     :param seed: the seed whose buffer is distilled
@@ -510,10 +635,17 @@ def distill_on_study(
     for name, student in students.items():
         if (run_dir / f"distill_{name}" / "done.json").exists():
             continue
-        start = time.perf_counter()
         log(f"buffer {seed}: {name}, {preset.distill_steps:,} updates")
-        distill_student(name, preset, seed, run_dir, student=student, student_seed=student_seed)
-        seconds = time.perf_counter() - start
+        seconds = distill_student(
+            name,
+            preset,
+            seed,
+            run_dir,
+            student=student,
+            student_seed=student_seed,
+            pause_every=preset.distill_eval_freq,
+            log=log,
+        )
         done: dict[str, Any] = dict(seconds=seconds, buffer_seed=seed)
         done.update(student_seed=seed if student_seed is None else student_seed, settings=dataclasses.asdict(student))
         done.update(about or {})
@@ -725,7 +857,17 @@ def run_seed(
             else:
                 name, repeat = split_repeat(job[len("distill_") :])
                 student_seed = seed + repeat * REPEAT_SEED_STRIDE
-                distill_student(job[len("distill_") :], preset, seed, run_dir, progress_bar, STUDENTS[name], student_seed)
+                distill_student(
+                    job[len("distill_") :],
+                    preset,
+                    seed,
+                    run_dir,
+                    progress_bar,
+                    STUDENTS[name],
+                    student_seed,
+                    pause_every=preset.distill_eval_freq,
+                    log=log,
+                )
             seconds = time.perf_counter() - start
             done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
             if job.startswith("distill_"):
