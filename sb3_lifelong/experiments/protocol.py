@@ -51,6 +51,8 @@ import torch
 if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skipped elsewhere
     import fcntl
 
+from stable_baselines3.common.callbacks import BaseCallback
+
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.buffers.files import write_json_atomic
@@ -478,6 +480,52 @@ def _paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Opt
     return record
 
 
+class _StudentPauses(BaseCallback):
+    """
+    Pause a student every ``every`` updates before its last: its checkpoint ``paused_<updates>.zip``, then the record
+    that names it (:data:`PAUSED_STUDENT_RECORD`), then the older checkpoints go. Called after the student's other
+    callbacks, so that the pause's evaluation is in its logs.
+
+    :param directory: the student's directory
+    :param every: the pause period, in updates (None: never)
+    :param total: the student's updates in all
+    :param settings: what the record must match to be continued
+    :param paused: the record continued from (None: a new student)
+    """
+
+    def __init__(
+        self,
+        directory: pathlib.Path,
+        every: Optional[int],
+        total: int,
+        settings: Mapping[str, Any],
+        paused: Optional[Mapping[str, Any]],
+    ) -> None:
+        super().__init__()
+        self.directory, self.every, self.total, self.settings = directory, every, total, settings
+        self.earlier = 0.0 if paused is None else float(paused.get("seconds", 0.0))
+        self.start = time.perf_counter()
+
+    def seconds(self) -> float:
+        """:return: the student's seconds so far, its earlier parts' included"""
+        return self.earlier + time.perf_counter() - self.start
+
+    def _on_step(self) -> bool:
+        updates = self.model.num_timesteps
+        if self.every is None or updates % self.every or updates >= self.total:
+            return True
+        checkpoint = f"paused_{updates}.zip"
+        self.model.save(self.directory / checkpoint)
+        record = dict(
+            updates=updates, model=checkpoint, settings=self.settings, seconds=self.seconds(), generators=_generator_states()
+        )
+        write_json_atomic(str(self.directory / PAUSED_STUDENT_RECORD), record)
+        for older in self.directory.glob("paused_*.zip"):
+            if older.name != checkpoint:
+                older.unlink()
+        return True
+
+
 def distill_student(
     name: str,
     preset: Preset,
@@ -551,48 +599,33 @@ def distill_student(
         reward_scale=student.reward_scale,
         sources=sources,
     )
-    learning = dict(callback=callbacks, progress_bar=progress_bar, tb_log_name=algorithm.__name__)
     done = 0 if paused is None else int(paused["updates"])
-    seconds = 0.0 if paused is None else float(paused.get("seconds", 0.0))
-    model: Any = None
-    if paused is not None:
+    pauses = _StudentPauses(directory, pause_every, preset.distill_steps, settings, paused)
+    learning: dict[str, Any] = dict(callback=[*callbacks, pauses], progress_bar=progress_bar, tb_log_name=algorithm.__name__)
+    if paused is None:
+        model = distill(
+            data,
+            student_class=algorithm,
+            gradient_steps=preset.distill_steps,
+            batch_size=preset.student_batch_size,
+            learning_rate=preset.student_learning_rate,
+            tensorboard_log=tensorboard_dir(directory),
+            **learning,
+            **kwargs,
+            **common,
+        )
+    else:
         model = algorithm.load(directory / paused["model"])
         model.set_offline_data(data)
         model.tensorboard_log = tensorboard_dir(directory)
         _restore_generators(paused["generators"])
-    while model is None or done < preset.distill_steps:
-        part = preset.distill_steps - done if pause_every is None else min(pause_every, preset.distill_steps - done)
-        start = time.perf_counter()
-        if model is None:
-            model = distill(
-                data,
-                student_class=algorithm,
-                gradient_steps=part,
-                batch_size=preset.student_batch_size,
-                learning_rate=preset.student_learning_rate,
-                tensorboard_log=tensorboard_dir(directory),
-                **learning,
-                **kwargs,
-                **common,
-            )
-        else:
-            model.learn_offline(part, reset_num_timesteps=False, **learning)
-        done += part
-        seconds += time.perf_counter() - start
-        if done < preset.distill_steps:  # a pause: the checkpoint, the record that names it, then the older ones go
-            checkpoint = f"paused_{done}.zip"
-            model.save(directory / checkpoint)
-            record = dict(updates=done, model=checkpoint, settings=settings, seconds=seconds, generators=_generator_states())
-            write_json_atomic(str(directory / PAUSED_STUDENT_RECORD), record)
-            for older in directory.glob("paused_*.zip"):
-                if older.name != checkpoint:
-                    older.unlink()
+        model.learn_offline(preset.distill_steps - done, reset_num_timesteps=False, **learning)
     model.save(directory / "student.zip")
     for pause in [*directory.glob("paused_*.zip"), directory / PAUSED_STUDENT_RECORD]:  # finished: no pause is left
         pause.unlink(missing_ok=True)
     data.close()
     everything.close()
-    return seconds
+    return pauses.seconds()
 
 
 def distill_on_study(
