@@ -24,7 +24,7 @@ import json
 import math
 import pathlib
 import time
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -38,6 +38,8 @@ ROBOTS = {
     "cheetah_hip": ("dose_cheetah_hip", 1500.0),  # the long Env-B design (README, "Long Env-B")
     "tiny": ("tiny", 0.0),
 }
+#: the seeds pre-registered per robot: a claim stays *pending* while a seed it could still be tested on is missing
+PLANNED_SEEDS = {"hopper": (0, 1, 2), "cheetah": (0,), "cheetah_hip": (0, 1, 2), "tiny": (0,)}
 #: the conservative student's effective sample size, as a fraction of the batch
 TARGET_ESS = 0.9
 #: the doses: Env-B reward scale and the Env-A : Env-B sampling share
@@ -361,25 +363,35 @@ def fmt(values: list[float]) -> str:
     return f"{mean:.0f} +- {std:.0f} [{low:.0f}, {high:.0f}]"
 
 
+def holds(*conditions: Optional[bool]) -> Optional[bool]:
+    """:return: False when one condition failed, else None (pending) when one is not measured yet, else True"""
+    if any(condition is False for condition in conditions):
+        return False
+    return None if any(condition is None for condition in conditions) else True
+
+
 def seed_preconditions(robot: str, collector: dict[str, Any], students: dict[str, Any]) -> dict[str, Any]:
-    """Each precondition of one seed, with its measured value."""
+    """Each precondition of one seed with its measured value: True (held), False (failed), None (pending: the students
+    it is measured on have not finished)."""
     threshold = ROBOTS[robot][1]
     reference = collector["stage1_last5_Env-A"]
     p: dict[str, Any] = {"stage1_Env-A": reference}
     a_only = students.get("A_only", {}).get("return_Env-A", math.nan)
     p["A_only_Env-A"] = a_only
     p["P1_agent"] = reference >= threshold
-    p["P1"] = p["P1_agent"] and a_only >= A_ONLY_SHARE * reference
+    p["P1"] = holds(p["P1_agent"], None if math.isnan(a_only) else a_only >= A_ONLY_SHARE * reference)
     p["end_Env-A"] = collector["end_last5_Env-A"]
     p["P2"] = collector["end_last5_Env-A"] <= FORGETTING_SHARE * reference
     for reward in sorted({r for r, _ in DOSES.values()}):
         a, b = collector[f"mc_return_x{reward:g}_Env-A"], collector[f"mc_return_x{reward:g}_Env-B"]
         p[f"gap_x{reward:g}"] = b / a if a > 0 else math.nan
         p[f"P3_x{reward:g}"] = a > 0 and b >= VALUE_GAP * a
-    ess = [students[name]["weight_ess"] for name in students if name.startswith("ess_")]
-    clip = [students[name]["weight_clip_frac"] for name in students if name.startswith("ess_")]
+    conservative = [name for name in students if name.startswith("ess_")]
+    ess = [students[name]["weight_ess"] for name in conservative]
+    clip = [students[name]["weight_clip_frac"] for name in conservative]
     p["ess_min"], p["clip_max"] = (min(ess), max(clip)) if ess else (math.nan, math.nan)
-    p["P4"] = bool(ess) and min(ess) >= MIN_ESS and max(clip) <= MAX_CLIP
+    measured = bool(ess) and min(ess) >= MIN_ESS and max(clip) <= MAX_CLIP
+    p["P4"] = False if ess and not measured else (True if len(ess) == len(DOSES) else None)
     return p
 
 
@@ -418,7 +430,8 @@ def report(args: argparse.Namespace) -> None:
             f"| {r['claim']} | {r['seeds']} | {r['preconditions_held']} | {r['result']} | {r['evidence']} |" for r in rows
         ]
         lines.append("")
-        figure(robot, data, root)
+        if any(students for _, students in data.values()):  # no figure of students before the first one
+            figure(robot, data, root)
     with open(root / "claims.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=["robot", "claim", "seeds", "preconditions_held", "result", "evidence"])
         writer.writeheader()
@@ -635,104 +648,139 @@ def student_table(data: dict[int, Any]) -> list[str]:
 def precondition_table(pre: dict[int, dict[str, Any]]) -> list[str]:
     lines = ["| seed | P1 Stage-1 in A | P1 A_only in A | P2 end in A | P3 value gap B/A x1 | x3 | P4 ESS min / clip max |",
              "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    mark = {True: "held", False: "failed", None: "pending"}
     for seed, p in sorted(pre.items()):
-        mark = {True: "held", False: "failed"}
+        a_only = "no student yet" if math.isnan(p["A_only_Env-A"]) else f"{p['A_only_Env-A']:.0f}"
+        ess = "no student yet" if math.isnan(p["ess_min"]) else f"{p['ess_min']:.2f} / {p['clip_max']:.3f}"
         lines.append(
-            f"| {seed} | {p['stage1_Env-A']:.0f} ({mark[p['P1_agent']]}) | {p['A_only_Env-A']:.0f} ({mark[p['P1']]}) "
+            f"| {seed} | {p['stage1_Env-A']:.0f} ({mark[p['P1_agent']]}) | {a_only} ({mark[p['P1']]}) "
             f"| {p['end_Env-A']:.0f} ({mark[p['P2']]}) | {p['gap_x1']:.2f} ({mark[p['P3_x1']]}) "
-            f"| {p['gap_x3']:.2f} ({mark[p['P3_x3']]}) | {p['ess_min']:.2f} / {p['clip_max']:.3f} ({mark[p['P4']]}) |"
+            f"| {p['gap_x3']:.2f} ({mark[p['P3_x3']]}) | {ess} ({mark[p['P4']]}) |"
         )
     return [*lines, ""]
 
 
-def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> list[dict[str, Any]]:
-    """The pre-registered claims, each on the seeds where its preconditions held (>= 2 needed)."""
-    rows = []
+class Verdicts:
+    """
+    The claims' rows of one robot. A claim is tested on the seeds where its preconditions held (>= 2 needed). It is
+    *pending* while seeds it could still be tested on are missing (not collected, or their students not finished),
+    *not testable* when fewer than 2 seeds can hold its preconditions, and decided early only when a testable seed
+    already fails a criterion that every seed must meet.
+    """
 
-    def row(claim: str, seeds: list[int], result: str, evidence: str) -> None:
-        held = f"{len(seeds)} of {len(data)} seeds"
-        rows.append(dict(robot=robot, claim=claim, seeds=" ".join(map(str, seeds)), preconditions_held=held, result=result,
-                         evidence=evidence))  # fmt: skip
+    def __init__(self, robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> None:
+        self.robot, self.data, self.pre = robot, data, pre
+        self.missing = [seed for seed in PLANNED_SEEDS[robot] if seed not in data]
+        self.rows: list[dict[str, Any]] = []
 
-    # C1: forgetting online
-    seeds = [s for s in data if pre[s]["P1_agent"]]
-    if len(seeds) < 2:
-        row("C1 MPO forgets Env-A", seeds, "not testable", f"P1 (Stage-1 in A) held on {len(seeds)} seed(s)")
-    else:
-        drops = [1 - data[s][0]["end_last5_Env-A"] / data[s][0]["stage1_last5_Env-A"] for s in seeds]
-        ok = np.mean(drops) >= 0.2 and all(d > 0 for d in drops)
-        row(
-            "C1 MPO forgets Env-A",
-            seeds,
-            "reproduced" if ok else "not reproduced",
-            "drops " + ", ".join(f"{d:.0%}" for d in drops),
-        )
+    def row(self, claim: str, seeds: list[int], result: str, evidence: str) -> str:
+        self.rows.append(dict(robot=self.robot, claim=claim, seeds=" ".join(map(str, seeds)),
+                              preconditions_held=f"{len(seeds)} of {len(self.data)} seeds", result=result,
+                              evidence=evidence))  # fmt: skip
+        return result
 
-    def dose_drop(seed: int, transform: str, dose: str) -> float:
-        students = data[seed][1]
-        base, dosed = students.get(f"{transform}_{BASE_DOSE}"), students.get(f"{transform}_{dose}")
-        reference = students.get("A_only")
+    def split(self, condition: Callable[[int], Optional[bool]]) -> tuple[list[int], list[int]]:
+        """:return: the seeds where a claim is testable, and those where it may still become so"""
+        testable = [s for s in sorted(self.data) if condition(s) is True]
+        return testable, [s for s in sorted(self.data) if condition(s) is None] + self.missing
+
+    def decide(self, claim: str, condition: Callable[[int], Optional[bool]], measure: Callable[[int], float],
+               passed: Callable[[list[float]], bool], label: str, fmt: str = "+.1f") -> str:  # fmt: skip
+        """Test a claim: ``measure`` per testable seed, ``passed`` on them all. :return: its result"""
+        testable, open_seeds = self.split(condition)
+        values = [measure(s) for s in testable]
+        evidence = f"{label} " + ", ".join(f"seed {s}: {v:{fmt}}" for s, v in zip(testable, values))
+        if len(testable) + len(open_seeds) < 2:
+            return self.row(claim, testable, "not testable", f"preconditions held on {len(testable)} seed(s); {evidence}")
+        if open_seeds:
+            return self.row(claim, testable, "pending", f"waiting for seed(s) {' '.join(map(str, open_seeds))}; {evidence}")
+        return self.row(claim, testable, "reproduced" if passed(values) else "not reproduced", evidence)
+
+    def student(self, seed: int, name: str) -> Optional[dict[str, Any]]:
+        return self.data[seed][1].get(name)
+
+    def dose_drop(self, seed: int, transform: str, dose: str) -> float:
+        """:return: the Env-A return lost from the base dose to ``dose``, over the ``A_only`` reference (NaN: missing)"""
+        base, dosed = self.student(seed, f"{transform}_{BASE_DOSE}"), self.student(seed, f"{transform}_{dose}")
+        reference = self.student(seed, "A_only")
         if base is None or dosed is None or reference is None:
             return math.nan
         return (base["return_Env-A"] - dosed["return_Env-A"]) / reference["return_Env-A"]
 
-    c2: dict[str, bool] = {}
-    for dose in DOSES:
-        if dose == BASE_DOSE:
-            continue
-        needs_gap = DOSES[dose][0] != 1.0
-        seeds = [s for s in data if pre[s]["P1"] and pre[s]["P2"] and (pre[s]["P3_x3"] or not needs_gap)]
-        seeds = [s for s in seeds if not math.isnan(dose_drop(s, "ind", dose))]
-        name = f"C2 indicator drops in A at {dose}"
-        if len(seeds) < 2:
-            row(name, seeds, "not testable", "preconditions or students missing on all but " + str(len(seeds)) + " seed(s)")
-            continue
-        drops = [dose_drop(s, "ind", dose) for s in seeds]
-        c2[dose] = np.mean(drops) >= 0.1 and sum(d > 0 for d in drops) >= min(2, len(drops))
-        row(
-            name,
-            seeds,
-            "reproduced" if c2[dose] else "not reproduced",
-            "drop / A_only: " + ", ".join(f"{d:+.0%}" for d in drops),
-        )
-        # C3: the conservative student stays flat (needs C2 and P4)
-        c3_seeds = [s for s in seeds if pre[s]["P4"] and not math.isnan(dose_drop(s, "ess", dose))]
-        name3 = f"C3 ESS student flat at {dose}"
-        if not c2[dose] or len(c3_seeds) < 2:
-            why = "C2 did not pass: no drop to stay flat against" if not c2[dose] else "P4 or students missing"
-            row(name3, c3_seeds, "not testable", why)
-        else:
-            ind = np.mean([dose_drop(s, "ind", dose) for s in c3_seeds])
-            ess = np.mean([dose_drop(s, "ess", dose) for s in c3_seeds])
-            row(
-                name3,
-                c3_seeds,
-                "reproduced" if ess < 0.5 * ind else "not reproduced",
-                f"drop ess {ess:+.0%} vs indicator {ind:+.0%}",
-            )
-        # C4: overestimation on Env-A grows with the dose
-        key = "overestimation_Env-A"
-        over = [(data[s][1][f"ind_{dose}"].get(key), data[s][1][f"ind_{BASE_DOSE}"].get(key)) for s in seeds]
-        rises = [a - b for a, b in over if a is not None and b is not None]
-        if len(rises) < 2:
-            row(f"C4 overestimation on A rises at {dose}", seeds, "not testable", "overestimation missing")
-        else:
-            row(f"C4 overestimation on A rises at {dose}", seeds, "reproduced" if np.mean(rises) > 0 else "not reproduced",
-                "rise " + ", ".join(f"{r:+.1f}" for r in rises))  # fmt: skip
-    # C5: forgetting risk online
-    seeds = [s for s in data if pre[s]["P1_agent"] and "final_overestimation_Env-A" in data[s][0]]
-    if len(seeds) < 2:
-        row("C5 MPO's overestimation on A grows after the switch", seeds, "not testable", f"P1 held on {len(seeds)} seed(s)")
+    def overestimation_rise(self, seed: int, dose: str) -> float:
+        """:return: the indicator student's Env-A overestimation at ``dose`` minus at the base dose (NaN: missing)"""
+        base, dosed = self.student(seed, f"ind_{BASE_DOSE}"), self.student(seed, f"ind_{dose}")
+        if base is None or dosed is None:
+            return math.nan
+        return dosed.get("overestimation_Env-A", math.nan) - base.get("overestimation_Env-A", math.nan)
+
+
+def measured(value: float) -> Optional[bool]:
+    """:return: None (pending) for a value not measured yet (NaN), else True"""
+    return None if math.isnan(value) else True
+
+
+def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The pre-registered claims C1-C5 (see :class:`Verdicts` for pending and not testable)."""
+    v = Verdicts(robot, data, pre)
+    # C1: forgetting online; every testable seed must be lower, so one that is not decides it
+    c1 = "C1 MPO forgets Env-A"
+    testable = [s for s in sorted(data) if pre[s]["P1_agent"]]
+    drops = {s: 1 - data[s][0]["end_last5_Env-A"] / data[s][0]["stage1_last5_Env-A"] for s in testable}
+    if any(d <= 0 for d in drops.values()):
+        evidence = "drops " + ", ".join(f"seed {s}: {d:+.0%}" for s, d in drops.items())
+        v.row(c1, testable, "not reproduced", evidence + " (every testable seed must be lower)")
     else:
-        rises = [data[s][0]["final_overestimation_Env-A"] - data[s][0]["stage1_overestimation_Env-A"] for s in seeds]
-        result = "reproduced" if np.mean(rises) > 0 else "not reproduced"
-        row(
-            "C5 MPO's overestimation on A grows after the switch",
-            seeds,
-            result,
-            "rise " + ", ".join(f"{r:+.1f}" for r in rises),
+        v.decide(c1, lambda s: pre[s]["P1_agent"], lambda s: drops[s], lambda d: bool(np.mean(d) >= 0.2), "drops", "+.0%")
+    for dose in DOSES:
+        if dose != BASE_DOSE:
+            dose_claims(v, dose)
+    # C5: the collector's overestimation on Env-A data grows after the switch
+    v.decide(
+        "C5 MPO's overestimation on A grows after the switch",
+        lambda s: pre[s]["P1_agent"] and "final_overestimation_Env-A" in data[s][0],
+        lambda s: data[s][0]["final_overestimation_Env-A"] - data[s][0]["stage1_overestimation_Env-A"],
+        lambda rises: bool(np.mean(rises) > 0),
+        "rise",
+    )
+    return v.rows
+
+
+def dose_claims(v: Verdicts, dose: str) -> None:
+    """C2, C3 and C4 at one dose."""
+    pre, needs_gap = v.pre, DOSES[dose][0] != 1.0
+
+    def c2_condition(s: int) -> Optional[bool]:
+        return holds(pre[s]["P1"], pre[s]["P2"], pre[s]["P3_x3"] or not needs_gap, measured(v.dose_drop(s, "ind", dose)))
+
+    c2 = v.decide(
+        f"C2 indicator drops in A at {dose}",
+        c2_condition,
+        lambda s: v.dose_drop(s, "ind", dose),
+        lambda drops: bool(np.mean(drops) >= 0.1 and sum(d > 0 for d in drops) >= 2),
+        "drop / A_only",
+        "+.0%",
+    )
+    c3 = f"C3 ESS student flat at {dose}"  # needs C2 passed and P4
+    if c2 != "reproduced":
+        v.row(c3, [], "pending" if c2 == "pending" else "not testable", f"C2 {c2}: " + (
+            "waiting for it" if c2 == "pending" else "no drop to stay flat against"))  # fmt: skip
+    else:
+        v.decide(
+            c3,
+            lambda s: holds(c2_condition(s), pre[s]["P4"], measured(v.dose_drop(s, "ess", dose))),
+            lambda s: v.dose_drop(s, "ess", dose) - 0.5 * v.dose_drop(s, "ind", dose),
+            lambda excess: bool(np.mean(excess) < 0),  # the ess drop below half the indicator's, on the mean
+            "ess drop minus half the indicator's",
+            "+.0%",
         )
-    return rows
+    v.decide(
+        f"C4 overestimation on A rises at {dose}",
+        lambda s: holds(pre[s]["P1"], pre[s]["P2"], measured(v.overestimation_rise(s, dose))),
+        lambda s: v.overestimation_rise(s, dose),
+        lambda rises: bool(np.mean(rises) > 0),
+        "rise",
+    )
 
 
 def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:

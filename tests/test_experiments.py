@@ -965,3 +965,52 @@ def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path
     with pytest.raises(ValueError, match="paused at 50 updates with other settings"):
         distill_on_study(output, 0, tmp_path / "parts", student, other, log=lambda _: None)
     assert (directory / "student.zip").exists()
+
+
+def test_imbalance_dose_claims_wait_for_missing_seeds_and_students():
+    """A claim is pending while a seed could still make it testable, not testable when none can, decided when due."""
+    dose = benchmark_module("imbalance_dose")
+
+    def collector(end_a: float) -> dict:
+        out = {"stage1_last5_Env-A": 4000.0, "end_last5_Env-A": end_a, "stage1_overestimation_Env-A": 90.0}
+        out["final_overestimation_Env-A"] = 200.0
+        for scale in (1, 3):
+            out.update({f"mc_return_x{scale}_Env-A": 170.0, f"mc_return_x{scale}_Env-B": 330.0 * scale})
+        return out
+
+    def students(drop: float) -> dict:
+        ind = {"x1_1to5": 3000.0, "x3_1to5": 3000.0 - drop, "x1_1to20": 3000.0 - drop}
+        rows = {"A_only": {"return_Env-A": 3500.0}}
+        for name, value in ind.items():
+            rows[f"ind_{name}"] = {"return_Env-A": value, "overestimation_Env-A": 100.0 + (3000.0 - value) / 10}
+            rows[f"ess_{name}"] = {"return_Env-A": 3000.0, "weight_ess": 0.9, "weight_clip_frac": 0.0}
+        return rows
+
+    def verdicts(data: dict) -> dict:
+        pre = {seed: dose.seed_preconditions("cheetah_hip", *data[seed]) for seed in data}
+        return {row["claim"]: row["result"] for row in dose.claims("cheetah_hip", data, pre)}
+
+    # seed 0 did not forget (P2 failed) and has no student: C1 is decided by it, the student claims wait for seeds 1, 2
+    one = verdicts({0: (collector(4700.0), {})})
+    assert one["C1 MPO forgets Env-A"] == "not reproduced"
+    assert one["C2 indicator drops in A at x3_1to5"] == "pending" and one["C3 ESS student flat at x3_1to5"] == "pending"
+    assert one["C5 MPO's overestimation on A grows after the switch"] == "pending"
+    pre = dose.seed_preconditions("cheetah_hip", collector(4700.0), {})
+    assert pre["P1"] is None and pre["P4"] is None and pre["P2"] is False
+    # seed 1 forgot, its students are in, seed 2 failed P2: two seeds cannot hold C2's preconditions
+    done = verdicts({0: (collector(4700.0), {}), 1: (collector(2000.0), students(800.0)), 2: (collector(4500.0), {})})
+    assert done["C2 indicator drops in A at x3_1to5"] == "not testable"
+    assert done["C4 overestimation on A rises at x1_1to20"] == "not testable"
+    assert done["C5 MPO's overestimation on A grows after the switch"] == "reproduced"
+    # three forgetting seeds with students: the indicator drops, the conservative student does not
+    full = verdicts({seed: (collector(2000.0), students(800.0)) for seed in (0, 1, 2)})
+    assert full["C1 MPO forgets Env-A"] == "reproduced"
+    assert (
+        full["C2 indicator drops in A at x3_1to5"] == "reproduced" and full["C3 ESS student flat at x3_1to5"] == "reproduced"
+    )
+    assert full["C4 overestimation on A rises at x3_1to5"] == "reproduced"
+    flat = verdicts({seed: (collector(2000.0), students(0.0)) for seed in (0, 1, 2)})
+    assert flat["C2 indicator drops in A at x1_1to20"] == "not reproduced"
+    assert flat["C3 ESS student flat at x1_1to20"] == "not testable"
+    waiting = verdicts({0: (collector(2000.0), students(800.0)), 1: (collector(2000.0), {})})  # seed 1's students run
+    assert waiting["C2 indicator drops in A at x3_1to5"] == "pending"
