@@ -944,6 +944,7 @@ def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path
     th.manual_seed(123), np.random.seed(123)  # the pause's generators are restored, whatever they are now
     assert distill_on_study(output, 0, tmp_path / "parts", student, preset, log=messages.append) == ["ind"]
     assert any("continuing the student paused at 50 of 150 updates" in m for m in messages)
+    assert any("distill_ind: paused at 100 of 150 updates" in m for m in messages)
     whole = tmp_path / "whole" / "seed_0" / "distill_ind"
     for name in ("eval.csv", "train.csv", "q_sources.csv"):
         assert (directory / name).read_text() == (whole / name).read_text(), name

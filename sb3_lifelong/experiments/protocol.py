@@ -491,6 +491,7 @@ class _StudentPauses(BaseCallback):
     :param total: the student's updates in all
     :param settings: what the record must match to be continued
     :param paused: the record continued from (None: a new student)
+    :param log: where each pause is reported
     """
 
     def __init__(
@@ -500,9 +501,10 @@ class _StudentPauses(BaseCallback):
         total: int,
         settings: Mapping[str, Any],
         paused: Optional[Mapping[str, Any]],
+        log: Callable[[str], None] = print,
     ) -> None:
         super().__init__()
-        self.directory, self.every, self.total, self.settings = directory, every, total, settings
+        self.directory, self.every, self.total, self.settings, self.log = directory, every, total, settings, log
         self.earlier = 0.0 if paused is None else float(paused.get("seconds", 0.0))
         self.start = time.perf_counter()
 
@@ -516,13 +518,15 @@ class _StudentPauses(BaseCallback):
             return True
         checkpoint = f"paused_{updates}.zip"
         self.model.save(self.directory / checkpoint)
+        seconds = self.seconds()
         record = dict(
-            updates=updates, model=checkpoint, settings=self.settings, seconds=self.seconds(), generators=_generator_states()
+            updates=updates, model=checkpoint, settings=self.settings, seconds=seconds, generators=_generator_states()
         )
         write_json_atomic(str(self.directory / PAUSED_STUDENT_RECORD), record)
         for older in self.directory.glob("paused_*.zip"):
             if older.name != checkpoint:
                 older.unlink()
+        self.log(f"  {self.directory.name}: paused at {updates:,} of {self.total:,} updates ({seconds / 60:.1f} min)")
         return True
 
 
@@ -600,7 +604,7 @@ def distill_student(
         sources=sources,
     )
     done = 0 if paused is None else int(paused["updates"])
-    pauses = _StudentPauses(directory, pause_every, preset.distill_steps, settings, paused)
+    pauses = _StudentPauses(directory, pause_every, preset.distill_steps, settings, paused, log)
     learning: dict[str, Any] = dict(callback=[*callbacks, pauses], progress_bar=progress_bar, tb_log_name=algorithm.__name__)
     if paused is None:
         model = distill(
