@@ -727,7 +727,7 @@ def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> 
     c1 = "C1 MPO forgets Env-A"
     testable = [s for s in sorted(data) if pre[s]["P1_agent"]]
     drops = {s: 1 - data[s][0]["end_last5_Env-A"] / data[s][0]["stage1_last5_Env-A"] for s in testable}
-    if any(d <= 0 for d in drops.values()):
+    if len(testable) >= 2 and any(d <= 0 for d in drops.values()):
         evidence = "drops " + ", ".join(f"seed {s}: {d:+.0%}" for s, d in drops.items())
         v.row(c1, testable, "not reproduced", evidence + " (every testable seed must be lower)")
     else:
@@ -738,7 +738,7 @@ def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> 
     # C5: the collector's overestimation on Env-A data grows after the switch
     v.decide(
         "C5 MPO's overestimation on A grows after the switch",
-        lambda s: pre[s]["P1_agent"] and "final_overestimation_Env-A" in data[s][0],
+        lambda s: holds(pre[s]["P1"], "final_overestimation_Env-A" in data[s][0]),
         lambda s: data[s][0]["final_overestimation_Env-A"] - data[s][0]["stage1_overestimation_Env-A"],
         lambda rises: bool(np.mean(rises) > 0),
         "rise",

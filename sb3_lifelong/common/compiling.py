@@ -69,6 +69,11 @@ class LazyCompiled:
             return True
         return steps_to_go >= AUTO_MIN_UPDATES and can_compile(device)
 
+    def compile(self) -> None:
+        """Compile at the next call whatever the setting's rule (e.g. for a run continued from a compiled one)."""
+        if self.compiled is None and not self.failed:
+            self.compiled = th.compile(self.function, dynamic=False)
+
     def __call__(self, compile_now: bool, *args: Any) -> Any:
         """
         :param compile_now: whether to run the compiled function (compiling it first when it is not yet)
@@ -77,8 +82,8 @@ class LazyCompiled:
         """
         if not compile_now or self.failed:
             return self.function(*args)
-        if self.compiled is None:
-            self.compiled = th.compile(self.function, dynamic=False)
+        self.compile()
+        assert self.compiled is not None
         try:
             with _backward_compiled_with_forward():
                 return self.compiled(*args)

@@ -36,6 +36,7 @@ import contextlib
 import csv
 import dataclasses
 import json
+import math
 import os
 import pathlib
 import shutil
@@ -417,12 +418,15 @@ PAUSED_STUDENT_RECORD = "paused.json"
 
 
 def _generator_states() -> dict[str, Any]:
-    """The global random generators that offline training draws from (torch's and numpy's), as JSON."""
+    """The global random generators that offline training draws from (torch's, CUDA's when in use, numpy's), as JSON."""
     kind, keys, position, has_gauss, gauss = np.random.get_state()
-    return dict(
+    states = dict(
         torch=torch.get_rng_state().tolist(),
         numpy=[kind, np.asarray(keys).tolist(), int(position), int(has_gauss), float(gauss)],
     )
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        states["cuda"] = [state.tolist() for state in torch.cuda.get_rng_state_all()]
+    return states
 
 
 def _restore_generators(states: Mapping[str, Any]) -> None:
@@ -430,6 +434,8 @@ def _restore_generators(states: Mapping[str, Any]) -> None:
     torch.set_rng_state(torch.tensor(states["torch"], dtype=torch.uint8))
     kind, keys, position, has_gauss, gauss = states["numpy"]
     np.random.set_state((kind, np.asarray(keys, dtype=np.uint32), position, has_gauss, gauss))
+    if "cuda" in states and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([torch.tensor(state, dtype=torch.uint8) for state in states["cuda"]])
 
 
 def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None]) -> None:
@@ -446,12 +452,12 @@ def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None
             fields, rows = reader.fieldnames, list(reader)
         if not fields or "timesteps" not in fields:
             continue
-        kept = [row for row in rows if int(float(row["timesteps"])) <= updates]
+        kept = [row for row in rows if _timesteps(row) <= updates]
         if len(kept) == len(rows):
             continue
         staging = path.with_name(path.name + ".staging")
         with open(staging, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(kept)
         aside = _aside_name(path, updates)
@@ -460,22 +466,36 @@ def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None
         log(f"  {path.name}: {len(rows) - len(kept)} rows past the pause at {updates:,} updates (all kept in {aside.name})")
 
 
+def _timesteps(row: Mapping[str, Any]) -> float:
+    """:return: a log row's ``timesteps``; infinity for a row cut short (a stop in the middle of writing it)"""
+    try:
+        return float(row["timesteps"])
+    except (TypeError, ValueError):
+        return math.inf
+
+
 def _paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Optional[dict[str, Any]]:
     """
     :return: the pause record of the student in ``directory``, or None when it has none (a new student)
     :raises ValueError: the pause was recorded for other settings (the directory is left as it is)
+    :raises FileNotFoundError: the checkpoint the record names is missing (the directory is left as it is)
     """
     record_path = directory / PAUSED_STUDENT_RECORD
     if not record_path.exists() or (directory / "done.json").exists():
         return None
     record = json.loads(record_path.read_text())
-    if not (directory / record["model"]).exists():
-        return None
-    recorded = record.get("settings")
-    if recorded != json.loads(json.dumps(settings)):
+    recorded, expected = record.get("settings"), json.loads(json.dumps(settings))
+    if isinstance(recorded, dict) and "preset" not in recorded:  # recorded before the preset was
+        expected.pop("preset", None)
+    if recorded != expected:
         raise ValueError(
             f"{directory} holds a student paused at {record.get('updates', 0):,} updates with other settings "
             f"({recorded}) than these ({dict(settings)}): move it away to train this one"
+        )
+    if not (directory / record["model"]).exists():
+        raise FileNotFoundError(
+            f"{directory / PAUSED_STUDENT_RECORD} records a pause at {record.get('updates', 0):,} updates whose "
+            f"checkpoint {record['model']} is missing: move the directory away to train this student anew"
         )
     return record
 
@@ -509,8 +529,17 @@ class _StudentPauses(BaseCallback):
         self.start = time.perf_counter()
 
     def seconds(self) -> float:
-        """:return: the student's seconds so far, its earlier parts' included"""
+        """:return: the student's training seconds so far, its earlier parts' included"""
         return self.earlier + time.perf_counter() - self.start
+
+    def record(self, updates: int, checkpoint: str) -> float:
+        """Write the record of a pause at ``updates`` whose checkpoint is ``checkpoint``. :return: the seconds so far"""
+        seconds = self.seconds()
+        forward = getattr(self.model, "_forward", None)
+        compiled = forward is not None and forward.compiled is not None  # continued compiled too, as if never stopped
+        record = dict(updates=updates, model=checkpoint, settings=self.settings, seconds=seconds, compiled=compiled)
+        write_json_atomic(str(self.directory / PAUSED_STUDENT_RECORD), {**record, "generators": _generator_states()})
+        return seconds
 
     def _on_step(self) -> bool:
         updates = self.model.num_timesteps
@@ -518,11 +547,7 @@ class _StudentPauses(BaseCallback):
             return True
         checkpoint = f"paused_{updates}.zip"
         self.model.save(self.directory / checkpoint)
-        seconds = self.seconds()
-        record = dict(
-            updates=updates, model=checkpoint, settings=self.settings, seconds=seconds, generators=_generator_states()
-        )
-        write_json_atomic(str(self.directory / PAUSED_STUDENT_RECORD), record)
+        seconds = self.record(updates, checkpoint)
         for older in self.directory.glob("paused_*.zip"):
             if older.name != checkpoint:
                 older.unlink()
@@ -567,7 +592,7 @@ def distill_student(
     student = STUDENTS[name] if student is None else student
     seed = seed if student_seed is None else student_seed
     directory = run_dir / f"distill_{name}"
-    settings = dict(student=dataclasses.asdict(student), seed=seed, updates=preset.distill_steps)
+    settings = dict(student=dataclasses.asdict(student), seed=seed, updates=preset.distill_steps, preset=preset.describe())
     paused = _paused_student(directory, settings)
     if paused is None:
         shutil.rmtree(directory, ignore_errors=True)
@@ -622,14 +647,19 @@ def distill_student(
         model = algorithm.load(directory / paused["model"])
         model.set_offline_data(data)
         model.tensorboard_log = tensorboard_dir(directory)
+        forward = getattr(model, "_forward", None)
+        if paused.get("compiled") and forward is not None:
+            forward.compile()
         _restore_generators(paused["generators"])
         model.learn_offline(preset.distill_steps - done, reset_num_timesteps=False, **learning)
     model.save(directory / "student.zip")
-    for pause in [*directory.glob("paused_*.zip"), directory / PAUSED_STUDENT_RECORD]:  # finished: no pause is left
-        pause.unlink(missing_ok=True)
+    # the finished student's record: a stop before the caller writes done.json continues with nothing left to train
+    seconds = pauses.record(preset.distill_steps, "student.zip")
+    for pause in directory.glob("paused_*.zip"):
+        pause.unlink()
     data.close()
     everything.close()
-    return pauses.seconds()
+    return seconds
 
 
 def distill_on_study(
@@ -885,6 +915,7 @@ def run_seed(
                 continue
             log(f"seed {seed}: job {position + 1}/{len(todo)} {job} ...")
             start = time.perf_counter()
+            trained: Optional[float] = None  # a student's training seconds, its earlier parts' included
             if job == "collect":
                 if not collect(preset, seed, run_dir, progress_bar, log, until=until):
                     log(f"seed {seed}: collection paused at step {until:,}: run the command again to continue it")
@@ -894,7 +925,7 @@ def run_seed(
             else:
                 name, repeat = split_repeat(job[len("distill_") :])
                 student_seed = seed + repeat * REPEAT_SEED_STRIDE
-                distill_student(
+                trained = distill_student(
                     job[len("distill_") :],
                     preset,
                     seed,
@@ -905,7 +936,7 @@ def run_seed(
                     pause_every=preset.distill_eval_freq,
                     log=log,
                 )
-            seconds = time.perf_counter() - start
+            seconds = time.perf_counter() - start if trained is None else trained
             done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
             if job.startswith("distill_"):
                 done.update(student=dataclasses.asdict(STUDENTS[name]), repeat=repeat, student_seed=student_seed)
