@@ -818,6 +818,52 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
     plt.close(fig)
 
 
+def progress(args: argparse.Namespace) -> list[str]:
+    """
+    Where each pre-registered seed of ``--robot`` stands (its collection, its students) and the commands that go on
+    with it, read from the run directories (nothing is changed).
+
+    :return: the lines printed
+    """
+    from sb3_lifelong.experiments.presets import PRESETS
+
+    preset = PRESETS[ROBOTS[args.robot][0]]
+    total = sum(preset.stage_steps)
+    study = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}")
+    students = pathlib.Path(args.students_output or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}_students")
+    names = list(student_settings({}))
+    lines = [f"{args.robot}: collection {total:,} steps per seed, {len(names)} students of {args.updates:,} updates"]
+    for seed in PLANNED_SEEDS[args.robot]:
+        collect = study / f"seed_{seed}" / "collect"
+        if (collect / "done.json").exists():
+            state = "collection finished"
+        elif (collect / "paused.json").exists():
+            state = f"collection paused at {json.loads((collect / 'paused.json').read_text())['timesteps']:,}"
+        else:
+            state = "collection not started"
+        done, paused = [], []
+        for name in names:
+            directory = students / f"seed_{seed}" / f"distill_{name}"
+            if (directory / "done.json").exists():
+                done.append(name)
+            elif (directory / "paused.json").exists():
+                paused.append(f"{name} at {json.loads((directory / 'paused.json').read_text())['updates']:,}")
+        lines.append(f"  seed {seed}: {state}; students done {len(done)} of {len(names)}" + (
+            f" ({', '.join(done)})" if done else "") + (f"; paused: {', '.join(paused)}" if paused else ""))  # fmt: skip
+        if state != "collection finished":
+            lines.append(
+                f"    next: OMP_NUM_THREADS=1 python -m sb3_lifelong.experiments run --preset {ROBOTS[args.robot][0]} "
+                f"--seed {seed} --output {study} --until <steps> (or benchmarks/collect_in_parts.sh)"
+            )
+        elif len(done) < len(names):
+            lines.append(
+                f"    next: OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot {args.robot} --seed {seed} "
+                f"--runs {args.runs}"
+            )
+    print("\n".join(lines))
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -850,13 +896,21 @@ def main() -> None:
     adopt_parser.add_argument("--seed", type=int, required=True)
     adopt_parser.add_argument("--source", required=True, help="the study whose finished Stage-1 is adopted")
     adopt_parser.add_argument("--output", required=True, help="the new study's directory")
+    progress_parser = sub.add_parser("progress", help="where each seed stands, and the commands that go on with it")
+    progress_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah_hip")
+    progress_parser.add_argument("--updates", type=int, default=200_000, help="updates per student (pre-registered: 200k)")
+    progress_parser.add_argument("--runs", default="runs", help="where the collections are and the students go")
+    progress_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
+    progress_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
     import torch as th
 
     th.set_num_threads(1)
-    {"run": run, "screen": screen, "branch": branch, "adopt-stage1": adopt_stage1, "report": report}[args.command](args)
+    commands = dict(run=run, screen=screen, branch=branch, progress=progress, report=report)
+    commands["adopt-stage1"] = adopt_stage1
+    commands[args.command](args)
 
 
 if __name__ == "__main__":

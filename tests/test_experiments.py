@@ -725,6 +725,9 @@ def test_imbalance_dose_study(study, tmp_path):
     assert len(supports) == 1
     rerun = dose.run(args)  # finished students are skipped
     assert rerun is None
+    where = argparse.Namespace(robot="tiny", updates=60, runs=str(tmp_path), study=str(output),
+                               students_output=str(tmp_path / "students"))  # fmt: skip
+    assert "seed 0: collection finished; students done 7 of 7" in "\n".join(dose.progress(where))
     dose.report(argparse.Namespace(results=str(results)))
     claims = pd.read_csv(results / "claims.csv")
     assert {"claim", "preconditions_held", "result"} <= set(claims.columns)
