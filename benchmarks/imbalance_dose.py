@@ -430,7 +430,7 @@ def report(args: argparse.Namespace) -> None:
             f"| {r['claim']} | {r['seeds']} | {r['preconditions_held']} | {r['result']} | {r['evidence']} |" for r in rows
         ]
         lines.append("")
-        if any(students for _, students in data.values()):  # no figure of students before the first one
+        if any(name != "A_only" for _, students in data.values() for name in students):  # not before a dosed student
             figure(robot, data, root)
     with open(root / "claims.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=["robot", "claim", "seeds", "preconditions_held", "result", "evidence"])
@@ -796,13 +796,16 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
             curves = []
             for _, (_, students) in sorted(data.items()):
                 ys = [students.get(f"{transform}_{d}", {}).get(f"return_{env}", math.nan) for d in doses]
+                if all(math.isnan(y) for y in ys):  # none of this seed's students of this transform has finished
+                    continue
                 ax.plot(range(len(doses)), ys, color=color, alpha=0.3, lw=1, marker=".")
                 curves.append(ys)
             if curves:
                 ax.plot(range(len(doses)), np.nanmean(curves, axis=0), color=color, lw=2.5, marker="o",
                         label=f"{label} (n={len(curves)})")  # fmt: skip
-        stage1 = [c[f"stage1_last5_{env}"] for c, _ in data.values()]
-        ax.axhline(np.mean(stage1), color="k", ls="--", lw=1, label="MPO at the switch (Stage-1)")
+        stage1 = [c[f"stage1_last5_{env}"] for c, _ in data.values() if not math.isnan(c[f"stage1_last5_{env}"])]
+        if stage1:  # (an adopted Stage-1 was evaluated in Env-A only)
+            ax.axhline(np.mean(stage1), color="k", ls="--", lw=1, label="MPO at the switch (Stage-1)")
         if env == "Env-A":
             a_only = [s["A_only"]["return_Env-A"] for _, s in data.values() if "A_only" in s]
             if a_only:
