@@ -685,11 +685,11 @@ class Verdicts:
         return testable, [s for s in sorted(self.data) if condition(s) is None] + self.missing
 
     def decide(self, claim: str, condition: Callable[[int], Optional[bool]], measure: Callable[[int], float],
-               passed: Callable[[list[float]], bool], label: str, fmt: str = "+.1f") -> str:  # fmt: skip
+               passed: Callable[[list[float]], bool], label: str, spec: str = "+.1f") -> str:  # fmt: skip
         """Test a claim: ``measure`` per testable seed, ``passed`` on them all. :return: its result"""
         testable, open_seeds = self.split(condition)
         values = [measure(s) for s in testable]
-        evidence = f"{label} " + ", ".join(f"seed {s}: {v:{fmt}}" for s, v in zip(testable, values))
+        evidence = f"{label} " + ", ".join(f"seed {s}: {v:{spec}}" for s, v in zip(testable, values))
         if len(testable) + len(open_seeds) < 2:
             return self.row(claim, testable, "not testable", f"preconditions held on {len(testable)} seed(s); {evidence}")
         if open_seeds:

@@ -925,19 +925,19 @@ def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path
     student = {"ind": STUDENTS["CRR_indicator"]}
     distill_on_study(output, 0, tmp_path / "whole", student, preset, log=lambda _: None)
 
-    recorded = protocol._generator_states
+    recorded = protocol.write_json_atomic
     calls = []
 
-    def stop_at_the_second_pause() -> dict:
+    def stop_at_the_second_pause(path: str, data: dict) -> None:
         calls.append(1)
         if len(calls) == 2:  # its checkpoint is written, its record is not: the first pause's record still holds
             raise KeyboardInterrupt
-        return recorded()
+        recorded(path, data)
 
-    monkeypatch.setattr(protocol, "_generator_states", stop_at_the_second_pause)
+    monkeypatch.setattr(protocol, "write_json_atomic", stop_at_the_second_pause)
     with pytest.raises(KeyboardInterrupt):
         distill_on_study(output, 0, tmp_path / "parts", student, preset, log=lambda _: None)
-    monkeypatch.setattr(protocol, "_generator_states", recorded)
+    monkeypatch.setattr(protocol, "write_json_atomic", recorded)
     directory = tmp_path / "parts" / "seed_0" / "distill_ind"
     assert json.loads((directory / "paused.json").read_text())["updates"] == 50
     assert sorted(p.name for p in directory.glob("paused_*.zip")) == ["paused_100.zip", "paused_50.zip"]

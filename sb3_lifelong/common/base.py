@@ -37,8 +37,9 @@ SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolic
 
 def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, Any]:
     """
-    Snapshot of every random stream training draws from, in a JSON-serialisable form: torch's global generator,
-    numpy's legacy global generator, Python's ``random``, and the action space's generator (warm-up actions).
+    Snapshot of every random stream training draws from, in a JSON-serialisable form: torch's global generator (and
+    CUDA's, once CUDA is in use), numpy's legacy global generator, Python's ``random``, and the action space's
+    generator (warm-up actions).
 
     :param action_space: the algorithm's action space
     :return: the state, to be passed to :func:`restore_rng_state`
@@ -51,6 +52,8 @@ def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, 
         "numpy": [np_state[0], np_state[1].tolist(), int(np_state[2]), int(np_state[3]), float(np_state[4])],
         "python": [py_version, list(py_internal), py_gauss],
     }
+    if th.cuda.is_available() and th.cuda.is_initialized():
+        state["cuda"] = [device_state.tolist() for device_state in th.cuda.get_rng_state_all()]
     if action_space is not None:
         state["action_space"] = action_space.np_random.bit_generator.state
     return state
@@ -68,6 +71,8 @@ def restore_rng_state(state: dict[str, Any], action_space: Optional[spaces.Space
     np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
     version, internal, gauss = state["python"]
     random.setstate((version, tuple(internal), gauss))
+    if "cuda" in state and th.cuda.is_available():
+        th.cuda.set_rng_state_all([th.tensor(device_state, dtype=th.uint8) for device_state in state["cuda"]])
     if action_space is not None and "action_space" in state:
         action_space.np_random.bit_generator.state = state["action_space"]
 
@@ -424,6 +429,16 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
             return None
         return pending[0]
 
+    def _restore_loaded_rng(self) -> None:
+        """
+        At the first training call after a load, restore the random streams saved with the model again: random numbers
+        drawn between the load and now (e.g. by make_vec_env, or predict) do not change the run.
+        """
+        rng_state = self._pending_rng_state()
+        self.__dict__.pop("_resume_rng", None)
+        if rng_state is not None:
+            restore_rng_state(rng_state, self.action_space)
+
     def _setup_learn(
         self,
         total_timesteps: int,
@@ -432,12 +447,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         tb_log_name: str = "run",
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
-        # the first learn() after a load restores the random streams saved with the model again: random numbers
-        # drawn between the load and now (e.g. by make_vec_env, or predict) do not change the run
-        rng_state = self._pending_rng_state()
-        self.__dict__.pop("_resume_rng", None)
-        if rng_state is not None:
-            restore_rng_state(rng_state, self.action_space)
+        self._restore_loaded_rng()
         self._sync_env_timestep(0 if reset_num_timesteps else self.num_timesteps)
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 

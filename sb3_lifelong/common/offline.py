@@ -210,6 +210,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
                 self.verbose, self.tensorboard_log, tb_log_name or type(self).__name__, reset_num_timesteps
             )
 
+        self._restore_loaded_rng()  # as learn() does: draws since a load do not change the run
         placeholder = self.env is None
         if placeholder:
             self.env = DummyVecEnv([lambda: NoEnvironment(self.observation_space, self.action_space)])

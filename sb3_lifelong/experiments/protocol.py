@@ -46,8 +46,6 @@ from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, Callable, Optional
 
 import gymnasium as gym
-import numpy as np
-import torch
 
 if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skipped elsewhere
     import fcntl
@@ -413,29 +411,8 @@ def sampling_weights(ratio: tuple[float, float], counts: Mapping[int, int]) -> d
 
 
 #: a paused student (``distill_student(..., pause_every=...)``), in the student's directory: what the pause recorded
-#: (updates, the random generators' states, the student's settings, its checkpoint ``paused_<updates>.zip``)
+#: (updates, the student's settings, its checkpoint ``paused_<updates>.zip``, which holds the random streams too)
 PAUSED_STUDENT_RECORD = "paused.json"
-
-
-def _generator_states() -> dict[str, Any]:
-    """The global random generators that offline training draws from (torch's, CUDA's when in use, numpy's), as JSON."""
-    kind, keys, position, has_gauss, gauss = np.random.get_state()
-    states = dict(
-        torch=torch.get_rng_state().tolist(),
-        numpy=[kind, np.asarray(keys).tolist(), int(position), int(has_gauss), float(gauss)],
-    )
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
-        states["cuda"] = [state.tolist() for state in torch.cuda.get_rng_state_all()]
-    return states
-
-
-def _restore_generators(states: Mapping[str, Any]) -> None:
-    """Set the generators recorded by :func:`_generator_states`."""
-    torch.set_rng_state(torch.tensor(states["torch"], dtype=torch.uint8))
-    kind, keys, position, has_gauss, gauss = states["numpy"]
-    np.random.set_state((kind, np.asarray(keys, dtype=np.uint32), position, has_gauss, gauss))
-    if "cuda" in states and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all([torch.tensor(state, dtype=torch.uint8) for state in states["cuda"]])
 
 
 def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None]) -> None:
@@ -538,7 +515,7 @@ class _StudentPauses(BaseCallback):
         forward = getattr(self.model, "_forward", None)
         compiled = forward is not None and forward.compiled is not None  # continued compiled too, as if never stopped
         record = dict(updates=updates, model=checkpoint, settings=self.settings, seconds=seconds, compiled=compiled)
-        write_json_atomic(str(self.directory / PAUSED_STUDENT_RECORD), {**record, "generators": _generator_states()})
+        write_json_atomic(str(self.directory / PAUSED_STUDENT_RECORD), record)
         return seconds
 
     def _on_step(self) -> bool:
@@ -569,9 +546,9 @@ def distill_student(
     """
     Train one offline student on the lifetime buffer (opened read-only) and save it in ``run_dir/distill_<name>``.
 
-    With ``pause_every``, the student pauses every that many updates (a checkpoint, ``paused_<updates>.zip``, and the
-    record that names it, with the random generators' states, ``paused.json``), and a later call continues it from
-    its last pause with the same result as an uninterrupted run; rows its logs gained after that pause are set aside.
+    With ``pause_every``, the student pauses every that many updates (a checkpoint, ``paused_<updates>.zip``, which
+    holds the random streams, and the record that names it, ``paused.json``), and a later call continues it from its
+    last pause with the same result as an uninterrupted run; rows its logs gained after that pause are set aside.
     Without a pause the student starts anew; a pause of other settings is refused.
 
     :param name: the student's name (its settings are ``STUDENTS[name]`` unless ``student`` is given)
@@ -650,7 +627,6 @@ def distill_student(
         forward = getattr(model, "_forward", None)
         if paused.get("compiled") and forward is not None:
             forward.compile()
-        _restore_generators(paused["generators"])
         model.learn_offline(preset.distill_steps - done, reset_num_timesteps=False, **learning)
     model.save(directory / "student.zip")
     # the finished student's record: a stop before the caller writes done.json continues with nothing left to train
