@@ -8,6 +8,7 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import fast_ops, scoring
+from sb3_lifelong.common.hardware import fused_products_supported
 from sb3_lifelong.common.policies import QCritic, mlp_layers, sample_gaussian
 from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, score_actions
 from sb3_lifelong.mpo.losses import dual_value, temperature_loss_and_weights
@@ -36,7 +37,16 @@ def trained_mpo(request):
     return model
 
 
-def test_bf16_scores_within_stated_tolerance(trained_mpo):
+BF16_FUSED = pytest.param(
+    True,
+    marks=pytest.mark.skipif(
+        not fused_products_supported(th.bfloat16), reason="oneDNN fuses bf16 products only with AVX-512 or AMX"
+    ),
+)
+
+
+@pytest.mark.parametrize("fused", [False, BF16_FUSED], ids=["unfused", "fused"])
+def test_bf16_scores_within_stated_tolerance(trained_mpo, fused):
     model = trained_mpo
     th.manual_seed(0)
     batch = model.replay_buffer.sample(256)
@@ -44,8 +54,9 @@ def test_bf16_scores_within_stated_tolerance(trained_mpo):
         mean, std = model.actor_target.distribution_params(batch.next_observations)
         actions = sample_gaussian(mean, std, 20)
         q32 = score_actions(model.critic_target, batch.next_observations, actions)
-        copy = LowPrecisionCopy(model.critic_target, th.bfloat16)
+        copy = LowPrecisionCopy(model.critic_target, th.bfloat16, fused=fused)
         q16 = score_actions(model.critic_target, batch.next_observations, actions, copy)
+    assert copy.fused == fused and bool(copy._packed) == fused  # the fused products ran where asked
     assert q16.dtype == th.float32 and q16.shape == q32.shape == (20, 256)
     spread, scale, error = q32.std(dim=0).mean(), q32.abs().mean(), (q16 - q32).abs()
     assert spread > 0 and error.max() > 0  # the two passes differ: the bf16 pass ran
@@ -324,3 +335,61 @@ def test_crr_categorical_student_scores_in_bf16_when_asked_or_native(monkeypatch
     model.learn(100)
     assert _copy_matches(model._target_scoring_copy)  # the online copy is synced before each use (then it lags)
     assert th.isfinite(th.cat([p.flatten() for p in model.policy.parameters()])).all()
+
+
+def _wide_critic(kind: str) -> th.nn.Module:
+    if kind == "categorical":
+        return _categorical_critic(layer_norm=True, width=128)
+    obs_space, act_space = gym.spaces.Box(-1, 1, (11,)), gym.spaces.Box(-1, 1, (3,))
+    th.manual_seed(0)
+    return QCritic(
+        obs_space, act_space, [128, 128], FlattenExtractor(obs_space), 11, n_critics=2, layer_norm=kind == "layer_norm"
+    )
+
+
+@pytest.mark.skipif(not fused_products_supported(th.float32), reason="this torch build has no oneDNN fused products")
+@pytest.mark.parametrize("kind", ["plain", "layer_norm", "categorical"])
+def test_fused_products_match_the_unfused_pass(kind):
+    """The fused path's arithmetic, checked in float32 (every oneDNN CPU runs it): the exact pass up to summation order;
+    it follows the critic on sync only, and lays its weights out again after each sync."""
+    critic = _wide_critic(kind)
+    copy = LowPrecisionCopy(critic, th.float32, fused=True)
+    obs, actions = th.rand(64, 11) * 2 - 1, th.rand(4, 64, 3) * 2 - 1
+    with th.no_grad():
+        exact, fused = score_actions(critic, obs, actions), score_actions(critic, obs, actions, copy)
+        assert len(copy._packed) == 4  # two hidden layers in each of the two Q-networks
+        th.testing.assert_close(fused, exact, rtol=1e-5, atol=1e-5 * float(exact.abs().mean()))
+        packed = dict(copy._packed)
+        for q_net in critic.q_networks:
+            q_net[0].weight.mul_(1.5)
+        assert th.equal(score_actions(critic, obs, actions, copy), fused)  # not synced: the copy's old weights
+        copy.sync()
+        assert not copy._packed
+        moved, exact_moved = score_actions(critic, obs, actions, copy), score_actions(critic, obs, actions)
+    assert not th.equal(exact_moved, exact) and all(copy._packed[key] is not packed[key] for key in packed)
+    th.testing.assert_close(moved, exact_moved, rtol=1e-5, atol=1e-5 * float(exact_moved.abs().mean()))
+
+
+def test_fused_products_only_where_supported(monkeypatch):
+    critic = _wide_critic("plain")
+    monkeypatch.setattr(scoring, "fused_products_supported", lambda dtype: False)
+    assert not LowPrecisionCopy(critic, th.bfloat16).fused  # the default: unfused where unsupported, no error
+    with pytest.raises(ValueError, match=r"fused products in torch\.bfloat16 are not supported"):
+        LowPrecisionCopy(critic, th.bfloat16, fused=True)
+    monkeypatch.setattr(scoring, "fused_products_supported", lambda dtype: True)
+    assert LowPrecisionCopy(critic, th.bfloat16).fused  # the default where they are: bf16 fused
+    assert not LowPrecisionCopy(critic, th.float32).fused  # float32 only when asked: it gained nothing on an AVX2 CPU
+    assert not LowPrecisionCopy(critic, th.bfloat16, fused=False).fused
+
+
+@pytest.mark.skipif(not fused_products_supported(th.float32), reason="this torch build has no oneDNN fused products")
+def test_a_refused_fused_product_falls_back_with_one_warning():
+    critic = _wide_critic("layer_norm")
+    copy = LowPrecisionCopy(critic, th.float32, fused=True)
+    copy._packed[id(copy.layers[0])] = th.ones(3, 3)  # a weight oneDNN cannot use for this layer
+    obs, actions = th.rand(16, 11) * 2 - 1, th.rand(4, 16, 3) * 2 - 1
+    with th.no_grad(), pytest.warns(UserWarning, match="without fusing"):
+        q = score_actions(critic, obs, actions, copy)
+    assert not copy.fused and not copy._packed
+    with th.no_grad():
+        th.testing.assert_close(q, score_actions(critic, obs, actions), rtol=0, atol=0)  # the unfused float32 pass

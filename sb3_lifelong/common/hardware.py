@@ -60,6 +60,30 @@ def onednn_bf16_kernel(timeout: float = 120.0) -> str:
     return "none: oneDNN did not run the bf16 product (torch's own kernel)"
 
 
+@functools.cache
+def fused_products_supported(dtype: th.dtype) -> bool:
+    """
+    Whether oneDNN can run a ``Linear`` layer as one fused product (bias and ReLU as post-ops, on a weight laid out
+    once) in ``dtype`` on this CPU: torch's private ``mkldnn._linear_pointwise`` and ``mkldnn._reorder_linear_weight``
+    exist, and for bfloat16 oneDNN reports native support (AVX-512 or AMX; it refuses bf16 on an AVX2 CPU). The
+    answer is checked by running a small product once, so a build whose ops are missing or broken reads False.
+
+    :param dtype: ``torch.float32`` or ``torch.bfloat16``
+    :return: whether :class:`sb3_lifelong.common.scoring.LowPrecisionCopy` can use the fused products
+    """
+    mkldnn = getattr(th.ops, "mkldnn", None)
+    if mkldnn is None or not th.backends.mkldnn.is_available() or dtype not in (th.float32, th.bfloat16):
+        return False
+    try:
+        if dtype == th.bfloat16 and not mkldnn._is_mkldnn_bf16_supported():
+            return False
+        weight, bias, x = th.ones(8, 8, dtype=dtype), th.zeros(8, dtype=dtype), th.ones(4, 8, dtype=dtype)
+        out = mkldnn._linear_pointwise(x, mkldnn._reorder_linear_weight(weight, 4), bias, "relu", [], "")
+    except (AttributeError, RuntimeError, NotImplementedError):
+        return False
+    return bool(out.shape == (4, 8) and th.all(out == 8))
+
+
 def machine_description() -> str:
     """:return: one line for a benchmark's results: CPU, its matrix flags, the bf16 kernel, torch and its threads"""
     import platform

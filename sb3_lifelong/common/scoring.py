@@ -11,7 +11,9 @@ Q-networks' outputs become Q-values (a ``q_values_of`` method: the categorical c
 - with a :class:`LowPrecisionCopy` (``scoring_dtype``, :func:`resolve_scoring_dtype`) the hidden layers run in
   bfloat16, a LayerNorm and its tanh in float32 (:func:`_layer_norm_no_grad`), the output layer in float32; the
   first layer is then split into a per-state and a per-sample product when the features are wide
-  (:func:`_first_layer_split`).
+  (:func:`_first_layer_split`); where oneDNN fuses them (a CPU with AVX-512 or AMX), each hidden layer is one
+  product with its bias and ReLU as post-ops, on weights laid out once per sync (:meth:`LowPrecisionCopy.fused_linear`;
+  its outputs are new tensors, not the reused buffers).
 
 **The reused buffers.** They live in ``critic.__dict__["_no_grad_buffers"]``, a dict keyed
 ``(q-network index, slot, rows)``, where ``rows`` is the pass's ``num_samples * batch`` and ``slot`` says which
@@ -28,6 +30,7 @@ A buffer is made again when its shape, dtype or device changes (:func:`_reused_b
 when new, and every pass writes it whole before reading it.
 """
 
+import warnings
 from typing import Callable, Optional, Union, cast
 
 import torch as th
@@ -36,7 +39,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
 from sb3_lifelong.common.fast_ops import relu_in_place, tanh_in_place
-from sb3_lifelong.common.hardware import cpu_has_fast_bf16
+from sb3_lifelong.common.hardware import cpu_has_fast_bf16, fused_products_supported
 
 SCORING_DTYPES = ("auto", "float32", "bfloat16")
 #: narrowest hidden layer for which ``scoring_dtype="auto"`` picks bfloat16: below it the matrices are too small
@@ -136,11 +139,19 @@ class LowPrecisionCopy:
     many sampled actions. The copy does not follow the critic by itself: call :meth:`sync` after every change
     of the critic's weights (a target update, an optimizer step, a load).
 
+    With ``fused``, each hidden ``Linear`` runs as one oneDNN product on a weight laid out once per :meth:`sync`,
+    with its bias and the ReLU after it as post-ops (:meth:`fused_linear`), instead of ``addmm`` then an in-place
+    ReLU: on an AMX CPU the separate bias copy, the ReLU pass and the weight's layout per call cost more than the
+    bf16 product itself (``benchmarks/results/fast_paths.md``).
+
     :param critic: a critic the engine runs (:func:`runs_no_grad_pass`)
     :param dtype: the precision of the copy
+    :param fused: run the hidden layers as fused oneDNN products; ``None`` (default): where they are supported
+        (:func:`~sb3_lifelong.common.hardware.fused_products_supported`) and the copy is bfloat16 on a CPU;
+        ``True`` raises a ``ValueError`` where they are not supported
     """
 
-    def __init__(self, critic: nn.Module, dtype: th.dtype = th.bfloat16) -> None:
+    def __init__(self, critic: nn.Module, dtype: th.dtype = th.bfloat16, fused: Optional[bool] = None) -> None:
         self.critic = critic
         self.dtype = dtype
         self.weights: dict[int, tuple[th.Tensor, Optional[th.Tensor]]] = {}
@@ -149,6 +160,16 @@ class LowPrecisionCopy:
             bias = None if module.bias is None else module.bias.detach().to(dtype)
             # stored transposed and contiguous: the layout addmm reads fastest
             self.weights[id(module)] = (module.weight.detach().t().contiguous().to(dtype), bias)
+        on_cpu = all(parameter.device.type == "cpu" for parameter in critic.parameters())
+        supported = on_cpu and fused_products_supported(dtype)
+        if fused and not supported:
+            raise ValueError(
+                f"fused products in {dtype} are not supported here: they need the critic on a CPU and oneDNN's fused "
+                f"{dtype} inner product (bfloat16 needs AVX-512 or AMX); pass fused=None to use them where they are"
+            )
+        self.fused = (supported and dtype == th.bfloat16) if fused is None else bool(fused)
+        # the fused layers' weights in oneDNN's layout, made at their first use after a sync (from the copy's weights)
+        self._packed: dict[int, th.Tensor] = {}
 
     def _hidden_layers(self) -> list[nn.Linear]:
         """
@@ -169,6 +190,31 @@ class LowPrecisionCopy:
             weight.copy_(module.weight.t())
             if bias is not None:
                 bias.copy_(module.bias)
+        self._packed.clear()
+
+    def fused_linear(self, module: nn.Linear, x: th.Tensor, then_relu: bool) -> Optional[th.Tensor]:
+        """
+        One hidden layer of the copy as a fused oneDNN product: ``relu(x W^T + b)`` when ``then_relu``, else
+        ``x W^T + b``, in the copy's precision.
+
+        :param module: a hidden ``Linear`` of the critic (one of :attr:`layers`)
+        :param x: its input ``[rows, in_features]``, contiguous, in the copy's dtype
+        :param then_relu: apply the ReLU that follows the layer
+        :return: the output (a new tensor), or None when oneDNN refused the product: the copy then warns once and
+            stops fusing (the caller runs the layer the unfused way)
+        """
+        mkldnn = th.ops.mkldnn
+        try:
+            packed = self._packed.get(id(module))
+            if packed is None:
+                weight_t, _ = self.weights[id(module)]
+                packed = self._packed[id(module)] = mkldnn._reorder_linear_weight(weight_t.t().contiguous(), x.shape[0])
+            return mkldnn._linear_pointwise(x, packed, self.weights[id(module)][1], "relu" if then_relu else "none", [], "")
+        except RuntimeError as error:
+            warnings.warn(f"the fused {self.dtype} product failed ({error}); scoring goes on without fusing", stacklevel=2)
+            self.fused = False
+            self._packed.clear()
+            return None
 
 
 def _reused_buffer(
@@ -217,6 +263,14 @@ def _run_mlp_no_grad(
         if position < first:
             continue
         if isinstance(module, nn.Linear):
+            if low_precision is not None and low_precision.fused and id(module) in low_precision.weights:
+                then_relu = position + 1 < len(mlp) and isinstance(mlp[position + 1], nn.ReLU)
+                fused = low_precision.fused_linear(module, x.contiguous(), then_relu)
+                if fused is not None:
+                    x, owned = fused, True
+                    if then_relu:
+                        first = position + 2  # the ReLU is applied
+                    continue
             if low_precision is not None and id(module) in low_precision.weights:
                 weight_t, bias = low_precision.weights[id(module)]
             else:
