@@ -502,17 +502,33 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
     if q_frames:
         for index, path in enumerate(curves):
             frame = q_frames.get(path.with_name("collect_q_sources.csv"))
-            if frame is None:
-                continue
             seed, style = path.parent.name.split("_")[1], ("-", "--", ":", "-.")[index % 4]
-            for env, color in (("Env-A", "C0"), ("Env-B", "C1")):
-                rows = frame[(frame["name"] == env) & frame["overestimation"].notna()]
-                label = f"on {env} data (seed {seed})"
-                low.plot(rows["timesteps"], rows["overestimation"], color=color, ls=style, marker=".", label=label)
+            if frame is not None:
+                for env, color in (("Env-A", "C0"), ("Env-B", "C1")):
+                    rows = frame[(frame["name"] == env) & frame["overestimation"].notna()]
+                    label = f"on {env} data (seed {seed})"
+                    low.plot(rows["timesteps"], rows["overestimation"], color=color, ls=style, marker=".", label=label)
+                continue
+            measured = path.with_name("collector.json")
+            if not measured.exists():
+                continue
+            # a seed collected before the per-source log: its points measured afterwards (`run`) on the final buffer by
+            # the critics at the switch and at the end (the switch's critic on Env-B data, which came later, is not
+            # what the line of a logged seed shows there, so it is left out)
+            record = json.loads(measured.read_text())
+            for env, color, when in (("Env-A", "C0", ("stage1", "final")), ("Env-B", "C1", ("final",))):
+                keys = [f"{moment}_overestimation_{env}" for moment in when]
+                steps = [preset.stage_steps[0] if moment == "stage1" else sum(preset.stage_steps) for moment in when]
+                if all(key in record for key in keys):
+                    names = {"stage1": "switch", "final": "end"}
+                    label = f"on {env} data (seed {seed}; {' and '.join(names[m] for m in when)} only)"
+                    low.plot(steps, [record[key] for key in keys], color=color, ls="", marker="D", ms=5, label=label)
         low.axvline(preset.stage_steps[0], color="k", ls="--", lw=1)
         low.axhline(0, color="grey", lw=0.8)
         missing = [
-            path.parent.name.split("_")[1] for path in curves if path.with_name("collect_q_sources.csv") not in q_frames
+            path.parent.name.split("_")[1]
+            for path in curves
+            if path.with_name("collect_q_sources.csv") not in q_frames and not path.with_name("collector.json").exists()
         ]
         note = f" (not recorded for seed {', '.join(missing)})" if missing else ""
         low.set_title(f"MPO's critic: mean Q minus the data's discounted return{note}", fontsize=9)
@@ -728,7 +744,9 @@ def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> 
     testable = [s for s in sorted(data) if pre[s]["P1_agent"]]
     drops = {s: 1 - data[s][0]["end_last5_Env-A"] / data[s][0]["stage1_last5_Env-A"] for s in testable}
     if len(testable) >= 2 and any(d <= 0 for d in drops.values()):
-        evidence = "drops " + ", ".join(f"seed {s}: {d:+.0%}" for s, d in drops.items())
+        evidence = "MPO's Env-A return at the end against the frozen agent: " + ", ".join(
+            f"seed {s}: {-d:+.0%}" for s, d in drops.items()
+        )
         v.row(c1, testable, "not reproduced", evidence + " (every testable seed must be lower)")
     else:
         v.decide(c1, lambda s: pre[s]["P1_agent"], lambda s: drops[s], lambda d: bool(np.mean(d) >= 0.2), "drops", "+.0%")
