@@ -821,13 +821,17 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
             if curves:
                 ax.plot(range(len(doses)), np.nanmean(curves, axis=0), color=color, lw=2.5, marker="o",
                         label=f"{label} (n={len(curves)})")  # fmt: skip
-        stage1 = [c[f"stage1_last5_{env}"] for c, _ in data.values() if not math.isnan(c[f"stage1_last5_{env}"])]
-        if stage1:  # (an adopted Stage-1 was evaluated in Env-A only)
-            ax.axhline(np.mean(stage1), color="k", ls="--", lw=1, label="MPO at the switch (Stage-1)")
+        # the collector's references over the seeds that have students, so that lines and points share their seeds
+        with_students = [c for c, students in data.values() if students]
+        for key, style, name in (("stage1_last5", "--", "MPO at the switch (Stage-1)"), ("end_last5", "-.", "MPO at the end")):
+            values = [c[f"{key}_{env}"] for c in with_students if not math.isnan(c.get(f"{key}_{env}", math.nan))]
+            if values:  # (an adopted Stage-1 was evaluated in Env-A only)
+                ax.axhline(np.mean(values), color="k", ls=style, lw=1, label=f"{name} (n={len(values)})")
         if env == "Env-A":
             a_only = [s["A_only"]["return_Env-A"] for _, s in data.values() if "A_only" in s]
             if a_only:
-                ax.axhline(np.mean(a_only), color="C2", ls=":", lw=1.5, label="Env-A-only student")
+                ax.axhline(np.mean(a_only), color="C2", ls=":", lw=1.5, label=f"Env-A-only student (n={len(a_only)})")
+        ax.set_ylim(bottom=min(0.0, ax.get_ylim()[0]))  # from zero: a drop reads at its size
         ax.set_xticks(range(len(doses)), ["x1, 1:5", "x3, 1:5", "x1, 1:20"])
         ax.set_xlabel("dose: Env-B reward scale, Env-A : Env-B share")
         ax.set_ylabel(f"return in {env} (last 3 evaluations)")
