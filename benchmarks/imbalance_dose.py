@@ -45,6 +45,8 @@ TARGET_ESS = 0.9
 #: the doses: Env-B reward scale and the Env-A : Env-B sampling share
 DOSES = {"x1_1to5": (1.0, (1, 5)), "x3_1to5": (3.0, (1, 5)), "x1_1to20": (1.0, (1, 20))}
 BASE_DOSE = "x1_1to5"
+#: the students trained on one source's data: the references of the doses
+REFERENCES = ("A_only", "B_only")
 #: the transforms: the indicator, and exp at a fixed effective sample size
 TRANSFORMS = {"ind": dict(advantage_transform="indicator"), "ess": dict(advantage_transform="exp", target_ess=TARGET_ESS)}
 #: the score of an evaluated policy: the mean of its last evaluations (students) / of the collector's
@@ -61,11 +63,14 @@ LEARNT_MARGIN = 1000.0
 
 
 def student_settings(support: dict[str, float]) -> dict[str, Any]:
-    """The seven students of a seed, all with the same categorical support (it holds the x3 rewards)."""
+    """The eight students of a seed, all with the same categorical support (it holds the x3 rewards): the seven of the
+    pre-registration, and ``B_only``, the secondary design's reference."""
     from sb3_lifelong.experiments.presets import Student
 
     network = {"policy_kwargs": dict(support)}
     students = {"A_only": Student("CRR", {**TRANSFORMS["ind"], **network}, ratio=(1, 0), about="indicator, Env-A only")}
+    # the secondary design's reference (README, "Students against the students' reference"): P2s
+    students["B_only"] = Student("CRR", {**TRANSFORMS["ind"], **network}, ratio=(0, 1), about="indicator, Env-B only")
     for transform, kwargs in TRANSFORMS.items():
         for dose, (reward, share) in DOSES.items():
             students[f"{transform}_{dose}"] = Student(
@@ -382,6 +387,10 @@ def seed_preconditions(robot: str, collector: dict[str, Any], students: dict[str
     p["P1"] = holds(p["P1_agent"], None if math.isnan(a_only) else a_only >= A_ONLY_SHARE * reference)
     p["end_Env-A"] = collector["end_last5_Env-A"]
     p["P2"] = collector["end_last5_Env-A"] <= FORGETTING_SHARE * reference
+    # the secondary design's P2s: the Env-B data alone does not teach Env-A (pending until both students finished)
+    b_only = students.get("B_only", {}).get("return_Env-A", math.nan)
+    p["B_only_Env-A"] = b_only
+    p["P2s"] = None if math.isnan(a_only) or math.isnan(b_only) else bool(b_only <= FORGETTING_SHARE * a_only)
     for reward in sorted({r for r, _ in DOSES.values()}):
         a, b = collector[f"mc_return_x{reward:g}_Env-A"], collector[f"mc_return_x{reward:g}_Env-B"]
         p[f"gap_x{reward:g}"] = b / a if a > 0 else math.nan
@@ -430,7 +439,7 @@ def report(args: argparse.Namespace) -> None:
             f"| {r['claim']} | {r['seeds']} | {r['preconditions_held']} | {r['result']} | {r['evidence']} |" for r in rows
         ]
         lines.append("")
-        if any(name != "A_only" for _, students in data.values() for name in students):  # not before a dosed student
+        if any(name not in REFERENCES for _, students in data.values() for name in students):  # not before a dosed student
             figure(robot, data, root)
     with open(root / "claims.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=["robot", "claim", "seeds", "preconditions_held", "result", "evidence"])
@@ -642,7 +651,7 @@ def collector_table(data: dict[int, Any]) -> list[str]:
 
 
 def student_table(data: dict[int, Any]) -> list[str]:
-    names = sorted({name for _, students in data.values() for name in students}, key=lambda n: (n != "A_only", n))
+    names = sorted({name for _, students in data.values() for name in students}, key=lambda n: (n not in REFERENCES, n))
     if not names:
         return ["(no student finished yet)", ""]
     lines = ["| student | Env-A return (last 3 evals) | Env-B return | overestimation on A | weight ESS | clip | beta "
@@ -662,15 +671,17 @@ def student_table(data: dict[int, Any]) -> list[str]:
 
 
 def precondition_table(pre: dict[int, dict[str, Any]]) -> list[str]:
-    lines = ["| seed | P1 Stage-1 in A | P1 A_only in A | P2 end in A | P3 value gap B/A x1 | x3 | P4 ESS min / clip max |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    lines = ["| seed | P1 Stage-1 in A | P1 A_only in A | P2 end in A | P2s B_only in A | P3 value gap B/A x1 | x3 "
+             "| P4 ESS min / clip max |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     mark = {True: "held", False: "failed", None: "pending"}
     for seed, p in sorted(pre.items()):
         a_only = "no student yet" if math.isnan(p["A_only_Env-A"]) else f"{p['A_only_Env-A']:.0f}"
         ess = "no student yet" if math.isnan(p["ess_min"]) else f"{p['ess_min']:.2f} / {p['clip_max']:.3f}"
+        b_only = "no student yet" if math.isnan(p["B_only_Env-A"]) else f"{p['B_only_Env-A']:.0f}"
         lines.append(
             f"| {seed} | {p['stage1_Env-A']:.0f} ({mark[p['P1_agent']]}) | {a_only} ({mark[p['P1']]}) "
-            f"| {p['end_Env-A']:.0f} ({mark[p['P2']]}) | {p['gap_x1']:.2f} ({mark[p['P3_x1']]}) "
+            f"| {p['end_Env-A']:.0f} ({mark[p['P2']]}) | {b_only} ({mark[p['P2s']]}) "
+            f"| {p['gap_x1']:.2f} ({mark[p['P3_x1']]}) "
             f"| {p['gap_x3']:.2f} ({mark[p['P3_x3']]}) | {ess} ({mark[p['P4']]}) |"
         )
     return [*lines, ""]
@@ -753,6 +764,9 @@ def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> 
     for dose in DOSES:
         if dose != BASE_DOSE:
             dose_claims(v, dose)
+    for dose in DOSES:  # the secondary design: the same claims with P2s in place of P2
+        if dose != BASE_DOSE:
+            dose_claims(v, dose, secondary=True)
     # C5: the collector's overestimation on Env-A data grows after the switch
     v.decide(
         "C5 MPO's overestimation on A grows after the switch",
@@ -764,24 +778,28 @@ def claims(robot: str, data: dict[int, Any], pre: dict[int, dict[str, Any]]) -> 
     return v.rows
 
 
-def dose_claims(v: Verdicts, dose: str) -> None:
-    """C2, C3 and C4 at one dose."""
+def dose_claims(v: Verdicts, dose: str, secondary: bool = False) -> None:
+    """
+    C2, C3 and C4 at one dose; with ``secondary``, the secondary design's S2, S3 and S4: the same claims and criteria
+    with P2s (the ``B_only`` student fails in Env-A) in place of P2 (the collector forgot).
+    """
     pre, needs_gap = v.pre, DOSES[dose][0] != 1.0
+    changed, prefix = ("P2s", "S") if secondary else ("P2", "C")
 
     def c2_condition(s: int) -> Optional[bool]:
-        return holds(pre[s]["P1"], pre[s]["P2"], pre[s]["P3_x3"] or not needs_gap, measured(v.dose_drop(s, "ind", dose)))
+        return holds(pre[s]["P1"], pre[s][changed], pre[s]["P3_x3"] or not needs_gap, measured(v.dose_drop(s, "ind", dose)))
 
     c2 = v.decide(
-        f"C2 indicator drops in A at {dose}",
+        f"{prefix}2 indicator drops in A at {dose}",
         c2_condition,
         lambda s: v.dose_drop(s, "ind", dose),
         lambda drops: bool(np.mean(drops) >= 0.1 and sum(d > 0 for d in drops) >= 2),
         "drop / A_only",
         "+.0%",
     )
-    c3 = f"C3 ESS student flat at {dose}"  # needs C2 passed and P4
+    c3 = f"{prefix}3 ESS student flat at {dose}"  # needs C2 passed and P4
     if c2 != "reproduced":
-        v.row(c3, [], "pending" if c2 == "pending" else "not testable", f"C2 {c2}: " + (
+        v.row(c3, [], "pending" if c2 == "pending" else "not testable", f"{prefix}2 {c2}: " + (
             "waiting for it" if c2 == "pending" else "no drop to stay flat against"))  # fmt: skip
     else:
         v.decide(
@@ -793,8 +811,8 @@ def dose_claims(v: Verdicts, dose: str) -> None:
             "+.0%",
         )
     v.decide(
-        f"C4 overestimation on A rises at {dose}",
-        lambda s: holds(pre[s]["P1"], pre[s]["P2"], measured(v.overestimation_rise(s, dose))),
+        f"{prefix}4 overestimation on A rises at {dose}",
+        lambda s: holds(pre[s]["P1"], pre[s][changed], measured(v.overestimation_rise(s, dose))),
         lambda s: v.overestimation_rise(s, dose),
         lambda rises: bool(np.mean(rises) > 0),
         "rise",
@@ -827,10 +845,10 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
             values = [c[f"{key}_{env}"] for c in with_students if not math.isnan(c.get(f"{key}_{env}", math.nan))]
             if values:  # (an adopted Stage-1 was evaluated in Env-A only)
                 ax.axhline(np.mean(values), color="k", ls=style, lw=1, label=f"{name} (n={len(values)})")
-        if env == "Env-A":
-            a_only = [s["A_only"]["return_Env-A"] for _, s in data.values() if "A_only" in s]
-            if a_only:
-                ax.axhline(np.mean(a_only), color="C2", ls=":", lw=1.5, label=f"Env-A-only student (n={len(a_only)})")
+        for name, color, label in (("A_only", "C2", "Env-A-only student"), ("B_only", "C1", "Env-B-only student")):
+            reference = [s[name][f"return_{env}"] for _, s in data.values() if name in s]
+            if reference:
+                ax.axhline(np.mean(reference), color=color, ls=":", lw=1.5, label=f"{label} (n={len(reference)})")
         ax.set_ylim(bottom=min(0.0, ax.get_ylim()[0]))  # from zero: a drop reads at its size
         ax.set_xticks(range(len(doses)), ["x1, 1:5", "x3, 1:5", "x1, 1:20"])
         ax.set_xlabel("dose: Env-B reward scale, Env-A : Env-B share")

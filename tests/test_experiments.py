@@ -691,7 +691,7 @@ def test_bench_crr_levers_lean_adam_is_adams_update(monkeypatch: pytest.MonkeyPa
 
 
 def test_imbalance_dose_study(study, tmp_path):
-    """benchmarks/imbalance_dose.py: the collector measured, the seven dose students, preconditions and claims."""
+    """benchmarks/imbalance_dose.py: the collector measured, the eight students, preconditions and claims."""
     import argparse
 
     dose = benchmark_module("imbalance_dose")
@@ -713,7 +713,7 @@ def test_imbalance_dose_study(study, tmp_path):
     assert collector["mc_return_x3_Env-B"] == pytest.approx(3 * collector["mc_return_x1_Env-B"])  # the reward dose
     assert collector["mc_return_x3_Env-A"] == pytest.approx(collector["mc_return_x1_Env-A"])
     summary = json.loads((results / "tiny" / "seed_0" / "students.json").read_text())
-    assert set(summary["students"]) == {"A_only", *(f"{t}_{d}" for t in ("ind", "ess") for d in dose.DOSES)}
+    assert set(summary["students"]) == {"A_only", "B_only", *(f"{t}_{d}" for t in ("ind", "ess") for d in dose.DOSES)}
     ess = summary["students"]["ess_x1_1to5"]
     assert ess["weight_ess"] == pytest.approx(dose.TARGET_ESS, abs=0.01) and ess["beta"] > 0
     assert np.isnan(summary["students"]["ind_x1_1to5"]["beta"])
@@ -727,7 +727,7 @@ def test_imbalance_dose_study(study, tmp_path):
     assert rerun is None
     where = argparse.Namespace(robot="tiny", updates=60, runs=str(tmp_path), study=str(output),
                                students_output=str(tmp_path / "students"))  # fmt: skip
-    assert "seed 0: collection finished; students done 7 of 7" in "\n".join(dose.progress(where))
+    assert "seed 0: collection finished; students done 8 of 8" in "\n".join(dose.progress(where))
     dose.report(argparse.Namespace(results=str(results)))
     claims = pd.read_csv(results / "claims.csv")
     assert {"claim", "preconditions_held", "result"} <= set(claims.columns)
@@ -991,9 +991,9 @@ def test_imbalance_dose_claims_wait_for_missing_seeds_and_students():
             out.update({f"mc_return_x{scale}_Env-A": 170.0, f"mc_return_x{scale}_Env-B": 330.0 * scale})
         return out
 
-    def students(drop: float) -> dict:
+    def students(drop: float, b_only: float = 1000.0) -> dict:
         ind = {"x1_1to5": 3000.0, "x3_1to5": 3000.0 - drop, "x1_1to20": 3000.0 - drop}
-        rows = {"A_only": {"return_Env-A": 3500.0}}
+        rows = {"A_only": {"return_Env-A": 3500.0}, "B_only": {"return_Env-A": b_only}}
         for name, value in ind.items():
             rows[f"ind_{name}"] = {"return_Env-A": value, "overestimation_Env-A": 100.0 + (3000.0 - value) / 10}
             rows[f"ess_{name}"] = {"return_Env-A": 3000.0, "weight_ess": 0.9, "weight_clip_frac": 0.0}
@@ -1028,3 +1028,20 @@ def test_imbalance_dose_claims_wait_for_missing_seeds_and_students():
     assert flat["C3 ESS student flat at x1_1to20"] == "not testable"
     waiting = verdicts({0: (collector(2000.0), students(800.0)), 1: (collector(2000.0), {})})  # seed 1's students run
     assert waiting["C2 indicator drops in A at x3_1to5"] == "pending"
+
+    # the secondary design: P2s (the B_only student fails in Env-A) in place of P2, so collectors that did not forget
+    # test the student claims where the Env-B data alone does not teach Env-A
+    kept = verdicts({seed: (collector(4700.0), students(800.0)) for seed in (0, 1, 2)})
+    assert kept["C2 indicator drops in A at x3_1to5"] == "not testable"  # P2 failed everywhere
+    assert (
+        kept["S2 indicator drops in A at x3_1to5"] == "reproduced" and kept["S3 ESS student flat at x3_1to5"] == "reproduced"
+    )
+    assert kept["S4 overestimation on A rises at x1_1to20"] == "reproduced"
+    transfers = verdicts({seed: (collector(4700.0), students(800.0, b_only=3400.0)) for seed in (0, 1, 2)})
+    assert transfers["S2 indicator drops in A at x1_1to20"] == "not testable"  # 3400 > 0.8 x 3500: Env-B data teaches A
+    pre = dose.seed_preconditions("cheetah_hip", collector(4700.0), {"A_only": {"return_Env-A": 3500.0}})
+    assert pre["P2s"] is None  # B_only has not finished
+    assert (
+        verdicts({0: (collector(4700.0), {"A_only": {"return_Env-A": 3500.0}})})["S2 indicator drops in A at x3_1to5"]
+        == "pending"
+    )
