@@ -525,12 +525,12 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
             # the critics at the switch and at the end (the switch's critic on Env-B data, which came later, is not
             # what the line of a logged seed shows there, so it is left out)
             record = json.loads(measured.read_text())
-            for env, color, when in (("Env-A", "C0", ("stage1", "final")), ("Env-B", "C1", ("final",))):
-                keys = [f"{moment}_overestimation_{env}" for moment in when]
-                steps = [preset.stage_steps[0] if moment == "stage1" else sum(preset.stage_steps) for moment in when]
+            switch, end = (preset.stage_steps[0], "stage1"), (sum(preset.stage_steps), "final")
+            for env, color, points, when in (("Env-A", "C0", (switch, end), "switch and end"), ("Env-B", "C1", (end,), "end")):
+                keys = [f"{moment}_overestimation_{env}" for _, moment in points]
                 if all(key in record for key in keys):
-                    names = {"stage1": "switch", "final": "end"}
-                    label = f"on {env} data (seed {seed}; {' and '.join(names[m] for m in when)} only)"
+                    label = f"on {env} data (seed {seed}; {when} only)"
+                    steps = [step for step, _ in points]
                     low.plot(steps, [record[key] for key in keys], color=color, ls="", marker="D", ms=5, label=label)
         low.axvline(preset.stage_steps[0], color="k", ls="--", lw=1)
         low.axhline(0, color="grey", lw=0.8)
