@@ -2,7 +2,9 @@
 MPO's target pass (``num_samples x batch`` rows through the target critic, no autograd) with the hidden layers as
 fused oneDNN products (bias and ReLU as post-ops, weights laid out once per sync:
 ``sb3_lifelong.common.scoring.LowPrecisionCopy(fused=True)``) against the same precision unfused (``addmm`` into a
-reused buffer, then an in-place ReLU) and against the exact float32 pass without a copy.
+reused buffer, then an in-place ReLU) and against the exact float32 pass without a copy. With the LayerNorm torso,
+each copy also runs with its LayerNorm and tanh in the copy's precision (``layer_norm_in_copy=True``, the fused
+copy's default) and in float32 (converted there and back, the unfused copy's default).
 
 A variant this CPU cannot run reads ``n/a`` (oneDNN fuses bfloat16 only with AVX-512 or AMX). Each variant's Q-values
 are compared with the exact pass's (largest error over the mean |Q|). One process, one torch thread, the variants
@@ -63,7 +65,11 @@ def main() -> None:
     for dtype in (th.float32, th.bfloat16):
         name = str(dtype).removeprefix("torch.")
         variants[f"{name}, unfused"] = LowPrecisionCopy(critic, dtype, fused=False)
+        if args.layer_norm == "on":
+            variants[f"{name}, unfused, LayerNorm in copy"] = LowPrecisionCopy(critic, dtype, False, True)
         if fused_products_supported(dtype):
+            if args.layer_norm == "on":
+                variants[f"{name}, fused, LayerNorm in float32"] = LowPrecisionCopy(critic, dtype, True, False)
             variants[f"{name}, fused"] = LowPrecisionCopy(critic, dtype, fused=True)
     errors: dict[str, float] = {}
     with th.no_grad():
@@ -83,7 +89,12 @@ def main() -> None:
         "| --- | --- | --- | --- |",
     ]
     results: dict[str, Any] = {}
-    for name in ["float32, no copy (exact)", "float32, unfused", "float32, fused", "bfloat16, unfused", "bfloat16, fused"]:
+    names = ["float32, no copy (exact)"]
+    for dtype_name in ("float32", "bfloat16"):
+        for kind in ("unfused", "unfused, LayerNorm in copy", "fused, LayerNorm in float32", "fused"):
+            if args.layer_norm == "on" or "LayerNorm" not in kind:
+                names.append(f"{dtype_name}, {kind}")
+    for name in names:
         if name not in times:
             rows.append(f"| {name} | n/a | n/a | n/a |")
             results[name] = None

@@ -37,16 +37,17 @@ def trained_mpo(request):
     return model
 
 
-BF16_FUSED = pytest.param(
-    True,
-    marks=pytest.mark.skipif(
-        not fused_products_supported(th.bfloat16), reason="oneDNN fuses bf16 products only with AVX-512 or AMX"
-    ),
+BF16_FUSED = pytest.mark.skipif(
+    not fused_products_supported(th.bfloat16), reason="oneDNN fuses bf16 products only with AVX-512 or AMX"
 )
 
 
-@pytest.mark.parametrize("fused", [False, BF16_FUSED], ids=["unfused", "fused"])
-def test_bf16_scores_within_stated_tolerance(trained_mpo, fused):
+@pytest.mark.parametrize(
+    "fused, layer_norm_in_copy",
+    [(False, False), (False, True), pytest.param(True, True, marks=BF16_FUSED)],
+    ids=["unfused", "norm_in_bf16", "fused"],
+)
+def test_bf16_scores_within_stated_tolerance(trained_mpo, fused, layer_norm_in_copy):
     model = trained_mpo
     th.manual_seed(0)
     batch = model.replay_buffer.sample(256)
@@ -55,6 +56,7 @@ def test_bf16_scores_within_stated_tolerance(trained_mpo, fused):
         actions = sample_gaussian(mean, std, 20)
         q32 = score_actions(model.critic_target, batch.next_observations, actions)
         copy = LowPrecisionCopy(model.critic_target, th.bfloat16, fused=fused)
+        copy.layer_norm_in_copy = layer_norm_in_copy  # the fused default, or forced on a CPU that does not fuse
         q16 = score_actions(model.critic_target, batch.next_observations, actions, copy)
     assert copy.fused == fused and bool(copy._packed) == fused  # the fused products ran where asked
     assert q16.dtype == th.float32 and q16.shape == q32.shape == (20, 256)
@@ -222,6 +224,27 @@ def test_layer_norm_torso_in_low_precision_matches_its_modules():
     assert th.equal(plain, torso[1](hidden.float()).to(th.bfloat16))
 
 
+def test_layer_norm_in_the_copys_precision():
+    """``layer_norm_in_copy``: one bf16 pass whose result is the modules' float32 one within a bf16 step (the tanh
+    runs on the rounded normalisation: its slope, at most 1, keeps that rounding's error below one more half-step)."""
+    th.manual_seed(0)
+    torso = th.nn.Sequential(*mlp_layers(23, 1, [256, 256], th.nn.ReLU, layer_norm=True))
+    with th.no_grad():
+        torso[1].weight.uniform_(0.5, 1.5)
+        torso[1].bias.uniform_(-0.5, 0.5)
+    hidden = (th.randn(64, 256) * 3).to(th.bfloat16)
+    holder = th.nn.Module()
+    with th.no_grad():
+        result = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True, in_copy=True)
+        expected = th.tanh(torso[1](hidden.float()))
+        assert result.dtype == th.bfloat16 and result.shape == (64, 256)
+        assert (result.float() - expected).abs().max() <= 2**-8
+        assert (result.float() - expected).abs().max() > 0  # rounded: the bf16 pass ran
+        assert result is scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True, in_copy=True)
+        plain = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=False, in_copy=True)
+        th.testing.assert_close(plain.float(), torso[1](hidden.float()), rtol=2**-8, atol=1e-6)
+
+
 def test_machine_description_names_the_matrix_flags_and_the_bf16_kernel(monkeypatch):
     from sb3_lifelong.common import hardware
 
@@ -380,6 +403,11 @@ def test_fused_products_only_where_supported(monkeypatch):
     assert LowPrecisionCopy(critic, th.bfloat16).fused  # the default where they are: bf16 fused
     assert not LowPrecisionCopy(critic, th.float32).fused  # float32 only when asked: it gained nothing on an AVX2 CPU
     assert not LowPrecisionCopy(critic, th.bfloat16, fused=False).fused
+    # the LayerNorm runs in the copy's precision where the products are fused, unless asked otherwise
+    assert LowPrecisionCopy(critic, th.bfloat16).layer_norm_in_copy
+    assert not LowPrecisionCopy(critic, th.bfloat16, layer_norm_in_copy=False).layer_norm_in_copy
+    assert not LowPrecisionCopy(critic, th.bfloat16, fused=False).layer_norm_in_copy
+    assert LowPrecisionCopy(critic, th.bfloat16, fused=False, layer_norm_in_copy=True).layer_norm_in_copy
 
 
 @pytest.mark.skipif(not fused_products_supported(th.float32), reason="this torch build has no oneDNN fused products")
@@ -390,6 +418,6 @@ def test_a_refused_fused_product_falls_back_with_one_warning():
     obs, actions = th.rand(16, 11) * 2 - 1, th.rand(4, 16, 3) * 2 - 1
     with th.no_grad(), pytest.warns(UserWarning, match="without fusing"):
         q = score_actions(critic, obs, actions, copy)
-    assert not copy.fused and not copy._packed
+    assert not copy.fused and not copy.layer_norm_in_copy and not copy._packed  # as if made with fused=False
     with th.no_grad():
         th.testing.assert_close(q, score_actions(critic, obs, actions), rtol=0, atol=0)  # the unfused float32 pass
