@@ -3,8 +3,8 @@ MPO's target pass (``num_samples x batch`` rows through the target critic, no au
 fused oneDNN products (bias and ReLU as post-ops, weights laid out once per sync:
 ``sb3_lifelong.common.scoring.LowPrecisionCopy(fused=True)``) against the same precision unfused (``addmm`` into a
 reused buffer, then an in-place ReLU) and against the exact float32 pass without a copy. With the LayerNorm torso,
-each copy also runs with its LayerNorm and tanh in the copy's precision (``layer_norm_in_copy=True``, the fused
-copy's default) and in float32 (converted there and back, the unfused copy's default).
+each copy also runs with its LayerNorm and tanh as one compiled kernel (``compile_layer_norm``, what a compiled update
+uses; compiled in the warm-up round), besides the eager way (converted to float32, normalised, converted back).
 
 A variant this CPU cannot run reads ``n/a`` (oneDNN fuses bfloat16 only with AVX-512 or AMX). Each variant's Q-values
 are compared with the exact pass's (largest error over the mean |Q|). One process, one torch thread, the variants
@@ -26,6 +26,7 @@ import numpy as np
 import torch as th
 
 from sb3_lifelong import MPO
+from sb3_lifelong.common.compiling import can_compile
 from sb3_lifelong.common.hardware import fused_products_supported, machine_description
 from sb3_lifelong.common.policies import sample_gaussian
 from sb3_lifelong.common.scoring import LowPrecisionCopy, score_actions
@@ -64,13 +65,14 @@ def main() -> None:
     variants: dict[str, Optional[LowPrecisionCopy]] = {"float32, no copy (exact)": None}
     for dtype in (th.float32, th.bfloat16):
         name = str(dtype).removeprefix("torch.")
-        variants[f"{name}, unfused"] = LowPrecisionCopy(critic, dtype, fused=False)
-        if args.layer_norm == "on":
-            variants[f"{name}, unfused, LayerNorm in copy"] = LowPrecisionCopy(critic, dtype, False, True)
-        if fused_products_supported(dtype):
-            if args.layer_norm == "on":
-                variants[f"{name}, fused, LayerNorm in float32"] = LowPrecisionCopy(critic, dtype, True, False)
-            variants[f"{name}, fused"] = LowPrecisionCopy(critic, dtype, fused=True)
+        for fused in (False, True):
+            if fused and not fused_products_supported(dtype):
+                continue
+            kind = f"{name}, {'fused' if fused else 'unfused'}"
+            variants[kind] = LowPrecisionCopy(critic, dtype, fused=fused)
+            if args.layer_norm == "on" and can_compile(th.device("cpu")):
+                variants[f"{kind}, LayerNorm compiled"] = copy = LowPrecisionCopy(critic, dtype, fused=fused)
+                copy.compile_layer_norm = True
     errors: dict[str, float] = {}
     with th.no_grad():
         for name, copy in variants.items():
@@ -91,7 +93,7 @@ def main() -> None:
     results: dict[str, Any] = {}
     names = ["float32, no copy (exact)"]
     for dtype_name in ("float32", "bfloat16"):
-        for kind in ("unfused", "unfused, LayerNorm in copy", "fused, LayerNorm in float32", "fused"):
+        for kind in ("unfused", "unfused, LayerNorm compiled", "fused", "fused, LayerNorm compiled"):
             if args.layer_norm == "on" or "LayerNorm" not in kind:
                 names.append(f"{dtype_name}, {kind}")
     for name in names:

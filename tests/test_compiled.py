@@ -100,6 +100,10 @@ def test_compiled_training_keeps_the_bf16_scoring_passes(data, monkeypatch):
     compiled = student(data, compile_losses=True, scoring_dtype="bfloat16").learn_offline(6, log_interval=0)
     assert compiled._forward.compiled is not None and not compiled._forward.failed
     assert eager_calls == 12 and len(calls) == 24  # target and baseline, each update, on the engine
+    # the copies' LayerNorm and tanh: one compiled kernel in the compiled update, the eager way in the eager one
+    for model, compiles in ((eager, False), (compiled, True)):
+        for copy in (model._target_scoring_copy, model._online_scoring_copy):
+            assert copy.compile_layer_norm == compiles and (copy._layer_norm_tanh.compiled is not None) == compiles
     difference = (flat_params(compiled) - flat_params(eager)).abs().max()
     assert difference <= 1e-4, float(difference)
 

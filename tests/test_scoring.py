@@ -7,7 +7,7 @@ import torch as th
 from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
-from sb3_lifelong.common import fast_ops, scoring
+from sb3_lifelong.common import compiling, fast_ops, scoring
 from sb3_lifelong.common.hardware import fused_products_supported
 from sb3_lifelong.common.policies import QCritic, mlp_layers, sample_gaussian
 from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, score_actions
@@ -32,6 +32,7 @@ def trained_mpo(request):
         learning_starts=200,
         scoring_dtype="float32",
         seed=0,
+        device="cpu",  # the CPU engine's paths (fused products, compiled kernels), also where a GPU is present
     )
     model.learn(700)
     return model
@@ -42,12 +43,15 @@ BF16_FUSED = pytest.mark.skipif(
 )
 
 
+COMPILER = pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
+
+
 @pytest.mark.parametrize(
-    "fused, layer_norm_in_copy",
-    [(False, False), (False, True), pytest.param(True, True, marks=BF16_FUSED)],
-    ids=["unfused", "norm_in_bf16", "fused"],
+    "fused, compile_layer_norm",
+    [(False, False), pytest.param(False, True, marks=COMPILER), pytest.param(True, False, marks=BF16_FUSED)],
+    ids=["unfused", "compiled_layer_norm", "fused"],
 )
-def test_bf16_scores_within_stated_tolerance(trained_mpo, fused, layer_norm_in_copy):
+def test_bf16_scores_within_stated_tolerance(trained_mpo, fused, compile_layer_norm):
     model = trained_mpo
     th.manual_seed(0)
     batch = model.replay_buffer.sample(256)
@@ -56,9 +60,11 @@ def test_bf16_scores_within_stated_tolerance(trained_mpo, fused, layer_norm_in_c
         actions = sample_gaussian(mean, std, 20)
         q32 = score_actions(model.critic_target, batch.next_observations, actions)
         copy = LowPrecisionCopy(model.critic_target, th.bfloat16, fused=fused)
-        copy.layer_norm_in_copy = layer_norm_in_copy  # the fused default, or forced on a CPU that does not fuse
+        copy.compile_layer_norm = compile_layer_norm
         q16 = score_actions(model.critic_target, batch.next_observations, actions, copy)
     assert copy.fused == fused and bool(copy._packed) == fused  # the fused products ran where asked
+    kernel_ran = compile_layer_norm and model.policy_kwargs["layer_norm"]
+    assert (copy._layer_norm_tanh.compiled is not None) == kernel_ran and not copy._layer_norm_tanh.failed
     assert q16.dtype == th.float32 and q16.shape == q32.shape == (20, 256)
     spread, scale, error = q32.std(dim=0).mean(), q32.abs().mean(), (q16 - q32).abs()
     assert spread > 0 and error.max() > 0  # the two passes differ: the bf16 pass ran
@@ -224,25 +230,50 @@ def test_layer_norm_torso_in_low_precision_matches_its_modules():
     assert th.equal(plain, torso[1](hidden.float()).to(th.bfloat16))
 
 
-def test_layer_norm_in_the_copys_precision():
-    """``layer_norm_in_copy``: one bf16 pass whose result is the modules' float32 one within a bf16 step (the tanh
-    runs on the rounded normalisation: its slope, at most 1, keeps that rounding's error below one more half-step)."""
+def test_layer_norm_tanh_kernel_matches_the_modules():
+    """The LayerNorm-and-tanh kernel, eager and compiled: the modules' float32 result rounded once to bf16 (within a
+    bf16 step), written into the reused buffer; a kernel that fails to compile warns once and the eager way goes on."""
     th.manual_seed(0)
     torso = th.nn.Sequential(*mlp_layers(23, 1, [256, 256], th.nn.ReLU, layer_norm=True))
     with th.no_grad():
         torso[1].weight.uniform_(0.5, 1.5)
         torso[1].bias.uniform_(-0.5, 0.5)
     hidden = (th.randn(64, 256) * 3).to(th.bfloat16)
-    holder = th.nn.Module()
+    expected = th.tanh(torso[1](hidden.float())).detach()
+    out = th.empty_like(hidden)
     with th.no_grad():
-        result = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True, in_copy=True)
-        expected = th.tanh(torso[1](hidden.float()))
-        assert result.dtype == th.bfloat16 and result.shape == (64, 256)
-        assert (result.float() - expected).abs().max() <= 2**-8
-        assert (result.float() - expected).abs().max() > 0  # rounded: the bf16 pass ran
-        assert result is scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True, in_copy=True)
-        plain = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=False, in_copy=True)
-        th.testing.assert_close(plain.float(), torso[1](hidden.float()), rtol=2**-8, atol=1e-6)
+        eager = fast_ops.layer_norm_tanh_into(hidden, torso[1].weight, torso[1].bias, torso[1].eps, out)
+    assert eager is out and out.dtype == th.bfloat16
+    assert 0 < (out.float() - expected).abs().max() <= 2**-8
+    if not compiling.can_compile(th.device("cpu")):
+        return
+    holder, kernel = th.nn.Module(), compiling.LazyCompiled(fast_ops.layer_norm_tanh_into, "kernel")
+    with th.no_grad():
+        result = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True, kernel=kernel)
+        again = scoring._layer_norm_no_grad(holder, (0, 1), torso[1], hidden, then_tanh=True, kernel=kernel)
+    assert kernel.compiled is not None and not kernel.failed and again is result
+    assert result.dtype == th.bfloat16 and (result.float() - expected).abs().max() <= 2**-8
+
+
+def test_a_layer_norm_kernel_that_fails_to_compile_leaves_the_eager_way(monkeypatch):
+    critic = _wide_critic("layer_norm")
+    copy = LowPrecisionCopy(critic, th.float32, fused=False)
+    copy.compile_layer_norm = True
+
+    def broken(function, **kwargs):
+        def fails(*args):
+            raise RuntimeError("no compiler")
+
+        return fails
+
+    monkeypatch.setattr(compiling.th, "compile", broken)
+    obs, actions = th.rand(16, 11) * 2 - 1, th.rand(4, 16, 3) * 2 - 1
+    with th.no_grad(), pytest.warns(UserWarning, match="LayerNorm and tanh failed"):
+        q = score_actions(critic, obs, actions, copy)
+    assert copy._layer_norm_tanh.failed and copy.layer_norm_kernel() is None
+    with th.no_grad():
+        th.testing.assert_close(q, score_actions(critic, obs, actions), rtol=1e-5, atol=1e-5)
+        th.testing.assert_close(score_actions(critic, obs, actions, copy), score_actions(critic, obs, actions))
 
 
 def test_machine_description_names_the_matrix_flags_and_the_bf16_kernel(monkeypatch):
@@ -403,11 +434,6 @@ def test_fused_products_only_where_supported(monkeypatch):
     assert LowPrecisionCopy(critic, th.bfloat16).fused  # the default where they are: bf16 fused
     assert not LowPrecisionCopy(critic, th.float32).fused  # float32 only when asked: it gained nothing on an AVX2 CPU
     assert not LowPrecisionCopy(critic, th.bfloat16, fused=False).fused
-    # the LayerNorm runs in the copy's precision where the products are fused, unless asked otherwise
-    assert LowPrecisionCopy(critic, th.bfloat16).layer_norm_in_copy
-    assert not LowPrecisionCopy(critic, th.bfloat16, layer_norm_in_copy=False).layer_norm_in_copy
-    assert not LowPrecisionCopy(critic, th.bfloat16, fused=False).layer_norm_in_copy
-    assert LowPrecisionCopy(critic, th.bfloat16, fused=False, layer_norm_in_copy=True).layer_norm_in_copy
 
 
 @pytest.mark.skipif(not fused_products_supported(th.float32), reason="this torch build has no oneDNN fused products")
@@ -418,6 +444,6 @@ def test_a_refused_fused_product_falls_back_with_one_warning():
     obs, actions = th.rand(16, 11) * 2 - 1, th.rand(4, 16, 3) * 2 - 1
     with th.no_grad(), pytest.warns(UserWarning, match="without fusing"):
         q = score_actions(critic, obs, actions, copy)
-    assert not copy.fused and not copy.layer_norm_in_copy and not copy._packed  # as if made with fused=False
+    assert not copy.fused and not copy._packed
     with th.no_grad():
         th.testing.assert_close(q, score_actions(critic, obs, actions), rtol=0, atol=0)  # the unfused float32 pass

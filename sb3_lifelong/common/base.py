@@ -397,6 +397,16 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         self.__dict__.setdefault("_scoring_copies", []).append(copy)
         return copy
 
+    def _compile_scoring_copies(self, compiled: bool) -> None:
+        """
+        Have the scoring copies run their LayerNorm and tanh as one compiled kernel in the ``train`` calls whose update
+        is compiled (:attr:`~sb3_lifelong.common.scoring.LowPrecisionCopy.compile_layer_norm`), and eagerly in the others.
+
+        :param compiled: whether this ``train`` call runs the compiled update (:meth:`_compiles_now`)
+        """
+        for copy in self.__dict__.get("_scoring_copies", []):
+            copy.compile_layer_norm = compiled
+
     def _sync_scoring_copies(self) -> None:
         for copy in self.__dict__.get("_scoring_copies", []):
             copy.sync()

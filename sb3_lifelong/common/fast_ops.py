@@ -2,7 +2,8 @@
 Elementwise operations that torch runs slowly on a CPU, written faster with the same result: ReLU on bfloat16 (an
 integer clamp), and tanh (``2 sigmoid(2x) - 1``) for the no-grad passes (:func:`tanh_in_place`) and, with its exact
 gradient, for the networks' LayerNorm torsos (:class:`Tanh`). Each falls back to torch's own operation wherever the
-faster form does not apply (another dtype or device).
+faster form does not apply (another dtype or device). And a LayerNorm with its tanh written for the compiler, one
+pass from a low-precision input to a low-precision output (:func:`layer_norm_tanh_into`).
 """
 
 import torch as th
@@ -83,3 +84,25 @@ class Tanh(nn.Tanh):
 
     def forward(self, input: th.Tensor) -> th.Tensor:
         return fast_tanh(input)
+
+
+def layer_norm_tanh_into(x: th.Tensor, weight: th.Tensor, bias: th.Tensor, eps: float, out: th.Tensor) -> th.Tensor:
+    """
+    ``tanh(layer_norm(x))`` over the last dimension, computed in float32 and written into ``out`` in its dtype: for
+    ``torch.compile``, which makes it one loop over the rows that reads ``x`` (bf16) and writes ``out`` (bf16) with
+    no float32 tensor in between. The tanh is ``2 sigmoid(2y) - 1`` in float32 (torch's and inductor's tanh are slow on
+    CPUs), so the result is the float32 one rounded once to ``out``'s dtype.
+
+    :param x: ``[rows, features]``
+    :param weight: the LayerNorm's scale ``[features]``
+    :param bias: its shift ``[features]``
+    :param eps: its epsilon
+    :param out: ``[rows, features]``, overwritten
+    :return: ``out``
+    """
+    wide = x.float()
+    mean = wide.mean(dim=-1, keepdim=True)
+    centred = wide - mean
+    variance = centred.square().mean(dim=-1, keepdim=True)
+    normed = centred * th.rsqrt(variance + eps) * weight + bias
+    return out.copy_(2.0 * th.sigmoid(2.0 * normed) - 1.0)

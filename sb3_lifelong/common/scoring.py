@@ -9,9 +9,8 @@ Q-networks' outputs become Q-values (a ``q_values_of`` method: the categorical c
 - the Q-networks' ``Linear`` layers write into buffers kept on the critic and reused across gradient steps, and the
   activations run in place (:func:`_run_mlp_no_grad`), bit for bit ``mlp(inputs)``;
 - with a :class:`LowPrecisionCopy` (``scoring_dtype``, :func:`resolve_scoring_dtype`) the hidden layers run in
-  bfloat16, a LayerNorm and its tanh in float32 (in bf16 where the products are fused: :func:`_layer_norm_no_grad`),
-  the output layer in float32; the
-  first layer is then split into a per-state and a per-sample product when the features are wide
+  bfloat16, a LayerNorm and its tanh in float32 (:func:`_layer_norm_no_grad`; or as one compiled kernel), the
+  output layer in float32; the first layer is then split into a per-state and a per-sample product when the features are wide
   (:func:`_first_layer_split`); where oneDNN fuses them (a CPU with AVX-512 or AMX), each hidden layer is one
   product with its bias and ReLU as post-ops, on weights laid out once per sync (:meth:`LowPrecisionCopy.fused_linear`;
   its outputs are new tensors, not the reused buffers).
@@ -39,7 +38,8 @@ from stable_baselines3.common.policies import BaseModel, ContinuousCritic
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
-from sb3_lifelong.common.fast_ops import relu_in_place, tanh_in_place
+from sb3_lifelong.common.compiling import LazyCompiled
+from sb3_lifelong.common.fast_ops import layer_norm_tanh_into, relu_in_place, tanh_in_place
 from sb3_lifelong.common.hardware import cpu_has_fast_bf16, fused_products_supported
 
 SCORING_DTYPES = ("auto", "float32", "bfloat16")
@@ -150,18 +150,15 @@ class LowPrecisionCopy:
     :param fused: run the hidden layers as fused oneDNN products; ``None`` (default): where they are supported
         (:func:`~sb3_lifelong.common.hardware.fused_products_supported`) and the copy is bfloat16 on a CPU;
         ``True`` raises a ``ValueError`` where they are not supported
-    :param layer_norm_in_copy: run a LayerNorm (and the tanh after it) on the copy's activations, in one pass that
-        reads and writes the copy's precision (torch accumulates the row statistics in float32), instead of
-        converting them to float32 and back (:func:`_layer_norm_no_grad`); ``None`` (default): when ``fused``
+
+    With :attr:`compile_layer_norm` (an algorithm sets it on the ``train`` calls whose update it compiles, see
+    ``compile_losses``), each LayerNorm of the LayerNorm torso and its tanh run as one compiled kernel from the copy's
+    activations to the next layer's input (:func:`~sb3_lifelong.common.fast_ops.layer_norm_tanh_into`), instead of a
+    conversion to float32, the LayerNorm, the tanh and a conversion back; it is compiled at its first use (seconds)
+    and a failed compilation warns once and leaves the eager way.
     """
 
-    def __init__(
-        self,
-        critic: nn.Module,
-        dtype: th.dtype = th.bfloat16,
-        fused: Optional[bool] = None,
-        layer_norm_in_copy: Optional[bool] = None,
-    ) -> None:
+    def __init__(self, critic: nn.Module, dtype: th.dtype = th.bfloat16, fused: Optional[bool] = None) -> None:
         self.critic = critic
         self.dtype = dtype
         self.weights: dict[int, tuple[th.Tensor, Optional[th.Tensor]]] = {}
@@ -178,8 +175,9 @@ class LowPrecisionCopy:
                 f"{dtype} inner product (bfloat16 needs AVX-512 or AMX); pass fused=None to use them where they are"
             )
         self.fused = (supported and dtype == th.bfloat16) if fused is None else bool(fused)
-        self._layer_norm_follows_fused = layer_norm_in_copy is None
-        self.layer_norm_in_copy = self.fused if layer_norm_in_copy is None else bool(layer_norm_in_copy)
+        #: run each LayerNorm and its tanh as one compiled kernel (set per ``train`` call by the algorithm)
+        self.compile_layer_norm = False
+        self._layer_norm_tanh = LazyCompiled(layer_norm_tanh_into, "the scoring copy's LayerNorm and tanh")
         # the fused layers' weights in oneDNN's layout, made at their first use after a sync (from the copy's weights)
         self._packed: dict[int, th.Tensor] = {}
 
@@ -213,7 +211,7 @@ class LowPrecisionCopy:
         :param x: its input ``[rows, in_features]``, contiguous, in the copy's dtype
         :param then_relu: apply the ReLU that follows the layer
         :return: the output (a new tensor), or None when oneDNN refused the product: the copy then warns once and
-            goes on as if made with ``fused=False`` (the caller runs the layer the unfused way)
+            stops fusing (the caller runs the layer the unfused way)
         """
         mkldnn = th.ops.mkldnn
         try:
@@ -225,9 +223,15 @@ class LowPrecisionCopy:
         except RuntimeError as error:
             warnings.warn(f"the fused {self.dtype} product failed ({error}); scoring goes on without fusing", stacklevel=2)
             self.fused = False
-            self.layer_norm_in_copy = self.layer_norm_in_copy and not self._layer_norm_follows_fused
             self._packed.clear()
             return None
+
+    def layer_norm_kernel(self) -> Optional[LazyCompiled]:
+        """:return: the compiled LayerNorm-and-tanh kernel when :attr:`compile_layer_norm` asks for it (and it has not
+        failed to compile), else None"""
+        if not self.compile_layer_norm or self._layer_norm_tanh.failed:
+            return None
+        return self._layer_norm_tanh
 
 
 def _reused_buffer(
@@ -304,8 +308,8 @@ def _run_mlp_no_grad(
             # the tanh that follows it in a LayerNorm torso, both in float32 on reused buffers, then one conversion
             after = mlp[position + 1] if position + 1 < len(mlp) else None
             followed_by_tanh = isinstance(after, nn.Tanh)
-            in_copy = low_precision.layer_norm_in_copy
-            x, owned = _layer_norm_no_grad(critic, (index, position), module, x, followed_by_tanh, in_copy), True
+            kernel = low_precision.layer_norm_kernel()
+            x, owned = _layer_norm_no_grad(critic, (index, position), module, x, followed_by_tanh, kernel), True
             if followed_by_tanh:
                 first = position + 2  # the tanh is applied
         else:
@@ -314,27 +318,26 @@ def _run_mlp_no_grad(
 
 
 def _layer_norm_no_grad(
-    critic: nn.Module, key: tuple[int, int], module: nn.LayerNorm, x: th.Tensor, then_tanh: bool, in_copy: bool = False
+    critic: nn.Module,
+    key: tuple[int, int],
+    module: nn.LayerNorm,
+    x: th.Tensor,
+    then_tanh: bool,
+    kernel: Optional[LazyCompiled] = None,
 ) -> th.Tensor:
     """
     ``module(x)`` (and the tanh after it when ``then_tanh``) for a low-precision ``x``, returned in ``x``'s dtype in a
-    reused buffer (a fresh ``[5120, 256]`` tensor per call cost more in page faults than the arithmetic). Normalised
-    in float32 into reused buffers, or, ``in_copy``, in one pass from ``x`` into the result (the row statistics
-    accumulated in float32 by torch; the tanh on the rounded result, in bf16 torch's, whose one rounding keeps bf16's
-    precision where ``2 sigmoid(2x) - 1`` would cancel).
+    reused buffer (a fresh ``[5120, 256]`` tensor per call cost more in page faults than the arithmetic): with a
+    compiled ``kernel`` (:meth:`LowPrecisionCopy.layer_norm_kernel`), in one pass from ``x`` into that buffer; else
+    normalised in float32 into reused buffers, then converted.
     """
     index, position = key
     rows, shape = x.shape[0], tuple(x.shape)
     stats = (rows, 1) if len(module.normalized_shape) == 1 and x.dim() == 2 else None
     affine = module.weight is not None and module.bias is not None
-    if in_copy and stats is not None and affine:
+    if kernel is not None and then_tanh and stats is not None and affine:
         result = _reused_buffer(critic, (index, LAYER_NORM_RESULT - position, rows), shape, x)
-        mean = _reused_buffer(critic, (index, LAYER_NORM_MEAN - position, rows), stats, x, th.float32)
-        rstd = _reused_buffer(critic, (index, LAYER_NORM_RSTD - position, rows), stats, x, th.float32)
-        th.ops.aten.native_layer_norm.out(
-            x, list(module.normalized_shape), module.weight, module.bias, module.eps, out0=result, out1=mean, out2=rstd
-        )
-        return tanh_in_place(result) if then_tanh else result
+        return kernel(True, x, module.weight, module.bias, module.eps, result)
     wide = _reused_buffer(critic, (index, LAYER_NORM_INPUT - position, rows), shape, x, th.float32).copy_(x)
     normed = _reused_buffer(critic, (index, LAYER_NORM_OUTPUT - position, rows), shape, x, th.float32)
     if stats is not None and affine:

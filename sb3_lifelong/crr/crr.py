@@ -379,6 +379,7 @@ class CRR(LifelongOfflineAlgorithm):
             raise ValueError("actor_per_source=True needs a replay buffer that records sources (a LifelongReplayBuffer)")
 
         compiled = self._compiles_now()
+        self._compile_scoring_copies(compiled)
         for _ in range(gradient_steps):
             self._n_updates += 1
             replay_data, heads = self._sample(batch_size)

@@ -299,6 +299,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         assert self.replay_buffer is not None
 
         compiled = self._compiles_now()
+        self._compile_scoring_copies(compiled)
         for _ in range(gradient_steps):
             self._n_updates += 1
             with record_function("mpo/sample_batch"):
