@@ -131,8 +131,9 @@ class CRR(LifelongOfflineAlgorithm):
         way has at least 50,000 steps to go (updates offline) and inductor can compile here (a C++ compiler on a
         CPU). Measured on a study student: 1.2-1.3x faster updates after about 30 s of compiling once per process
         (:mod:`sb3_lifelong.common.compiling`). The sampling noise is drawn outside the compiled graph, from the same
-        generator as the eager update; the arithmetic differs from eager's by rounding. With one actor per source it
-        stays eager. A compilation that fails warns once and leaves the update eager
+        generator as the eager update; the arithmetic differs from eager's by rounding. The bf16 scoring copies' LayerNorm
+        and tanh run as one compiled kernel then (:class:`~sb3_lifelong.common.scoring.LowPrecisionCopy`). With one actor
+        per source it stays eager. A compilation that fails warns once and leaves the update eager
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (e.g. ``net_arch``,

@@ -56,7 +56,8 @@ def action_penalty_q(sampled_actions: th.Tensor) -> th.Tensor:
     :param sampled_actions: ``[num_samples, batch, action_dim]``
     :return: ``[num_samples, batch]``
     """
-    return -th.linalg.vector_norm(sampled_actions - sampled_actions.clamp(-1.0, 1.0), dim=-1)
+    # the norm written out: torch 2.11's compiler gave vector_norm over a last dimension of size 1 the wrong shape
+    return -(sampled_actions - sampled_actions.clamp(-1.0, 1.0)).square().sum(dim=-1).sqrt()
 
 
 class EStep(NamedTuple):

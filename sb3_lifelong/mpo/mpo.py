@@ -111,7 +111,8 @@ class MPO(LifelongOffPolicyAlgorithm):
         and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under
         way has at least 50,000 steps to go and inductor can compile here (a C++ compiler on a CPU); see
         :mod:`sb3_lifelong.common.compiling`. The sampling noise is drawn outside the graph, as the eager update draws
-        it; a bf16 scoring pass stays on the engine, eagerly. A compilation that fails warns once and leaves the
+        it; a bf16 scoring pass stays on the engine, eagerly, but for its LayerNorm and tanh, which run as one compiled
+        kernel (:class:`~sb3_lifelong.common.scoring.LowPrecisionCopy`). A compilation that fails warns once and leaves the
         update eager
     :param policy_on_next_obs: improve the policy on the batch's next observations, so that one target critic
         call serves both the E-step and the critic target; if False the policy is improved on the observations
