@@ -10,8 +10,8 @@ Q-networks' outputs become Q-values (a ``q_values_of`` method: the categorical c
   activations run in place (:func:`_run_mlp_no_grad`), bit for bit ``mlp(inputs)``;
 - with a :class:`LowPrecisionCopy` (``scoring_dtype``, :func:`resolve_scoring_dtype`) the hidden layers run in
   bfloat16, a LayerNorm and its tanh in float32 (:func:`_layer_norm_no_grad`; or as one compiled kernel), the
-  output layer in float32; the first layer is then split into a per-state and a per-sample product when the features are wide
-  (:func:`_first_layer_split`); where oneDNN fuses them (a CPU with AVX-512 or AMX), each hidden layer is one
+  output layer in float32; the first layer is then split into a per-state and a per-sample product when the
+  features are wide (:func:`_first_layer_split`); where oneDNN fuses them (a CPU with AVX-512 or AMX), each hidden layer is one
   product with its bias and ReLU as post-ops, on weights laid out once per sync (:meth:`LowPrecisionCopy.fused_linear`;
   its outputs are new tensors, not the reused buffers).
 
@@ -305,7 +305,8 @@ def _run_mlp_no_grad(
             relu_in_place(x)
         elif isinstance(module, nn.LayerNorm) and low_precision is not None and x.dtype == low_precision.dtype:
             # normalised in the layer's own precision (its statistics over a row need more than bf16's 8 bits); with
-            # the tanh that follows it in a LayerNorm torso, both in float32 on reused buffers, then one conversion
+            # the tanh that follows it in a LayerNorm torso, both in float32 on reused buffers, then one conversion (or
+            # one compiled kernel for the three)
             after = mlp[position + 1] if position + 1 < len(mlp) else None
             followed_by_tanh = isinstance(after, nn.Tanh)
             kernel = low_precision.layer_norm_kernel()
