@@ -21,7 +21,7 @@ import torch as th
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # the tests' helpers
 
-from sb3_lifelong.crr.losses import actor_loss, advantage_weights
+from sb3_lifelong.crr.losses import actor_loss
 from tests.test_compiled import flat_params, mpo, mpo_params, student
 from tests.test_crr import pendulum_data
 
@@ -54,18 +54,7 @@ def first_update_gradients(data: dict) -> None:
     gradients = {}
     for compiled in (False, True):
         fit, mean, std, sampled_q = model._forward(compiled, replay_data, heads, target_noise, sample_noise)
-        with th.no_grad():
-            advantage = advantage_weights(
-                fit.q_values,
-                sampled_q,
-                model.advantage_baseline,
-                model.advantage_transform,
-                model.beta,
-                model.max_weight,
-                model.normalize_advantages,
-                model.target_ess,
-                model._ess_beta,
-            )
+        advantage = model._advantage(fit.q_values, sampled_q)
         loss = fit.loss + actor_loss(replay_data.actions, mean, std, advantage.weights)
         grads = th.autograd.grad(loss, parameters, allow_unused=True)
         gradients[compiled] = th.cat(

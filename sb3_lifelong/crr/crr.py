@@ -393,20 +393,9 @@ class CRR(LifelongOfflineAlgorithm):
                 self._online_scoring_copy.sync()
             # the critic's loss and the Q-values of the data's actions for the advantage (the same, pre-update critic)
             fit, mean, std, sampled_q = self._forward(compiled, replay_data, heads, target_noise, sample_noise)
-            with th.no_grad():
-                advantage = advantage_weights(
-                    fit.q_values,
-                    sampled_q,
-                    self.advantage_baseline,
-                    self.advantage_transform,
-                    self.beta,
-                    self.max_weight,
-                    self.normalize_advantages,
-                    self.target_ess,
-                    self._ess_beta,
-                )
-                if self.target_ess is not None:
-                    self._ess_beta = float(advantage.beta)
+            advantage = self._advantage(fit.q_values, sampled_q)
+            if self.target_ess is not None:
+                self._ess_beta = float(advantage.beta)
             regression_loss = actor_loss(actions, mean, std, advantage.weights)
             critic_part, actor_part = (self.critic, fit.loss), (self.actor, regression_loss)
             if compiled:  # one backward through the compiled graph (the two losses reach disjoint networks)
@@ -425,6 +414,25 @@ class CRR(LifelongOfflineAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in zip(CRRStepStats._fields, zip(*steps)):
             self.logger.record_mean(f"train/{key}", th.stack(values).mean().item())
+
+    @th.no_grad()
+    def _advantage(self, q_values: th.Tensor, sampled_q: th.Tensor) -> AdvantageWeights:
+        """
+        :param q_values: the Q-values of the data's actions (the critic's, before its update)
+        :param sampled_q: the Q-values of the policy's samples ``[num_samples, batch]``
+        :return: the advantages and the actor's weights, with this student's transform, baseline and temperature
+        """
+        return advantage_weights(
+            q_values,
+            sampled_q,
+            self.advantage_baseline,
+            self.advantage_transform,
+            self.beta,
+            self.max_weight,
+            self.normalize_advantages,
+            self.target_ess,
+            self._ess_beta,
+        )
 
     def _compiles_now(self) -> bool:
         return not self.actor_per_source and super()._compiles_now()  # one actor per source stays eager
