@@ -14,10 +14,14 @@ Usage (from the repository's root)::
     OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py
 """
 
+import contextlib
 import pathlib
 import sys
+from collections.abc import Iterator
+from typing import Any
 
 import torch as th
+from stable_baselines3.common import policies as sb3_policies
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # the tests' helpers
 
@@ -26,6 +30,7 @@ from tests.test_compiled import flat_params, mpo, mpo_params, student
 from tests.test_crr import pendulum_data
 
 TOLERANCE = 1e-4  # the tests'
+GRADIENT_TOLERANCE = 1e-5  # of the largest gradient component: rounding is far below it
 
 
 def report(label: str, compiled_ran: bool, difference: th.Tensor, named: list[tuple[str, th.Tensor]]) -> None:
@@ -33,16 +38,52 @@ def report(label: str, compiled_ran: bool, difference: th.Tensor, named: list[tu
     above = int((difference > TOLERANCE).sum())
     largest = float(difference.max())
     print(f"{label}: compiled {compiled_ran}, largest difference {largest:.2e}, {above} of {difference.numel()} > {TOLERANCE}")
+    per_parameter(difference, named, TOLERANCE)
+
+
+def per_parameter(difference: th.Tensor, named: list[tuple[str, th.Tensor]], tolerance: float) -> None:
+    """Print, per parameter tensor, the largest difference and how many components are above ``tolerance``."""
     offset = 0
     for name, parameter in named:
         part = difference[offset : offset + parameter.numel()]
         offset += parameter.numel()
-        if part.numel() and part.max() > TOLERANCE:
-            print(f"    {name} ({parameter.numel()}): largest {float(part.max()):.2e}, {int((part > TOLERANCE).sum())} above")
+        if part.numel() and part.max() > tolerance:
+            print(f"    {name} ({parameter.numel()}): largest {float(part.max()):.2e}, {int((part > tolerance).sum())} above")
+
+
+def as_double(replay_data: Any) -> Any:
+    """:return: the batch with its floating-point tensors in float64"""
+    return type(replay_data)(*(t.double() if th.is_tensor(t) and t.is_floating_point() else t for t in replay_data))
+
+
+@contextlib.contextmanager
+def keeping_float64_observations() -> Iterator[None]:
+    """SB3's policies cast Box observations to float32 (``preprocess_obs``); the float64 reference keeps them."""
+    original = sb3_policies.preprocess_obs
+    sb3_policies.preprocess_obs = lambda obs, *args, **kwargs: obs  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        sb3_policies.preprocess_obs = original
+
+
+def update_gradients(
+    model: Any, compiled: bool, replay_data: Any, heads: Any, target_noise: th.Tensor, sample_noise: th.Tensor
+) -> th.Tensor:
+    """:return: one CRR update's gradients (critic and actor losses), flattened in the policy's parameter order"""
+    parameters = [p for p in model.policy.parameters() if p.requires_grad]
+    fit, mean, std, sampled_q = model._forward(compiled, replay_data, heads, target_noise, sample_noise)
+    advantage = model._advantage(fit.q_values, sampled_q)
+    loss = fit.loss + actor_loss(replay_data.actions, mean, std, advantage.weights)
+    grads = th.autograd.grad(loss, parameters, allow_unused=True)
+    return th.cat([th.zeros_like(p).flatten() if g is None else g.flatten() for p, g in zip(parameters, grads)])
 
 
 def first_update_gradients(data: dict) -> None:
-    """One CRR update's gradients (critic and actor losses), eager and compiled, on the same batch and noise."""
+    """
+    One CRR update's gradients, eager and compiled, on the same batch and noise, and both against the same update in
+    float64 (eager, float64 scoring): the one far from float64 is the one whose arithmetic is wrong.
+    """
     model = student(data, compile_losses=True, max_grad_norm=1e-3)
     model.learn_offline(1, log_interval=0)  # set up (and compiled once)
     replay_data, heads = model._sample(model.batch_size)
@@ -50,25 +91,32 @@ def first_update_gradients(data: dict) -> None:
     generator = th.Generator().manual_seed(0)
     target_noise = th.randn((model.n_target_samples, *shape), generator=generator)
     sample_noise = th.randn((model.num_samples, *shape), generator=generator)
-    parameters = [p for p in model.policy.parameters() if p.requires_grad]
-    gradients = {}
-    for compiled in (False, True):
-        fit, mean, std, sampled_q = model._forward(compiled, replay_data, heads, target_noise, sample_noise)
-        advantage = model._advantage(fit.q_values, sampled_q)
-        loss = fit.loss + actor_loss(replay_data.actions, mean, std, advantage.weights)
-        grads = th.autograd.grad(loss, parameters, allow_unused=True)
-        gradients[compiled] = th.cat(
-            [th.zeros_like(p).flatten() if g is None else g.flatten() for p, g in zip(parameters, grads)]
+    eager = update_gradients(model, False, replay_data, heads, target_noise, sample_noise)
+    compiled_grads = update_gradients(model, True, replay_data, heads, target_noise, sample_noise)
+    reference_model = student(data, compile_losses=False, max_grad_norm=1e-3, scoring_dtype="float32")
+    reference_model.learn_offline(1, log_interval=0)
+    reference_model.policy.load_state_dict(model.policy.state_dict())
+    reference_model.policy.double()
+    with keeping_float64_observations():
+        reference = update_gradients(
+            reference_model, False, as_double(replay_data), heads, target_noise.double(), sample_noise.double()
+        ).float()
+    named = [(n, p) for n, p in model.policy.named_parameters() if p.requires_grad]
+    scale = float(reference.abs().max())
+    for label, grads, against in (
+        ("compiled - eager", compiled_grads, eager),
+        ("eager - float64", eager, reference),
+        ("compiled - float64", compiled_grads, reference),
+    ):
+        difference = (grads - against).abs()
+        relative = float((difference / against.abs().clamp_min(1e-12)).median())
+        flips = int(((grads * against) < 0).sum())
+        print(
+            f"CRR first update's gradients, {label}: largest |g| {scale:.2e}, largest difference "
+            f"{float(difference.max()):.2e}, relative to each |g| (median) {relative:.1e}, "
+            f"signs differing {flips} of {grads.numel()}"
         )
-    eager, compiled_grads = gradients[False], gradients[True]
-    difference = (compiled_grads - eager).abs()
-    relative = float((difference / eager.abs().clamp_min(1e-12)).median())
-    flips = int(((compiled_grads * eager) < 0).sum())
-    print(
-        f"CRR first update's gradients: largest |g| {float(eager.abs().max()):.2e}, largest difference "
-        f"{float(difference.max()):.2e}, relative to each |g| (median) {relative:.1e}, "
-        f"signs differing {flips} of {eager.numel()}"
-    )
+        per_parameter(difference, named, GRADIENT_TOLERANCE * scale)
 
 
 def main() -> None:

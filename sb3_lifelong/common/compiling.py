@@ -13,6 +13,7 @@ way has at least :data:`AUTO_MIN_UPDATES` steps to go (environment steps online,
 import contextlib
 import shutil
 import warnings
+from collections.abc import Iterable
 from typing import Any, Callable, ContextManager, Optional, Union
 
 import torch as th
@@ -21,6 +22,9 @@ COMPILE_CHOICES = ("auto", True, False)
 #: ``compile_losses="auto"`` compiles when the ``learn`` call under way has at least this many steps left (updates
 #: offline): the compilation (30-60 s on a 2-core machine) is then under 5 % of the run's time at 25 ms per update
 AUTO_MIN_UPDATES = 50_000
+#: the first compiled call's outputs and gradients must be within this much of the eager call's, relative to the
+#: largest of each (float32 rounding is about 1e-6 of it; a wrongly compiled backward has given 0.2)
+CHECK_TOLERANCE = 1e-3
 
 
 def can_compile(device: th.device) -> bool:
@@ -44,16 +48,30 @@ class LazyCompiled:
     the forward one (torch compiles it lazily, at the first ``backward``, by default), so that its failure is caught
     here too; a failure later inside ``backward`` itself is not.
 
+    Before the compiled function is used, its first call is checked against the eager one on the same arguments: the
+    outputs, and the gradients of a fixed random projection of the outputs with respect to ``parameters``. Where they
+    differ by more than :data:`CHECK_TOLERANCE` of the largest value (a compiler that gets a backward wrong on this
+    CPU), it warns, naming the parameters, and the function stays eager for good.
+
     :param function: a pure computation of tensors (its inputs' shapes fixed: compiled with ``dynamic=False``)
     :param name: what the warning calls it
+    :param parameters: the leaves the function's outputs are differentiated with respect to in training, named (for
+        the first call's check); None: outputs only
     """
 
-    def __init__(self, function: Callable, name: str) -> None:
+    def __init__(
+        self, function: Callable, name: str, parameters: Optional[Callable[[], Iterable[tuple[str, th.Tensor]]]] = None
+    ) -> None:
         self.function = function
         self.name = name
+        self.parameters = parameters
+        #: whether the compiled function passed the first call's check (:meth:`check`)
+        self.checked = False
         #: the compiled function once compiled; None before, and for good after a failure
         self.compiled: Optional[Callable] = None
         self.failed = False
+        #: why the compiled function was given up (the warning's text); None while it was not
+        self.failure: Optional[str] = None
 
     def wanted(self, setting: Union[bool, str], steps_to_go: int, device: th.device) -> bool:
         """
@@ -86,11 +104,91 @@ class LazyCompiled:
         assert self.compiled is not None
         try:
             with _backward_compiled_with_forward():
+                if not self.checked:
+                    self.check(*args)
                 return self.compiled(*args)
         except Exception as error:  # inductor's failures are of many kinds; the eager function is always right
             self.failed, self.compiled = True, None
-            warnings.warn(f"torch.compile of {self.name} failed ({type(error).__name__}: {error}); it runs eagerly")
+            self.failure = f"torch.compile of {self.name} failed ({type(error).__name__}: {error}); it runs eagerly"
+            warnings.warn(self.failure)
             return self.function(*args)
+
+    def check(self, *args: Any) -> None:
+        """
+        Run the compiled and the eager function on ``args`` and compare their outputs and the gradients of the same
+        random projection of the outputs. The global random state is kept; an output written into an argument is
+        written twice, the compiled function's last.
+
+        :param args: the function's arguments
+        :raises CompiledMismatch: an output or a gradient differs by more than :data:`CHECK_TOLERANCE` of its largest
+        """
+        assert self.compiled is not None
+        named = [(name, p) for name, p in (self.parameters() if self.parameters else []) if p.requires_grad]
+        with th.random.fork_rng():
+            eager = [t.clone() for t in _tensors(self.function(*args))]  # kept apart from an output written in place
+            compiled = _tensors(self.compiled(*args))
+        if len(eager) != len(compiled):
+            raise CompiledMismatch(f"{len(compiled)} output tensors, where the eager function gives {len(eager)}")
+        for index, (e, c) in enumerate(zip(eager, compiled)):
+            _compare(f"output {index}", c.detach(), e.detach())
+        differentiable = [i for i, e in enumerate(eager) if e.requires_grad and e.is_floating_point()]
+        if not named or not differentiable:
+            self.checked = True
+            return
+        generator = th.Generator(device=eager[differentiable[0]].device).manual_seed(0)
+        weights = {i: th.randn(eager[i].shape, generator=generator, device=eager[i].device) for i in differentiable}
+        leaves = [p for _, p in named]
+        gradients = []
+        for outputs in (eager, compiled):
+            projection = sum((outputs[i] * weights[i]).sum() for i in differentiable)
+            grads = th.autograd.grad(projection, leaves, allow_unused=True)  # type: ignore[arg-type]
+            gradients.append([th.zeros_like(p) if g is None else g for p, g in zip(leaves, grads)])
+        scale = max(float(g.abs().max()) for g in gradients[0] if g.numel())
+        wrong = [
+            f"{name} (by {float((c - e).abs().max()):.1e})"
+            for (name, _), e, c in zip(named, *gradients)
+            if e.numel() and float((c - e).abs().max()) > CHECK_TOLERANCE * scale
+        ]
+        if wrong:
+            raise CompiledMismatch(
+                f"the compiled gradients differ from the eager ones, whose largest is {scale:.1e}, in {len(wrong)} of "
+                f"{len(named)} parameters: {', '.join(wrong[:6])}{', ...' if len(wrong) > 6 else ''}"
+                f" (torch {th.__version__})"
+            )
+        self.checked = True
+
+
+class CompiledMismatch(RuntimeError):
+    """The compiled function's first call disagreed with the eager function's (:meth:`LazyCompiled.check`)."""
+
+
+def _tensors(output: Any) -> list[th.Tensor]:
+    """:return: the tensors of a function's output (nested tuples, lists and dicts), in order"""
+    if isinstance(output, th.Tensor):
+        return [output]
+    if isinstance(output, dict):
+        return [t for value in output.values() for t in _tensors(value)]
+    if isinstance(output, (tuple, list)):
+        return [t for value in output for t in _tensors(value)]
+    return []
+
+
+def _compare(label: str, compiled: th.Tensor, eager: th.Tensor) -> None:
+    """
+    :raises CompiledMismatch: ``compiled`` is not ``eager`` within :data:`CHECK_TOLERANCE` of its largest value (or two
+        of its dtype's rounding steps, e.g. for bfloat16)
+    """
+    if compiled.shape != eager.shape or compiled.dtype != eager.dtype:
+        raise CompiledMismatch(f"{label}: {compiled.dtype} {tuple(compiled.shape)}, eager {eager.dtype} {tuple(eager.shape)}")
+    if not eager.is_floating_point() or not eager.numel():
+        if not th.equal(compiled, eager):
+            raise CompiledMismatch(f"{label} differs from the eager function's")
+        return
+    difference = float((compiled.float() - eager.float()).abs().max())
+    scale = float(eager.float().abs().max())
+    tolerance = max(CHECK_TOLERANCE, 2 * th.finfo(eager.dtype).eps)  # a low-precision output may round either way
+    if not difference <= tolerance * max(scale, 1e-12):  # NaN fails too
+        raise CompiledMismatch(f"{label} differs from the eager function's by {difference:.1e} (its largest: {scale:.1e})")
 
 
 def _backward_compiled_with_forward() -> ContextManager:

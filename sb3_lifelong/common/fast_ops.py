@@ -64,12 +64,17 @@ class _TanhBySigmoid(th.autograd.Function):
 def fast_tanh(x: th.Tensor) -> th.Tensor:
     """
     ``th.tanh(x)``, differentiable, computed as :func:`tanh_in_place` does for a float32 CPU tensor (torch's own
-    ``tanh`` elsewhere). Its gradient is torch's formula on the output, ``1 - y^2``.
+    ``tanh`` elsewhere). Its gradient is torch's formula on the output, ``1 - y^2``; under ``torch.compile``, the
+    same function written out of place, whose gradient autograd derives (equal up to rounding).
 
     :param x: the input (not changed)
     :return: ``tanh(x)``
     """
     if x.dtype == th.float32 and x.device.type == "cpu":
+        if th.compiler.is_compiling():
+            # out of place, its gradient derived by autograd: torch 2.11's compiler got the in-place autograd.Function's
+            # gradient wrong on an AVX-512 (AMX) Xeon, by up to 30 % (benchmarks/results/fast_paths.md)
+            return 2.0 * th.sigmoid(2.0 * x) - 1.0
         return _TanhBySigmoid.apply(x)
     return th.tanh(x)
 

@@ -279,7 +279,12 @@ class MPO(LifelongOffPolicyAlgorithm):
             dual_params, lr=self.dual_learning_rate, **with_fast_optimizer(th.optim.Adam, None)
         )
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
-        self._forward = LazyCompiled(self._forward_pass, "MPO's forward pass")
+        self._forward = LazyCompiled(self._forward_pass, "MPO's forward pass", self._trained_parameters)
+
+    def _trained_parameters(self) -> list[tuple[str, th.Tensor]]:
+        """:return: what the update's losses are differentiated with respect to: the policy's parameters and the duals"""
+        duals = ["log_temperature", "log_alpha_mean", "log_alpha_stddev"] + ["log_penalty_temperature"] * self.action_penalty
+        return [*self.policy.named_parameters(), *((name, getattr(self, name)) for name in duals)]
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
