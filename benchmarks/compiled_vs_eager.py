@@ -6,8 +6,14 @@ parameter tensor (those above the tests' 1e-4). First, one CRR update's gradient
 same batch and noise through the eager and the compiled forward pass, so that a difference there is the graphs'
 arithmetic, not Adam's (whose first steps are +-lr whatever a gradient's size).
 
-On an AMD EPYC with torch 2.13 they differ by at most 2e-7. On an AMX Xeon with torch 2.11 they differ by up to one
-learning-rate step per update (``benchmarks/results/amx/compiled_vs_eager.txt``).
+Both are also compared with the same update in float64, which tells which of the two is wrong; and, first, small
+torsos' gradients, compiled against eager, per activation, which tells which operation the compiler gets wrong.
+
+On an AMD EPYC with torch 2.13 they differ by at most 2e-7. On an AMX Xeon with torch 2.11 the compiled gradients
+of the LayerNorm torsos' first layers were wrong by up to 30 %, from the package's tanh (an ``autograd.Function``),
+and eager matched float64 (``benchmarks/results/amx/compiled_vs_eager_before_fix.txt``,
+``tanh_compiled_gradients.txt``). Under ``torch.compile`` that tanh is now written out of place, and the two agree to
+2e-7 there (``compiled_vs_eager_after_fix.txt``).
 
 Usage (from the repository's root)::
 
@@ -22,9 +28,11 @@ from typing import Any
 
 import torch as th
 from stable_baselines3.common import policies as sb3_policies
+from torch import nn
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # the tests' helpers
 
+from sb3_lifelong.common.fast_ops import Tanh
 from sb3_lifelong.crr.losses import actor_loss
 from tests.test_compiled import flat_params, mpo, mpo_params, student
 from tests.test_crr import pendulum_data
@@ -119,8 +127,42 @@ def first_update_gradients(data: dict) -> None:
         per_parameter(difference, named, GRADIENT_TOLERANCE * scale)
 
 
+def torso_gradients() -> None:
+    """
+    Small torsos, ``Linear(4, h) -> [LayerNorm] -> activation -> Linear(h, 1)``, their gradients compiled against eager
+    (relative to the largest): which operation a compiler gets wrong. "fast" is the package's ``Tanh``.
+    """
+    activations = {"fast": Tanh, "torch": nn.Tanh, "relu": nn.ReLU}
+    for layer_norm in (True, False):
+        for activation, make in activations.items():
+            for rows, hidden in ((32, 32), (256, 256)):
+                th.manual_seed(0)
+                middle = [nn.LayerNorm(hidden)] if layer_norm else []
+                net = nn.Sequential(nn.Linear(4, hidden), *middle, make(), nn.Linear(hidden, 1))
+                x = th.randn(rows, 4)
+
+                def loss(x: th.Tensor, net: nn.Module = net) -> th.Tensor:
+                    return (net(x) ** 2).mean()
+
+                th._dynamo.reset()  # a fresh compilation for each torso
+                compiled = th.compile(loss, dynamic=False)
+                eager_grads = th.autograd.grad(loss(x), list(net.parameters()))
+                compiled_grads = th.autograd.grad(compiled(x), list(net.parameters()))
+                scale = max(float(g.abs().max()) for g in eager_grads)
+                worst = [
+                    (name, float((a - b).abs().max()) / scale)
+                    for (name, _), a, b in zip(net.named_parameters(), eager_grads, compiled_grads)
+                ]
+                print(
+                    f"torso {'LayerNorm + ' if layer_norm else ''}{activation}, {rows} x {hidden}: largest difference "
+                    f"{max(w for _, w in worst):.1e} of the largest gradient; "
+                    + " ".join(f"{name} {w:.0e}" for name, w in worst)
+                )
+
+
 def main() -> None:
     th.set_num_threads(1)
+    torso_gradients()
     data = pendulum_data(300)
     first_update_gradients(data)
     settings = (dict(max_grad_norm=1e-3), dict(max_grad_norm=1e-3, scoring_dtype="float32"), dict(scoring_dtype="bfloat16"))

@@ -57,7 +57,7 @@ def test_compiled_training_matches_eager_and_saves(data, tmp_path):
     assert difference <= 1e-4, float(difference)
     assert not th.equal(flat_params(compiled), flat_params(student(data)))  # it trained
     compiled.save(tmp_path / "student.zip")
-    loaded = CRR.load(tmp_path / "student.zip")
+    loaded = CRR.load(tmp_path / "student.zip", device="cpu")
     assert loaded.compile_losses is True and loaded._forward.compiled is None  # compiled again when it trains
     assert th.equal(flat_params(loaded), flat_params(compiled))
 
@@ -184,7 +184,7 @@ def test_mpo_compiled_training_matches_eager(tmp_path, kwargs):
     assert difference <= 1e-4, float(difference)
     assert compiled.logger.name_to_value.keys() == eager.logger.name_to_value.keys()
     compiled.save(tmp_path / "mpo.zip")
-    assert th.equal(mpo_params(MPO.load(tmp_path / "mpo.zip")), mpo_params(compiled))
+    assert th.equal(mpo_params(MPO.load(tmp_path / "mpo.zip", device="cpu")), mpo_params(compiled))
 
 
 def test_mpo_auto_compiles_only_a_long_run(monkeypatch):
