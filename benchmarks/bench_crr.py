@@ -46,11 +46,11 @@ def evaluate(act, env_id: str, episodes: int) -> tuple[float, float]:
     return float(np.mean(returns)), float(np.std(returns))
 
 
-def make_ours(data: dict, env_id: str, seed: int, compile_losses: bool = False) -> Any:
+def make_ours(data: dict, env_id: str, seed: int, compile_losses: bool = False, train_dtype: str = "float32") -> Any:
     """
     :return: sb3-lifelong's CRR on ``data`` with the settings shared with d3rlpy (see the module docstring); with
         ``compile_losses`` its update's forward pass compiled (``compile_losses=True``; eager otherwise, as "auto" is
-        for runs this short)
+        for runs this short), and ``train_dtype`` the precision of its gradient passes' hidden products
     """
     import gymnasium as gym
 
@@ -76,6 +76,7 @@ def make_ours(data: dict, env_id: str, seed: int, compile_losses: bool = False) 
         seed=seed,
         device="cpu",  # as d3rlpy's: the CPU even where a GPU is present
         compile_losses=compile_losses,
+        train_dtype=train_dtype,
     )
 
 
@@ -83,7 +84,7 @@ def run_ours(args: argparse.Namespace, data: dict) -> dict:
     import torch as th
 
     th.set_num_threads(1)
-    model = make_ours(data, args.env, args.seed, args.compile_losses)
+    model = make_ours(data, args.env, args.seed, args.compile_losses, args.train_dtype)
     model.learn_offline(20, log_interval=0)  # warm-up (and the compilation), not timed
     start = time.perf_counter()
     model.learn_offline(args.updates, log_interval=0)
@@ -92,7 +93,9 @@ def run_ours(args: argparse.Namespace, data: dict) -> dict:
     if args.eval_episodes > 0:
         mean, std = evaluate(lambda obs: model.predict(obs, deterministic=True)[0], args.env, args.eval_episodes)
     return {
-        "impl": "sb3-lifelong CRR" + (" (compiled)" if args.compile_losses else ""),
+        "impl": "sb3-lifelong CRR"
+        + (" (compiled)" if args.compile_losses else "")
+        + (f" (train_dtype={args.train_dtype})" if args.train_dtype != "float32" else ""),
         "updates": args.updates,
         "seconds": seconds,
         "return": mean,
@@ -162,6 +165,7 @@ def main() -> None:
     parser.add_argument("--speed-rounds", type=int, default=3, help="interleaved throughput-only rounds (0: none)")
     parser.add_argument("--speed-updates", type=int, default=300, help="updates per throughput-only round")
     parser.add_argument("--compile-losses", action="store_true", help="our CRR with compile_losses=True")
+    parser.add_argument("--train-dtype", default="float32", choices=["float32", "bfloat16", "auto"], help="our CRR's")
     args = parser.parse_args()
     with np.load(args.data) as npz:
         data = {key: npz[key] for key in npz.files}

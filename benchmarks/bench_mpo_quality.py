@@ -41,6 +41,7 @@ MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
     "MPO_penalty": ({"action_penalty": True}, False),
     "MPO_n5_penalty": ({"n_steps": 5, "action_penalty": True}, False),
     "MPO_obsnorm": ({}, True),
+    "MPO_bf16": ({"train_dtype": "bfloat16"}, False),  # bf16 hidden products in the gradient passes
     "MPO_layernorm": ({"policy_kwargs": {"layer_norm": True}}, False),
     "MPO_layernorm_obsnorm": ({"policy_kwargs": {"layer_norm": True}}, True),  # MPO's default since 2026-11-25, normalised
 }

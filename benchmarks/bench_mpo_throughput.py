@@ -31,7 +31,13 @@ RESULTS = pathlib.Path(__file__).parent / "results"
 
 
 def make(
-    algo: str, env_id: str, num_samples: int, scoring_dtype: str = "auto", layer_norm: bool = False, compiled: bool = False
+    algo: str,
+    env_id: str,
+    num_samples: int,
+    scoring_dtype: str = "auto",
+    layer_norm: bool = False,
+    compiled: bool = False,
+    train_dtype: str = "float32",
 ) -> Any:
     # on the CPU even where a GPU is present: this benchmark measures the CPU (its matrix units)
     common = dict(batch_size=256, learning_starts=1000, train_freq=1, gradient_steps=1, seed=0, verbose=0, device="cpu")
@@ -44,6 +50,7 @@ def make(
         num_samples=num_samples,
         scoring_dtype=scoring_dtype,
         compile_losses=compiled,
+        train_dtype=train_dtype,
         **common,
     )
 
@@ -73,9 +80,11 @@ def run_env(env_id: str, args: argparse.Namespace) -> tuple[list[str], dict[str,
         for dtype in args.scoring_dtypes:
             for layer_norm in args.layer_norms:
                 for compiled in args.compile_losses:
-                    name = f"MPO (N={n}, {dtype}" + (", LayerNorm" if layer_norm == "on" else "")
-                    name += ", compiled)" if compiled == "on" else ")"
-                    models[name] = make("MPO", env_id, n, dtype, layer_norm == "on", compiled == "on")
+                    for train_dtype in args.train_dtypes:
+                        name = f"MPO (N={n}, {dtype}" + (", LayerNorm" if layer_norm == "on" else "")
+                        name += f", {train_dtype} gradient passes" if train_dtype != "float32" else ""
+                        name += ", compiled)" if compiled == "on" else ")"
+                        models[name] = make("MPO", env_id, n, dtype, layer_norm == "on", compiled == "on", train_dtype)
     for model in models.values():  # warm-up: fill learning_starts and run some updates
         model.learn(1200)
     speeds: dict[str, list[float]] = {name: [] for name in models}
@@ -119,6 +128,13 @@ def main() -> None:
         default=["off"],
         choices=["off", "on"],
         help="MPO eager and/or compiled (compile_losses)",
+    )
+    parser.add_argument(
+        "--train-dtypes",
+        nargs="+",
+        default=["float32"],
+        choices=["float32", "bfloat16", "auto"],
+        help="MPO train_dtype values",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a 2-core machine)")
     parser.add_argument("--output", default=str(RESULTS / "mpo_throughput"))

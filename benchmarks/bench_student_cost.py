@@ -43,7 +43,7 @@ def random_data(rows: int, obs_dim: int, action_dim: int) -> dict[str, np.ndarra
     )
 
 
-def make_students(scoring_dtype: str, compile_losses: bool = False) -> dict:
+def make_students(scoring_dtype: str, compile_losses: bool = False, train_dtype: str = "float32") -> dict:
     """The study's students on random HalfCheetah-sized data (with its 2 physical parameters appended), warmed up."""
     from sb3_lifelong import CRR
 
@@ -62,6 +62,7 @@ def make_students(scoring_dtype: str, compile_losses: bool = False) -> dict:
             scoring_dtype=scoring_dtype,
             **kw,
             **(dict(compile_losses=True) if compile_losses else {}),
+            **(dict(train_dtype=train_dtype) if train_dtype != "float32" else {}),  # (a peer tree may predate it)
         )
         for name, kw in VARIANTS.items()
     }

@@ -6,12 +6,14 @@ indicator transform, ``scoring_dtype="auto"``).
 - ``profile``: the milliseconds per update, then torch's profiler table (by operator, then by operator and shape)
   over 100 updates, eager or compiled.
 - ``compare``: interleaved blocks of updates of several variants of the same student, each block's time and the first
-  variant's time over each other's per block pair: eager against compiled, or (``--online-copy``) the online critic's
-  bf16 copy fused (the default where oneDNN fuses bf16), unfused, or none (float32 baseline pass).
+  variant's time over each other's per block pair: eager against compiled; or (``--online-copy``) the online critic's
+  bf16 copy fused (the default where oneDNN fuses bf16), unfused, or none (float32 baseline pass); or
+  (``--train-dtype``) the gradient passes' hidden products in float32 against bfloat16 (``train_dtype``).
 
     OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py profile --compile-losses
     OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py compare
     OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py compare --online-copy --compile-losses
+    OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py compare --train-dtype --compile-losses
 
 The online-copy variants need a CPU with native bf16 (elsewhere ``"auto"`` scores in float32 and there is no copy).
 """
@@ -33,9 +35,9 @@ from sb3_lifelong.common.hardware import machine_description
 from sb3_lifelong.common.scoring import LowPrecisionCopy
 
 
-def student(compile_losses: bool, online_copy: str = "default"):
-    """:return: the indicator student, warmed up, with its online critic's copy as asked"""
-    model = make_students("auto", compile_losses=compile_losses)["indicator"]
+def student(compile_losses: bool, online_copy: str = "default", train_dtype: str = "float32"):
+    """:return: the indicator student, warmed up, with its online critic's copy and its gradient passes as asked"""
+    model = make_students("auto", compile_losses=compile_losses, train_dtype=train_dtype)["indicator"]
     if online_copy != "default":
         copies = model.__dict__.get("_scoring_copies", [])
         if model._online_scoring_copy is None:
@@ -48,7 +50,7 @@ def student(compile_losses: bool, online_copy: str = "default"):
     model.learn_offline(100, log_interval=0, reset_num_timesteps=False)
     forward = model._forward
     print(
-        f"{'compiled' if compile_losses else 'eager'}, online copy {online_copy}: compiled update in use "
+        f"{'compiled' if compile_losses else 'eager'}, online copy {online_copy}, {train_dtype}: compiled update in use "
         f"{forward.compiled is not None and forward.checked}; {forward.failure or 'no failure'}",
         flush=True,
     )
@@ -76,6 +78,8 @@ def profile(args: argparse.Namespace) -> None:
 def compare(args: argparse.Namespace) -> None:
     if args.online_copy:
         variants = {kind: student(args.compile_losses, kind) for kind in ("default", "unfused", "none")}
+    elif args.train_dtype:
+        variants = {dtype: student(args.compile_losses, train_dtype=dtype) for dtype in ("float32", "bfloat16")}
     else:
         variants = {"eager": student(False), "compiled": student(True)}
     times: dict[str, list[float]] = {name: [] for name in variants}
@@ -96,8 +100,9 @@ def compare(args: argparse.Namespace) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("mode", choices=["profile", "compare"])
-    parser.add_argument("--compile-losses", action="store_true", help="the compiled update (profile, --online-copy)")
+    parser.add_argument("--compile-losses", action="store_true", help="the compiled update (profile, the variants)")
     parser.add_argument("--online-copy", action="store_true", help="compare the online copy's variants")
+    parser.add_argument("--train-dtype", action="store_true", help="compare float32 and bfloat16 gradient passes")
     parser.add_argument("--blocks", type=int, default=6)
     parser.add_argument("--updates", type=int, default=200, help="updates per block")
     args = parser.parse_args()

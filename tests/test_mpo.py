@@ -15,7 +15,7 @@ from stable_baselines3.common.monitor import Monitor
 
 from sb3_lifelong import MPO, LifelongReplayBuffer
 from sb3_lifelong.common.base import EpisodeRngRecorder
-from sb3_lifelong.common.fast_ops import Tanh
+from sb3_lifelong.common.fast_ops import HiddenLinear, Tanh
 from sb3_lifelong.common.policies import gaussian_kl_per_dim, gaussian_log_prob, sample_gaussian
 from sb3_lifelong.common.scoring import q_min, score_actions, tile_obs
 from sb3_lifelong.mpo.losses import dual_value, inverse_softplus, m_step_loss, temperature_loss_and_weights
@@ -229,7 +229,7 @@ def test_layer_norm_networks_and_round_trip(tmp_path):
         *model.critic_target.q_networks,
     ):
         kinds = [type(module) for module in network]
-        assert kinds[:5] == [th.nn.Linear, th.nn.LayerNorm, Tanh, th.nn.Linear, th.nn.ReLU], kinds
+        assert kinds[:5] == [th.nn.Linear, th.nn.LayerNorm, Tanh, HiddenLinear, th.nn.ReLU], kinds
     model.learn(200)
     path = tmp_path / "mpo.zip"
     model.save(path)
@@ -256,7 +256,7 @@ def test_layer_norm_is_mpos_default_and_can_be_turned_off(tmp_path):
     assert default.policy.layer_norm is True
     assert torso(default) == ([th.nn.Linear, th.nn.LayerNorm, Tanh],) * 2
     plain = MPO("MlpPolicy", "Pendulum-v1", seed=0, **{**SMALL, "policy_kwargs": dict(net_arch=[32, 32], layer_norm=False)})
-    assert torso(plain) == ([th.nn.Linear, th.nn.ReLU, th.nn.Linear],) * 2
+    assert torso(plain) == ([th.nn.Linear, th.nn.ReLU, HiddenLinear],) * 2
     plain.save(tmp_path / "plain.zip")
     assert MPO.load(tmp_path / "plain.zip").policy.layer_norm is False  # a saved setting wins over the default
     assert default.policy_kwargs["layer_norm"] is True  # every save says which torso it has

@@ -27,6 +27,8 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_lifelong.common.compiling import LazyCompiled
 from sb3_lifelong.common.distillation import distill
+from sb3_lifelong.common.fast_ops import HiddenLinear
+from sb3_lifelong.common.hardware import resolve_train_dtype
 from sb3_lifelong.common.losses import sum_of
 from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, runs_no_grad_pass
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
@@ -396,6 +398,17 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         copy = LowPrecisionCopy(critic, dtype)
         self.__dict__.setdefault("_scoring_copies", []).append(copy)
         return copy
+
+    def _apply_train_dtype(self, train_dtype: str) -> None:
+        """
+        Set the precision of the policy's hidden-to-hidden products in the passes that record gradients
+        (:class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), from ``train_dtype`` (see
+        :func:`~sb3_lifelong.common.hardware.resolve_train_dtype`). Called at every setup, loads included.
+        """
+        dtype = resolve_train_dtype(train_dtype, self.device)
+        for module in self.policy.modules():
+            if isinstance(module, HiddenLinear):
+                module.compute_dtype = None if dtype == th.float32 else dtype
 
     def _compile_scoring_copies(self, compiled: bool) -> None:
         """

@@ -6,7 +6,10 @@ faster form does not apply (another dtype or device). And a LayerNorm with its t
 pass from a low-precision input to a low-precision output (:func:`layer_norm_tanh_into`).
 """
 
+from typing import Optional
+
 import torch as th
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -89,6 +92,35 @@ class Tanh(nn.Tanh):
 
     def forward(self, input: th.Tensor) -> th.Tensor:
         return fast_tanh(input)
+
+
+class HiddenLinear(nn.Linear):
+    """
+    An ``nn.Linear`` between two hidden layers (:func:`sb3_lifelong.common.policies.mlp_layers` makes every such layer
+    one), whose product can run in a lower precision in the passes that record gradients: with ``compute_dtype`` set
+    (bfloat16), the input, weight and bias are rounded to it, multiplied there, and the output comes back in float32;
+    the gradients flow back through the roundings to the float32 parameters (mixed precision, as under
+    ``torch.autocast``, for these layers only: the first layer, the output layers, LayerNorm and the losses stay
+    float32). Passes without gradients (predictions, targets) and other dtypes run in the layer's own precision.
+    ``compute_dtype`` is not part of the state: the algorithm sets it (``train_dtype``).
+    """
+
+    #: the precision of the product in passes that record gradients; None: the layer's own
+    compute_dtype: Optional[th.dtype] = None
+
+    @classmethod
+    def of(cls, layer: nn.Linear) -> "HiddenLinear":
+        """:return: ``layer`` as a :class:`HiddenLinear`, with the same parameter tensors (nothing initialised again)"""
+        hidden = cls.__new__(cls)
+        hidden.__dict__.update(layer.__dict__)
+        return hidden
+
+    def forward(self, input: th.Tensor) -> th.Tensor:
+        dtype = self.compute_dtype
+        if dtype is None or input.dtype != th.float32 or not th.is_grad_enabled():
+            return F.linear(input, self.weight, self.bias)
+        bias = None if self.bias is None else self.bias.to(dtype)
+        return F.linear(input.to(dtype), self.weight.to(dtype), bias).float()
 
 
 def layer_norm_tanh_into(x: th.Tensor, weight: th.Tensor, bias: th.Tensor, eps: float, out: th.Tensor) -> th.Tensor:

@@ -21,6 +21,29 @@ def cpu_has_fast_bf16() -> bool:
     return " avx512_bf16" in flags or " amx_bf16" in flags
 
 
+#: what ``train_dtype`` accepts (:func:`resolve_train_dtype`)
+TRAIN_DTYPES = ("float32", "bfloat16", "auto")
+
+
+def resolve_train_dtype(train_dtype: str, device: th.device) -> th.dtype:
+    """
+    The precision of the hidden-to-hidden products in the passes that record gradients
+    (:class:`sb3_lifelong.common.fast_ops.HiddenLinear`).
+
+    :param train_dtype: ``"float32"``, ``"bfloat16"``, or ``"auto"``: bfloat16 where the hardware multiplies it
+        natively (a CPU with AVX-512 BF16 or AMX, a CUDA GPU with bf16), float32 elsewhere
+    :param device: where the networks live
+    :return: the torch dtype
+    :raises ValueError: ``train_dtype`` is none of :data:`TRAIN_DTYPES`
+    """
+    if train_dtype not in TRAIN_DTYPES:
+        raise ValueError(f"train_dtype must be one of {TRAIN_DTYPES}, got {train_dtype!r}")
+    if train_dtype != "auto":
+        return getattr(th, train_dtype)
+    native = th.cuda.is_bf16_supported() if device.type == "cuda" else device.type == "cpu" and cpu_has_fast_bf16()
+    return th.bfloat16 if native else th.float32
+
+
 #: the CPU flags that decide how fast the networks' matrix products run (what the benchmarks report)
 MATRIX_FLAGS = ("amx_bf16", "amx_tile", "amx_int8", "avx512_bf16", "avx512f", "avx2", "fma")
 

@@ -24,7 +24,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_lifelong.common.fast_ops import Tanh
+from sb3_lifelong.common.fast_ops import HiddenLinear, Tanh
 
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -101,12 +101,19 @@ def mlp_layers(
     :param net_arch: Hidden layer widths
     :param activation_fn: Activation of the hidden layers (all of them without ``layer_norm``; the later ones with)
     :param layer_norm: LayerNorm and tanh after the first hidden layer
-    :return: the modules, for ``nn.Sequential``
+    :return: the modules, for ``nn.Sequential``; the ``Linear`` layers from one hidden layer to the next are
+        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear` (the same parameters, initialised as SB3 does)
     """
     if not layer_norm or not net_arch:
-        return create_mlp(input_dim, output_dim, net_arch, activation_fn)
-    first = [nn.Linear(input_dim, net_arch[0]), nn.LayerNorm(net_arch[0]), Tanh()]
-    return first + create_mlp(net_arch[0], output_dim, net_arch[1:], activation_fn)
+        layers = create_mlp(input_dim, output_dim, net_arch, activation_fn)
+    else:
+        first = [nn.Linear(input_dim, net_arch[0]), nn.LayerNorm(net_arch[0]), Tanh()]
+        layers = first + create_mlp(net_arch[0], output_dim, net_arch[1:], activation_fn)
+    linears = [layer for layer in layers if isinstance(layer, nn.Linear)]
+    between_hidden = {id(layer) for layer in (linears[1:-1] if output_dim > 0 else linears[1:])}
+    return [
+        HiddenLinear.of(layer) if isinstance(layer, nn.Linear) and id(layer) in between_hidden else layer for layer in layers
+    ]
 
 
 def with_fast_optimizer(optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: Optional[dict]) -> dict:

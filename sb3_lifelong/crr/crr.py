@@ -14,6 +14,7 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_lifelong.buffers.loading import as_lifelong_data
 from sb3_lifelong.common.compiling import COMPILE_CHOICES, LazyCompiled
+from sb3_lifelong.common.hardware import TRAIN_DTYPES
 from sb3_lifelong.common.losses import bootstrap_discount
 from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian
@@ -126,6 +127,12 @@ class CRR(LifelongOfflineAlgorithm):
     :param scoring_dtype: precision of the no-grad critic passes over sampled actions (advantage baseline, TD
         target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; a categorical critic's
         hidden layers too, its logits and their softmax stay float32)
+    :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
+        (the critic's and the actor's losses): ``"float32"`` (the default), ``"bfloat16"`` (mixed precision for
+        those layers: bf16 products; float32 parameters, optimizer and everything else;
+        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), or ``"auto"``: bfloat16 where the hardware multiplies
+        it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16). The default stays float32 until bf16's learning
+        results are measured on such a CPU (``benchmarks/results/fast_paths.md``)
     :param compile_losses: compile the update's forward pass (TD target, critic loss, policy, advantage baseline)
         with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` / ``learn_offline`` call under
         way has at least 50,000 steps to go (updates offline) and inductor can compile here (a C++ compiler on a
@@ -186,6 +193,7 @@ class CRR(LifelongOfflineAlgorithm):
         max_grad_norm: Optional[float] = None,
         actor_averaging: Optional[float] = None,
         scoring_dtype: str = "auto",
+        train_dtype: str = "float32",
         compile_losses: Union[bool, str] = "auto",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
@@ -245,6 +253,7 @@ class CRR(LifelongOfflineAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.actor_averaging = actor_averaging
         self.scoring_dtype = scoring_dtype
+        self.train_dtype = train_dtype
         self.compile_losses = compile_losses
         self._check_hyperparameters()
         if _init_setup_model:
@@ -264,6 +273,7 @@ class CRR(LifelongOfflineAlgorithm):
             "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
             "actor_averaging": self.actor_averaging is None or 0.0 < self.actor_averaging <= 1.0,
             "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
+            "train_dtype": self.train_dtype in TRAIN_DTYPES,
             "target_ess": self.target_ess is None or 0.0 < self.target_ess < 1.0,
             "compile_losses": isinstance(self.compile_losses, bool) or self.compile_losses == "auto",
         }
@@ -275,7 +285,8 @@ class CRR(LifelongOfflineAlgorithm):
                 f"Invalid CRR hyperparameters: {values} (num_samples, n_target_samples and target_update_interval must "
                 f"be >= 1, beta > 0, max_weight >= 1, tau and actor_averaging in (0, 1], advantage_baseline in "
                 f"{ADVANTAGE_BASELINES}, advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS}, "
-                f"scoring_dtype in {SCORING_DTYPES}, target_ess None or in (0, 1), compile_losses in {COMPILE_CHOICES})"
+                f"scoring_dtype in {SCORING_DTYPES}, train_dtype in {TRAIN_DTYPES}, target_ess None or in (0, 1), "
+                f"compile_losses in {COMPILE_CHOICES})"
             )
         if self.target_ess is not None and (self.advantage_transform != "exp" or self.normalize_advantages):
             raise ValueError(
@@ -293,6 +304,7 @@ class CRR(LifelongOfflineAlgorithm):
             self.policy_kwargs = {**self.policy_kwargs, "averaged_actor": True}
         super()._setup_model()
         self._create_aliases()
+        self._apply_train_dtype(self.train_dtype)
         # low-precision copies of the target critic (TD targets) and the online critic (advantage baselines)
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
         self._online_scoring_copy = self._make_scoring_copy(self.critic, self.scoring_dtype)

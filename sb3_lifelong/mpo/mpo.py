@@ -13,6 +13,7 @@ from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.compiling import COMPILE_CHOICES, LazyCompiled
+from sb3_lifelong.common.hardware import TRAIN_DTYPES
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
 from sb3_lifelong.common.scoring import SCORING_DTYPES, score_actions
@@ -107,6 +108,12 @@ class MPO(LifelongOffPolicyAlgorithm):
         critic, refreshed at every target update; Q within about 1 % of float32), or ``"auto"``: bfloat16 where
         the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16) and the critic's
         layers are at least 128 wide, float32 otherwise
+    :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
+        (the critic's and the actor's losses): ``"float32"`` (the default), ``"bfloat16"`` (mixed precision for
+        those layers: bf16 products; float32 parameters, optimizer and everything else;
+        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), or ``"auto"``: bfloat16 where the hardware multiplies
+        it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16). The default stays float32 until bf16's learning
+        results are measured on such a CPU (``benchmarks/results/fast_paths.md``)
     :param compile_losses: compile the update's forward pass (the target, the critic's loss, the E-step, the M-step
         and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under
         way has at least 50,000 steps to go and inductor can compile here (a C++ compiler on a CPU); see
@@ -168,6 +175,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         max_grad_norm: float = 40.0,
         policy_on_next_obs: bool = True,
         scoring_dtype: str = "auto",
+        train_dtype: str = "float32",
         compile_losses: Union[bool, str] = "auto",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
@@ -217,6 +225,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.policy_on_next_obs = policy_on_next_obs
         self.scoring_dtype = scoring_dtype
+        self.train_dtype = train_dtype
         self.compile_losses = compile_losses
         if self._policy_has_torso_choice():
             # the torso is written into policy_kwargs, so that every save says which one it has (see _setup_model)
@@ -236,6 +245,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             "target_update_interval": self.target_update_interval >= 1,
             "tau": 0.0 < self.tau <= 1.0,
             "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
+            "train_dtype": self.train_dtype in TRAIN_DTYPES,
             "compile_losses": isinstance(self.compile_losses, bool) or self.compile_losses == "auto",
         }
         bad = [name for name, ok in checks.items() if not ok]
@@ -243,8 +253,8 @@ class MPO(LifelongOffPolicyAlgorithm):
             values = ", ".join(f"{name}={getattr(self, name)!r}" for name in bad)
             raise ValueError(
                 f"Invalid MPO hyperparameters: {values} (num_samples and target_update_interval must be >= 1, "
-                f"epsilons and dual_learning_rate > 0, tau in (0, 1], scoring_dtype in {SCORING_DTYPES}, compile_losses in "
-                f"{COMPILE_CHOICES})"
+                f"epsilons and dual_learning_rate > 0, tau in (0, 1], scoring_dtype in {SCORING_DTYPES}, train_dtype in "
+                f"{TRAIN_DTYPES}, compile_losses in {COMPILE_CHOICES})"
             )
 
     def _policy_has_torso_choice(self) -> bool:
@@ -278,6 +288,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.dual_optimizer = th.optim.Adam(
             dual_params, lr=self.dual_learning_rate, **with_fast_optimizer(th.optim.Adam, None)
         )
+        self._apply_train_dtype(self.train_dtype)
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
         self._forward = LazyCompiled(self._forward_pass, "MPO's forward pass", self._trained_parameters)
 

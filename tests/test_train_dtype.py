@@ -1,0 +1,108 @@
+"""``train_dtype``: the hidden-to-hidden products of the gradient passes in bfloat16 (:class:`HiddenLinear`), the
+networks built as before, the setting resolved, applied and kept through save and load, and training that learns."""
+
+import pytest
+import torch as th
+import torch.nn.functional as F
+from gymnasium import spaces
+from stable_baselines3.common.torch_layers import create_mlp
+from torch import nn
+
+from sb3_lifelong import CRR, MPO
+from sb3_lifelong.common import compiling, hardware
+from sb3_lifelong.common.fast_ops import HiddenLinear
+from sb3_lifelong.common.policies import mlp_layers
+from tests.test_crr import flat_params, pendulum_data
+
+KWARGS = dict(device="cpu", batch_size=64, policy_kwargs=dict(net_arch=[64, 64], layer_norm=True), seed=0)
+
+
+def hidden_layers(model) -> list[HiddenLinear]:
+    return [module for module in model.policy.modules() if isinstance(module, HiddenLinear)]
+
+
+def student(data: dict, **kwargs) -> CRR:
+    return CRR.from_offline_data(data, env=None, action_space=spaces.Box(-2, 2, (1,)), **{**KWARGS, **kwargs})
+
+
+def test_hidden_linear_rounds_only_the_gradient_passes():
+    th.manual_seed(0)
+    layer = HiddenLinear.of(nn.Linear(64, 64))
+    x = th.randn(32, 64, requires_grad=True)
+    exact = F.linear(x, layer.weight, layer.bias)
+    assert th.equal(layer(x), exact)  # no compute_dtype: the layer's own product
+    layer.compute_dtype = th.bfloat16
+    with th.no_grad():
+        assert th.equal(layer(x), exact)  # a pass without gradients stays float32
+    out = layer(x)
+    assert out.dtype == th.float32 and not th.equal(out, exact)  # rounded through bf16
+    # bf16 keeps 8 bits: the products are within a few of its rounding steps of float32's, relative to their scale
+    assert float((out - exact).detach().abs().max()) <= 3e-2 * float(exact.detach().abs().max())
+    grads = th.autograd.grad((out * out).sum(), [x, layer.weight, layer.bias])
+    exact_grads = th.autograd.grad((exact * exact).sum(), [x, layer.weight, layer.bias])
+    for grad, reference in zip(grads, exact_grads):
+        assert grad.dtype == th.float32  # the parameters and their gradients stay float32
+        assert float((grad - reference).abs().max()) <= 3e-2 * float(reference.abs().max())
+
+
+def test_mlp_layers_are_built_as_before_with_the_hidden_products_marked():
+    for layer_norm in (False, True):
+        th.manual_seed(0)
+        layers = mlp_layers(5, 3, [16, 16, 16], nn.ReLU, layer_norm)
+        kinds = [type(layer) for layer in layers if isinstance(layer, nn.Linear)]
+        assert kinds == [nn.Linear, HiddenLinear, HiddenLinear, nn.Linear]  # first and output layers stay plain
+        if not layer_norm:  # SB3's create_mlp, initialised alike (the same random draws, the same values)
+            th.manual_seed(0)
+            reference = create_mlp(5, 3, [16, 16, 16], nn.ReLU)
+            assert all(
+                th.equal(a, b) for a, b in zip(nn.Sequential(*layers).parameters(), nn.Sequential(*reference).parameters())
+            )
+    latent = mlp_layers(5, -1, [16, 16], nn.ReLU)  # an actor's torso: its last Linear feeds the heads, it is hidden
+    assert [type(layer) for layer in latent if isinstance(layer, nn.Linear)] == [nn.Linear, HiddenLinear]
+    plain = nn.Linear(4, 4)
+    assert HiddenLinear.of(plain).weight is plain.weight  # the same tensors, nothing initialised again
+
+
+def test_train_dtype_is_resolved_applied_and_kept_through_save_and_load(tmp_path, monkeypatch):
+    data = pendulum_data(300)
+    model = student(data, train_dtype="bfloat16")
+    assert len(hidden_layers(model)) == 4  # actor, critic and their targets: one hidden product each
+    assert all(layer.compute_dtype == th.bfloat16 for layer in hidden_layers(model))
+    model.learn_offline(3, log_interval=0)
+    model.save(tmp_path / "student.zip")
+    loaded = CRR.load(tmp_path / "student.zip", device="cpu")
+    assert loaded.train_dtype == "bfloat16" and all(layer.compute_dtype == th.bfloat16 for layer in hidden_layers(loaded))
+    assert th.equal(flat_params(loaded), flat_params(model))
+    assert all(layer.compute_dtype is None for layer in hidden_layers(student(data)))  # the default: float32
+    for native, expected in ((True, th.bfloat16), (False, None)):
+        monkeypatch.setattr(hardware, "cpu_has_fast_bf16", lambda native=native: native)
+        assert all(layer.compute_dtype == expected for layer in hidden_layers(student(data, train_dtype="auto")))
+    mpo = MPO("MlpPolicy", "Pendulum-v1", train_dtype="bfloat16", device="cpu", policy_kwargs=dict(net_arch=[32, 32]))
+    assert len(hidden_layers(mpo)) == 4 and all(layer.compute_dtype == th.bfloat16 for layer in hidden_layers(mpo))
+    with pytest.raises(ValueError, match="train_dtype='bf16'"):
+        student(data, train_dtype="bf16")
+    with pytest.raises(ValueError, match="train_dtype must be one of"):
+        hardware.resolve_train_dtype("half", th.device("cpu"))
+
+
+def test_a_bf16_student_learns_as_the_float32_one():
+    """The critic's cross-entropy falls alike in both precisions (same data, seed and batches)."""
+    data = pendulum_data(600)
+    losses = {}
+    for train_dtype in ("float32", "bfloat16"):
+        model = student(data, train_dtype=train_dtype)
+        model.learn_offline(20, log_interval=0)
+        before = model.logger.name_to_value["train/critic_loss"]
+        model.learn_offline(400, log_interval=0, reset_num_timesteps=False)
+        model.learn_offline(20, log_interval=0, reset_num_timesteps=False)
+        losses[train_dtype] = (before, model.logger.name_to_value["train/critic_loss"])
+    for before, after in losses.values():
+        assert after < 0.7 * before, losses
+    assert abs(losses["bfloat16"][1] - losses["float32"][1]) <= 0.1 * losses["float32"][1], losses
+
+
+@pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
+def test_a_compiled_bf16_update_passes_its_check():
+    model = student(pendulum_data(300), train_dtype="bfloat16", compile_losses=True).learn_offline(4, log_interval=0)
+    forward = model._forward
+    assert forward.compiled is not None and forward.checked and not forward.failed, forward.failure
