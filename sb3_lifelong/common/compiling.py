@@ -25,6 +25,11 @@ AUTO_MIN_UPDATES = 50_000
 #: the first compiled call's outputs and gradients must be within this much of the eager call's, relative to the
 #: largest of each (float32 rounding is about 1e-6 of it; a wrongly compiled backward has given 0.2)
 CHECK_TOLERANCE = 1e-3
+#: a parameter's gradient is compared against its own largest component, or this fraction of the largest of all
+#: parameters' if that is more; an output against its own largest value, or this much absolutely if that is more
+#: (a logged statistic that is a difference of nearly equal numbers, e.g. a KL of 1e-9, is rounding noise)
+GRADIENT_FLOOR = 1e-5
+OUTPUT_FLOOR = 1e-6
 
 
 def can_compile(device: th.device) -> bool:
@@ -51,7 +56,8 @@ class LazyCompiled:
     Before the compiled function is used, its first call is checked against the eager one on the same arguments: the
     outputs, and the gradients of a fixed random projection of the outputs with respect to ``parameters``. Where they
     differ by more than :data:`CHECK_TOLERANCE` of the largest value (a compiler that gets a backward wrong on this
-    CPU), it warns, naming the parameters, and the function stays eager for good.
+    CPU), it warns, naming the parameters, and the function stays eager for good. Only the first compilation is
+    checked, not a recompilation that later arguments may cause (the updates' shapes are fixed).
 
     :param function: a pure computation of tensors (its inputs' shapes fixed: compiled with ``dynamic=False``)
     :param name: what the warning calls it
@@ -124,7 +130,8 @@ class LazyCompiled:
         """
         assert self.compiled is not None
         named = [(name, p) for name, p in (self.parameters() if self.parameters else []) if p.requires_grad]
-        with th.random.fork_rng():
+        devices = sorted({t.device.index or 0 for t in _tensors(args) if t.device.type == "cuda"})
+        with th.random.fork_rng(devices=devices):  # (only the devices in use: forking every GPU would start CUDA)
             eager = [t.clone() for t in _tensors(self.function(*args))]  # kept apart from an output written in place
             compiled = _tensors(self.compiled(*args))
         if len(eager) != len(compiled):
@@ -143,17 +150,19 @@ class LazyCompiled:
             projection = sum((outputs[i] * weights[i]).sum() for i in differentiable)
             grads = th.autograd.grad(projection, leaves, allow_unused=True)  # type: ignore[arg-type]
             gradients.append([th.zeros_like(p) if g is None else g for p, g in zip(leaves, grads)])
-        scale = max(float(g.abs().max()) for g in gradients[0] if g.numel())
-        wrong = [
-            f"{name} (by {float((c - e).abs().max()):.1e})"
-            for (name, _), e, c in zip(named, *gradients)
-            if e.numel() and float((c - e).abs().max()) > CHECK_TOLERANCE * scale
-        ]
+        # each parameter against its own largest gradient (a small actor's beside a large critic's is checked too), with
+        # a floor of GRADIENT_FLOOR of the largest of all, under which rounding noise is all there is to compare
+        scale = max((float(g.abs().max()) for g in gradients[0] if g.numel()), default=0.0)
+        wrong = []
+        for (name, _), e, c in zip(named, *gradients):
+            if e.numel():
+                difference, own = float((c - e).abs().max()), float(e.abs().max())
+                if not difference <= CHECK_TOLERANCE * max(own, GRADIENT_FLOOR * scale):  # NaN fails too
+                    wrong.append(f"{name} (by {difference:.1e}, its largest {own:.1e})")
         if wrong:
             raise CompiledMismatch(
-                f"the compiled gradients differ from the eager ones, whose largest is {scale:.1e}, in {len(wrong)} of "
-                f"{len(named)} parameters: {', '.join(wrong[:6])}{', ...' if len(wrong) > 6 else ''}"
-                f" (torch {th.__version__})"
+                f"the compiled gradients differ from the eager ones in {len(wrong)} of {len(named)} parameters: "
+                f"{', '.join(wrong[:6])}{', ...' if len(wrong) > 6 else ''} (torch {th.__version__})"
             )
         self.checked = True
 
@@ -187,7 +196,7 @@ def _compare(label: str, compiled: th.Tensor, eager: th.Tensor) -> None:
     difference = float((compiled.float() - eager.float()).abs().max())
     scale = float(eager.float().abs().max())
     tolerance = max(CHECK_TOLERANCE, 2 * th.finfo(eager.dtype).eps)  # a low-precision output may round either way
-    if not difference <= tolerance * max(scale, 1e-12):  # NaN fails too
+    if not difference <= tolerance * max(scale, OUTPUT_FLOOR):  # NaN fails too
         raise CompiledMismatch(f"{label} differs from the eager function's by {difference:.1e} (its largest: {scale:.1e})")
 
 

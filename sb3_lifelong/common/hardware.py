@@ -21,6 +21,14 @@ def cpu_has_fast_bf16() -> bool:
     return " avx512_bf16" in flags or " amx_bf16" in flags
 
 
+def cuda_has_native_bf16() -> bool:
+    """:return: whether the current CUDA GPU multiplies bfloat16 natively (Ampere and later), not by emulation"""
+    try:
+        return bool(th.cuda.is_bf16_supported(including_emulation=False))
+    except TypeError:  # a torch whose check has no such argument (it then counts native support only)
+        return bool(th.cuda.is_bf16_supported())
+
+
 #: what ``train_dtype`` accepts (:func:`resolve_train_dtype`)
 TRAIN_DTYPES = ("float32", "bfloat16", "auto")
 
@@ -40,7 +48,7 @@ def resolve_train_dtype(train_dtype: str, device: th.device) -> th.dtype:
         raise ValueError(f"train_dtype must be one of {TRAIN_DTYPES}, got {train_dtype!r}")
     if train_dtype != "auto":
         return getattr(th, train_dtype)
-    native = th.cuda.is_bf16_supported() if device.type == "cuda" else device.type == "cpu" and cpu_has_fast_bf16()
+    native = cuda_has_native_bf16() if device.type == "cuda" else device.type == "cpu" and cpu_has_fast_bf16()
     return th.bfloat16 if native else th.float32
 
 

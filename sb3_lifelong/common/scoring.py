@@ -40,7 +40,7 @@ from torch import nn
 
 from sb3_lifelong.common.compiling import LazyCompiled
 from sb3_lifelong.common.fast_ops import layer_norm_tanh_into, relu_in_place, tanh_in_place
-from sb3_lifelong.common.hardware import cpu_has_fast_bf16, fused_products_supported
+from sb3_lifelong.common.hardware import cpu_has_fast_bf16, cuda_has_native_bf16, fused_products_supported
 
 SCORING_DTYPES = ("auto", "float32", "bfloat16")
 #: narrowest hidden layer for which ``scoring_dtype="auto"`` picks bfloat16: below it the matrices are too small
@@ -130,7 +130,7 @@ def resolve_scoring_dtype(scoring_dtype: str, critic: nn.Module, device: th.devi
     for q_net in _q_networks(critic):
         hidden += [m.out_features for m in q_net.modules() if isinstance(m, nn.Linear)][:-1]
     wide = bool(hidden) and min(hidden) >= AUTO_BF16_MIN_WIDTH
-    native = th.cuda.is_bf16_supported() if device.type == "cuda" else device.type == "cpu" and cpu_has_fast_bf16()
+    native = cuda_has_native_bf16() if device.type == "cuda" else device.type == "cpu" and cpu_has_fast_bf16()
     return th.bfloat16 if wide and native else th.float32
 
 

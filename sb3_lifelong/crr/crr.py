@@ -128,11 +128,8 @@ class CRR(LifelongOfflineAlgorithm):
         target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; a categorical critic's
         hidden layers too, its logits and their softmax stay float32)
     :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
-        (the critic's and the actor's losses): ``"float32"`` (the default), ``"bfloat16"`` (mixed precision for
-        those layers: bf16 products; float32 parameters, optimizer and everything else;
-        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), or ``"auto"``: bfloat16 where the hardware multiplies
-        it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16). The default stays float32 until bf16's learning
-        results are measured on such a CPU (``benchmarks/results/fast_paths.md``)
+        (the critic's loss, the policy's): ``"float32"`` (the default), ``"bfloat16"`` or ``"auto"`` (see
+        :class:`sb3_lifelong.MPO`)
     :param compile_losses: compile the update's forward pass (TD target, critic loss, policy, advantage baseline)
         with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` / ``learn_offline`` call under
         way has at least 50,000 steps to go (updates offline) and inductor can compile here (a C++ compiler on a
