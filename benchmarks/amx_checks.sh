@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# The checks that need a CPU with native bf16 (AMX or AVX-512 BF16), as one run of under 10 minutes on a machine
+# with at least 12 cores: each check one process with one torch thread, pinned to its own core, all at once.
+#
+#   bash benchmarks/amx_checks.sh [OUTPUT_DIR]      # default benchmarks/results/amx_checks
+#
+# It needs the package importable (installed, or PYTHONPATH=<repo>) with gymnasium[mujoco] and SB3. It prints the
+# tables at the end; each check's whole output is in OUTPUT_DIR/<name>.log:
+#   flags              the CPU's matrix flags and oneDNN's bf16 kernel
+#   compiled_vs_eager  compiled against eager (and float64) on this CPU and torch (the tanh bug, the check)
+#   test_compiled      tests/test_compiled.py and tests/test_train_dtype.py
+#   student_compiled   a study student, eager against compiled
+#   student_train      a study student, compiled, float32 against bf16 gradient passes (train_dtype)
+#   mpo_train          MPO (N=20, LayerNorm, compiled) against SAC, float32 and bf16 gradient passes, Walker2d
+#   crr_<dtype>_<seed> CRR on the fixed Hopper dataset, 3000 updates, its return, float32 and bf16 gradient
+#                      passes, seeds 0-2
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT=${1:-benchmarks/results/amx_checks}
+mkdir -p "$OUT"
+export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONUNBUFFERED=1
+PY=${PYTHON:-python}
+cores=$(nproc)
+core=0
+run() {  # run NAME SECONDS COMMAND...: in the background, on the next core (when taskset and the core exist)
+    local name=$1 seconds=$2
+    shift 2
+    local pin=()
+    if command -v taskset > /dev/null && [ "$core" -lt "$cores" ]; then pin=(taskset -c "$core"); fi
+    core=$((core + 1))
+    (timeout "$seconds" "${pin[@]}" "$@" > "$OUT/$name.log" 2>&1; echo "exit $?" >> "$OUT/$name.log") &
+}
+$PY -c "from sb3_lifelong.common.hardware import machine_description; print(machine_description())" > "$OUT/flags.log" 2>&1
+run compiled_vs_eager 540 $PY benchmarks/compiled_vs_eager.py
+run test_compiled 540 $PY -m pytest -q -p no:cacheprovider -rs tests/test_compiled.py tests/test_train_dtype.py
+run student_compiled 540 $PY benchmarks/student_anatomy.py compare --blocks 6
+run student_train 540 $PY benchmarks/student_anatomy.py compare --train-dtype --compile-losses --blocks 6
+run mpo_train 540 $PY benchmarks/bench_mpo_throughput.py --envs Walker2d-v5 --rounds 3 --steps 500 --num-samples 20 \
+    --scoring-dtypes auto --layer-norms on --compile-losses on --train-dtypes float32 bfloat16 --threads 1 \
+    --output "$OUT/mpo_throughput"
+for seed in 0 1 2; do
+    for dtype in float32 bfloat16; do
+        run "crr_${dtype}_$seed" 540 $PY benchmarks/bench_crr.py --impl ours --updates 3000 --eval-episodes 10 \
+            --train-dtype $dtype --seed $seed
+    done
+done
+wait
+cat "$OUT/flags.log"
+grep -h "torso\|first update\|compiled True\|compiled False" "$OUT/compiled_vs_eager.log" | head -30
+grep -hE "passed|failed|SKIPPED" "$OUT/test_compiled.log" | tail -6
+for name in student_compiled student_train; do echo "== $name"; grep -h "^|\|compiled update in use" "$OUT/$name.log"; done
+echo "== mpo_train"; grep -h "^|" "$OUT/mpo_train.log" | head -12
+echo "== CRR on the fixed dataset (one JSON line a run: updates, seconds, return)"; grep -h '"impl"' "$OUT"/crr_*.log
