@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The checks that need a CPU with native bf16 (AMX or AVX-512 BF16), as one run of under 10 minutes on a machine
-# with at least 12 cores: each check one process with one torch thread, pinned to its own core, all at once.
+# with at least 14 cores: each check one process with one torch thread, pinned to its own core, all at once.
 #
 #   bash benchmarks/amx_checks.sh [OUTPUT_DIR]      # default benchmarks/results/amx_checks
 #
@@ -12,6 +12,7 @@
 #   student_compiled   a study student, eager against compiled
 #   student_train      a study student, compiled, float32 against bf16 gradient passes (train_dtype)
 #   mpo_train          MPO (N=20, LayerNorm, compiled) against SAC, float32 and bf16 gradient passes, Walker2d
+#   batched[_compiled] K students' update cores one after the other against batched (bench_batched_students.py)
 #   crr_<dtype>_<seed> CRR on the fixed Hopper dataset, 3000 updates, its return, float32 and bf16 gradient
 #                      passes, seeds 0-2
 set -uo pipefail
@@ -38,6 +39,8 @@ run student_train 540 $PY benchmarks/student_anatomy.py compare --train-dtype --
 run mpo_train 540 $PY benchmarks/bench_mpo_throughput.py --envs Walker2d-v5 --rounds 3 --steps 500 --num-samples 20 \
     --scoring-dtypes auto --layer-norms on --compile-losses on --train-dtypes float32 bfloat16 --threads 1 \
     --output "$OUT/mpo_throughput"
+run batched 540 $PY benchmarks/bench_batched_students.py --output "$OUT/batched_students.json"
+run batched_compiled 540 $PY benchmarks/bench_batched_students.py --compile --output "$OUT/batched_students_compiled.json"
 for seed in 0 1 2; do
     for dtype in float32 bfloat16; do
         run "crr_${dtype}_$seed" 540 $PY benchmarks/bench_crr.py --impl ours --updates 3000 --eval-episodes 10 \
@@ -50,4 +53,5 @@ grep -h "torso\|first update\|compiled True\|compiled False" "$OUT/compiled_vs_e
 grep -hE "passed|failed|SKIPPED" "$OUT/test_compiled.log" | tail -6
 for name in student_compiled student_train; do echo "== $name"; grep -h "^|\|compiled update in use" "$OUT/$name.log"; done
 echo "== mpo_train"; grep -h "^|" "$OUT/mpo_train.log" | head -12
+for name in batched batched_compiled; do echo "== $name"; grep -h "^|" "$OUT/$name.log"; done
 echo "== CRR on the fixed dataset (one JSON line a run: updates, seconds, return)"; grep -h '"impl"' "$OUT"/crr_*.log
