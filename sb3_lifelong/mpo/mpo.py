@@ -282,20 +282,21 @@ class MPO(LifelongOffPolicyAlgorithm):
         self.log_penalty_temperature = th.full(
             (1,), inverse_softplus(self.init_temperature), device=self.device
         ).requires_grad_(True)
-        dual_params = [self.log_temperature, self.log_alpha_mean, self.log_alpha_stddev]
-        if self.action_penalty:
-            dual_params.append(self.log_penalty_temperature)
         self.dual_optimizer = th.optim.Adam(
-            dual_params, lr=self.dual_learning_rate, **with_fast_optimizer(th.optim.Adam, None)
+            [dual for _, dual in self._trained_duals()], lr=self.dual_learning_rate, **with_fast_optimizer(th.optim.Adam, None)
         )
         self._apply_train_dtype(self.train_dtype)
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
         self._forward = LazyCompiled(self._forward_pass, "MPO's forward pass", self._trained_parameters)
 
+    def _trained_duals(self) -> list[tuple[str, th.Tensor]]:
+        """:return: the duals the update trains, named (the action penalty's temperature only with the penalty)"""
+        names = ["log_temperature", "log_alpha_mean", "log_alpha_stddev"] + ["log_penalty_temperature"] * self.action_penalty
+        return [(name, getattr(self, name)) for name in names]
+
     def _trained_parameters(self) -> list[tuple[str, th.Tensor]]:
         """:return: what the update's losses are differentiated with respect to: the policy's parameters and the duals"""
-        duals = ["log_temperature", "log_alpha_mean", "log_alpha_stddev"] + ["log_penalty_temperature"] * self.action_penalty
-        return [*self.policy.named_parameters(), *((name, getattr(self, name)) for name in duals)]
+        return [*self.policy.named_parameters(), *self._trained_duals()]
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
