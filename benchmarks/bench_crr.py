@@ -165,7 +165,12 @@ def main() -> None:
     parser.add_argument("--speed-rounds", type=int, default=3, help="interleaved throughput-only rounds (0: none)")
     parser.add_argument("--speed-updates", type=int, default=300, help="updates per throughput-only round")
     parser.add_argument("--compile-losses", action="store_true", help="our CRR with compile_losses=True")
-    parser.add_argument("--train-dtype", default="float32", choices=["float32", "bfloat16", "auto"], help="our CRR's")
+    parser.add_argument(
+        "--train-dtype",
+        default="float32",
+        choices=["float32", "bfloat16", "simulated_bfloat16", "auto"],
+        help="our CRR's (simulated_bfloat16: bf16's numbers from float32 products, for the return where bf16 is not native)",
+    )
     args = parser.parse_args()
     with np.load(args.data) as npz:
         data = {key: npz[key] for key in npz.files}

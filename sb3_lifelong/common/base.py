@@ -28,7 +28,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_lifelong.common.compiling import LazyCompiled
 from sb3_lifelong.common.distillation import distill
 from sb3_lifelong.common.fast_ops import HiddenLinear
-from sb3_lifelong.common.hardware import resolve_train_dtype
+from sb3_lifelong.common.hardware import SIMULATED_BFLOAT16, resolve_train_dtype
 from sb3_lifelong.common.losses import sum_of
 from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, runs_no_grad_pass
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
@@ -367,8 +367,8 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
 
     def _compiles_now(self) -> bool:
         """:return: whether this ``train`` call runs the compiled forward pass (see the algorithm's ``compile_losses``)"""
-        if self._forward is None:
-            return False
+        if self._forward is None or getattr(self, "train_dtype", None) == SIMULATED_BFLOAT16:
+            return False  # a compiled graph fuses the simulation's roundings away (HiddenLinear)
         to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
         return self._forward.wanted(self.compile_losses, to_go, self.device)
 
@@ -405,10 +405,16 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         (:class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), from ``train_dtype`` (see
         :func:`~sb3_lifelong.common.hardware.resolve_train_dtype`). Called at every setup, loads included.
         """
+        if train_dtype == SIMULATED_BFLOAT16 and self.compile_losses is True:
+            raise ValueError(
+                f"train_dtype={train_dtype!r} runs eagerly (a compiled graph fuses its roundings away): pass "
+                "compile_losses=False or 'auto' (which then stays eager)"
+            )
         dtype = resolve_train_dtype(train_dtype, self.device)
         for module in self.policy.modules():
             if isinstance(module, HiddenLinear):
                 module.compute_dtype = None if dtype == th.float32 else dtype
+                module.simulated = train_dtype == SIMULATED_BFLOAT16
 
     def _compile_scoring_copies(self, compiled: bool) -> None:
         """

@@ -103,10 +103,20 @@ class HiddenLinear(nn.Linear):
     ``torch.autocast``, for these layers only: the first layer, the output layers, LayerNorm and the losses stay
     float32). Passes without gradients (predictions, targets) and other dtypes run in the layer's own precision.
     ``compute_dtype`` is not part of the state: the algorithm sets it (``train_dtype``).
+
+    With :attr:`simulated`, the product gives the same numbers from float32 arithmetic: the input, weight and bias are
+    rounded to ``compute_dtype`` and back, multiplied in float32 (a product of two bf16 numbers is exact in float32,
+    and the hardware's bf16 products sum in float32 too), and the output is rounded; in the backward pass the incoming
+    gradient and the gradients it gives are rounded the same way (autograd's rule for the casts). Only the order of
+    the float32 sums differs from a bf16 kernel's, so a result can differ by one bf16 rounding step. It costs about a
+    float32 product, where a CPU without native bf16 emulates it several times slower: it measures what bf16 does to
+    learning on any hardware. Eager only: ``torch.compile`` fuses a round trip through bf16 away.
     """
 
     #: the precision of the product in passes that record gradients; None: the layer's own
     compute_dtype: Optional[th.dtype] = None
+    #: give ``compute_dtype``'s roundings around a float32 product instead of multiplying in ``compute_dtype``
+    simulated: bool = False
 
     @classmethod
     def of(cls, layer: nn.Linear) -> "HiddenLinear":
@@ -119,8 +129,16 @@ class HiddenLinear(nn.Linear):
         dtype = self.compute_dtype
         if dtype is None or input.dtype != th.float32 or not th.is_grad_enabled():
             return F.linear(input, self.weight, self.bias)
+        if self.simulated:
+            bias = None if self.bias is None else _round_trip(self.bias, dtype)
+            return _round_trip(F.linear(_round_trip(input, dtype), _round_trip(self.weight, dtype), bias), dtype)
         bias = None if self.bias is None else self.bias.to(dtype)
         return F.linear(input.to(dtype), self.weight.to(dtype), bias).float()
+
+
+def _round_trip(x: th.Tensor, dtype: th.dtype) -> th.Tensor:
+    """:return: ``x`` rounded to ``dtype`` and back to float32; its gradient is rounded the same way (autograd)"""
+    return x.to(dtype).float()
 
 
 def layer_norm_tanh_into(x: th.Tensor, weight: th.Tensor, bias: th.Tensor, eps: float, out: th.Tensor) -> th.Tensor:

@@ -30,7 +30,11 @@ def cuda_has_native_bf16() -> bool:
 
 
 #: what ``train_dtype`` accepts (:func:`resolve_train_dtype`)
-TRAIN_DTYPES = ("float32", "bfloat16", "auto")
+TRAIN_DTYPES = ("float32", "bfloat16", "simulated_bfloat16", "auto")
+
+#: the ``train_dtype`` that gives bfloat16's numbers from float32 products
+#: (:attr:`sb3_lifelong.common.fast_ops.HiddenLinear.simulated`)
+SIMULATED_BFLOAT16 = "simulated_bfloat16"
 
 
 def resolve_train_dtype(train_dtype: str, device: th.device) -> th.dtype:
@@ -38,7 +42,9 @@ def resolve_train_dtype(train_dtype: str, device: th.device) -> th.dtype:
     The precision of the hidden-to-hidden products in the passes that record gradients
     (:class:`sb3_lifelong.common.fast_ops.HiddenLinear`).
 
-    :param train_dtype: ``"float32"``, ``"bfloat16"``, or ``"auto"``: bfloat16 where the hardware multiplies it
+    :param train_dtype: ``"float32"``, ``"bfloat16"``, ``"simulated_bfloat16"`` (bfloat16's roundings around float32
+        products, the same numbers as ``"bfloat16"`` at float32's speed: to measure what bf16 does to learning on
+        hardware without it; it resolves to bfloat16), or ``"auto"``: bfloat16 where the hardware multiplies it
         natively (a CPU with AVX-512 BF16 or AMX, a CUDA GPU with bf16), float32 elsewhere
     :param device: where the networks live
     :return: the torch dtype
@@ -46,6 +52,8 @@ def resolve_train_dtype(train_dtype: str, device: th.device) -> th.dtype:
     """
     if train_dtype not in TRAIN_DTYPES:
         raise ValueError(f"train_dtype must be one of {TRAIN_DTYPES}, got {train_dtype!r}")
+    if train_dtype == SIMULATED_BFLOAT16:
+        return th.bfloat16
     if train_dtype != "auto":
         return getattr(th, train_dtype)
     native = cuda_has_native_bf16() if device.type == "cuda" else device.type == "cpu" and cpu_has_fast_bf16()

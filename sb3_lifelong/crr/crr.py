@@ -128,8 +128,8 @@ class CRR(LifelongOfflineAlgorithm):
         target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; a categorical critic's
         hidden layers too, its logits and their softmax stay float32)
     :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
-        (the critic's loss, the policy's): ``"float32"`` (the default), ``"bfloat16"`` or ``"auto"`` (see
-        :class:`sb3_lifelong.MPO`)
+        (the critic's loss, the policy's): ``"float32"`` (the default), ``"bfloat16"``, ``"simulated_bfloat16"`` or
+        ``"auto"`` (see :class:`sb3_lifelong.MPO`)
     :param compile_losses: compile the update's forward pass (TD target, critic loss, policy, advantage baseline)
         with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` / ``learn_offline`` call under
         way has at least 50,000 steps to go (updates offline) and inductor can compile here (a C++ compiler on a

@@ -111,8 +111,10 @@ class MPO(LifelongOffPolicyAlgorithm):
     :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
         (the critic's and the actor's losses): ``"float32"`` (the default), ``"bfloat16"`` (mixed precision for
         those layers: bf16 products; float32 parameters, optimizer and everything else;
-        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), or ``"auto"``: bfloat16 where the hardware multiplies
-        it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16). The default stays float32 until bf16's learning
+        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), ``"simulated_bfloat16"`` (the same numbers from float32
+        products, eager: what bf16 does to learning, measured at float32's speed where the hardware has no bf16), or
+        ``"auto"``: bfloat16 where the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16).
+        The default stays float32 until bf16's learning
         results are measured on such a CPU (``benchmarks/results/fast_paths.md``)
     :param compile_losses: compile the update's forward pass (the target, the critic's loss, the E-step, the M-step
         and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under

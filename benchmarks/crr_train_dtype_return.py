@@ -1,0 +1,136 @@
+"""
+Does bf16 in CRR's gradient passes keep its learning result? The fixed-dataset return of ``bench_crr.py``'s CRR
+(Hopper-v5, ``crr_hopper_medium_replay.npz``) with ``train_dtype="float32"`` against a bf16 setting, seed by seed,
+each run its own process (``bench_crr.py --impl ours``), the two settings interleaved per seed.
+
+On a CPU without native bf16, ``--other simulated_bfloat16`` gives bf16's numbers from float32 products at float32's
+speed (``HiddenLinear.simulated``; ``tests/test_train_dtype.py`` checks it against the bf16 kernel); on one with it,
+``--other bfloat16`` runs the real thing.
+
+Pre-registered before the runs (written into the results):
+
+- precondition: the float32 students learn from the data, their mean return above the dataset episodes' mean
+  (otherwise "not testable": a return nobody learnt cannot be kept or lost);
+- pass: the paired difference (other minus float32, per seed) has a 95 % t interval that contains 0, and its mean
+  is within one standard deviation of the float32 returns across seeds (the seed spread).
+
+    OMP_NUM_THREADS=1 python benchmarks/crr_train_dtype_return.py --seeds 0 1 2 3 4 --other simulated_bfloat16
+"""
+
+import argparse
+import json
+import pathlib
+import subprocess
+import sys
+import time
+
+import numpy as np
+from scipy import stats
+
+HERE = pathlib.Path(__file__).parent
+RESULTS = HERE / "results"
+
+
+def run(dtype: str, seed: int, updates: int, episodes: int, data: str) -> dict:
+    command = [sys.executable, str(HERE / "bench_crr.py"), "--impl", "ours", "--updates", str(updates)]
+    command += ["--eval-episodes", str(episodes), "--seed", str(seed), "--train-dtype", dtype, "--data", data]
+    started = time.perf_counter()
+    out = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    result = json.loads(out.strip().splitlines()[-1])
+    return {
+        "dtype": dtype,
+        "seed": seed,
+        "return": result["return"],
+        "updates_per_s": updates / result["seconds"],
+        "wall_s": time.perf_counter() - started,
+    }
+
+
+def verdict(rows: list[dict], other: str, behaviour_mean: float) -> dict:
+    by = {(row["dtype"], row["seed"]): row["return"] for row in rows}
+    seeds = sorted({row["seed"] for row in rows if ("float32", row["seed"]) in by and (other, row["seed"]) in by})
+    base = np.array([by["float32", seed] for seed in seeds])
+    diff = np.array([by[other, seed] - by["float32", seed] for seed in seeds])
+    n = len(seeds)
+    half = float(stats.t.ppf(0.975, n - 1) * diff.std(ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
+    spread = float(base.std(ddof=1)) if n > 1 else float("nan")
+    testable = bool(base.mean() > behaviour_mean)
+    passed = bool(abs(diff.mean()) <= half and abs(diff.mean()) <= spread)
+    return {
+        "seeds": seeds,
+        "float32_mean": float(base.mean()),
+        "float32_std": spread,
+        "other_mean": float(np.mean([by[other, seed] for seed in seeds])),
+        "other_std": float(np.std([by[other, seed] for seed in seeds], ddof=1)) if n > 1 else float("nan"),
+        "difference_mean": float(diff.mean()),
+        "difference_ci95": [float(diff.mean() - half), float(diff.mean() + half)],
+        "precondition_float32_above_data": testable,
+        "verdict": ("pass" if passed else "fail") if testable else "not testable",
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--other", default="simulated_bfloat16", choices=["bfloat16", "simulated_bfloat16"])
+    parser.add_argument("--updates", type=int, default=5_000)
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--data", default=str(RESULTS / "crr_hopper_medium_replay.npz"))
+    parser.add_argument("--output", default=str(RESULTS / "crr_train_dtype_return"))
+    args = parser.parse_args()
+    sys.path.insert(0, str(HERE.parent))
+    from sb3_lifelong.common.hardware import machine_description
+
+    behaviour = json.loads(pathlib.Path(args.data).with_suffix(".json").read_text())
+    behaviour_mean = float(behaviour["dataset_mean_return"])
+    rows = []
+    for seed in args.seeds:
+        order = ("float32", args.other) if seed % 2 == 0 else (args.other, "float32")  # interleaved
+        for dtype in order:
+            rows.append(run(dtype, seed, args.updates, args.eval_episodes, args.data))
+            print(json.dumps(rows[-1]), flush=True)
+    result = {
+        "machine": machine_description(),
+        "command": " ".join(sys.argv),
+        "updates": args.updates,
+        "eval_episodes": args.eval_episodes,
+        "dataset_mean_return": behaviour_mean,
+        "runs": rows,
+        **verdict(rows, args.other, behaviour_mean),
+    }
+    output = pathlib.Path(args.output)
+    output.mkdir(parents=True, exist_ok=True)
+    (output / f"{args.other}.json").write_text(json.dumps(result, indent=2) + "\n")
+    lines = [
+        f"# CRR's fixed-dataset return, float32 against {args.other} gradient passes",
+        "",
+        f"Machine: {result['machine']}",
+        "",
+        f"Command: `OMP_NUM_THREADS=1 python {result['command']}`",
+        "",
+        "| seed | float32 return | " + args.other + " return | difference | float32 updates/s | other updates/s |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    by = {(row["dtype"], row["seed"]): row for row in rows}
+    for seed in result["seeds"]:
+        a, b = by["float32", seed], by[args.other, seed]
+        lines.append(
+            f"| {seed} | {a['return']:.1f} | {b['return']:.1f} | {b['return'] - a['return']:+.1f} | "
+            f"{a['updates_per_s']:.0f} | {b['updates_per_s']:.0f} |"
+        )
+    low, high = result["difference_ci95"]
+    lines += [
+        "",
+        f"float32 {result['float32_mean']:.1f} +- {result['float32_std']:.1f}; {args.other} "
+        f"{result['other_mean']:.1f} +- {result['other_std']:.1f}; paired difference {result['difference_mean']:+.1f} "
+        f"(95 % t interval [{low:+.1f}, {high:+.1f}]); dataset episodes' mean {behaviour_mean:.1f}.",
+        "",
+        f"Verdict (pre-registered, see the script's docstring): **{result['verdict']}**.",
+        "",
+    ]
+    (output / f"{args.other}.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
