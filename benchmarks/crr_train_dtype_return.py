@@ -125,7 +125,11 @@ def main() -> None:
         f"{result['other_mean']:.1f} +- {result['other_std']:.1f}; paired difference {result['difference_mean']:+.1f} "
         f"(95 % t interval [{low:+.1f}, {high:+.1f}]); dataset episodes' mean {behaviour_mean:.1f}.",
         "",
-        f"Verdict (pre-registered, see the script's docstring): **{result['verdict']}**.",
+        "Pre-registered in the script before the runs. Precondition: the float32 students' mean return is above the "
+        "dataset episodes' mean (else not testable). Pass: the paired difference's 95 % t interval contains 0 and its "
+        "mean is within the float32 seed spread (one standard deviation).",
+        "",
+        f"Verdict: **{result['verdict']}**.",
         "",
     ]
     (output / f"{args.other}.md").write_text("\n".join(lines))
