@@ -1045,3 +1045,25 @@ def test_imbalance_dose_claims_wait_for_missing_seeds_and_students():
         verdicts({0: (collector(4700.0), {"A_only": {"return_Env-A": 3500.0}})})["S2 indicator drops in A at x3_1to5"]
         == "pending"
     )
+
+
+def test_crr_train_dtype_return_verdict() -> None:
+    """benchmarks/crr_train_dtype_return.py: its pre-registered rule, pass / fail / not testable, paired by seed."""
+    check = benchmark_module("crr_train_dtype_return")
+
+    def rows(base: list[float], other: list[float]) -> list[dict]:
+        pairs = [("float32", base), ("simulated_bfloat16", other)]
+        return [
+            {"dtype": dtype, "seed": seed, "return": value} for dtype, values in pairs for seed, value in enumerate(values)
+        ]
+
+    base = [240.0, 260.0, 250.0, 230.0, 270.0]  # a spread of 15.8 across seeds
+    close = check.verdict(rows(base, [241.0, 258.0, 251.0, 229.0, 272.0]), "simulated_bfloat16", 71.0)
+    assert close["verdict"] == "pass" and close["seeds"] == [0, 1, 2, 3, 4]
+    assert close["difference_mean"] == pytest.approx(0.2) and close["difference_ci95"][0] < 0 < close["difference_ci95"][1]
+    lower = check.verdict(rows(base, [value - 30.0 + seed for seed, value in enumerate(base)]), "simulated_bfloat16", 71.0)
+    assert lower["verdict"] == "fail" and lower["difference_ci95"][1] < 0  # consistently 28 lower: not kept
+    unlearnt = check.verdict(rows([60.0, 65.0, 70.0], [61.0, 64.0, 70.0]), "simulated_bfloat16", 71.0)
+    assert unlearnt["verdict"] == "not testable" and not unlearnt["precondition_float32_above_data"]
+    partial = check.verdict(rows(base, base[:3]), "simulated_bfloat16", 71.0)
+    assert partial["seeds"] == [0, 1, 2]  # only the seeds run with both settings are paired
