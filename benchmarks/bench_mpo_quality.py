@@ -44,10 +44,11 @@ MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
     "MPO_bf16": ({"train_dtype": "bfloat16"}, False),  # bf16 hidden products in the gradient passes
     "MPO_layernorm": ({"policy_kwargs": {"layer_norm": True}}, False),
     "MPO_layernorm_obsnorm": ({"policy_kwargs": {"layer_norm": True}}, True),  # MPO's default since 2026-11-25, normalised
-    # the default torso with bf16 hidden products in the gradient passes: native, and simulated from float32 products
-    # (the same numbers at float32's speed, eager; for a CPU without native bf16)
+    # the default torso with bf16 hidden products in the gradient passes: native (its pair: MPO_layernorm), and
+    # simulated from float32 products (the same numbers at float32's speed, always eager; its pair: MPO_layernorm_eager)
     "MPO_layernorm_bf16": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "bfloat16"}, False),
     "MPO_layernorm_bf16sim": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "simulated_bfloat16"}, False),
+    "MPO_layernorm_eager": ({"policy_kwargs": {"layer_norm": True}, "compile_losses": False}, False),
 }
 CURVES = RESULTS / "quality"
 
@@ -62,6 +63,7 @@ LABELS = {
     "MPO_layernorm_obsnorm": "MPO, LayerNorm torso (the default), VecNormalize",
     "MPO_layernorm_bf16": "MPO, LayerNorm torso, bf16 gradient passes",
     "MPO_layernorm_bf16sim": "MPO, LayerNorm torso, bf16 gradient passes (simulated)",
+    "MPO_layernorm_eager": "MPO, LayerNorm torso, eager",
     "SAC": "SAC",
 }
 #: their colours: the default MPO and SAC as in every figure of the package (sb3_lifelong.experiments.style)

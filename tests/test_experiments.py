@@ -1067,3 +1067,16 @@ def test_crr_train_dtype_return_verdict() -> None:
     assert unlearnt["verdict"] == "not testable" and not unlearnt["precondition_float32_above_data"]
     partial = check.verdict(rows(base, base[:3]), "simulated_bfloat16", 71.0)
     assert partial["seeds"] == [0, 1, 2]  # only the seeds run with both settings are paired
+    assert check.verdict(rows(base, base[:1]), "simulated_bfloat16", 71.0)["verdict"] == "too few seeds"
+    # each condition alone fails: a small but consistent difference (the interval excludes 0, within the spread) ...
+    steady = check.verdict(
+        rows(base, [value - 5.0 + 0.1 * seed for seed, value in enumerate(base)]), "simulated_bfloat16", 71.0
+    )
+    assert steady["verdict"] == "fail" and steady["difference_ci95"][1] < 0 < steady["float32_std"] - 5.0
+    # ... and a noisy one whose interval contains 0 but whose mean is beyond the spread, which the stricter reading flags
+    noisy = check.verdict(
+        rows(base, [value + shift for value, shift in zip(base, [60, -20, 70, -10, 0])]), "simulated_bfloat16", 71.0
+    )
+    assert noisy["verdict"] == "fail" and noisy["difference_ci95"][0] < 0 < noisy["difference_ci95"][1]
+    assert noisy["difference_mean"] > noisy["float32_std"] and not noisy["interval_within_spread"]
+    assert close["interval_within_spread"]

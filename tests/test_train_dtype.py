@@ -156,9 +156,50 @@ def test_simulated_bf16_trains_as_bf16_does_eagerly(tmp_path):
     model.save(tmp_path / "student.zip")
     loaded = CRR.load(tmp_path / "student.zip", device="cpu")
     assert loaded.train_dtype == "simulated_bfloat16" and all(layer.simulated for layer in hidden_layers(loaded))
-    # eager always: "auto" does not compile it however long the run, and True is refused with the reason
-    model._total_timesteps = 10 * compiling.AUTO_MIN_UPDATES
-    model.compile_losses = "auto"
-    assert not model._compiles_now()
+
+
+class LinearDtypes(th.overrides.TorchFunctionMode):
+    """Records the input dtype of every ``F.linear`` call: which product a pass ran."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.dtypes: list[th.dtype] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if func is F.linear:
+            self.dtypes.append(args[0].dtype)
+        return func(*args, **(kwargs or {}))
+
+
+def test_simulated_bf16_multiplies_in_float32():
+    """The simulation's products are float32 ones (the bf16 kernel is not what gives its numbers), the real path's bf16."""
+    th.manual_seed(0)
+    layer = HiddenLinear.of(nn.Linear(16, 16))
+    layer.compute_dtype = th.bfloat16
+    x = th.randn(8, 16, requires_grad=True)
+    for simulated, expected in ((True, th.float32), (False, th.bfloat16)):
+        layer.simulated = simulated
+        with LinearDtypes() as seen:
+            layer(x)
+        assert seen.dtypes == [expected]
+
+
+@pytest.mark.parametrize("algorithm", ["CRR", "MPO"])
+def test_simulated_bf16_is_always_eager(algorithm, monkeypatch):
+    """ "auto" never compiles it, however long the run and with a compiler present; True is refused before any setup."""
+    monkeypatch.setattr(compiling, "can_compile", lambda device: True)
+
+    def build(**kwargs):
+        if algorithm == "CRR":
+            return student(pendulum_data(300), **kwargs)
+        return MPO("MlpPolicy", "Pendulum-v1", device="cpu", policy_kwargs=dict(net_arch=[32, 32]), **kwargs)
+
+    for train_dtype, compiles in (("simulated_bfloat16", False), ("bfloat16", True)):
+        model = build(train_dtype=train_dtype, compile_losses="auto")
+        model._total_timesteps = 10 * compiling.AUTO_MIN_UPDATES
+        assert model._compiles_now() is compiles, train_dtype
+    built = []
+    monkeypatch.setattr(type(build()), "_setup_model", lambda self: built.append(self))
     with pytest.raises(ValueError, match="runs eagerly"):
-        student(data, train_dtype="simulated_bfloat16", compile_losses=True)
+        build(train_dtype="simulated_bfloat16", compile_losses=True)
+    assert built == []  # refused before any setup (no buffer made)

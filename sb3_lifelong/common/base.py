@@ -399,17 +399,28 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
         self.__dict__.setdefault("_scoring_copies", []).append(copy)
         return copy
 
-    def _apply_train_dtype(self, train_dtype: str) -> None:
+    def _refuse_compiled_simulation(self, train_dtype: str) -> None:
         """
-        Set the precision of the policy's hidden-to-hidden products in the passes that record gradients
-        (:class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), from ``train_dtype`` (see
-        :func:`~sb3_lifelong.common.hardware.resolve_train_dtype`). Called at every setup, loads included.
+        :param train_dtype: the algorithm's ``train_dtype``
+        :raises ValueError: ``train_dtype="simulated_bfloat16"`` with ``compile_losses=True``: the simulation runs
+            eagerly, because a compiled graph fuses its roundings away (``"auto"`` then stays eager)
         """
         if train_dtype == SIMULATED_BFLOAT16 and self.compile_losses is True:
             raise ValueError(
                 f"train_dtype={train_dtype!r} runs eagerly (a compiled graph fuses its roundings away): pass "
                 "compile_losses=False or 'auto' (which then stays eager)"
             )
+
+    def _apply_train_dtype(self, train_dtype: str) -> None:
+        """
+        Set the precision of the policy's hidden-to-hidden products in the passes that record gradients
+        (:class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), from ``train_dtype`` (see
+        :func:`~sb3_lifelong.common.hardware.resolve_train_dtype`). Called at every setup, loads included.
+
+        :param train_dtype: the algorithm's ``train_dtype``
+        :raises ValueError: what :meth:`_refuse_compiled_simulation` refuses (for a load with ``compile_losses=True``)
+        """
+        self._refuse_compiled_simulation(train_dtype)
         dtype = resolve_train_dtype(train_dtype, self.device)
         for module in self.policy.modules():
             if isinstance(module, HiddenLinear):

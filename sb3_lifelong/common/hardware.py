@@ -29,12 +29,12 @@ def cuda_has_native_bf16() -> bool:
         return bool(th.cuda.is_bf16_supported())
 
 
-#: what ``train_dtype`` accepts (:func:`resolve_train_dtype`)
-TRAIN_DTYPES = ("float32", "bfloat16", "simulated_bfloat16", "auto")
-
 #: the ``train_dtype`` that gives bfloat16's numbers from float32 products
 #: (:attr:`sb3_lifelong.common.fast_ops.HiddenLinear.simulated`)
 SIMULATED_BFLOAT16 = "simulated_bfloat16"
+
+#: what ``train_dtype`` accepts (:func:`resolve_train_dtype`)
+TRAIN_DTYPES = ("float32", "bfloat16", SIMULATED_BFLOAT16, "auto")
 
 
 def resolve_train_dtype(train_dtype: str, device: th.device) -> th.dtype:

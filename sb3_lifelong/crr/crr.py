@@ -137,7 +137,8 @@ class CRR(LifelongOfflineAlgorithm):
         (:mod:`sb3_lifelong.common.compiling`). The sampling noise is drawn outside the compiled graph, from the same
         generator as the eager update; the arithmetic differs from eager's by rounding. The bf16 scoring copies' LayerNorm
         and tanh run as one compiled kernel then (:class:`~sb3_lifelong.common.scoring.LowPrecisionCopy`). With one actor
-        per source it stays eager. A compilation that fails warns once and leaves the update eager
+        per source it stays eager. A compilation that fails warns once and leaves the update eager. With
+        ``train_dtype="simulated_bfloat16"`` it is always eager (``True`` is refused)
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (e.g. ``net_arch``,
@@ -285,6 +286,7 @@ class CRR(LifelongOfflineAlgorithm):
                 f"scoring_dtype in {SCORING_DTYPES}, train_dtype in {TRAIN_DTYPES}, target_ess None or in (0, 1), "
                 f"compile_losses in {COMPILE_CHOICES})"
             )
+        self._refuse_compiled_simulation(self.train_dtype)
         if self.target_ess is not None and (self.advantage_transform != "exp" or self.normalize_advantages):
             raise ValueError(
                 f"target_ess={self.target_ess!r} sets the temperature of the exp transform from the weights' effective "

@@ -114,15 +114,15 @@ class MPO(LifelongOffPolicyAlgorithm):
         :class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), ``"simulated_bfloat16"`` (the same numbers from float32
         products, eager: what bf16 does to learning, measured at float32's speed where the hardware has no bf16), or
         ``"auto"``: bfloat16 where the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16).
-        The default stays float32 until bf16's learning
-        results are measured on such a CPU (``benchmarks/results/fast_paths.md``)
+        The default stays float32 until bf16's learning results are measured on such a CPU
+        (``benchmarks/results/fast_paths.md``)
     :param compile_losses: compile the update's forward pass (the target, the critic's loss, the E-step, the M-step
         and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under
         way has at least 50,000 steps to go and inductor can compile here (a C++ compiler on a CPU); see
         :mod:`sb3_lifelong.common.compiling`. The sampling noise is drawn outside the graph, as the eager update draws
         it; a bf16 scoring pass stays on the engine, eagerly, but for its LayerNorm and tanh, which run as one compiled
         kernel (:class:`~sb3_lifelong.common.scoring.LowPrecisionCopy`). A compilation that fails warns once and leaves the
-        update eager
+        update eager. With ``train_dtype="simulated_bfloat16"`` the update is always eager (``True`` is refused)
     :param policy_on_next_obs: improve the policy on the batch's next observations, so that one target critic
         call serves both the E-step and the critic target; if False the policy is improved on the observations
         (still one call, over both observations and next observations)
@@ -258,6 +258,7 @@ class MPO(LifelongOffPolicyAlgorithm):
                 f"epsilons and dual_learning_rate > 0, tau in (0, 1], scoring_dtype in {SCORING_DTYPES}, train_dtype in "
                 f"{TRAIN_DTYPES}, compile_losses in {COMPILE_CHOICES})"
             )
+        self._refuse_compiled_simulation(self.train_dtype)
 
     def _policy_has_torso_choice(self) -> bool:
         """:return: whether the policy class is one of MPO's (whose ``layer_norm`` defaults to ``True``)"""
