@@ -148,10 +148,11 @@ def test_simulated_bf16_trains_as_bf16_does_eagerly(tmp_path):
     assert all(layer.simulated and layer.compute_dtype == th.bfloat16 for layer in hidden_layers(models["simulated_bfloat16"]))
     assert not any(layer.simulated for layer in hidden_layers(models["bfloat16"]))
     params = {name: flat_params(model) for name, model in models.items()}
-    # the simulation follows bf16 training far closer than float32 does (measured: 3e-6 against 1.5e-3 after 30
-    # updates, the first one bit for bit; later, Adam's normalisation lets sum-order differences grow)
+    # the simulation follows bf16 training far closer than float32 does (measured on an AVX2 CPU: 3e-6 against 1.5e-3
+    # after 30 updates, the first one bit for bit; later, Adam's normalisation lets sum-order differences grow, and a
+    # bf16 kernel with another summation order, e.g. AMX's, may differ in more elements: hence the margin)
     apart = float((params["simulated_bfloat16"] - params["bfloat16"]).abs().max())
-    assert apart <= 0.02 * float((params["float32"] - params["bfloat16"]).abs().max())
+    assert apart <= 0.1 * float((params["float32"] - params["bfloat16"]).abs().max())
     model = models["simulated_bfloat16"]
     model.save(tmp_path / "student.zip")
     loaded = CRR.load(tmp_path / "student.zip", device="cpu")
