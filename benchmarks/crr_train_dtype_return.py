@@ -24,9 +24,6 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-from scipy import stats
-
 HERE = pathlib.Path(__file__).parent
 RESULTS = HERE / "results"
 
@@ -70,24 +67,22 @@ def verdict(rows: list[dict], other: str, behaviour_mean: float) -> dict:
     """
     by = {(row["dtype"], row["seed"]): row["return"] for row in rows}
     seeds = sorted({row["seed"] for row in rows if ("float32", row["seed"]) in by and (other, row["seed"]) in by})
-    n = len(seeds)
-    if n < 2:
+    if len(seeds) < 2:
         return {"seeds": seeds, "verdict": "too few seeds"}
-    base = np.array([by["float32", seed] for seed in seeds])
-    others = np.array([by[other, seed] for seed in seeds])
-    diff = others - base
-    half = float(stats.t.ppf(0.975, n - 1) * diff.std(ddof=1) / np.sqrt(n))
-    spread = float(base.std(ddof=1))
-    low, high = float(diff.mean() - half), float(diff.mean() + half)
-    testable = bool(base.mean() > behaviour_mean)
-    passed = bool(low <= 0.0 <= high and abs(diff.mean()) <= spread)
+    from sb3_lifelong.experiments.report import t_interval
+
+    base_mean, spread, _, _ = t_interval([by["float32", seed] for seed in seeds])
+    other_mean, other_std, _, _ = t_interval([by[other, seed] for seed in seeds])
+    difference, _, low, high = t_interval([by[other, seed] - by["float32", seed] for seed in seeds])
+    testable = base_mean > behaviour_mean
+    passed = low <= 0.0 <= high and abs(difference) <= spread
     return {
         "seeds": seeds,
-        "float32_mean": float(base.mean()),
+        "float32_mean": base_mean,
         "float32_std": spread,
-        "other_mean": float(others.mean()),
-        "other_std": float(others.std(ddof=1)),
-        "difference_mean": float(diff.mean()),
+        "other_mean": other_mean,
+        "other_std": other_std,
+        "difference_mean": difference,
         "difference_ci95": [low, high],
         "precondition_float32_above_data": testable,
         "verdict": ("pass" if passed else "fail") if testable else "not testable",

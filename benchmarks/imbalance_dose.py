@@ -28,6 +28,8 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from sb3_lifelong.experiments.report import t_interval
+
 RESULTS = pathlib.Path(__file__).parent / "results" / "imbalance_dose"
 
 #: robot -> (the collection's preset, P1's Env-A return threshold)
@@ -348,19 +350,6 @@ def adopt_stage1(args: argparse.Namespace) -> None:
 
 
 # ------------------------------------------------------------------------------------------------- the report
-def t_interval(values: list[float]) -> tuple[float, float, float, float]:
-    """:return: mean, std (ddof 1), and the 95 % t-interval of the mean (NaN with fewer than two values)"""
-    from scipy import stats
-
-    data = np.asarray(values, dtype=float)
-    mean = float(data.mean()) if len(data) else math.nan
-    if len(data) < 2:
-        return mean, math.nan, math.nan, math.nan
-    std = float(data.std(ddof=1))
-    half = float(stats.t.ppf(0.975, len(data) - 1)) * std / math.sqrt(len(data))
-    return mean, std, mean - half, mean + half
-
-
 def fmt(values: list[float]) -> str:
     mean, std, low, high = t_interval(values)
     if len(values) < 2:

@@ -60,6 +60,26 @@ def bootstrap_ci(values: Sequence[float], level: float = 0.95, seed: int = 0) ->
     return float(low), float(high)
 
 
+def t_interval(values: Sequence[float], level: float = 0.95) -> tuple[float, float, float, float]:
+    """
+    The mean over seeds with Student's t interval (what a pre-registered rule that names a t interval uses; the
+    reports' own intervals are :func:`bootstrap_ci`).
+
+    :param values: one value per seed
+    :param level: coverage
+    :return: mean, std (ddof 1), and the interval's bounds (NaN but the mean with fewer than two values)
+    """
+    from scipy import stats
+
+    data = np.asarray(values, dtype=float)
+    mean = float(data.mean()) if len(data) else float("nan")
+    if len(data) < 2:
+        return mean, float("nan"), float("nan"), float("nan")
+    std = float(data.std(ddof=1))
+    half = float(stats.t.ppf(0.5 + level / 2, len(data) - 1)) * std / float(np.sqrt(len(data)))
+    return mean, std, mean - half, mean + half
+
+
 def paired_difference(first: Mapping[int, float], second: Mapping[int, float], level: float = 0.95) -> dict[str, Any]:
     """
     The per-seed difference ``first - second`` over the seeds both have (paired by seed: both values come from the
