@@ -13,14 +13,19 @@
 #   student_train      a study student, compiled, float32 against bf16 gradient passes (train_dtype)
 #   mpo_train          MPO (N=20, LayerNorm, compiled) against SAC, float32 and bf16 gradient passes, Walker2d
 #   batched[_compiled] K students' update cores one after the other against batched (bench_batched_students.py)
+#   mpo_train_hopper   the same on Hopper-v5
 #   crr_<dtype>_<seed> CRR on the fixed Hopper dataset, 3000 updates, its return, float32 and bf16 gradient
 #                      passes, seeds 0-2
+#   crr_d3rlpy_compiled  the compiled CRR against d3rlpy 2.8.1, interleaved (bench_crr.py; where d3rlpy imports)
+#
+# CHECK_SECONDS (default 540) is each check's time limit; a few seconds make a dry run that only starts each one.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-benchmarks/results/amx_checks}
 mkdir -p "$OUT"
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONUNBUFFERED=1
 PY=${PYTHON:-python}
+seconds=${CHECK_SECONDS:-540}
 cores=$(nproc)
 core=0
 run() {  # run NAME SECONDS COMMAND...: in the background, on the next core (when taskset and the core exist)
@@ -32,18 +37,25 @@ run() {  # run NAME SECONDS COMMAND...: in the background, on the next core (whe
     (timeout "$seconds" "${pin[@]}" "$@" > "$OUT/$name.log" 2>&1; echo "exit $?" >> "$OUT/$name.log") &
 }
 $PY -c "from sb3_lifelong.common.hardware import machine_description; print(machine_description())" > "$OUT/flags.log" 2>&1
-run compiled_vs_eager 540 $PY benchmarks/compiled_vs_eager.py
-run test_compiled 540 $PY -m pytest -q -p no:cacheprovider -rs tests/test_compiled.py tests/test_train_dtype.py
-run student_compiled 540 $PY benchmarks/student_anatomy.py compare --blocks 6
-run student_train 540 $PY benchmarks/student_anatomy.py compare --train-dtype --compile-losses --blocks 6
-run mpo_train 540 $PY benchmarks/bench_mpo_throughput.py --envs Walker2d-v5 --rounds 3 --steps 500 --num-samples 20 \
+run compiled_vs_eager $seconds $PY benchmarks/compiled_vs_eager.py
+run test_compiled $seconds $PY -m pytest -q -p no:cacheprovider -rs tests/test_compiled.py tests/test_train_dtype.py
+run student_compiled $seconds $PY benchmarks/student_anatomy.py compare --blocks 6
+run student_train $seconds $PY benchmarks/student_anatomy.py compare --train-dtype --compile-losses --blocks 6
+run mpo_train $seconds $PY benchmarks/bench_mpo_throughput.py --envs Walker2d-v5 --rounds 3 --steps 500 --num-samples 20 \
     --scoring-dtypes auto --layer-norms on --compile-losses on --train-dtypes float32 bfloat16 --threads 1 \
     --output "$OUT/mpo_throughput"
-run batched 540 $PY benchmarks/bench_batched_students.py --output "$OUT/batched_students.json"
-run batched_compiled 540 $PY benchmarks/bench_batched_students.py --compile --output "$OUT/batched_students_compiled.json"
+run mpo_train_hopper $seconds $PY benchmarks/bench_mpo_throughput.py --envs Hopper-v5 --rounds 3 --steps 500 \
+    --num-samples 20 --scoring-dtypes auto --layer-norms on --compile-losses on --train-dtypes float32 bfloat16 \
+    --threads 1 --output "$OUT/mpo_throughput_hopper"
+if $PY -c "import d3rlpy" > /dev/null 2>&1; then
+    run crr_d3rlpy_compiled $seconds $PY benchmarks/bench_crr.py --impl both --updates 1000 --eval-episodes 3 \
+        --speed-rounds 3 --compile-losses --d3rlpy-python "$(command -v $PY)" --output "$OUT/crr_hopper_compiled.md"
+fi
+run batched $seconds $PY benchmarks/bench_batched_students.py --output "$OUT/batched_students.json"
+run batched_compiled $seconds $PY benchmarks/bench_batched_students.py --compile --output "$OUT/batched_students_compiled.json"
 for seed in 0 1 2; do
     for dtype in float32 bfloat16; do
-        run "crr_${dtype}_$seed" 540 $PY benchmarks/bench_crr.py --impl ours --updates 3000 --eval-episodes 10 \
+        run "crr_${dtype}_$seed" $seconds $PY benchmarks/bench_crr.py --impl ours --updates 3000 --eval-episodes 10 \
             --train-dtype $dtype --seed $seed
     done
 done
@@ -52,6 +64,7 @@ cat "$OUT/flags.log"
 grep -h "torso\|first update\|compiled True\|compiled False" "$OUT/compiled_vs_eager.log" | head -30
 grep -hE "passed|failed|SKIPPED" "$OUT/test_compiled.log" | tail -6
 for name in student_compiled student_train; do echo "== $name"; grep -h "^|\|compiled update in use" "$OUT/$name.log"; done
-echo "== mpo_train"; grep -h "^|" "$OUT/mpo_train.log" | head -12
+for name in mpo_train mpo_train_hopper; do echo "== $name"; grep -h "^|" "$OUT/$name.log" | head -12; done
 for name in batched batched_compiled; do echo "== $name"; grep -h "^|" "$OUT/$name.log"; done
+echo "== crr_d3rlpy_compiled"; grep -h "^|\|ratio" "$OUT/crr_d3rlpy_compiled.log" 2>/dev/null | head -20
 echo "== CRR on the fixed dataset (one JSON line a run: updates, seconds, return)"; grep -h '"impl"' "$OUT"/crr_*.log

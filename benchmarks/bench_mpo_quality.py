@@ -47,6 +47,8 @@ MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
     # the default torso with bf16 hidden products in the gradient passes: native (its pair: MPO_layernorm), and
     # simulated from float32 products (the same numbers at float32's speed, always eager; its pair: MPO_layernorm_eager)
     "MPO_layernorm_bf16": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "bfloat16"}, False),
+    # MPO_layernorm_bf16's pair run beside it on the same code and CPU (MPO_layernorm's own files are older code's)
+    "MPO_layernorm_fp32": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "float32"}, False),
     "MPO_layernorm_bf16sim": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "simulated_bfloat16"}, False),
     "MPO_layernorm_eager": ({"policy_kwargs": {"layer_norm": True}, "compile_losses": False}, False),
 }
@@ -62,6 +64,7 @@ LABELS = {
     "MPO_layernorm": "MPO, LayerNorm torso (the default)",
     "MPO_layernorm_obsnorm": "MPO, LayerNorm torso (the default), VecNormalize",
     "MPO_layernorm_bf16": "MPO, LayerNorm torso, bf16 gradient passes",
+    "MPO_layernorm_fp32": "MPO, LayerNorm torso, float32 gradient passes",
     "MPO_layernorm_bf16sim": "MPO, LayerNorm torso, bf16 gradient passes (simulated)",
     "MPO_layernorm_eager": "MPO, LayerNorm torso, eager",
     "SAC": "SAC",
