@@ -297,3 +297,48 @@ def test_the_check_compares_each_parameter_on_its_own_scale_and_ignores_rounding
     right = compiling.LazyCompiled(function, "two parts", parameters)
     right(True, x)  # the statistic differs by 1e-9 from an exact 0: rounding noise, not a wrong compilation
     assert right.checked and not right.failed
+
+
+def test_the_check_tolerates_bf16_rounding_only_where_the_gradient_passes_are_bf16(monkeypatch):
+    """A compiled graph whose bf16 roundings fall elsewhere (a gradient 0.5 % off) passes with bf16 gradient passes and is
+    refused in float32; a wrong backward (twice the gradient) is refused with either."""
+    weight = th.nn.Parameter(th.tensor([[1.0, -2.0], [0.5, 3.0]]))
+    x = th.tensor([[1.0, 2.0], [3.0, -1.0]])
+
+    def function(x):
+        return (x @ weight,)
+
+    def compile_with(factor: float):
+        class Scaled(th.autograd.Function):
+            @staticmethod
+            def forward(ctx, y):
+                return y.clone()
+
+            @staticmethod
+            def backward(ctx, grad):
+                return factor * grad
+
+        return lambda function, **kwargs: lambda *args: (Scaled.apply(function(*args)[0]),)
+
+    tolerances = {"float32": compiling.CHECK_TOLERANCE, "bfloat16": compiling.LOW_PRECISION_CHECK_TOLERANCE}
+    for factor, passes in ((1.005, {"bfloat16"}), (2.0, set())):
+        monkeypatch.setattr(compiling.th, "compile", compile_with(factor))
+        for dtype, tolerance in tolerances.items():
+            lazy = compiling.LazyCompiled(function, "a layer", lambda: [("weight", weight)], tolerance)
+            if dtype in passes:
+                lazy(True, x)
+                assert lazy.checked and not lazy.failed
+            else:
+                with pytest.warns(UserWarning, match="CompiledMismatch"):
+                    lazy(True, x)
+                assert lazy.failed
+
+
+@pytest.mark.parametrize("algorithm", ["MPO", "CRR"])
+def test_the_algorithms_widen_the_check_for_bf16_gradient_passes(algorithm, data):
+    for train_dtype, tolerance in (
+        ("float32", compiling.CHECK_TOLERANCE),
+        ("bfloat16", compiling.LOW_PRECISION_CHECK_TOLERANCE),
+    ):
+        model = mpo(False, train_dtype=train_dtype) if algorithm == "MPO" else student(data, train_dtype=train_dtype)
+        assert model._forward.tolerance == tolerance

@@ -307,7 +307,9 @@ class CRR(LifelongOfflineAlgorithm):
         # low-precision copies of the target critic (TD targets) and the online critic (advantage baselines)
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
         self._online_scoring_copy = self._make_scoring_copy(self.critic, self.scoring_dtype)
-        self._forward = LazyCompiled(self._forward_pass, "CRR's forward pass", self.policy.named_parameters)
+        self._forward = LazyCompiled(
+            self._forward_pass, "CRR's forward pass", self.policy.named_parameters, self._compiled_check_tolerance()
+        )
         if self.actor_per_source:
             assert self.source_ids is not None
             self._head_of_source = np.full(max(self.source_ids) + 1, -1, dtype=np.int64)

@@ -290,7 +290,9 @@ class MPO(LifelongOffPolicyAlgorithm):
         )
         self._apply_train_dtype(self.train_dtype)
         self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
-        self._forward = LazyCompiled(self._forward_pass, "MPO's forward pass", self._trained_parameters)
+        self._forward = LazyCompiled(
+            self._forward_pass, "MPO's forward pass", self._trained_parameters, self._compiled_check_tolerance()
+        )
 
     def _trained_duals(self) -> list[tuple[str, th.Tensor]]:
         """:return: the duals the update trains, named (the action penalty's temperature only with the penalty)"""
