@@ -23,6 +23,7 @@ update rate. Each evaluation also records the collecting policy's exploration st
 import argparse
 import csv
 import itertools
+import json
 import multiprocessing as mp
 import pathlib
 import time
@@ -269,6 +270,77 @@ def summarise() -> None:
         save(plt, fig, RESULTS / f"mpo_quality_{env_id}_{budget}.png", dpi=100)
 
 
+def paired_verdict(base: dict[int, float], other: dict[int, float]) -> dict:
+    """
+    The rule pre-registered for bf16 gradient passes (``benchmarks/results/fast_paths.md``, "Still open for goal 4"),
+    per robot, on the final evaluation's return paired by seed: **pass** where the whole 95 % t interval of the
+    difference (other minus base) lies within one standard deviation of the base seeds' returns, **fail** where it
+    excludes 0, **inconclusive** otherwise; where both of the first two hold (a difference shown, smaller than the
+    spread), ``"within the spread, a difference shown"``.
+
+    :param base: final return by seed of the float32 runs
+    :param other: final return by seed of the runs compared with them
+    :return: the statistics and ``verdict`` (``"too few seeds"`` under 2 paired)
+    """
+    from sb3_lifelong.experiments.report import t_interval
+
+    seeds = sorted(set(base) & set(other))
+    if len(seeds) < 2:
+        return {"seeds": seeds, "verdict": "too few seeds"}
+    base_mean, spread, _, _ = t_interval([base[seed] for seed in seeds])
+    other_mean, other_std, _, _ = t_interval([other[seed] for seed in seeds])
+    difference, _, low, high = t_interval([other[seed] - base[seed] for seed in seeds])
+    within, shown = -spread <= low and high <= spread, high < 0.0 or low > 0.0
+    # the rule did not say which reading wins where both hold; settled before the first pair's verdict was computed
+    # (2026-11-26, 23:32 UTC): both are reported, neither is called a plain pass or fail
+    if within:
+        verdict = "within the spread, a difference shown" if shown else "pass"
+    else:
+        verdict = "fail" if shown else "inconclusive"
+    return {
+        "seeds": seeds,
+        "base_mean": base_mean,
+        "base_std": spread,
+        "other_mean": other_mean,
+        "other_std": other_std,
+        "difference_mean": difference,
+        "difference_ci95": [low, high],
+        "verdict": verdict,
+    }
+
+
+def final_returns(env_id: str, algo: str, budget: str = "100k") -> dict[int, float]:
+    """:return: the final evaluation's return by seed of the finished runs of ``algo`` on ``env_id`` at ``budget``"""
+    steps = int(budget[:-1]) * 1000
+    finals = {}
+    for path in sorted((CURVES / budget).glob(f"{env_id}__{algo}__s*.csv")):
+        data = np.genfromtxt(path, delimiter=",", skip_header=1, ndmin=2)
+        if data.size and data[-1, 0] >= steps:
+            finals[int(path.stem.split("__s")[-1])] = float(data[-1, 1])
+    return finals
+
+
+def report_pair(envs: list[str], base: str, other: str) -> None:
+    """Print the paired verdict per robot, and write it to ``results/quality/paired_<base>_<other>.json``."""
+    results = {}
+    for env_id in envs:
+        finals = {algo: final_returns(env_id, algo) for algo in (base, other)}
+        results[env_id] = {"per_seed": {algo: finals[algo] for algo in (base, other)}, **paired_verdict(*finals.values())}
+        r = results[env_id]
+        if "difference_ci95" in r:
+            low, high = r["difference_ci95"]
+            print(
+                f"{env_id}: seeds {r['seeds']}; {base} {r['base_mean']:.1f} +- {r['base_std']:.1f}, {other} "
+                f"{r['other_mean']:.1f} +- {r['other_std']:.1f}; difference {r['difference_mean']:+.1f} "
+                f"[{low:+.1f}, {high:+.1f}]: {r['verdict']}"
+            )
+        else:
+            print(f"{env_id}: seeds {r['seeds']}: {r['verdict']}")
+    path = CURVES / f"paired_{base}_{other}.json"
+    path.write_text(json.dumps(results, indent=2) + "\n")
+    print("->", path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", default=["Hopper-v5", "Walker2d-v5"])
@@ -280,7 +352,13 @@ def main() -> None:
     parser.add_argument("--learning-starts", type=int, default=5000)
     parser.add_argument("--jobs", type=int, default=1, help="runs in parallel (one torch thread each)")
     parser.add_argument("--summarise", action="store_true", help="only summarise the existing CSV files")
+    parser.add_argument(
+        "--paired", nargs=2, metavar=("BASE", "OTHER"), help="only the pre-registered paired verdict of two variants at 100k"
+    )
     args = parser.parse_args()
+    if args.paired:
+        report_pair(args.envs, *args.paired)
+        return
     if not args.summarise:
         # seed-major order: with --jobs 2 the MPO and SAC runs of one (seed, env) run side by side
         configs = [

@@ -1080,3 +1080,20 @@ def test_crr_train_dtype_return_verdict() -> None:
     assert noisy["verdict"] == "fail" and noisy["difference_ci95"][0] < 0 < noisy["difference_ci95"][1]
     assert noisy["difference_mean"] > noisy["float32_std"] and not noisy["interval_within_spread"]
     assert close["interval_within_spread"]
+
+
+def test_mpo_quality_paired_verdict() -> None:
+    """benchmarks/bench_mpo_quality.py: the rule pre-registered for bf16 gradient passes, pass / fail / inconclusive."""
+    quality = benchmark_module("bench_mpo_quality")
+    base = {0: 1000.0, 1: 1400.0, 2: 1200.0, 3: 800.0, 4: 1600.0}  # a spread of 316 across seeds
+    close = quality.paired_verdict(base, {seed: value + (-1) ** seed * 30.0 for seed, value in base.items()})
+    assert close["verdict"] == "pass" and close["seeds"] == [0, 1, 2, 3, 4]
+    assert -close["base_std"] <= close["difference_ci95"][0] < 0 < close["difference_ci95"][1] <= close["base_std"]
+    lower = quality.paired_verdict(base, {seed: value - 500.0 + 10 * seed for seed, value in base.items()})
+    assert lower["verdict"] == "fail" and lower["difference_ci95"][1] < 0  # consistently lower, beyond the spread
+    steady = quality.paired_verdict(base, {seed: value - 200.0 + 10 * seed for seed, value in base.items()})
+    assert steady["verdict"] == "within the spread, a difference shown"  # consistently lower, within the spread
+    noisy = quality.paired_verdict(base, {seed: value + (-1) ** seed * 600.0 for seed, value in base.items()})
+    assert noisy["verdict"] == "inconclusive" and noisy["difference_ci95"][0] < -noisy["base_std"]
+    assert quality.paired_verdict(base, {0: 1000.0, 7: 1.0})["verdict"] == "too few seeds"  # one seed in common
+    assert quality.paired_verdict(base, {0: 990.0, 1: 1410.0, 9: 0.0})["seeds"] == [0, 1]  # only the common seeds
