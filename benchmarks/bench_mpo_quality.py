@@ -270,7 +270,7 @@ def summarise() -> None:
         save(plt, fig, RESULTS / f"mpo_quality_{env_id}_{budget}.png", dpi=100)
 
 
-def paired_verdict(base: dict[int, float], other: dict[int, float]) -> dict:
+def paired_verdict(base: dict[int, float], other: dict[int, float]) -> dict[str, Any]:
     """
     The rule pre-registered for bf16 gradient passes (``benchmarks/results/fast_paths.md``, "Still open for goal 4"),
     per robot, on the final evaluation's return paired by seed: **pass** where the whole 95 % t interval of the
@@ -280,13 +280,16 @@ def paired_verdict(base: dict[int, float], other: dict[int, float]) -> dict:
 
     :param base: final return by seed of the float32 runs
     :param other: final return by seed of the runs compared with them
-    :return: the statistics and ``verdict`` (``"too few seeds"`` under 2 paired)
+    :return: the statistics and ``verdict`` (``"too few seeds"`` under 2 paired, ``"non-finite return"`` where a
+        paired return is NaN or infinite, e.g. a diverged run)
     """
     from sb3_lifelong.experiments.report import t_interval
 
     seeds = sorted(set(base) & set(other))
     if len(seeds) < 2:
         return {"seeds": seeds, "verdict": "too few seeds"}
+    if not all(np.isfinite([base[seed] for seed in seeds] + [other[seed] for seed in seeds])):
+        return {"seeds": seeds, "verdict": "non-finite return"}
     base_mean, spread, _, _ = t_interval([base[seed] for seed in seeds])
     other_mean, other_std, _, _ = t_interval([other[seed] for seed in seeds])
     difference, _, low, high = t_interval([other[seed] - base[seed] for seed in seeds])
@@ -310,7 +313,12 @@ def paired_verdict(base: dict[int, float], other: dict[int, float]) -> dict:
 
 
 def final_returns(env_id: str, algo: str, budget: str = "100k") -> dict[int, float]:
-    """:return: the final evaluation's return by seed of the finished runs of ``algo`` on ``env_id`` at ``budget``"""
+    """
+    :param env_id: the environment
+    :param algo: the variant
+    :param budget: the step budget's folder under ``results/quality``
+    :return: the final evaluation's return by seed, of the runs that reached the budget (a run still going is left out)
+    """
     steps = int(budget[:-1]) * 1000
     finals = {}
     for path in sorted((CURVES / budget).glob(f"{env_id}__{algo}__s*.csv")):
@@ -320,12 +328,21 @@ def final_returns(env_id: str, algo: str, budget: str = "100k") -> dict[int, flo
     return finals
 
 
-def report_pair(envs: list[str], base: str, other: str) -> None:
-    """Print the paired verdict per robot, and write it to ``results/quality/paired_<base>_<other>.json``."""
+def report_pair(envs: list[str], base: str, other: str) -> dict[str, dict[str, Any]]:
+    """
+    Print the paired verdict per robot, and write it to ``results/quality/paired_<base>_<other>.json``.
+
+    :param envs: the robots
+    :param base: the float32 variant
+    :param other: the variant compared with it
+    :return: by robot, the final returns per seed and :func:`paired_verdict`'s result
+    """
+    if base == other:
+        raise ValueError(f"--paired needs two different variants, got {base} twice")
     results = {}
     for env_id in envs:
         finals = {algo: final_returns(env_id, algo) for algo in (base, other)}
-        results[env_id] = {"per_seed": {algo: finals[algo] for algo in (base, other)}, **paired_verdict(*finals.values())}
+        results[env_id] = {"per_seed": finals, **paired_verdict(finals[base], finals[other])}
         r = results[env_id]
         if "difference_ci95" in r:
             low, high = r["difference_ci95"]
@@ -339,6 +356,7 @@ def report_pair(envs: list[str], base: str, other: str) -> None:
     path = CURVES / f"paired_{base}_{other}.json"
     path.write_text(json.dumps(results, indent=2) + "\n")
     print("->", path)
+    return results
 
 
 def main() -> None:

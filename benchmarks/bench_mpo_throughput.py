@@ -157,7 +157,7 @@ def main() -> None:
         + f"--envs {' '.join(args.envs)} --rounds {args.rounds} --steps {args.steps} --num-samples "
         + " ".join(map(str, args.num_samples))
         + f" --scoring-dtypes {' '.join(args.scoring_dtypes)} --layer-norms {' '.join(args.layer_norms)}"
-        + f" --compile-losses {' '.join(args.compile_losses)}"
+        + f" --compile-losses {' '.join(args.compile_losses)} --train-dtypes {' '.join(args.train_dtypes)}"
         + f" --threads {args.threads}",
         "machine": machine_description(),  # CPU, its matrix flags (AMX, AVX-512 BF16), oneDNN's bf16 kernel, torch
     }

@@ -1082,7 +1082,7 @@ def test_crr_train_dtype_return_verdict() -> None:
     assert close["interval_within_spread"]
 
 
-def test_mpo_quality_paired_verdict() -> None:
+def test_mpo_quality_paired_verdict(tmp_path, monkeypatch) -> None:
     """benchmarks/bench_mpo_quality.py: the rule pre-registered for bf16 gradient passes, pass / fail / inconclusive."""
     quality = benchmark_module("bench_mpo_quality")
     base = {0: 1000.0, 1: 1400.0, 2: 1200.0, 3: 800.0, 4: 1600.0}  # a spread of 316 across seeds
@@ -1097,3 +1097,18 @@ def test_mpo_quality_paired_verdict() -> None:
     assert noisy["verdict"] == "inconclusive" and noisy["difference_ci95"][0] < -noisy["base_std"]
     assert quality.paired_verdict(base, {0: 1000.0, 7: 1.0})["verdict"] == "too few seeds"  # one seed in common
     assert quality.paired_verdict(base, {0: 990.0, 1: 1410.0, 9: 0.0})["seeds"] == [0, 1]  # only the common seeds
+    assert quality.paired_verdict(base, {0: float("nan"), 1: 1400.0})["verdict"] == "non-finite return"
+    # read from the curves: only runs that reached the budget, the base and the other each from their own files
+    monkeypatch.setattr(quality, "CURVES", tmp_path)
+    (tmp_path / "100k").mkdir()
+    header = "timesteps,mean_return,std_return,wall_s,policy_std_p10,policy_std_median,policy_std_p90\n"
+    for algo, seed, rows in (("A", 0, [(50000, 5.0), (100000, 10.0)]), ("A", 1, [(100000, 20.0)]), ("A", 2, [(50000, 1.0)])):
+        text = header + "".join(f"{steps},{value},0,0,0,0,0\n" for steps, value in rows)
+        (tmp_path / "100k" / f"Hopper-v5__{algo}__s{seed}.csv").write_text(text)
+        (tmp_path / "100k" / f"Hopper-v5__B__s{seed}.csv").write_text(text.replace(f",{rows[-1][1]},", f",{rows[-1][1] + 1},"))
+    assert quality.final_returns("Hopper-v5", "A") == {0: 10.0, 1: 20.0}  # seed 2 stopped at 50k
+    result = quality.report_pair(["Hopper-v5"], "A", "B")["Hopper-v5"]
+    assert result["seeds"] == [0, 1] and result["difference_mean"] == pytest.approx(1.0)
+    assert (tmp_path / "paired_A_B.json").exists()
+    with pytest.raises(ValueError, match="two different variants"):
+        quality.report_pair(["Hopper-v5"], "A", "A")

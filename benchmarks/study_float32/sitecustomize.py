@@ -9,8 +9,11 @@ passes, an arithmetic the first seeds did not have. Put this folder after the pi
 hardware check answer "no native bf16".
 """
 
+import sys
+
 import sb3_lifelong.common.hardware as _hardware
 import sb3_lifelong.common.scoring as _scoring
 
 _hardware.cpu_has_fast_bf16 = lambda: False  # type: ignore[assignment]
 _scoring.cpu_has_fast_bf16 = lambda: False  # type: ignore[assignment]
+print(f"study_float32: scoring_dtype='auto' is float32 in {_scoring.__file__}", file=sys.stderr)

@@ -107,8 +107,10 @@ class HiddenLinear(nn.Linear):
     With :attr:`simulated`, the product gives the same numbers from float32 arithmetic: the input, weight and bias are
     rounded to ``compute_dtype`` and back, multiplied in float32 (a product of two bf16 numbers is exact in float32,
     and the hardware's bf16 products sum in float32 too), and the output is rounded; in the backward pass the incoming
-    gradient and the gradients it gives are rounded the same way (autograd's rule for the casts). Only the order of
-    the float32 sums differs from a bf16 kernel's, so a result can differ by one bf16 rounding step. It costs about a
+    gradient and the gradients it gives are rounded the same way (autograd's rule for the casts). Only the sums differ
+    from a bf16 kernel's, in order and, on AMX, in how they accumulate: a result can differ by one bf16 rounding step,
+    and where a sum nearly cancels by up to 2^-14 of the sum of its terms' absolute values (measured on an AMX Xeon;
+    ``benchmarks/bf16_kernel_vs_simulation.py``). It costs about a
     float32 product, where a CPU without native bf16 emulates it several times slower: it measures what bf16 does to
     learning on any hardware. Eager only: ``torch.compile`` fuses a round trip through bf16 away.
     """
