@@ -13,6 +13,7 @@ from sb3_lifelong.common import compiling, hardware
 from sb3_lifelong.common.fast_ops import HiddenLinear
 from sb3_lifelong.common.policies import mlp_layers
 from tests.test_crr import flat_params, pendulum_data
+from tests.test_experiments import benchmark_module
 
 KWARGS = dict(device="cpu", batch_size=64, policy_kwargs=dict(net_arch=[64, 64], layer_norm=True), seed=0)
 
@@ -108,60 +109,21 @@ def test_a_compiled_bf16_update_passes_its_check():
     assert forward.compiled is not None and forward.checked and not forward.failed, forward.failure
 
 
-def bf16_bounds_apart(a: th.Tensor, b: th.Tensor, terms: th.Tensor) -> th.Tensor:
-    """
-    :param terms: the sum of the absolute values of the products summed into each element (its conditioning)
-    :return: |a - b| in units of the bound within which two bf16 products of the same inputs agree: one bf16 rounding
-        step at their magnitude (2^-7 relative) plus 2^-12 of ``terms``, for the order and blocking of the sums (the
-        AMX kernel of a Xeon, measured against this simulation: up to 2^-14 of ``terms``, on near-cancelling sums)
-    """
-    bound = th.maximum(a.abs(), b.abs()) * 2.0**-7 + terms * 2.0**-12
-    return (a - b).abs() / bound.clamp_min(th.finfo(th.float32).tiny)
-
-
 def test_simulated_bf16_gives_the_bf16_products_numbers():
     """Rounding around float32 products gives the bf16 kernel's results, forward and backward, up to how the sums are
     formed (one bf16 step, plus 2^-12 of a near-cancelling sum's terms; in few elements); float32 is far from them."""
-    th.manual_seed(0)
-    layers = {}
-    for simulated in (False, True):
-        layers[simulated] = HiddenLinear.of(nn.Linear(256, 256))
-        layers[simulated].compute_dtype, layers[simulated].simulated = th.bfloat16, simulated
-    layers[True].load_state_dict(layers[False].state_dict())
-    x = th.randn(128, 256)
-    results = {}
-    for simulated, layer in layers.items():
-        inp = x.clone().requires_grad_(True)
-        out = layer(inp)
-        grads = th.autograd.grad((out * out.detach().sin()).sum(), [inp, layer.weight, layer.bias])
-        results[simulated] = (out.detach(), *grads)
-
-    def rounded(t: th.Tensor) -> th.Tensor:
-        return t.detach().to(th.bfloat16).float()
-
-    weight, bias, inputs = rounded(layers[False].weight), rounded(layers[False].bias), rounded(x)
-    grad_out = rounded(results[True][0].sin()).abs()
-    terms = (
-        inputs.abs() @ weight.abs().T + bias.abs(),
-        grad_out @ weight.abs(),
-        grad_out.T @ inputs.abs(),
-        grad_out.sum(0),
-    )
-    names = ("output", "input grad", "weight grad", "bias grad")
-    for name, real, simulated, term in zip(names, results[False], results[True], terms):
-        steps = bf16_bounds_apart(simulated, real, term)
-        assert float(steps.max()) <= 1.0 + 1e-6, name
-        assert float((simulated != real).float().mean()) <= 0.02, name  # almost all bit for bit
-    # float32 is not what bf16 gives, forward or backward
-    exact_layer = nn.Linear(256, 256)
-    exact_layer.load_state_dict(layers[False].state_dict())
-    inp = x.clone().requires_grad_(True)
-    out = exact_layer(inp)
-    exact = (out.detach(), *th.autograd.grad((out * out.detach().sin()).sum(), [inp, exact_layer.weight, exact_layer.bias]))
-    for name, real, float32, term in zip(names, results[False], exact, terms):
-        assert float(bf16_bounds_apart(float32, real, term).max()) > 1.0, name
-    with th.no_grad():
-        assert th.equal(layers[True](x), exact[0])  # and a pass without gradients stays float32, as with bf16
+    check = benchmark_module("bf16_kernel_vs_simulation")
+    real, simulated, exact = (check.one_layer(compute) for compute in ("bfloat16", "simulated", "float32"))
+    terms = check.sums_of_terms(real[0])
+    for name, kernel, simulation, float32, term in zip(check.NAMES, real, simulated, exact, terms):
+        assert float(check.bounds_apart(simulation, kernel, term).max()) <= 1.0 + 1e-6, name
+        assert float((simulation != kernel).float().mean()) <= 0.02, name  # almost all bit for bit
+        assert float(check.bounds_apart(float32, kernel, term).max()) > 1.0, name  # float32 is not what bf16 gives
+    plain, x = check.weights_and_inputs()
+    layer = HiddenLinear.of(plain)
+    layer.compute_dtype, layer.simulated = th.bfloat16, True
+    with th.no_grad():  # and a pass without gradients stays float32, as with bf16
+        assert th.equal(layer(x), F.linear(x, layer.weight, layer.bias))
 
 
 def test_simulated_bf16_trains_as_bf16_does_eagerly(tmp_path):
