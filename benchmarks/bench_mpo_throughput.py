@@ -105,6 +105,14 @@ def run_env(env_id: str, args: argparse.Namespace) -> tuple[list[str], dict[str,
         median = float(np.median(values))
         lines.append(f"| {name} | {median:.1f} | {median / sac:.2f}x |")
         results[name] = {"steps_per_s": values, "median": median, "ratio_to_sac": median / sac}
+        forward = getattr(models[name], "_forward", None)
+        if name.endswith("compiled)") and forward is not None:
+            # a compiled update refused by its first-call check trains eagerly: a row that says "compiled" but was not
+            results[name]["compiled_in_use"] = forward.compiled is not None and not forward.failed
+            results[name]["compile_failure"] = forward.failure
+    refused = [f"{name}: {results[name]['compile_failure']}" for name in results if results[name].get("compile_failure")]
+    if refused:
+        lines += ["", "Ran eagerly, the compiled update refused: " + "; ".join(refused)]
     profiles = {name: dict(profile_mpo(model, 100)) for name, model in models.items() if name.startswith("MPO")}
     sections = sorted({key for profile in profiles.values() for key in profile})
     lines += ["", "MPO update, time per section (ms per update, torch profiler, 100 updates):", ""]
