@@ -79,6 +79,8 @@ COLORS = {
     "MPO_obsnorm": "#9467bd",
     "MPO_layernorm": "#1f77b4",
     "MPO_layernorm_obsnorm": "#17becf",
+    "MPO_layernorm_fp32": "#2ca02c",
+    "MPO_layernorm_bf16": "#d62728",
     "SAC": "#222222",
 }
 
