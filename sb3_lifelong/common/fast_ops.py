@@ -110,9 +110,9 @@ class HiddenLinear(nn.Linear):
     gradient and the gradients it gives are rounded the same way (autograd's rule for the casts). Only the sums differ
     from a bf16 kernel's, in order and, on AMX, in how they accumulate: a result can differ by one bf16 rounding step,
     and where a sum nearly cancels by up to 2^-14 of the sum of its terms' absolute values (measured on an AMX Xeon;
-    ``benchmarks/bf16_kernel_vs_simulation.py``). It costs about a
-    float32 product, where a CPU without native bf16 emulates it several times slower: it measures what bf16 does to
-    learning on any hardware. Eager only: ``torch.compile`` fuses a round trip through bf16 away.
+    ``benchmarks/bf16_kernel_vs_simulation.py``). It costs about a float32 product, where a CPU without native bf16
+    emulates it several times slower: it measures what bf16 does to learning on any hardware. Eager only:
+    ``torch.compile`` fuses a round trip through bf16 away.
     """
 
     #: the precision of the product in passes that record gradients; None: the layer's own
