@@ -17,8 +17,12 @@
 #   crr_<dtype>_<seed> CRR on the fixed Hopper dataset, 3000 updates, its return, float32 and bf16 gradient
 #                      passes, seeds 0-2
 #   crr_d3rlpy_compiled  the compiled CRR against d3rlpy 2.8.1, interleaved (bench_crr.py; where d3rlpy imports)
+#   crr_return_<seed>  crr_train_dtype_return.py's protocol (5000 updates, float32 against native bf16), seeds 0-4,
+#                      then its verdict over them (crr_return/bfloat16.md)
 #
 # CHECK_SECONDS (default 540) is each check's time limit; a few seconds make a dry run that only starts each one.
+# ONLY="name name ..." runs only those checks (crr_return runs all five seeds; crr_d3rlpy_compiled and the batched
+# ones by their names): a second visit to a machine need not repeat the first one's checks.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-benchmarks/results/amx_checks}
@@ -28,9 +32,13 @@ PY=${PYTHON:-python}
 seconds=${CHECK_SECONDS:-540}
 cores=$(nproc)
 core=0
+wanted() {  # wanted NAME: whether ONLY (when set) names this check
+    [ -z "${ONLY:-}" ] || [[ " $ONLY " == *" ${1%_[0-9]} "* ]] || [[ " $ONLY " == *" $1 "* ]]
+}
 run() {  # run NAME SECONDS COMMAND...: in the background, on the next core (when taskset and the core exist)
     local name=$1 seconds=$2
     shift 2
+    wanted "$name" || return 0
     local pin=()
     if command -v taskset > /dev/null && [ "$core" -lt "$cores" ]; then pin=(taskset -c "$core"); fi
     core=$((core + 1))
@@ -59,12 +67,25 @@ for seed in 0 1 2; do
             --train-dtype $dtype --seed $seed
     done
 done
+for seed in 0 1 2 3 4; do
+    run "crr_return_$seed" $seconds $PY benchmarks/crr_train_dtype_return.py --seeds $seed --other bfloat16 \
+        --output "$OUT/crr_return_$seed"
+done
 wait
+if wanted crr_return; then  # the verdict over the seeds that finished
+    finished=()
+    for dir in "$OUT"/crr_return_[0-4]; do [ -f "$dir/bfloat16.json" ] && finished+=("$dir"); done
+    if [ ${#finished[@]} -gt 0 ]; then
+        $PY benchmarks/crr_train_dtype_return.py --other bfloat16 --output "$OUT/crr_return" --merge "${finished[@]}" \
+            > "$OUT/crr_return.log" 2>&1
+    fi
+fi
 cat "$OUT/flags.log"
 grep -h "torso\|first update\|compiled True\|compiled False" "$OUT/compiled_vs_eager.log" | head -30
 grep -hE "passed|failed|SKIPPED" "$OUT/test_compiled.log" | tail -6
-for name in student_compiled student_train; do echo "== $name"; grep -h "^|\|compiled update in use" "$OUT/$name.log"; done
-for name in mpo_train mpo_train_hopper; do echo "== $name"; grep -h "^|" "$OUT/$name.log" | head -12; done
-for name in batched batched_compiled; do echo "== $name"; grep -h "^|" "$OUT/$name.log"; done
+for name in student_compiled student_train; do echo "== $name"; grep -h "^|\|compiled update in use" "$OUT/$name.log" 2>/dev/null; done
+for name in mpo_train mpo_train_hopper; do echo "== $name"; grep -h "^|" "$OUT/$name.log" 2>/dev/null | head -12; done
+for name in batched batched_compiled; do echo "== $name"; grep -h "^|" "$OUT/$name.log" 2>/dev/null; done
 echo "== crr_d3rlpy_compiled"; grep -h "^|\|ratio" "$OUT/crr_d3rlpy_compiled.log" 2>/dev/null | head -20
-echo "== CRR on the fixed dataset (one JSON line a run: updates, seconds, return)"; grep -h '"impl"' "$OUT"/crr_*.log
+echo "== CRR on the fixed dataset (one JSON line a run: updates, seconds, return)"; grep -h '"impl"' "$OUT"/crr_*.log 2>/dev/null
+echo "== crr_return"; cat "$OUT/crr_return/bfloat16.md" 2>/dev/null || tail -3 "$OUT/crr_return.log" 2>/dev/null

@@ -15,6 +15,9 @@ Pre-registered before the runs (written into the results):
   is within one standard deviation of the float32 returns across seeds (the seed spread).
 
     OMP_NUM_THREADS=1 python benchmarks/crr_train_dtype_return.py --seeds 0 1 2 3 4 --other simulated_bfloat16
+
+Seeds may run as separate commands at once (``--seeds K --output DIR_K``, one core each), and ``--merge DIR_0 DIR_1
+...`` then gives the verdict over them all.
 """
 
 import argparse
@@ -99,6 +102,12 @@ def main() -> None:
     parser.add_argument("--data", default=str(RESULTS / "crr_hopper_medium_replay.npz"))
     parser.add_argument("--output", default=str(RESULTS / "crr_train_dtype_return"))
     parser.add_argument("--summarise", action="store_true", help="no runs: the tables again from OUTPUT/OTHER.json's runs")
+    parser.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="DIR",
+        help="no runs: the verdict over the runs in each DIR/OTHER.json (seeds run as separate commands), into OUTPUT",
+    )
     args = parser.parse_args()
     sys.path.insert(0, str(HERE.parent))
     from sb3_lifelong.common.hardware import machine_description
@@ -106,10 +115,18 @@ def main() -> None:
     output = pathlib.Path(args.output)
     behaviour = json.loads(pathlib.Path(args.data).with_suffix(".json").read_text())
     behaviour_mean = float(behaviour["dataset_mean_return"])
-    if args.summarise:
-        saved = json.loads((output / f"{args.other}.json").read_text())
-        rows, machine, command = saved["runs"], saved["machine"], saved["command"]
-        args.updates, args.eval_episodes = saved["updates"], saved["eval_episodes"]
+    if args.summarise or args.merge:
+        parts = [json.loads((pathlib.Path(d) / f"{args.other}.json").read_text()) for d in args.merge or [output]]
+        settings = {(part["machine"], part["updates"], part["eval_episodes"]) for part in parts}
+        if len(settings) != 1:
+            raise SystemExit(f"--merge: the runs differ in machine, updates or evaluation episodes: {sorted(settings)}")
+        rows = [row for part in parts for row in part["runs"]]
+        seeds = [(row["dtype"], row["seed"]) for row in rows]
+        if len(set(seeds)) != len(seeds):
+            raise SystemExit(f"--merge: a seed's run appears twice: {sorted(seeds)}")
+        machine = parts[0]["machine"]
+        command = " ; ".join(part["command"] for part in parts)
+        args.updates, args.eval_episodes = parts[0]["updates"], parts[0]["eval_episodes"]
     else:
         rows, machine, command = [], machine_description(), " ".join(sys.argv)
         for seed in args.seeds:
