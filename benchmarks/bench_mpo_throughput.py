@@ -97,14 +97,22 @@ def run_env(env_id: str, args: argparse.Namespace) -> tuple[list[str], dict[str,
     lines = [
         f"## {env_id}",
         "",
-        f"| algorithm | env steps/s (median of {args.rounds}) | ratio to SAC |",
-        "| --- | --- | --- |",
+        f"| algorithm | env steps/s (median of {args.rounds}) | ratio to SAC | per round, ratio to SAC: median [min, max] |",
+        "| --- | --- | --- | --- |",
     ]
     results: dict[str, Any] = {}
     for name, values in speeds.items():
         median = float(np.median(values))
-        lines.append(f"| {name} | {median:.1f} | {median / sac:.2f}x |")
-        results[name] = {"steps_per_s": values, "median": median, "ratio_to_sac": median / sac}
+        # a round's ratio compares two runs next to each other in time, so load that changes between rounds cancels
+        per_round = [value / peer for value, peer in zip(values, speeds["SAC"])]
+        spread = f"{np.median(per_round):.2f}x [{min(per_round):.2f}, {max(per_round):.2f}]"
+        lines.append(f"| {name} | {median:.1f} | {median / sac:.2f}x | {spread} |")
+        results[name] = {
+            "steps_per_s": values,
+            "median": median,
+            "ratio_to_sac": median / sac,
+            "round_ratios_to_sac": per_round,
+        }
         forward = getattr(models[name], "_forward", None)
         if name.endswith("compiled)") and forward is not None:
             # a compiled update refused by its first-call check trains eagerly: a row that says "compiled" but was not
