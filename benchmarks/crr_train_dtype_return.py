@@ -93,6 +93,26 @@ def verdict(rows: list[dict], other: str, behaviour_mean: float) -> dict:
     }
 
 
+def merged(parts: list[dict]) -> tuple[list[dict], str, str, int, int]:
+    """
+    The runs of several saved results (seeds run as separate commands) as one set.
+
+    :param parts: the saved results (``OUTPUT/OTHER.json``), each with its runs
+    :return: the runs, the machine, the commands (joined), the updates and the evaluation episodes
+    :raises SystemExit: where the parts differ in machine, updates or evaluation episodes, or a seed's run of one
+        setting appears twice
+    """
+    settings = {(part["machine"], part["updates"], part["eval_episodes"]) for part in parts}
+    if len(settings) != 1:
+        raise SystemExit(f"--merge: the runs differ in machine, updates or evaluation episodes: {sorted(settings)}")
+    rows = [row for part in parts for row in part["runs"]]
+    seeds = [(row["dtype"], row["seed"]) for row in rows]
+    if len(set(seeds)) != len(seeds):
+        raise SystemExit(f"--merge: a seed's run appears twice: {sorted(seeds)}")
+    command = " ; ".join(part["command"] for part in parts)
+    return rows, parts[0]["machine"], command, parts[0]["updates"], parts[0]["eval_episodes"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
@@ -117,16 +137,7 @@ def main() -> None:
     behaviour_mean = float(behaviour["dataset_mean_return"])
     if args.summarise or args.merge:
         parts = [json.loads((pathlib.Path(d) / f"{args.other}.json").read_text()) for d in args.merge or [output]]
-        settings = {(part["machine"], part["updates"], part["eval_episodes"]) for part in parts}
-        if len(settings) != 1:
-            raise SystemExit(f"--merge: the runs differ in machine, updates or evaluation episodes: {sorted(settings)}")
-        rows = [row for part in parts for row in part["runs"]]
-        seeds = [(row["dtype"], row["seed"]) for row in rows]
-        if len(set(seeds)) != len(seeds):
-            raise SystemExit(f"--merge: a seed's run appears twice: {sorted(seeds)}")
-        machine = parts[0]["machine"]
-        command = " ; ".join(part["command"] for part in parts)
-        args.updates, args.eval_episodes = parts[0]["updates"], parts[0]["eval_episodes"]
+        rows, machine, command, args.updates, args.eval_episodes = merged(parts)
     else:
         rows, machine, command = [], machine_description(), " ".join(sys.argv)
         for seed in args.seeds:

@@ -1082,6 +1082,31 @@ def test_crr_train_dtype_return_verdict() -> None:
     assert close["interval_within_spread"]
 
 
+def test_crr_train_dtype_return_merges_seeds_run_apart() -> None:
+    """crr_train_dtype_return.py --merge: seeds run as separate commands give the verdict of one run over them all,
+    and parts that do not belong together are refused by name."""
+    check = benchmark_module("crr_train_dtype_return")
+
+    def part(seeds: list[int], machine: str = "cpu A", updates: int = 5000) -> dict:
+        runs = [
+            {"dtype": dtype, "seed": seed, "return": 240.0 + 7.0 * seed + (1.5 if dtype == "bfloat16" else 0.0)}
+            for seed in seeds
+            for dtype in ("float32", "bfloat16")
+        ]
+        return {"machine": machine, "command": f"--seeds {seeds}", "updates": updates, "eval_episodes": 10, "runs": runs}
+
+    rows, machine, command, updates, episodes = check.merged([part([0, 1]), part([2]), part([3, 4])])
+    assert (machine, updates, episodes) == ("cpu A", 5000, 10) and command.count(";") == 2
+    assert check.verdict(rows, "bfloat16", 71.0) == check.verdict(part([0, 1, 2, 3, 4])["runs"], "bfloat16", 71.0)
+    assert check.verdict(rows, "bfloat16", 71.0)["seeds"] == [0, 1, 2, 3, 4]
+    with pytest.raises(SystemExit, match="differ in machine"):
+        check.merged([part([0]), part([1], machine="cpu B")])
+    with pytest.raises(SystemExit, match="differ in machine, updates"):
+        check.merged([part([0]), part([1], updates=3000)])
+    with pytest.raises(SystemExit, match="appears twice"):
+        check.merged([part([0, 1]), part([1, 2])])
+
+
 def test_mpo_quality_paired_verdict(tmp_path, monkeypatch) -> None:
     """benchmarks/bench_mpo_quality.py: the rule pre-registered for bf16 gradient passes, pass / fail / inconclusive."""
     quality = benchmark_module("bench_mpo_quality")
