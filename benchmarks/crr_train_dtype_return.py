@@ -109,7 +109,8 @@ def merged(parts: list[dict]) -> tuple[list[dict], str, str, int, int]:
     seeds = [(row["dtype"], row["seed"]) for row in rows]
     if len(set(seeds)) != len(seeds):
         raise SystemExit(f"--merge: a seed's run appears twice: {sorted(seeds)}")
-    command = " ; ".join(part["command"] for part in parts)
+    # each part's command is its arguments to python, as a run records them; the report puts the first's "python" before
+    command = " ; OMP_NUM_THREADS=1 python ".join(part["command"] for part in parts)
     return rows, parts[0]["machine"], command, parts[0]["updates"], parts[0]["eval_episodes"]
 
 
