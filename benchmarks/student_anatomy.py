@@ -8,12 +8,15 @@ indicator transform, ``scoring_dtype="auto"``).
 - ``compare``: interleaved blocks of updates of several variants of the same student, each block's time and the first
   variant's time over each other's per block pair: eager against compiled; or (``--online-copy``) the online critic's
   bf16 copy fused (the default where oneDNN fuses bf16), unfused, or none (float32 baseline pass); or
-  (``--train-dtype``) the gradient passes' hidden products in float32 against bfloat16 (``train_dtype``).
+  (``--train-dtype``) the gradient passes' hidden products in float32 against bfloat16 (``train_dtype``); or
+  (``--cpp-wrapper``) the compiled update with inductor's Python wrapper (the default) against its C++ wrapper, which
+  calls the kernels from C++ rather than Python.
 
     OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py profile --compile-losses
     OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py compare
     OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py compare --online-copy --compile-losses
     OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py compare --train-dtype --compile-losses
+    OMP_NUM_THREADS=1 python benchmarks/student_anatomy.py compare --cpp-wrapper
 
 The online-copy variants need a CPU with native bf16 (elsewhere ``"auto"`` scores in float32 and there is no copy).
 """
@@ -80,6 +83,10 @@ def compare(args: argparse.Namespace) -> None:
         variants = {kind: student(args.compile_losses, kind) for kind in ("default", "unfused", "none")}
     elif args.train_dtype:
         variants = {dtype: student(args.compile_losses, train_dtype=dtype) for dtype in ("float32", "bfloat16")}
+    elif args.cpp_wrapper:
+        with th._inductor.config.patch(cpp_wrapper=True):  # the compilation happens in the warm-up, inside this
+            cpp = student(True)
+        variants = {"python wrapper": student(True), "C++ wrapper": cpp}
     else:
         variants = {"eager": student(False), "compiled": student(True)}
     times: dict[str, list[float]] = {name: [] for name in variants}
@@ -103,6 +110,7 @@ def main() -> None:
     parser.add_argument("--compile-losses", action="store_true", help="the compiled update (profile, the variants)")
     parser.add_argument("--online-copy", action="store_true", help="compare the online copy's variants")
     parser.add_argument("--train-dtype", action="store_true", help="compare float32 and bfloat16 gradient passes")
+    parser.add_argument("--cpp-wrapper", action="store_true", help="compare inductor's Python and C++ wrappers (compiled)")
     parser.add_argument("--blocks", type=int, default=6)
     parser.add_argument("--updates", type=int, default=200, help="updates per block")
     args = parser.parse_args()

@@ -29,8 +29,8 @@ def rollout_returns(act, seeds) -> float:
     return float(np.mean(returns))
 
 
-@pytest.fixture(scope="module")
-def behaviour():
+def collect_behaviour() -> tuple[dict, float]:
+    """:return: 10,000 transitions of a SAC policy trained briefly on Pendulum-v1 (stochastic), and its return"""
     th.manual_seed(0)
     sac = SAC(
         "MlpPolicy", "Pendulum-v1", policy_kwargs=dict(NET), batch_size=128, learning_rate=1e-3, learning_starts=500, seed=0
@@ -49,6 +49,11 @@ def behaviour():
     # the behaviour policy's return, as it collected the data, on the evaluation episodes
     behaviour_return = rollout_returns(lambda o: sac.predict(o, deterministic=False)[0], EVAL_SEEDS)
     return data, behaviour_return
+
+
+@pytest.fixture(scope="module")
+def behaviour():
+    return collect_behaviour()
 
 
 def test_bc_reaches_behaviour_return(behaviour):
