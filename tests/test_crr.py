@@ -194,6 +194,12 @@ def test_offline_variants_train(data, kwargs):
     assert 0.0 <= recorder.values["train/weight_clip_frac"] <= 1.0
     assert any(not th.equal(a, b) for a, b in zip(before, model.actor_target.parameters()))
     assert th.isfinite(flat_params(model)).all()
+    if kwargs.get("advantage_transform") == "indicator":  # its weights are 0 or 1
+        assert recorder.values["train/weight_clip_frac"] == 0.0
+    if kwargs and "policy_kwargs" not in kwargs:  # the defaults' networks and seed: the option changed the training
+        default = offline_model(data)
+        default.learn_offline(110, log_interval=0)
+        assert not th.equal(flat_params(model), flat_params(default))
 
 
 def test_hard_target_update_interval(data):

@@ -532,7 +532,7 @@ def test_dict_observations():
         dict(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True, n_critics=2), scoring_dtype="bfloat16"),
     ],
 )
-def test_variants_train(kwargs):
+def test_variants_train(kwargs, default_run):
     params = {**SMALL, **kwargs}
     model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **params)
     before = [p.clone() for p in model.actor_target.parameters()]
@@ -542,6 +542,21 @@ def test_variants_train(kwargs):
     assert changed  # the target networks were updated (every 100 updates, or Polyak every update)
     if kwargs.get("action_penalty"):
         assert "train/penalty_temperature" in model.logger.name_to_value
+    if "policy_kwargs" not in kwargs:  # the same networks and seed as the defaults: the option changed the training
+        reference = th.cat([p.flatten() for p in default_run.actor.parameters()])
+        assert not th.equal(th.cat([p.flatten() for p in model.actor.parameters()]), reference)
+
+
+@pytest.fixture(scope="module")
+def default_run() -> MPO:
+    """MPO at ``SMALL``'s settings, seed 0, after 160 steps: what a variant that changes nothing would equal"""
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
+    return model.learn(160)
+
+
+def test_the_default_run_is_reproducible(default_run):
+    again = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL).learn(160)
+    assert all(th.equal(a, b) for a, b in zip(again.actor.parameters(), default_run.actor.parameters()))
 
 
 def test_hard_target_update_interval():
@@ -601,3 +616,23 @@ def test_n_steps_forwarded_to_buffer_class():
     model.learn(120)
     sample = model.replay_buffer.sample(16)
     assert sample.discounts is not None and th.all(sample.discounts <= 0.9 + 1e-6)
+
+
+def test_td_target_hand_computed_with_episode_ends_and_n_step_discounts():
+    from sb3_lifelong.common.losses import bootstrap_discount, td_target
+
+    # one env, rewards 1, 2, 3, 4, 5; the episode terminates at the third step and a new one starts; n = 2, gamma = 0.5
+    buffer = LifelongReplayBuffer(10, spaces.Box(-1, 1, (1,)), spaces.Box(-1, 1, (1,)), n_steps=2, gamma=0.5)
+    for t, (reward, done) in enumerate(zip([1.0, 2.0, 3.0, 4.0, 5.0], [False, False, True, False, False])):
+        obs = np.array([[t]], dtype=np.float32)
+        buffer.add(obs, obs + 1, np.zeros((1, 1), np.float32), np.array([reward]), np.array([done]), [{}])
+    batch = buffer._get_samples(np.arange(4))
+    bootstrap = bootstrap_discount(batch, gamma=0.99)  # the buffer's discounts, not this gamma
+    target = td_target(batch.rewards, bootstrap, th.full((4,), 10.0))
+    # step 0: 1 + 0.5 * 2, then 0.25 * V(s_2); step 1: 2 + 0.5 * 3, terminated (no bootstrap); step 2: 3, terminated;
+    # step 3: 4 + 0.5 * 5, then 0.25 * V(s_5)
+    assert bootstrap.flatten().tolist() == [0.25, 0.0, 0.0, 0.25]
+    assert target.flatten().tolist() == [2.0 + 2.5, 3.5, 3.0, 6.5 + 2.5]
+    # without the buffer's discounts: the one-step target, gamma on every transition that did not terminate
+    one_step = batch._replace(discounts=None, dones=th.tensor([[0.0], [0.0], [1.0], [0.0]]))
+    assert bootstrap_discount(one_step, gamma=0.9).flatten().tolist() == pytest.approx([0.9, 0.9, 0.0, 0.9])

@@ -91,9 +91,33 @@ def test_source_q_callback_logs_overestimation(tmp_path):
     assert len(rows) == 4 and {row["source"] for row in rows} == {"0", "1"}
     for row in rows:
         assert float(row["overestimation"]) == pytest.approx(float(row["q_probe"]) - float(row["mc_return"]), abs=1e-4)
-    assert "diagnostics/overestimation/source_1" in model.logger.name_to_value or any(
-        key.startswith("diagnostics/overestimation/") for key in model.logger.name_to_value
-    )
+    assert {"diagnostics/overestimation/source_0", "diagnostics/overestimation/source_1"} <= set(model.logger.name_to_value)
+
+
+class SourceCritic(th.nn.Module):
+    """Q = 7 on source 1's observations (10 and above in ``two_source_buffer``), 0 on source 0's."""
+
+    def forward(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
+        return ((obs[:, :1] >= 10).float() * 7.0,)
+
+
+def test_source_q_callback_averages_each_source_over_its_own_rows(tmp_path):
+    from sb3_lifelong import CRR
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback
+
+    buffer = two_source_buffer()
+    model = CRR.from_offline_data(buffer, batch_size=4, policy_kwargs=dict(net_arch=[8]), seed=0, gamma=0.5)
+    callback = SourceQCallback(log_freq=5, batch_size=64, data=buffer)
+    model.learn_offline(5, callback=callback, log_interval=0)  # sets the callback up
+    model.critic = SourceCritic()
+    assert callback.measure() == {"source_0": 0.0, "source_1": 7.0}  # a mask mixing the sources would not give these
+    last = {row["source"]: row for row in callback.results[-2:]}
+    returns_0 = np.mean([1.75, 1.5, 1.0])  # as in test_probe_measures_each_source_against_its_returns
+    returns_1 = np.mean([2 * (1 + 0.5 + 0.25 + 0.125), 2 * (1 + 0.5 + 0.25), 2 * 1.5, 2.0])
+    assert last[0]["mc_return"] == pytest.approx(returns_0) and last[1]["mc_return"] == pytest.approx(returns_1)
+    assert last[0]["overestimation"] == pytest.approx(0.0 - returns_0)
+    assert last[1]["overestimation"] == pytest.approx(7.0 - returns_1)
+    assert model.logger.name_to_value["diagnostics/q_mean/source_1"] == 7.0
 
 
 def test_source_q_callback_widens_an_older_file_and_keeps_its_rows(tmp_path):
