@@ -110,14 +110,15 @@ def test_drop_in_sb3(algo, tmp_path):
 
 
 def test_drop_in_mpo():
-    try:
-        from sb3_lifelong import MPO
-    except ImportError:
-        pytest.skip("MPO not available")
+    from sb3_lifelong import MPO
+
     model = MPO("MlpPolicy", "Pendulum-v1", learning_starts=50, batch_size=32, replay_buffer_class=LifelongReplayBuffer,
                 replay_buffer_kwargs=dict(n_steps=2, gamma=0.99), device="cpu", seed=0)  # fmt: skip
     model.learn(120)
-    assert model.replay_buffer.size() == 120
+    assert model.replay_buffer.size() == 120 and model.replay_buffer.n_steps == 2
+    assert model._n_updates > 0  # it trained on the buffer's samples: two-step, discounted by 0.99^2 (Pendulum never ends)
+    batch = model.replay_buffer.sample(16)
+    assert batch.discounts is not None and th.allclose(batch.discounts, th.full_like(batch.discounts, 0.99**2))
 
 
 def test_in_memory_pickle_and_sources():

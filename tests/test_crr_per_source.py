@@ -60,6 +60,10 @@ def test_each_actor_learns_its_own_source(actor_averaging):
     shared = CRR.from_offline_data(buffer, policy_kwargs=dict(net_arch=[32, 32]), batch_size=64, beta=100.0, seed=0)
     shared.learn_offline(400)
     assert abs(mean_action(shared)) < 0.3
+    # ... with the spread of the two sources' actions (+-0.6) as its standard deviation (untrained: 0.77)
+    obs = th.as_tensor(np.random.default_rng(1).uniform(-1, 1, (50, 3)).astype(np.float32))
+    with th.no_grad():
+        assert float(shared.actor.distribution_params(obs)[1].mean()) == pytest.approx(0.6, abs=0.1)
 
 
 def test_an_actor_only_learns_from_its_source_and_the_critic_is_shared():
