@@ -2,6 +2,7 @@
 
 import ast
 import pathlib
+from typing import Optional
 
 import pytest
 
@@ -43,12 +44,18 @@ def module_name(path: pathlib.Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def imports_of(path: pathlib.Path) -> set[str]:
+def imports_of(path: pathlib.Path, text: Optional[str] = None) -> set[str]:
+    """:return: the package's modules (and names in them) that the module at ``path`` (its text: ``text``) imports"""
     found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.add(node.module)
-            found.update(f"{node.module}.{alias.name}" for alias in node.names)
+    package = module_name(path) if path.name == "__init__.py" else module_name(path).rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text() if text is None else text)):
+        if isinstance(node, ast.ImportFrom) and (node.module or node.level):
+            # a relative import (``from ..buffers import x``) is resolved against the module's package
+            base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+            module = node.module if node.level == 0 else ".".join(part for part in (base, node.module) if part)
+            assert module is not None
+            found.add(module)
+            found.update(f"{module}.{alias.name}" for alias in node.names)
         elif isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
     return {name for name in found if name.split(".")[0] == "sb3_lifelong"}
@@ -70,6 +77,13 @@ def test_imports_go_downwards(path):
         for peer in PEERS:
             if module.startswith(peer) and imported.startswith(PEERS) and not imported.startswith(peer):
                 raise AssertionError(f"{module} imports another algorithm, {imported}")
+
+
+def test_relative_imports_are_resolved():
+    source = PACKAGE / "common" / "relative_probe.py"  # a module that is not there: only its path and text are used
+    found = imports_of(source, text="from ..mpo import MPO\nfrom . import scoring\nfrom .losses import sum_of\n")
+    assert {"sb3_lifelong.mpo", "sb3_lifelong.mpo.MPO", "sb3_lifelong.common.scoring", "sb3_lifelong.common.losses"} <= found
+    assert layer_of("sb3_lifelong.mpo") > layer_of(module_name(source))  # so such an import would fail the layer check
 
 
 def test_every_module_has_a_layer():
