@@ -685,6 +685,7 @@ def test_bench_crr_levers_lean_adam_is_adams_update(monkeypatch: pytest.MonkeyPa
             optimizer.step()
         if step == 0:  # Adam's state exists after its first step
             levers.lean_adam(lean[1])
+            assert "step" in vars(lean[1])  # the lean step replaced the optimizer's own on this instance
     for param, lean_param in zip(reference[0].parameters(), lean[0].parameters()):
         assert th.equal(param, lean_param)
     assert not th.equal(next(reference[0].parameters()), next(make()[0].parameters()))  # the steps moved the weights
