@@ -13,6 +13,8 @@ finished student is skipped when the command is run again)::
     OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py screen --robot hopper --seed 0   # at the switch, optional
     OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot hopper --seed 0
     python benchmarks/imbalance_dose.py report     # preconditions, claims.csv, tables, the figure, every seed so far
+    python benchmarks/imbalance_dose.py same-collection --robot cheetah_hip --seed 0 --runs runs   # a collection
+        # run again (after its run directory was lost) against the committed one's Q log: the same training?
 
 Small results go to ``benchmarks/results/imbalance_dose/<robot>/seed_<k>/``; buffers and students stay in ``runs/``.
 """
@@ -896,6 +898,41 @@ def progress(args: argparse.Namespace) -> list[str]:
     return lines
 
 
+def same_collection(args: argparse.Namespace) -> bool:
+    """
+    Whether a collection run again (on another machine, after its run directory was lost) is the one whose results
+    are committed: the critic's mean Q per source at every measurement both logs have (``q_sources.csv``) is a
+    fingerprint of the training, and with it of the buffer. Prints the comparison; exit status 1 on a difference.
+
+    :return: True when every common measurement is equal to the last digit (and there is at least one)
+    """
+    committed = pathlib.Path(args.results) / args.robot / f"seed_{args.seed}" / "collect_q_sources.csv"
+    study = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}")
+    rerun = study / f"seed_{args.seed}" / "collect" / "q_sources.csv"
+    for path in (committed, rerun):
+        if not path.exists():
+            raise SystemExit(f"{path} does not exist: nothing to compare")
+
+    def rows(path: pathlib.Path) -> dict[tuple[int, str], str]:
+        with open(path, newline="") as handle:
+            return {(int(float(row["timesteps"])), row["source"]): row["q_mean"] for row in csv.DictReader(handle)}
+
+    old, new = rows(committed), rows(rerun)
+    common = sorted(set(old) & set(new))
+    differ = [key for key in common if float(old[key]) != float(new[key])]
+    if not common:
+        print(f"no measurement in common between {committed} and {rerun}")
+        return False
+    reach = max(step for step, _ in common)
+    if differ:
+        step, source = differ[0]
+        print(f"seed {args.seed}: differs first at {step:,} steps, source {source}: {new[differ[0]]} here, "
+              f"{old[differ[0]]} committed ({len(differ)} of {len(common)} measurements differ)")  # fmt: skip
+        return False
+    print(f"seed {args.seed}: the same collection so far: {len(common)} measurements equal, up to {reach:,} steps")
+    return True
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -934,12 +971,20 @@ def main() -> None:
     progress_parser.add_argument("--runs", default="runs", help="where the collections are and the students go")
     progress_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
     progress_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
+    same_parser = sub.add_parser("same-collection", help="is a collection run again the committed one (its Q log)")
+    same_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah_hip")
+    same_parser.add_argument("--seed", type=int, required=True)
+    same_parser.add_argument("--runs", default="runs", help="where the collections are")
+    same_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
+    same_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
     import torch as th
 
     th.set_num_threads(1)
+    if args.command == "same-collection":
+        raise SystemExit(0 if same_collection(args) else 1)
     commands = dict(run=run, screen=screen, branch=branch, progress=progress, report=report)
     commands["adopt-stage1"] = adopt_stage1
     commands[args.command](args)

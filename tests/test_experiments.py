@@ -1138,3 +1138,28 @@ def test_mpo_quality_paired_verdict(tmp_path, monkeypatch) -> None:
     assert (tmp_path / "paired_A_B.json").exists()
     with pytest.raises(ValueError, match="two different variants"):
         quality.report_pair(["Hopper-v5"], "A", "A")
+
+
+def test_imbalance_dose_same_collection_compares_the_q_logs(tmp_path, capsys):
+    """imbalance_dose.py same-collection: equal where every common measurement is equal, else where it first differs."""
+    import argparse
+
+    dose = benchmark_module("imbalance_dose")
+    results, runs = tmp_path / "results", tmp_path / "runs"
+    committed = results / "cheetah_hip" / "seed_0" / "collect_q_sources.csv"
+    rerun = runs / "imbalance_dose_cheetah_hip" / "seed_0" / "collect" / "q_sources.csv"
+    committed.parent.mkdir(parents=True)
+    rerun.parent.mkdir(parents=True)
+    committed.write_text("timesteps,source,name,q_mean,n\n10000,0,Env-A,6.5,4096\n20000,0,Env-A,32.25,4096\n"
+                         "30000,0,Env-A,76.0,4096\n")  # fmt: skip
+    args = argparse.Namespace(robot="cheetah_hip", seed=0, runs=str(runs), study=None, results=str(results))
+    header = "timesteps,source,name,q_mean,n,q_probe,mc_return,overestimation,n_mc\n"
+    rerun.write_text(header + "10000,0,Env-A,6.5,4096,1,2,-1,10\n20000,0,Env-A,32.25,4096,1,2,-1,10\n")
+    assert dose.same_collection(args)  # a run still going: equal so far, the later committed row not compared yet
+    assert "2 measurements equal, up to 20,000 steps" in capsys.readouterr().out
+    rerun.write_text(header + "10000,0,Env-A,6.5,4096,,,,\n20000,0,Env-A,32.25000001,4096,,,,\n30000,0,Env-A,75.0,4096,,,,\n")
+    assert not dose.same_collection(args)
+    assert "differs first at 20,000 steps, source 0: 32.25000001 here, 32.25 committed (2 of 3" in capsys.readouterr().out
+    rerun.unlink()
+    with pytest.raises(SystemExit, match="does not exist"):
+        dose.same_collection(args)
