@@ -42,6 +42,8 @@ ROBOTS = {
     "cheetah_hip": ("dose_cheetah_hip", 1500.0),  # the long Env-B design (README, "Long Env-B")
     "tiny": ("tiny", 0.0),
 }
+#: robot -> (the commit its collections run from, the commit its students run from): the study's code, fixed
+PINNED = {"cheetah_hip": ("f6bda69", "6d063c0")}
 #: the seeds pre-registered per robot: a claim stays *pending* while a seed it could still be tested on is missing
 PLANNED_SEEDS = {"hopper": (0, 1, 2), "cheetah": (0,), "cheetah_hip": (0, 1, 2), "tiny": (0,)}
 #: the conservative student's effective sample size, as a fraction of the batch
@@ -854,8 +856,9 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
 
 def progress(args: argparse.Namespace) -> list[str]:
     """
-    Where each pre-registered seed of ``--robot`` stands (its collection, its students) and the commands that go on
-    with it, read from the run directories (nothing is changed).
+    Where each pre-registered seed of ``--robot`` stands (its collection, its students: finished in the run directory,
+    paused there, or committed in ``--results``) and the commands that go on with it, from the snapshots the study
+    runs from (:data:`PINNED`); nothing is changed.
 
     :return: the lines printed
     """
@@ -865,8 +868,16 @@ def progress(args: argparse.Namespace) -> list[str]:
     total = sum(preset.stage_steps)
     study = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}")
     students = pathlib.Path(args.students_output or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}_students")
+    results = pathlib.Path(getattr(args, "results", None) or RESULTS)
     names = list(student_settings({}))
+    pinned = PINNED.get(args.robot)
     lines = [f"{args.robot}: collection {total:,} steps per seed, {len(names)} students of {args.updates:,} updates"]
+    if pinned is not None:
+        lines.append(
+            f"  runs from snapshots: collections `git worktree add <collect-tree> {pinned[0]}`, students `git worktree "
+            f"add <students-tree> {pinned[1]}`; on a CPU with native bf16 put benchmarks/study_float32 after the tree "
+            "on PYTHONPATH (benchmarks/results/imbalance_dose/README.md, last sections)"
+        )
     for seed in PLANNED_SEEDS[args.robot]:
         collect = study / f"seed_{seed}" / "collect"
         if (collect / "done.json").exists():
@@ -875,6 +886,8 @@ def progress(args: argparse.Namespace) -> list[str]:
             state = f"collection paused at {json.loads((collect / 'paused.json').read_text())['timesteps']:,}"
         else:
             state = "collection not started"
+        summary = results / args.robot / f"seed_{seed}" / "students.json"
+        committed = set(json.loads(summary.read_text())["students"]) if summary.exists() else set()
         done, paused = [], []
         for name in names:
             directory = students / f"seed_{seed}" / f"distill_{name}"
@@ -882,17 +895,29 @@ def progress(args: argparse.Namespace) -> list[str]:
                 done.append(name)
             elif (directory / "paused.json").exists():
                 paused.append(f"{name} at {json.loads((directory / 'paused.json').read_text())['updates']:,}")
+        missing = [name for name in names if name not in done and name not in committed]
         lines.append(f"  seed {seed}: {state}; students done {len(done)} of {len(names)}" + (
-            f" ({', '.join(done)})" if done else "") + (f"; paused: {', '.join(paused)}" if paused else ""))  # fmt: skip
+            f" ({', '.join(done)})" if done else "") + (f"; paused: {', '.join(paused)}" if paused else "") + (
+            f"; committed in {results}: {len(committed)}" if committed else ""))  # fmt: skip
+        if not missing:
+            lines.append("    nothing to run: every student is finished or committed")
+            continue
+        tree = "PYTHONPATH=<collect-tree>:<repo>/benchmarks/study_float32 " if pinned is not None else ""
         if state != "collection finished":
             lines.append(
-                f"    next: OMP_NUM_THREADS=1 python -m sb3_lifelong.experiments run --preset {ROBOTS[args.robot][0]} "
-                f"--seed {seed} --output {study} --until <steps> (or benchmarks/collect_in_parts.sh)"
+                f"    next: {tree}OMP_NUM_THREADS=1 python -m sb3_lifelong.experiments run --preset {ROBOTS[args.robot][0]} "
+                f"--seed {seed} --output {study} --until <steps> (or benchmarks/collect_in_parts.sh with STUDY_TREE), "
+                f"then the students {', '.join(missing)}"
             )
-        elif len(done) < len(names):
+        else:
+            only = f" --students {' '.join(missing)}" if committed else ""
+            into = ""
+            if pinned is not None:  # the pinned script, its results into this checkout
+                tree = "cd <students-tree> && " + tree.replace("<collect-tree>", "<students-tree>")
+                into = " --results <repo>/benchmarks/results/imbalance_dose"
             lines.append(
-                f"    next: OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot {args.robot} --seed {seed} "
-                f"--runs {args.runs}"
+                f"    next: {tree}OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot {args.robot} "
+                f"--seed {seed} --runs {args.runs}{only}{into}"
             )
     print("\n".join(lines))
     return lines
@@ -971,6 +996,7 @@ def main() -> None:
     progress_parser.add_argument("--runs", default="runs", help="where the collections are and the students go")
     progress_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
     progress_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
+    progress_parser.add_argument("--results", default=str(RESULTS), help="where the committed small results are")
     same_parser = sub.add_parser("same-collection", help="is a collection run again the committed one (its Q log)")
     same_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah_hip")
     same_parser.add_argument("--seed", type=int, required=True)

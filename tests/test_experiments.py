@@ -1163,3 +1163,28 @@ def test_imbalance_dose_same_collection_compares_the_q_logs(tmp_path, capsys):
     rerun.unlink()
     with pytest.raises(SystemExit, match="does not exist"):
         dose.same_collection(args)
+
+
+def test_imbalance_dose_progress_counts_committed_students(tmp_path, monkeypatch):
+    """imbalance_dose.py progress: students committed in the results need no run; the missing ones are named."""
+    import argparse
+
+    dose = benchmark_module("imbalance_dose")
+    study, results = tmp_path / "runs" / "study", tmp_path / "results"
+    (study / "seed_0" / "collect").mkdir(parents=True)
+    (study / "seed_0" / "collect" / "done.json").write_text("{}")
+    names = list(dose.student_settings({}))
+    (results / "tiny" / "seed_0").mkdir(parents=True)
+    (results / "tiny" / "seed_0" / "students.json").write_text(json.dumps({"students": {n: {} for n in names[:-1]}}))
+    where = argparse.Namespace(robot="tiny", updates=60, runs=str(tmp_path / "runs"), study=str(study),
+                               students_output=str(tmp_path / "students"), results=str(results))  # fmt: skip
+    text = "\n".join(dose.progress(where))
+    assert f"committed in {results}: {len(names) - 1}" in text
+    assert text.rstrip().endswith(f"--students {names[-1]}")  # only the missing student, from this tree (not pinned)
+    (results / "tiny" / "seed_0" / "students.json").write_text(json.dumps({"students": {n: {} for n in names}}))
+    assert "nothing to run" in "\n".join(dose.progress(where))
+    monkeypatch.setitem(dose.PINNED, "tiny", ("aaaaaaa", "bbbbbbb"))  # a pinned study names its snapshots
+    (study / "seed_0" / "collect" / "done.json").unlink()
+    (results / "tiny" / "seed_0" / "students.json").write_text(json.dumps({"students": {n: {} for n in names[:-1]}}))
+    text = "\n".join(dose.progress(where))
+    assert "aaaaaaa" in text and "bbbbbbb" in text and "PYTHONPATH=<collect-tree>:<repo>/benchmarks/study_float32" in text
