@@ -229,6 +229,42 @@ def test_claims_follow_the_numbers(study):
         assert rows["C4a the imbalance drop"] == expected
 
 
+def test_claims_about_env_a_need_env_a_learnt(study):
+    """A preset's ``env_a_learnt``: the claims about Env-A are tested on the seeds whose MPO reached it at the switch,
+    read *not testable* when none did, and the other claims are untouched; without it nothing is checked."""
+    from sb3_lifelong.experiments.report import claims_table, env_a_precondition
+
+    output, _ = study
+    study_data = load_study(output)
+    unchecked = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert env_a_precondition(study_data) is None and all("precondition" not in r for r in unchecked.values())
+    at_switch = study_data.extra("MPO|switch|Env-A")
+    assert sorted(at_switch) == [0, 1]
+    needs = {"C1 forgetting", "C2a conservative online CRR remembers", "C4a the imbalance drop", "C4b beta=1 fixes it"}
+    # a threshold no seed reached: every claim about Env-A is not testable, with the measured values
+    study_data.preset = {**study_data.preset, "env_a_learnt": max(at_switch.values()) + 1.0}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    for claim in needs:
+        assert rows[claim]["verdict"] == "not testable", claim
+        assert (
+            "held on 0 of 2 seeds" in rows[claim]["precondition"] and f"s0: {at_switch[0]:.0f}" in rows[claim]["precondition"]
+        )
+    assert rows["C3 the pipeline is best"]["verdict"] == unchecked["C3 the pipeline is best"]["verdict"]
+    assert rows["C3 the pipeline is best"]["precondition"] == "-"
+    assert "| precondition |" in claims_table(list(rows.values())).splitlines()[0]
+    # a threshold one seed reached: the claims about Env-A are tested on that seed alone
+    best = max(at_switch, key=at_switch.get)
+    study_data.preset = {**study_data.preset, "env_a_learnt": at_switch[best]}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C1 forgetting"]["verdict"] in ("reproduced", "not reproduced")
+    assert f"s{best}: " in rows["C1 forgetting"]["values"] and f"s{1 - best}: n/a" in rows["C1 forgetting"]["values"]
+    assert "held on 1 of 2 seeds" in rows["C1 forgetting"]["precondition"]
+    # a threshold every seed reached: the verdicts are those of the unchecked report
+    study_data.preset = {**study_data.preset, "env_a_learnt": min(at_switch.values()) - 1.0}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert {c: r["verdict"] for c, r in rows.items()} == {c: r["verdict"] for c, r in unchecked.items()}
+
+
 def test_sampling_weights_give_the_ratio():
     counts = {0: 1000, 1: 5000}
     for ratio in ((1, 1), (1, 10), (1, 0), (0, 1)):

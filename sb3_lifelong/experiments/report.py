@@ -121,6 +121,9 @@ class Claim:
     :param pairs: the series compared (first, second), each reported as a paired difference per seed (see
         :func:`paired_difference`); None: the first series against each other one (none for a single series, e.g. a
         per-seed ratio, which is paired already)
+    :param needs_env_a: the claim is about what was learnt in Env-A (forgetting it, remembering it, the imbalance
+        drop and its diagnostics), so it is testable only on the seeds whose MPO had learnt Env-A at the switch, when
+        the study's preset states how much that is (``env_a_learnt``; see :func:`env_a_precondition`)
     """
 
     name: str
@@ -128,6 +131,7 @@ class Claim:
     values: Callable[[Study], dict[str, dict[int, float]]]
     test: Callable[[dict[str, float]], bool]
     pairs: Optional[Sequence[tuple[str, str]]] = None
+    needs_env_a: bool = False
 
     def compared(self, names: Sequence[str]) -> list[tuple[str, str]]:
         """
@@ -177,12 +181,14 @@ CLAIMS: list[Claim] = [
         "MPO's Env-A return at the end of Stage 2 is <= 70 % of its Env-A return at the switch",
         lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
+        needs_env_a=True,
     ),
     Claim(
         "C2a conservative online CRR remembers",
         "online CRR (exp, beta=1) ends with a higher Env-A return than MPO",
         lambda s: {"CRR beta=1": s.score("online CRR_exp_beta1", "Env-A"), "MPO": s.score("MPO", "Env-A")},
         lambda m: m["CRR beta=1"] > m["MPO"],
+        needs_env_a=True,
     ),
     Claim(
         "C2b conservative online CRR learns Env-B slower",
@@ -208,30 +214,35 @@ CLAIMS: list[Claim] = [
         "the indicator student on Env-A + Env-B reaches <= 80 % of the Env-A-only indicator student in Env-A",
         lambda s: {"indicator / A-only": ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
         lambda m: m["indicator / A-only"] <= 0.8,
+        needs_env_a=True,
     ),
     Claim(
         "C4b beta=1 fixes it",
         "the exp beta=1 student on Env-A + Env-B reaches >= 90 % of the Env-A-only indicator student in Env-A",
         lambda s: {"exp beta=1 / A-only": ratio(s.score("CRR_exp_beta1", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
         lambda m: m["exp beta=1 / A-only"] >= 0.9,
+        needs_env_a=True,
     ),
     Claim(
         "C5a reward scale",
         "scaling Env-B's rewards by 0.5 raises the indicator student's Env-A return",
         lambda s: {"scaled": s.score("CRR_indicator_scale_rwd_B", "Env-A"), "baseline": s.score("CRR_indicator", "Env-A")},
         lambda m: m["scaled"] > m["baseline"],
+        needs_env_a=True,
     ),
     Claim(
         "C5b two actors",
         "one actor per environment (shared critic) raises the indicator student's Env-A return",
         lambda s: {"two actors": s.score("CRR_indicator_two_actors", "Env-A"), "baseline": s.score("CRR_indicator", "Env-A")},
         lambda m: m["two actors"] > m["baseline"],
+        needs_env_a=True,
     ),
     Claim(
         "C5c BC beats the indicator in Env-A",
         "behaviour cloning on Env-A + Env-B has a higher Env-A return than the indicator student",
         lambda s: {"BC": s.score("BC", "Env-A"), "indicator": s.score("CRR_indicator", "Env-A")},
         lambda m: m["BC"] > m["indicator"],
+        needs_env_a=True,
     ),
     Claim(
         "C5d sampling ratio hurts the indicator",
@@ -243,6 +254,7 @@ CLAIMS: list[Claim] = [
         },
         lambda m: m["1:1"] > m["1:5"] > m["1:10"],
         pairs=(("1:1", "1:5"), ("1:5", "1:10")),
+        needs_env_a=True,
     ),
     Claim(
         "C5e beta=1 is robust to the ratio",
@@ -251,6 +263,7 @@ CLAIMS: list[Claim] = [
             "1:10 / 1:1": ratio(s.score("CRR_exp_beta1_ratio_1to10", "Env-A"), s.score("CRR_exp_beta1_ratio_1to1", "Env-A"))
         },
         lambda m: m["1:10 / 1:1"] >= 0.9,
+        needs_env_a=True,
     ),
     Claim(
         "C6 overestimation on Env-A data",
@@ -269,6 +282,7 @@ THREE_STAGE_CLAIMS: list[Claim] = [
         "MPO's Env-A return at the end of Stage 3 is <= 70 % of its Env-A return at the end of Stage 1",
         lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
+        needs_env_a=True,
     ),
     Claim(
         "T1b forgetting Env-B",
@@ -296,6 +310,7 @@ THREE_STAGE_CLAIMS: list[Claim] = [
         "the indicator student's Env-A return is <= 80 % of the exp beta=1 student's",
         lambda s: {"indicator / exp beta=1": ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_exp_beta1", "Env-A"))},
         lambda m: m["indicator / exp beta=1"] <= 0.8,
+        needs_env_a=True,
     ),
     Claim(
         "T3b exp beta=1 is the more reliable student",
@@ -316,14 +331,46 @@ def claims_of(preset: Mapping[str, Any]) -> list[Claim]:
     raise ValueError(f"no pre-registered claims for a study of {stages} environments (two or three)")
 
 
+def env_a_precondition(study: Study) -> Optional[tuple[float, dict[int, float], list[int]]]:
+    """
+    The precondition of the claims about Env-A (:attr:`Claim.needs_env_a`): MPO had learnt Env-A when it left it, its
+    Env-A return at the switch (the mean of its last evaluations there) at least the preset's ``env_a_learnt``.
+
+    :return: None when the preset states no threshold (studies run before it could: nothing is checked); else the
+        threshold, each seed's return at the switch, and the seeds on which the precondition holds
+    """
+    threshold = study.preset.get("env_a_learnt")
+    if threshold is None:
+        return None
+    at_switch = study.extra("MPO|switch|Env-A")
+    held = [seed for seed, value in sorted(at_switch.items()) if np.isfinite(value) and value >= threshold]
+    return float(threshold), at_switch, held
+
+
 def evaluate_claims(study: Study) -> list[dict[str, Any]]:
-    """:return: one row per claim: the series (per seed, mean, CI), and reproduced / not reproduced / no data"""
+    """
+    :return: one row per claim: the series (per seed, mean, CI), and reproduced / not reproduced / no data, or *not
+        testable* when the claim needs Env-A learnt and no seed's MPO had learnt it (:func:`env_a_precondition`);
+        a claim is tested on the seeds where its precondition holds, and its row says on which
+    """
     rows = []
+    precondition = env_a_precondition(study)
     for claim in claims_of(study.preset):
         series = claim.values(study)
+        testable_note = None
+        if claim.needs_env_a and precondition is not None:
+            threshold, at_switch, held = precondition
+            per_seed = ", ".join(f"s{seed}: {value:.0f}" for seed, value in sorted(at_switch.items()))
+            testable_note = (
+                f"Env-A learnt (MPO's Env-A return at the switch >= {threshold:g}): held on {len(held)} of "
+                f"{len(at_switch)} seeds ({per_seed or 'no collection yet'})"
+            )
+            series = {name: {seed: v for seed, v in values.items() if seed in held} for name, values in series.items()}
         means = {name: _mean(values) for name, values in series.items()}
         complete = all(np.isfinite(v) for v in means.values()) and all(series.values())
         verdict = ("reproduced" if claim.test(means) else "not reproduced") if complete else "no data"
+        if testable_note is not None and precondition is not None and not precondition[2] and precondition[1]:
+            verdict = "not testable"
         details = []
         for name, values in series.items():
             # a seed without a value has no score yet, or no ratio (its denominator is not positive, see ratio)
@@ -341,15 +388,11 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
                 else f"{name}: no data"
             )
         paired = [describe_pair(a, b, paired_difference(series[a], series[b])) for a, b in claim.compared(list(series))]
-        rows.append(
-            dict(
-                claim=claim.name,
-                statement=claim.statement,
-                verdict=verdict,
-                values="; ".join(details),
-                paired="; ".join(paired),
-            )
-        )
+        row = dict(claim=claim.name, statement=claim.statement, verdict=verdict, values="; ".join(details))
+        row["paired"] = "; ".join(paired)
+        if precondition is not None:  # a preset that states the precondition: its own column, "-" for other claims
+            row["precondition"] = testable_note or "-"
+        rows.append(row)
     return rows
 
 
@@ -388,13 +431,18 @@ def score_table(study: Study) -> str:
 
 
 def claims_table(rows: list[dict[str, Any]]) -> str:
+    """:return: the claims as a markdown table (with a precondition column when the rows have one)"""
+    checked = any("precondition" in r for r in rows)
     lines = [
         "| claim | pre-registered criterion | verdict | values: mean [95 % BCa CI] (per seed) "
-        "| paired by seed: mean difference [95 % BCa CI], seeds on which the first is higher |",
-        "| --- | --- | --- | --- | --- |",
+        "| paired by seed: mean difference [95 % BCa CI], seeds on which the first is higher |"
+        + (" precondition |" if checked else ""),
+        "| --- | --- | --- | --- | --- |" + (" --- |" if checked else ""),
     ]
     lines += [
-        f"| {r['claim']} | {r['statement']} | **{r['verdict']}** | {r['values']} | {r.get('paired') or '-'} |" for r in rows
+        f"| {r['claim']} | {r['statement']} | **{r['verdict']}** | {r['values']} | {r.get('paired') or '-'} |"
+        + (f" {r.get('precondition', '-')} |" if checked else "")
+        for r in rows
     ]
     return "\n".join(lines)
 
