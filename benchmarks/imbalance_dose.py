@@ -958,6 +958,15 @@ def same_collection(args: argparse.Namespace) -> bool:
     return True
 
 
+def collection_arguments(parser: argparse.ArgumentParser, robot: str) -> None:
+    """The arguments of a command on one seed's collection: the robot (default ``robot``), the seed, where it is."""
+    parser.add_argument("--robot", choices=sorted(ROBOTS), default=robot)
+    parser.add_argument("--seed", type=int, required=True)
+    parser.add_argument("--runs", default="runs", help="where the collections are")
+    parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
+    parser.add_argument("--results", default=str(RESULTS), help="where the small results are")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -970,12 +979,7 @@ def main() -> None:
     run_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
     run_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
     run_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
-    screen_parser = sub.add_parser("screen", help="the collection at the switch (Stage-1 agent and data) only")
-    screen_parser.add_argument("--robot", choices=sorted(ROBOTS), default="hopper")
-    screen_parser.add_argument("--seed", type=int, required=True)
-    screen_parser.add_argument("--runs", default="runs", help="where the collections are")
-    screen_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
-    screen_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
+    collection_arguments(sub.add_parser("screen", help="the collection at the switch (Stage-1 agent and data) only"), "hopper")
     branch_parser = sub.add_parser("branch", help="a collection with another change, from a finished Stage-1")
     branch_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah")
     branch_parser.add_argument("--seed", type=int, required=True)
@@ -998,11 +1002,7 @@ def main() -> None:
     progress_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
     progress_parser.add_argument("--results", default=str(RESULTS), help="where the committed small results are")
     same_parser = sub.add_parser("same-collection", help="is a collection run again the committed one (its Q log)")
-    same_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah_hip")
-    same_parser.add_argument("--seed", type=int, required=True)
-    same_parser.add_argument("--runs", default="runs", help="where the collections are")
-    same_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
-    same_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
+    collection_arguments(same_parser, "cheetah_hip")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
