@@ -229,17 +229,24 @@ def test_claims_follow_the_numbers(study):
         assert rows["C4a the imbalance drop"] == expected
 
 
-def test_claims_about_env_a_need_env_a_learnt(study):
-    """A preset's ``env_a_learnt``: the claims about Env-A are tested on the seeds whose MPO reached it at the switch,
-    read *not testable* when none did, and the other claims are untouched; without it nothing is checked."""
-    from sb3_lifelong.experiments.report import claims_table, env_a_precondition
+def test_claims_are_tested_where_their_preconditions_hold(study):
+    """A preset's thresholds (``env_a_learnt``, ``value_gap``, ``min_weight_ess``): a claim is tested on the seeds where
+    its preconditions hold, reads *not testable* where they hold on none, and the other claims are untouched;
+    without thresholds nothing is checked."""
+    from sb3_lifelong.experiments.report import PRECONDITIONS, claims_table
 
     output, _ = study
     study_data = load_study(output)
     unchecked = {r["claim"]: r for r in evaluate_claims(study_data)}
-    assert env_a_precondition(study_data) is None and all("precondition" not in r for r in unchecked.values())
+    assert all(p.check(study_data) is None for p in PRECONDITIONS.values())
+    assert all("precondition" not in r for r in unchecked.values())
+    # what the preconditions measure is in the scores: MPO at the switch, the data's value, the student's weights
     at_switch = study_data.extra("MPO|switch|Env-A")
     assert sorted(at_switch) == [0, 1]
+    gap = PRECONDITIONS["value_gap"].values(study_data)
+    assert sorted(gap) == [0, 1] and all(np.isfinite(v) and v != 0 for v in gap.values())
+    ess = study_data.extra("CRR_exp_beta1|weight_ess")
+    assert sorted(ess) == [0, 1] and all(0 < v <= 1 for v in ess.values())
     needs = {"C1 forgetting", "C2a conservative online CRR remembers", "C4a the imbalance drop", "C4b beta=1 fixes it"}
     # a threshold no seed reached: every claim about Env-A is not testable, with the measured values
     study_data.preset = {**study_data.preset, "env_a_learnt": max(at_switch.values()) + 1.0}
@@ -259,8 +266,19 @@ def test_claims_about_env_a_need_env_a_learnt(study):
     assert rows["C1 forgetting"]["verdict"] in ("reproduced", "not reproduced")
     assert f"s{best}: " in rows["C1 forgetting"]["values"] and f"s{1 - best}: n/a" in rows["C1 forgetting"]["values"]
     assert "held on 1 of 2 seeds" in rows["C1 forgetting"]["precondition"]
-    # a threshold every seed reached: the verdicts are those of the unchecked report
-    study_data.preset = {**study_data.preset, "env_a_learnt": min(at_switch.values()) - 1.0}
+    # every seed learnt Env-A, but no seed's exp beta=1 student is conservative enough: only the claims calling it so
+    study_data.preset = {**study_data.preset, "env_a_learnt": min(at_switch.values()) - 1.0, "min_weight_ess": 1.01}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C4b beta=1 fixes it"]["verdict"] == "not testable"
+    assert rows["C4a the imbalance drop"]["verdict"] == unchecked["C4a the imbalance drop"]["verdict"]
+    assert "effective sample size >= 1.01" in rows["C4b beta=1 fixes it"]["precondition"]
+    # no value gap on any seed: the imbalance claims are not testable, forgetting still is
+    study_data.preset = {**study_data.preset, "min_weight_ess": None, "value_gap": max(gap.values()) + 1.0}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C4a the imbalance drop"]["verdict"] == "not testable"
+    assert rows["C1 forgetting"]["verdict"] == unchecked["C1 forgetting"]["verdict"]
+    # thresholds every seed reached: the verdicts are those of the unchecked report
+    study_data.preset = {**study_data.preset, "value_gap": min(gap.values()) - 1.0, "min_weight_ess": 0.0}
     rows = {r["claim"]: r for r in evaluate_claims(study_data)}
     assert {c: r["verdict"] for c, r in rows.items()} == {c: r["verdict"] for c, r in unchecked.items()}
 

@@ -58,9 +58,15 @@ class Preset:
         ``benchmarks/results/paper_cpu_three/bounded_critic``)
     :param env_a_learnt: the Env-A return MPO must have reached when it leaves Env-A (the mean of its last evaluations
         there) for the claims about Env-A (forgetting it, remembering it, the imbalance drop and its diagnostics) to
-        be testable on a seed; the report reads such a claim *not testable* on the other seeds
-        (:func:`~sb3_lifelong.experiments.report.env_a_precondition`). None: not checked (the presets run before
-        the report could check it keep None, so their reports read as they did)
+        be testable on a seed. The report tests a claim on the seeds where its preconditions hold and reads it *not
+        testable* where they hold on none (:data:`~sb3_lifelong.experiments.report.PRECONDITIONS`). None: not
+        checked; the presets run before the report could check preconditions keep None, so their reports read as
+        they did. The same for the next two.
+    :param value_gap: the least ratio of the discounted return of the last environment's data to Env-A's data (the
+        collector's Monte-Carlo measurement) for the imbalance claims to be testable: the paper's explanation needs the
+        later data to be worth more
+    :param min_weight_ess: the least effective sample size of the exp beta=1 student's weights (a fraction of a batch)
+        for the claims that call it conservative: on a reward scale where ``beta=1`` is greedy, it is not
     :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
@@ -87,6 +93,8 @@ class Preset:
     student_repeats: int = 1
     student_critic: str = "mse"
     env_a_learnt: Optional[float] = None
+    value_gap: Optional[float] = None
+    min_weight_ess: Optional[float] = None
     note: str = ""
 
     def __post_init__(self) -> None:
@@ -117,12 +125,15 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {
-    # one core of a CPU machine: Hopper with the hip deformed, Env-B five times Env-A; Env-A counts as learnt from a
-    # return of 1000 (the dose study's P1 on Hopper: a hop that moves forward), which the earlier studies' MPO did
-    # did not reach in 50k steps (`paper_cpu`: about 690 and 400 at the switch)
+    # one core of a CPU machine: Hopper with the hip deformed, Env-B five times Env-A; the claims' preconditions are
+    # the dose study's (benchmarks/results/imbalance_dose/README.md): Env-A learnt from a return of 1000 (P1 on Hopper:
+    # a hop that moves forward; `paper_cpu`'s MPO had about 690 and 400 at the switch), a value gap of 1.1 (P3), a
+    # conservative student at an ESS of 0.8 (P4)
     "cpu": Preset(
         env_id="Hopper-v5",
         env_a_learnt=1000.0,
+        value_gap=1.1,
+        min_weight_ess=0.8,
         stages=({}, {"hip_deformation": 0.3}),
         stage_steps=(50_000, 250_000),
         distill_steps=30_000,
@@ -402,10 +413,17 @@ def switch_points(preset: Preset) -> list[int]:
 
 # ------------------------------------------------------------------------------------------------- recorded settings
 #: settings added to :class:`Preset` after studies were recorded, with the value those studies ran with
-LATER_SETTINGS: dict[str, Any] = {"layer_norm": False, "student_repeats": 1, "student_critic": "mse", "env_a_learnt": None}
+LATER_SETTINGS: dict[str, Any] = {
+    "layer_norm": False,
+    "student_repeats": 1,
+    "student_critic": "mse",
+    "env_a_learnt": None,
+    "value_gap": None,
+    "min_weight_ess": None,
+}
 #: settings that do not make two studies different ones: more repeats of the students, and the report's precondition
 #: (a study keeps the threshold it recorded, None for those recorded before there was one)
-NOT_IDENTITY = ("student_repeats", "env_a_learnt")
+NOT_IDENTITY = ("student_repeats", "env_a_learnt", "value_gap", "min_weight_ess")
 
 
 def same_settings(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> bool:
@@ -436,6 +454,8 @@ STUDENT_SETTINGS = (
     "student_repeats",
     "student_critic",
     "env_a_learnt",
+    "value_gap",
+    "min_weight_ess",
     "note",
     "minutes_per_seed",
 )

@@ -121,9 +121,8 @@ class Claim:
     :param pairs: the series compared (first, second), each reported as a paired difference per seed (see
         :func:`paired_difference`); None: the first series against each other one (none for a single series, e.g. a
         per-seed ratio, which is paired already)
-    :param needs_env_a: the claim is about what was learnt in Env-A (forgetting it, remembering it, the imbalance
-        drop and its diagnostics), so it is testable only on the seeds whose MPO had learnt Env-A at the switch, when
-        the study's preset states how much that is (``env_a_learnt``; see :func:`env_a_precondition`)
+    :param needs: the preconditions the claim is testable under (names in :data:`PRECONDITIONS`): it is tested on
+        the seeds where each of them that the study's preset states holds (:func:`testable_seeds`)
     """
 
     name: str
@@ -131,7 +130,7 @@ class Claim:
     values: Callable[[Study], dict[str, dict[int, float]]]
     test: Callable[[dict[str, float]], bool]
     pairs: Optional[Sequence[tuple[str, str]]] = None
-    needs_env_a: bool = False
+    needs: tuple[str, ...] = ()
 
     def compared(self, names: Sequence[str]) -> list[tuple[str, str]]:
         """
@@ -181,14 +180,14 @@ CLAIMS: list[Claim] = [
         "MPO's Env-A return at the end of Stage 2 is <= 70 % of its Env-A return at the switch",
         lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
-        needs_env_a=True,
+        needs=("env_a_learnt",),
     ),
     Claim(
         "C2a conservative online CRR remembers",
         "online CRR (exp, beta=1) ends with a higher Env-A return than MPO",
         lambda s: {"CRR beta=1": s.score("online CRR_exp_beta1", "Env-A"), "MPO": s.score("MPO", "Env-A")},
         lambda m: m["CRR beta=1"] > m["MPO"],
-        needs_env_a=True,
+        needs=("env_a_learnt",),
     ),
     Claim(
         "C2b conservative online CRR learns Env-B slower",
@@ -214,35 +213,35 @@ CLAIMS: list[Claim] = [
         "the indicator student on Env-A + Env-B reaches <= 80 % of the Env-A-only indicator student in Env-A",
         lambda s: {"indicator / A-only": ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
         lambda m: m["indicator / A-only"] <= 0.8,
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap"),
     ),
     Claim(
         "C4b beta=1 fixes it",
         "the exp beta=1 student on Env-A + Env-B reaches >= 90 % of the Env-A-only indicator student in Env-A",
         lambda s: {"exp beta=1 / A-only": ratio(s.score("CRR_exp_beta1", "Env-A"), s.score("CRR_indicator_A_only", "Env-A"))},
         lambda m: m["exp beta=1 / A-only"] >= 0.9,
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap", "conservative"),
     ),
     Claim(
         "C5a reward scale",
         "scaling Env-B's rewards by 0.5 raises the indicator student's Env-A return",
         lambda s: {"scaled": s.score("CRR_indicator_scale_rwd_B", "Env-A"), "baseline": s.score("CRR_indicator", "Env-A")},
         lambda m: m["scaled"] > m["baseline"],
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap"),
     ),
     Claim(
         "C5b two actors",
         "one actor per environment (shared critic) raises the indicator student's Env-A return",
         lambda s: {"two actors": s.score("CRR_indicator_two_actors", "Env-A"), "baseline": s.score("CRR_indicator", "Env-A")},
         lambda m: m["two actors"] > m["baseline"],
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap"),
     ),
     Claim(
         "C5c BC beats the indicator in Env-A",
         "behaviour cloning on Env-A + Env-B has a higher Env-A return than the indicator student",
         lambda s: {"BC": s.score("BC", "Env-A"), "indicator": s.score("CRR_indicator", "Env-A")},
         lambda m: m["BC"] > m["indicator"],
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap"),
     ),
     Claim(
         "C5d sampling ratio hurts the indicator",
@@ -254,7 +253,7 @@ CLAIMS: list[Claim] = [
         },
         lambda m: m["1:1"] > m["1:5"] > m["1:10"],
         pairs=(("1:1", "1:5"), ("1:5", "1:10")),
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap"),
     ),
     Claim(
         "C5e beta=1 is robust to the ratio",
@@ -263,7 +262,7 @@ CLAIMS: list[Claim] = [
             "1:10 / 1:1": ratio(s.score("CRR_exp_beta1_ratio_1to10", "Env-A"), s.score("CRR_exp_beta1_ratio_1to1", "Env-A"))
         },
         lambda m: m["1:10 / 1:1"] >= 0.9,
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap", "conservative"),
     ),
     Claim(
         "C6 overestimation on Env-A data",
@@ -282,7 +281,7 @@ THREE_STAGE_CLAIMS: list[Claim] = [
         "MPO's Env-A return at the end of Stage 3 is <= 70 % of its Env-A return at the end of Stage 1",
         lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
-        needs_env_a=True,
+        needs=("env_a_learnt",),
     ),
     Claim(
         "T1b forgetting Env-B",
@@ -310,13 +309,14 @@ THREE_STAGE_CLAIMS: list[Claim] = [
         "the indicator student's Env-A return is <= 80 % of the exp beta=1 student's",
         lambda s: {"indicator / exp beta=1": ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_exp_beta1", "Env-A"))},
         lambda m: m["indicator / exp beta=1"] <= 0.8,
-        needs_env_a=True,
+        needs=("env_a_learnt", "value_gap"),
     ),
     Claim(
         "T3b exp beta=1 is the more reliable student",
         "the exp beta=1 student's mean return over the three environments is >= the indicator student's",
         lambda s: {"exp beta=1": _mean_over_envs(s, "CRR_exp_beta1"), "indicator": _mean_over_envs(s, "CRR_indicator")},
         lambda m: m["exp beta=1"] >= m["indicator"],
+        needs=("conservative",),
     ),
 ]
 
@@ -331,45 +331,93 @@ def claims_of(preset: Mapping[str, Any]) -> list[Claim]:
     raise ValueError(f"no pre-registered claims for a study of {stages} environments (two or three)")
 
 
-def env_a_precondition(study: Study) -> Optional[tuple[float, dict[int, float], list[int]]]:
+@dataclass(frozen=True)
+class Precondition:
     """
-    The precondition of the claims about Env-A (:attr:`Claim.needs_env_a`): MPO had learnt Env-A when it left it, its
-    Env-A return at the switch (the mean of its last evaluations there) at least the preset's ``env_a_learnt``.
+    What must hold on a seed for a claim to be testable there, with its threshold in the study's preset.
 
-    :return: None when the preset states no threshold (studies run before it could: nothing is checked); else the
-        threshold, each seed's return at the switch, and the seeds on which the precondition holds
+    :param setting: the preset's setting that holds the threshold (None there: the precondition is not checked)
+    :param statement: the precondition in words, with ``{threshold}``
+    :param values: the per-seed measurement the threshold applies to
     """
-    threshold = study.preset.get("env_a_learnt")
-    if threshold is None:
+
+    setting: str
+    statement: str
+    values: Callable[[Study], dict[int, float]]
+
+    def check(self, study: Study) -> Optional[tuple[str, dict[int, float], set[int]]]:
+        """:return: None when the preset states no threshold; else its statement, the values, the seeds it holds on"""
+        threshold = study.preset.get(self.setting)
+        if threshold is None:
+            return None
+        values = self.values(study)
+        held = {seed for seed, value in values.items() if np.isfinite(value) and value >= threshold}
+        return self.statement.format(threshold=f"{threshold:g}"), values, held
+
+
+def _value_gap(study: Study) -> dict[int, float]:
+    """the discounted return of the last environment's data over Env-A's (the collector's Monte-Carlo measurement)"""
+    last = study.preset["env_names"][-1]
+    return ratio(study.extra(f"data|mc_return|{last}"), study.extra("data|mc_return|Env-A"))
+
+
+#: the preconditions of the claims (:attr:`Claim.needs`), each checked where the study's preset states its threshold
+PRECONDITIONS: dict[str, Precondition] = {
+    "env_a_learnt": Precondition(
+        "env_a_learnt", "Env-A learnt (MPO's Env-A return at the switch >= {threshold})", lambda s: s.extra("MPO|switch|Env-A")
+    ),
+    "value_gap": Precondition(
+        "value_gap",
+        "a value gap (the discounted return of the last environment's data / Env-A's >= {threshold})",
+        _value_gap,
+    ),
+    "conservative": Precondition(
+        "min_weight_ess",
+        "the exp beta=1 student stays close to the data (its weights' effective sample size >= {threshold} of a batch)",
+        lambda s: s.extra("CRR_exp_beta1|weight_ess"),
+    ),
+}
+
+
+def testable_seeds(study: Study, claim: Claim) -> Optional[tuple[set[int], list[str], bool]]:
+    """
+    :return: None when the study checks none of the claim's preconditions; else the seeds where each checked one
+        holds, a line per precondition (its statement, on how many seeds it held, each seed's value), and whether
+        any was measured at all
+    """
+    checked = [check for check in (PRECONDITIONS[name].check(study) for name in claim.needs) if check is not None]
+    if not checked:
         return None
-    at_switch = study.extra("MPO|switch|Env-A")
-    held = [seed for seed, value in sorted(at_switch.items()) if np.isfinite(value) and value >= threshold]
-    return float(threshold), at_switch, held
+    seeds = set(study.seeds)
+    notes = []
+    for statement, values, held in checked:
+        seeds &= held
+        per_seed = ", ".join(
+            f"s{seed}: {values[seed]:.2f}" if abs(values[seed]) < 10 else f"s{seed}: {values[seed]:.0f}"
+            for seed in sorted(values)
+        )
+        notes.append(f"{statement}: held on {len(held)} of {len(values)} seeds ({per_seed or 'not measured'})")
+    return seeds, notes, any(values for _, values, _ in checked)
 
 
 def evaluate_claims(study: Study) -> list[dict[str, Any]]:
     """
     :return: one row per claim: the series (per seed, mean, CI), and reproduced / not reproduced / no data, or *not
-        testable* when the claim needs Env-A learnt and no seed's MPO had learnt it (:func:`env_a_precondition`);
-        a claim is tested on the seeds where its precondition holds, and its row says on which
+        testable* when, on every seed, a precondition the study checks failed (:func:`testable_seeds`); a claim is
+        tested on the seeds where its preconditions hold, and its row says which held where
     """
     rows = []
-    precondition = env_a_precondition(study)
+    checks_any = any(PRECONDITIONS[name].check(study) is not None for name in PRECONDITIONS)
     for claim in claims_of(study.preset):
         series = claim.values(study)
-        testable_note = None
-        if claim.needs_env_a and precondition is not None:
-            threshold, at_switch, held = precondition
-            per_seed = ", ".join(f"s{seed}: {value:.0f}" for seed, value in sorted(at_switch.items()))
-            testable_note = (
-                f"Env-A learnt (MPO's Env-A return at the switch >= {threshold:g}): held on {len(held)} of "
-                f"{len(at_switch)} seeds ({per_seed or 'no collection yet'})"
-            )
-            series = {name: {seed: v for seed, v in values.items() if seed in held} for name, values in series.items()}
+        testable = testable_seeds(study, claim)
+        if testable is not None:
+            seeds = testable[0]
+            series = {name: {seed: v for seed, v in values.items() if seed in seeds} for name, values in series.items()}
         means = {name: _mean(values) for name, values in series.items()}
         complete = all(np.isfinite(v) for v in means.values()) and all(series.values())
         verdict = ("reproduced" if claim.test(means) else "not reproduced") if complete else "no data"
-        if testable_note is not None and precondition is not None and not precondition[2] and precondition[1]:
+        if testable is not None and not testable[0] and testable[2]:
             verdict = "not testable"
         details = []
         for name, values in series.items():
@@ -390,8 +438,8 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
         paired = [describe_pair(a, b, paired_difference(series[a], series[b])) for a, b in claim.compared(list(series))]
         row = dict(claim=claim.name, statement=claim.statement, verdict=verdict, values="; ".join(details))
         row["paired"] = "; ".join(paired)
-        if precondition is not None:  # a preset that states the precondition: its own column, "-" for other claims
-            row["precondition"] = testable_note or "-"
+        if checks_any:  # a preset that states a precondition: its own column, "-" for the claims that need none
+            row["precondition"] = "; ".join(testable[1]) if testable is not None else "-"
         rows.append(row)
     return rows
 

@@ -11,7 +11,11 @@ A seed's scores:
 * Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
 * a student's final return: the mean of its last ``STUDENT_LAST`` evaluations (of each repeat, then the mean over its
   repeats);
-* Q per source: the student's last average Q-value over each environment's data.
+* Q per source: the student's last average Q-value over each environment's data;
+* the data's value per source: the discounted return that followed each sampled transition of an environment's data
+  in its stored episode (the collector's last Monte-Carlo measurement, ``data|mc_return|<env>``);
+* a student's weights: the effective sample size and the share at the clip of its regression weights, the mean of
+  its last ``STUDENT_TRAIN_LAST`` logged values (``<student>|weight_ess``, ``<student>|weight_clip_frac``).
 """
 
 import json
@@ -27,6 +31,7 @@ from sb3_lifelong.experiments.presets import split_repeat, stage_ends
 ONLINE_LAST = 3
 ONLINE_LAST_STAGE1 = 2
 STUDENT_LAST = 2
+STUDENT_TRAIN_LAST = 5
 
 
 def seeds_of(output: pathlib.Path) -> list[int]:
@@ -51,6 +56,30 @@ def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = 
         rows = rows[rows["timesteps"] > after]
     rows = rows.sort_values("timesteps")
     return float(rows["mean_reward"].tail(count).mean()) if len(rows) else float("nan")
+
+
+def data_values(seed: int, q_log: pathlib.Path) -> list[dict[str, Any]]:
+    """:return: the extras ``data|mc_return|<env>`` of the collector's last Monte-Carlo measurement (none without one)"""
+    if not q_log.exists():
+        return []
+    q = pd.read_csv(q_log)
+    if "mc_return" not in q.columns or not q["mc_return"].notna().any():
+        return []
+    measured = q[q["mc_return"].notna()]
+    last = measured[measured["timesteps"] == measured["timesteps"].max()]
+    return [dict(seed=seed, metric=f"data|mc_return|{row.name}", value=float(row.mc_return)) for row in last.itertuples()]
+
+
+def student_weights(seed: int, method: str, train_log: pathlib.Path) -> list[dict[str, Any]]:
+    """:return: the extras ``<method>|weight_ess`` and ``<method>|weight_clip_frac`` of a student's ``train.csv``"""
+    if not train_log.exists():
+        return []
+    train = pd.read_csv(train_log)
+    return [
+        dict(seed=seed, metric=f"{method}|{column}", value=float(train[column].dropna().tail(STUDENT_TRAIN_LAST).mean()))
+        for column in ("weight_ess", "weight_clip_frac")
+        if column in train.columns and train[column].notna().any()
+    ]
 
 
 @dataclass
@@ -111,6 +140,7 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                     for env, end in zip(envs[:-1], ends[:-1]):
                         value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
                         extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
+                    extras += data_values(seed, job_dir / "q_sources.csv")
             elif job.startswith("distill_"):
                 method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
                 for env in envs:
@@ -123,6 +153,7 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                         last = q[q["timesteps"] == q["timesteps"].max()]
                         for row in last.itertuples():
                             extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
+                extras += student_weights(seed, method, job_dir / "train.csv")
     finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
     if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
         groups = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"]
