@@ -309,7 +309,7 @@ THREE_STAGE_CLAIMS: list[Claim] = [
         "the indicator student's Env-A return is <= 80 % of the exp beta=1 student's",
         lambda s: {"indicator / exp beta=1": ratio(s.score("CRR_indicator", "Env-A"), s.score("CRR_exp_beta1", "Env-A"))},
         lambda m: m["indicator / exp beta=1"] <= 0.8,
-        needs=("env_a_learnt", "value_gap"),
+        needs=("env_a_learnt", "value_gap", "conservative"),
     ),
     Claim(
         "T3b exp beta=1 is the more reliable student",
