@@ -135,6 +135,9 @@ def test_report_claims_and_figures(study):
     output, _ = study
     text = write_report(output)
     assert "## Claims" in text
+    # the students' weights, per seed (the CRR students log them; BC has none)
+    weights = text.split("## The students' weights")[1].split("## Claims")[0]
+    assert "| CRR_exp_beta1 |" in weights and "s1: " in weights and "| BC |" not in weights
     for name in ("fig_online.png", "fig_students.png", "fig_q_sources.png", "fig_sampling_ratio.png", "report.md"):
         assert (output / name).stat().st_size > 0
     scores = pd.read_csv(output / "scores.csv")

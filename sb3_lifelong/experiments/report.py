@@ -478,6 +478,30 @@ def score_table(study: Study) -> str:
     return "\n".join(lines)
 
 
+def weights_table(study: Study) -> str:
+    """
+    :return: each student's regression weights, per seed: their effective sample size (a fraction of a batch: 1 is
+        behaviour cloning, small is greedy) and their share at the clip, the means of its last logged values; "" when
+        no student logged them
+    """
+    metrics = sorted(set(study.extras["metric"])) if len(study.extras) else []
+    methods = sorted({metric.rsplit("|", 1)[0] for metric in metrics if metric.endswith("|weight_ess")})
+    if not methods:
+        return ""
+    lines = [
+        "| student | weights' effective sample size (per seed) | share at the clip (per seed) |",
+        "| --- | --- | --- |",
+    ]
+    for method in methods:
+        cells = []
+        for column in ("weight_ess", "weight_clip_frac"):
+            values = study.extra(f"{method}|{column}")
+            per_seed = ", ".join(f"s{seed}: {value:.2f}" for seed, value in sorted(values.items()))
+            cells.append(f"{_mean(values):.2f} ({per_seed})" if values else "-")
+        lines.append(f"| {method} | {cells[0]} | {cells[1]} |")
+    return "\n".join(lines)
+
+
 def claims_table(rows: list[dict[str, Any]]) -> str:
     """:return: the claims as a markdown table (with a precondition column when the rows have one)"""
     checked = any("precondition" in r for r in rows)
@@ -554,6 +578,7 @@ def write_report(output: pathlib.Path, plots: bool = True, seeds: Optional[Seque
         + "## Final returns\n\nmean +- std over seeds [95 % BCa bootstrap CI of the mean]; online methods: mean of the last "
         + f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
         + score_table(study)
+        + (f"\n\n## The students' weights\n\n{weights}" if (weights := weights_table(study)) else "")
         + "\n\n## Claims\n\n"
         + claims_table(claims)
         + "\n"
