@@ -906,18 +906,27 @@ def progress(args: argparse.Namespace) -> list[str]:
         if state != "collection finished":
             lines.append(
                 f"    next: {tree}OMP_NUM_THREADS=1 python -m sb3_lifelong.experiments run --preset {ROBOTS[args.robot][0]} "
-                f"--seed {seed} --output {study} --until <steps> (or benchmarks/collect_in_parts.sh with STUDY_TREE), "
-                f"then the students {', '.join(missing)}"
+                f"--seed {seed} --output {study.resolve()} --until <steps> (or benchmarks/collect_in_parts.sh with "
+                f"STUDY_TREE), then the students {', '.join(missing)}"
             )
-        else:
-            only = f" --students {' '.join(missing)}" if committed else ""
-            into = ""
-            if pinned is not None:  # the pinned script, its results into this checkout
-                tree = "cd <students-tree> && " + tree.replace("<collect-tree>", "<students-tree>")
-                into = " --results <repo>/benchmarks/results/imbalance_dose"
+            continue
+        where = f"--runs {pathlib.Path(args.runs).resolve()} --study {study.resolve()} --students-output {students.resolve()}"
+        only = f" --students {' '.join(missing)}" if committed else ""
+        # `run` writes students.json from the students of its run directory: where some are only committed, it
+        # writes elsewhere and merge-students adds the new ones to the committed file
+        into = (
+            " --results <scratch>" if committed else (" --results <repo>/benchmarks/results/imbalance_dose" if pinned else "")
+        )
+        if pinned is not None:  # the pinned script and library
+            tree = "cd <students-tree> && " + tree.replace("<collect-tree>", "<students-tree>")
+        lines.append(
+            f"    next: {tree}OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot {args.robot} --seed {seed} "
+            f"{where}{only}{into}"
+        )
+        if committed:
             lines.append(
-                f"    next: {tree}OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot {args.robot} "
-                f"--seed {seed} --runs {args.runs}{only}{into}"
+                f"    then: python benchmarks/imbalance_dose.py merge-students --robot {args.robot} --seed {seed} "
+                "--from <scratch>   (from this checkout)"
             )
     print("\n".join(lines))
     return lines
@@ -956,6 +965,34 @@ def same_collection(args: argparse.Namespace) -> bool:
         return False
     print(f"seed {args.seed}: the same collection so far: {len(common)} measurements equal, up to {reach:,} steps")
     return True
+
+
+def merge_students(args: argparse.Namespace) -> dict[str, Any]:
+    """
+    Add the students of another results directory (``--from``: a ``run`` that wrote elsewhere, e.g. the missing
+    students of a seed whose run directory was lost) to this one's ``students.json`` of the seed. A student already in
+    it is replaced by the new one; none is removed. Both files must have the same categorical support.
+
+    :return: the merged ``students.json``
+    """
+    target = pathlib.Path(args.results) / args.robot / f"seed_{args.seed}" / "students.json"
+    source = pathlib.Path(args.source) / args.robot / f"seed_{args.seed}" / "students.json"
+    if not source.exists():
+        raise SystemExit(f"{source} does not exist: nothing to merge")
+    new = json.loads(source.read_text())
+    merged = json.loads(target.read_text()) if target.exists() else dict(support=new["support"], students={})
+    if merged["support"] != new["support"]:
+        raise SystemExit(
+            f"the students of {source} were trained on another support ({new['support']}) than those of {target} "
+            f"({merged['support']}): they are not the same study's students, nothing merged"
+        )
+    merged["students"] = {**merged["students"], **new["students"]}
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = target.with_name(target.name + ".staging")
+    staging.write_text(json.dumps(merged, indent=1))
+    staging.replace(target)
+    print(f"{sorted(new['students'])} merged into {target} ({len(merged['students'])} students)")
+    return merged
 
 
 def collection_arguments(parser: argparse.ArgumentParser, robot: str) -> None:
@@ -1003,6 +1040,11 @@ def main() -> None:
     progress_parser.add_argument("--results", default=str(RESULTS), help="where the committed small results are")
     same_parser = sub.add_parser("same-collection", help="is a collection run again the committed one (its Q log)")
     collection_arguments(same_parser, "cheetah_hip")
+    merge_parser = sub.add_parser("merge-students", help="add the students of another results directory to this one")
+    merge_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah_hip")
+    merge_parser.add_argument("--seed", type=int, required=True)
+    merge_parser.add_argument("--from", dest="source", required=True, help="the other results directory")
+    merge_parser.add_argument("--results", default=str(RESULTS), help="the results directory merged into")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
@@ -1013,6 +1055,7 @@ def main() -> None:
         raise SystemExit(0 if same_collection(args) else 1)
     commands = dict(run=run, screen=screen, branch=branch, progress=progress, report=report)
     commands["adopt-stage1"] = adopt_stage1
+    commands["merge-students"] = merge_students
     commands[args.command](args)
 
 

@@ -248,6 +248,10 @@ def test_claims_are_tested_where_their_preconditions_hold(study):
     assert sorted(at_switch) == [0, 1]
     gap = PRECONDITIONS["value_gap"].values(study_data)
     assert sorted(gap) == [0, 1] and all(np.isfinite(v) and v != 0 for v in gap.values())
+    for seed in (0, 1):  # Env-B's data over Env-A's, from the collector's last Monte-Carlo measurement
+        q = pd.read_csv(output / f"seed_{seed}" / "collect" / "q_sources.csv").dropna(subset=["mc_return"])
+        last = q[q["timesteps"] == q["timesteps"].max()].set_index("name")["mc_return"]
+        assert gap[seed] == pytest.approx(last["Env-B"] / last["Env-A"])
     ess = study_data.extra("CRR_exp_beta1|weight_ess")
     assert sorted(ess) == [0, 1] and all(0 < v <= 1 for v in ess.values())
     needs = {"C1 forgetting", "C2a conservative online CRR remembers", "C4a the imbalance drop", "C4b beta=1 fixes it"}
@@ -256,9 +260,8 @@ def test_claims_are_tested_where_their_preconditions_hold(study):
     rows = {r["claim"]: r for r in evaluate_claims(study_data)}
     for claim in needs:
         assert rows[claim]["verdict"] == "not testable", claim
-        assert (
-            "held on 0 of 2 seeds" in rows[claim]["precondition"] and f"s0: {at_switch[0]:.0f}" in rows[claim]["precondition"]
-        )
+        note = rows[claim]["precondition"]
+        assert "held on 0 of 2 measured seeds" in note and "s0: " in note and "s1: " in note
     assert rows["C3 the pipeline is best"]["verdict"] == unchecked["C3 the pipeline is best"]["verdict"]
     assert rows["C3 the pipeline is best"]["precondition"] == "-"
     assert "| precondition |" in claims_table(list(rows.values())).splitlines()[0]
@@ -268,7 +271,7 @@ def test_claims_are_tested_where_their_preconditions_hold(study):
     rows = {r["claim"]: r for r in evaluate_claims(study_data)}
     assert rows["C1 forgetting"]["verdict"] in ("reproduced", "not reproduced")
     assert f"s{best}: " in rows["C1 forgetting"]["values"] and f"s{1 - best}: n/a" in rows["C1 forgetting"]["values"]
-    assert "held on 1 of 2 seeds" in rows["C1 forgetting"]["precondition"]
+    assert "held on 1 of 2 measured seeds" in rows["C1 forgetting"]["precondition"]
     # every seed learnt Env-A, but no seed's exp beta=1 student is conservative enough: only the claims calling it so
     study_data.preset = {**study_data.preset, "env_a_learnt": min(at_switch.values()) - 1.0, "min_weight_ess": 1.01}
     rows = {r["claim"]: r for r in evaluate_claims(study_data)}
@@ -280,6 +283,19 @@ def test_claims_are_tested_where_their_preconditions_hold(study):
     rows = {r["claim"]: r for r in evaluate_claims(study_data)}
     assert rows["C4a the imbalance drop"]["verdict"] == "not testable"
     assert rows["C1 forgetting"]["verdict"] == unchecked["C1 forgetting"]["verdict"]
+    # a precondition not measured (no Monte-Carlo columns): no data, not "not testable"; one seed measured failing and
+    # the other not measured: still no data (the other seed may yet hold it)
+    measured_extras = study_data.extras
+    study_data.extras = measured_extras[~measured_extras["metric"].str.startswith("data|mc_return|")]
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C4a the imbalance drop"]["verdict"] == "no data"
+    assert "not measured on s0, s1" in rows["C4a the imbalance drop"]["precondition"]
+    study_data.extras = measured_extras[
+        ~measured_extras["metric"].isin(["data|mc_return|Env-A"]) | (measured_extras["seed"] == 0)
+    ]
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C4a the imbalance drop"]["verdict"] == "no data"
+    study_data.extras = measured_extras
     # thresholds every seed reached: the verdicts are those of the unchecked report
     study_data.preset = {**study_data.preset, "value_gap": min(gap.values()) - 1.0, "min_weight_ess": 0.0}
     rows = {r["claim"]: r for r in evaluate_claims(study_data)}
@@ -571,7 +587,8 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
     from sb3_lifelong.experiments.presets import LATER_SETTINGS
     from sb3_lifelong.experiments.protocol import record_settings
 
-    preset = PRESETS["tiny"]
+    preset = PRESETS["cpu"]  # a preset whose report thresholds are set now: an old study of it had none
+    assert preset.env_a_learnt is not None
     old = json.loads(json.dumps(preset.describe()))
     for key in LATER_SETTINGS:
         old.pop(key)
@@ -579,7 +596,10 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
     record_settings(preset, tmp_path)  # the defaults are what the old study ran with
     assert json.loads((tmp_path / "preset.json").read_text()) == old  # left as it was
     record_settings(dataclasses.replace(preset, student_repeats=3), tmp_path)  # repeats added on the same buffers
-    assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
+    recorded = json.loads((tmp_path / "preset.json").read_text())
+    assert recorded["student_repeats"] == 3
+    # the old study keeps its report as it was: no thresholds it did not record
+    assert all(recorded[key] is None for key in ("env_a_learnt", "value_gap", "min_weight_ess"))
     record_settings(preset, tmp_path)  # fewer repeats asked: the record keeps 3
     assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
     for changed in (dict(layer_norm=True), dict(distill_steps=7), dict(student_critic="categorical")):
@@ -1197,6 +1217,29 @@ def test_mpo_quality_paired_verdict(tmp_path, monkeypatch) -> None:
         quality.report_pair(["Hopper-v5"], "A", "A")
 
 
+def test_imbalance_dose_merge_students_adds_and_keeps(tmp_path):
+    """imbalance_dose.py merge-students: the other directory's students are added, none is removed, the support must
+    be the same."""
+    import argparse
+
+    dose = benchmark_module("imbalance_dose")
+    target = tmp_path / "results" / "cheetah_hip" / "seed_0" / "students.json"
+    source = tmp_path / "scratch" / "cheetah_hip" / "seed_0" / "students.json"
+    target.parent.mkdir(parents=True)
+    source.parent.mkdir(parents=True)
+    support = {"v_min": -1.0, "v_max": 5.0}
+    target.write_text(json.dumps(dict(support=support, students={"A_only": {"r": 1}, "ind_x1_1to5": {"r": 2}})))
+    source.write_text(json.dumps(dict(support=support, students={"ess_x1_1to20": {"r": 3}})))
+    args = argparse.Namespace(robot="cheetah_hip", seed=0, source=str(tmp_path / "scratch"), results=str(tmp_path / "results"))
+    merged = dose.merge_students(args)
+    assert merged["students"] == {"A_only": {"r": 1}, "ind_x1_1to5": {"r": 2}, "ess_x1_1to20": {"r": 3}}
+    assert json.loads(target.read_text()) == merged
+    source.write_text(json.dumps(dict(support={"v_min": -2.0, "v_max": 5.0}, students={"B_only": {}})))
+    with pytest.raises(SystemExit, match="another support"):
+        dose.merge_students(args)
+    assert json.loads(target.read_text()) == merged  # nothing lost
+
+
 def test_imbalance_dose_same_collection_compares_the_q_logs(tmp_path, capsys):
     """imbalance_dose.py same-collection: equal where every common measurement is equal, else where it first differs."""
     import argparse
@@ -1237,7 +1280,9 @@ def test_imbalance_dose_progress_counts_committed_students(tmp_path, monkeypatch
                                students_output=str(tmp_path / "students"), results=str(results))  # fmt: skip
     text = "\n".join(dose.progress(where))
     assert f"committed in {results}: {len(names) - 1}" in text
-    assert text.rstrip().endswith(f"--students {names[-1]}")  # only the missing student, from this tree (not pinned)
+    # only the missing student, into a scratch directory (run rewrites students.json), then merged; absolute paths
+    assert f"--students {names[-1]} --results <scratch>" in text and "merge-students --robot tiny --seed 0" in text
+    assert f"--runs {(tmp_path / 'runs').resolve()} --study {study.resolve()}" in text
     (results / "tiny" / "seed_0" / "students.json").write_text(json.dumps({"students": {n: {} for n in names}}))
     assert "nothing to run" in "\n".join(dose.progress(where))
     monkeypatch.setitem(dose.PINNED, "tiny", ("aaaaaaa", "bbbbbbb"))  # a pinned study names its snapshots

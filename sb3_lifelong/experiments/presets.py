@@ -423,7 +423,8 @@ LATER_SETTINGS: dict[str, Any] = {
 }
 #: settings that do not make two studies different ones: more repeats of the students, and the report's precondition
 #: (a study keeps the threshold it recorded, None for those recorded before there was one)
-NOT_IDENTITY = ("student_repeats", "env_a_learnt", "value_gap", "min_weight_ess")
+REPORT_THRESHOLDS = ("env_a_learnt", "value_gap", "min_weight_ess")
+NOT_IDENTITY = ("student_repeats", *REPORT_THRESHOLDS)
 
 
 def same_settings(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> bool:

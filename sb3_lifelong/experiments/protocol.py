@@ -62,6 +62,7 @@ from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCall
 from sb3_lifelong.experiments.presets import (
     ONLINE,
     REPEAT_SEED_STRIDE,
+    REPORT_THRESHOLDS,
     STUDENTS,
     Preset,
     Student,
@@ -712,7 +713,9 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
         if same_settings(recorded, described):
             if recorded.get("student_repeats", 1) >= described["student_repeats"]:
                 return
-            # more repeats of the students on the same buffers: the study's other settings are unchanged
+            # more repeats of the students on the same buffers: the study's other settings are unchanged, and it
+            # keeps the report's thresholds it recorded (None where it predates them)
+            described.update({key: recorded.get(key) for key in REPORT_THRESHOLDS})
         else:
             raise ValueError(
                 f"{output} holds a study run with other settings ({settings}); its seeds cannot be mixed with these. "

@@ -262,7 +262,7 @@ CLAIMS: list[Claim] = [
             "1:10 / 1:1": ratio(s.score("CRR_exp_beta1_ratio_1to10", "Env-A"), s.score("CRR_exp_beta1_ratio_1to1", "Env-A"))
         },
         lambda m: m["1:10 / 1:1"] >= 0.9,
-        needs=("env_a_learnt", "value_gap", "conservative"),
+        needs=("env_a_learnt", "value_gap"),
     ),
     Claim(
         "C6 overestimation on Env-A data",
@@ -381,30 +381,37 @@ PRECONDITIONS: dict[str, Precondition] = {
 
 def testable_seeds(study: Study, claim: Claim) -> Optional[tuple[set[int], list[str], bool]]:
     """
-    :return: None when the study checks none of the claim's preconditions; else the seeds where each checked one
-        holds, a line per precondition (its statement, on how many seeds it held, each seed's value), and whether
-        any was measured at all
+    :return: None when the study checks none of the claim's preconditions; else the seeds where every checked one was
+        measured and holds, a line per precondition (its statement, where it held, each seed's value, the seeds with
+        no value yet), and whether the claim is *not testable*: every seed of the study measured a failure of one
     """
     checked = [check for check in (PRECONDITIONS[name].check(study) for name in claim.needs) if check is not None]
     if not checked:
         return None
-    seeds = set(study.seeds)
+    seeds, failed = set(study.seeds), set()
     notes = []
     for statement, values, held in checked:
+        measured = {seed for seed, value in values.items() if np.isfinite(value)}
         seeds &= held
+        failed |= measured - held
         per_seed = ", ".join(
             f"s{seed}: {values[seed]:.2f}" if abs(values[seed]) < 10 else f"s{seed}: {values[seed]:.0f}"
-            for seed in sorted(values)
+            for seed in sorted(measured)
         )
-        notes.append(f"{statement}: held on {len(held)} of {len(values)} seeds ({per_seed or 'not measured'})")
-    return seeds, notes, any(values for _, values, _ in checked)
+        unmeasured = sorted(set(study.seeds) - measured)
+        notes.append(
+            f"{statement}: held on {len(held)} of {len(measured)} measured seeds ({per_seed or 'none measured'})"
+            + (f"; not measured on {', '.join(f's{seed}' for seed in unmeasured)}" if unmeasured else "")
+        )
+    return seeds, notes, bool(study.seeds) and failed >= set(study.seeds)
 
 
 def evaluate_claims(study: Study) -> list[dict[str, Any]]:
     """
     :return: one row per claim: the series (per seed, mean, CI), and reproduced / not reproduced / no data, or *not
-        testable* when, on every seed, a precondition the study checks failed (:func:`testable_seeds`); a claim is
-        tested on the seeds where its preconditions hold, and its row says which held where
+        testable* when on every seed a precondition the study checks was measured and failed (:func:`testable_seeds`);
+        a claim is tested on the seeds where its preconditions were measured and hold (none yet: no data), and its
+        row says which held where
     """
     rows = []
     checks_any = any(PRECONDITIONS[name].check(study) is not None for name in PRECONDITIONS)
@@ -417,7 +424,7 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
         means = {name: _mean(values) for name, values in series.items()}
         complete = all(np.isfinite(v) for v in means.values()) and all(series.values())
         verdict = ("reproduced" if claim.test(means) else "not reproduced") if complete else "no data"
-        if testable is not None and not testable[0] and testable[2]:
+        if testable is not None and testable[2]:
             verdict = "not testable"
         details = []
         for name, values in series.items():
