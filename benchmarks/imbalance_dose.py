@@ -988,6 +988,7 @@ def merge_students(args: argparse.Namespace) -> dict[str, Any]:
         )
     merged["students"] = {**merged["students"], **new["students"]}
     target.parent.mkdir(parents=True, exist_ok=True)
+    # written as `run` writes it (a student's summary holds NaN, e.g. the indicator's beta, which write_json_atomic refuses)
     staging = target.with_name(target.name + ".staging")
     staging.write_text(json.dumps(merged, indent=1))
     staging.replace(target)

@@ -58,8 +58,9 @@ class Preset:
         ``benchmarks/results/paper_cpu_three/bounded_critic``)
     :param env_a_learnt: the Env-A return MPO must have reached when it leaves Env-A (the mean of its last evaluations
         there) for the claims about Env-A (forgetting it, remembering it, the imbalance drop and its diagnostics) to
-        be testable on a seed. The report tests a claim on the seeds where its preconditions hold and reads it *not
-        testable* where they hold on none (:data:`~sb3_lifelong.experiments.report.PRECONDITIONS`). None: not
+        be testable on a seed. The report tests a claim on the seeds where its preconditions were measured and hold,
+        and reads it *not testable* when every seed measured a failure of one
+        (:data:`~sb3_lifelong.experiments.report.PRECONDITIONS`). None: not
         checked; the presets run before the report could check preconditions keep None, so their reports read as
         they did. The same for the next two.
     :param value_gap: the least ratio of the discounted return of the last environment's data to Env-A's data (the

@@ -379,13 +379,16 @@ PRECONDITIONS: dict[str, Precondition] = {
 }
 
 
-def testable_seeds(study: Study, claim: Claim) -> Optional[tuple[set[int], list[str], bool]]:
+def testable_seeds(
+    study: Study, claim: Claim, checks: Mapping[str, Optional[tuple[str, dict[int, float], set[int]]]]
+) -> Optional[tuple[set[int], list[str], bool]]:
     """
+    :param checks: each precondition's :meth:`Precondition.check` on the study, by name
     :return: None when the study checks none of the claim's preconditions; else the seeds where every checked one was
         measured and holds, a line per precondition (its statement, where it held, each seed's value, the seeds with
         no value yet), and whether the claim is *not testable*: every seed of the study measured a failure of one
     """
-    checked = [check for check in (PRECONDITIONS[name].check(study) for name in claim.needs) if check is not None]
+    checked = [check for check in (checks[name] for name in claim.needs) if check is not None]
     if not checked:
         return None
     seeds, failed = set(study.seeds), set()
@@ -414,10 +417,10 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
         row says which held where
     """
     rows = []
-    checks_any = any(PRECONDITIONS[name].check(study) is not None for name in PRECONDITIONS)
+    checks = {name: precondition.check(study) for name, precondition in PRECONDITIONS.items()}
     for claim in claims_of(study.preset):
         series = claim.values(study)
-        testable = testable_seeds(study, claim)
+        testable = testable_seeds(study, claim, checks)
         if testable is not None:
             seeds = testable[0]
             series = {name: {seed: v for seed, v in values.items() if seed in seeds} for name, values in series.items()}
@@ -443,9 +446,10 @@ def evaluate_claims(study: Study) -> list[dict[str, Any]]:
                 else f"{name}: no data"
             )
         paired = [describe_pair(a, b, paired_difference(series[a], series[b])) for a, b in claim.compared(list(series))]
-        row = dict(claim=claim.name, statement=claim.statement, verdict=verdict, values="; ".join(details))
-        row["paired"] = "; ".join(paired)
-        if checks_any:  # a preset that states a precondition: its own column, "-" for the claims that need none
+        row = dict(
+            claim=claim.name, statement=claim.statement, verdict=verdict, values="; ".join(details), paired="; ".join(paired)
+        )
+        if any(check is not None for check in checks.values()):  # a preset with thresholds: a column, "-" where none is needed
             row["precondition"] = "; ".join(testable[1]) if testable is not None else "-"
         rows.append(row)
     return rows
