@@ -1,5 +1,6 @@
 """The paper's protocol as jobs: one seed end to end at a tiny budget, skip-finished, re-run, report, claims."""
 
+import dataclasses
 import importlib.util
 import json
 import os
@@ -376,7 +377,6 @@ def test_demo_preset_jobs():
 
 
 def test_cli_list_and_errors(capsys, tmp_path):
-    import dataclasses
 
     assert main(["list", "--preset", "cpu"]) == 0
     out = capsys.readouterr().out
@@ -405,7 +405,6 @@ def test_a_ratio_with_a_non_positive_denominator_is_left_out():
 
 def test_three_stage_study_end_to_end(tmp_path):
     """The three-stage preset's shape at a tiny budget: one buffer of three sources, switch scores, its own claims."""
-    import dataclasses
 
     from sb3_lifelong.experiments import THREE_STAGE_CLAIMS, claims_of
 
@@ -554,7 +553,6 @@ def test_job_names_with_student_repeats():
 
 def test_student_repeats_are_scored_by_their_mean(study, tmp_path):
     """A preset with ``student_repeats``: each repeat its own student seed, the report scores their mean."""
-    import dataclasses
     import shutil
 
     from sb3_lifelong.experiments.presets import REPEAT_SEED_STRIDE
@@ -582,7 +580,6 @@ def test_student_repeats_are_scored_by_their_mean(study, tmp_path):
 
 def test_recorded_settings_predating_new_preset_fields(tmp_path):
     """A study recorded before a Preset field existed resumes; more student repeats may be added; nothing else."""
-    import dataclasses
 
     from sb3_lifelong.experiments.presets import LATER_SETTINGS
     from sb3_lifelong.experiments.protocol import record_settings
@@ -609,7 +606,6 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
 
 def test_collection_reused_by_a_study_of_other_students(study, tmp_path):
     """``--collection-from``: another study's buffers, linked; only the students run, with a categorical critic."""
-    import dataclasses
 
     from sb3_lifelong import CRR
     from sb3_lifelong.experiments.presets import Preset
@@ -661,7 +657,6 @@ def _tree_digest(folder: pathlib.Path) -> dict[str, bytes]:
 
 def test_a_reused_collection_never_touches_its_source(study, tmp_path):
     """Linked buffers: collecting again unlinks them; a source moved away is named; another source is refused."""
-    import dataclasses
     import shutil
 
     source, _ = study
@@ -696,7 +691,6 @@ def test_a_reused_collection_never_touches_its_source(study, tmp_path):
 
 def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
     """benchmarks/repeat_spread.py: per-seed spread over repeats, and repeat 0 against the study without repeats."""
-    import dataclasses
 
     spread = benchmark_module("repeat_spread")
     source, _ = study
@@ -842,6 +836,24 @@ def test_a_collection_runs_in_parts(tmp_path, capsys):
     train = pd.read_csv(run_dir / "collect" / "train.csv")  # one header, its rows in order across the parts
     assert list(train["timesteps"]) == sorted(set(train["timesteps"])) and train["timesteps"].max() == 600
     assert train["timesteps"].min() <= 200  # the parts before the last pause are kept
+
+
+def test_a_collection_in_parts_evaluates_and_trains_as_an_uninterrupted_one(tmp_path):
+    """Each part of a paused collection runs in a new process with new evaluation environments: the evaluations still
+    play the same seeded episodes as an uninterrupted collection's (``same_episodes``), so its ``eval.csv`` and
+    ``q_sources.csv`` are the uninterrupted one's to the last digit. (Seeded once per process instead, the first
+    evaluation after each pause would play the episodes of a run's first evaluation, and the logs would part there.)
+    The pauses fall on episode ends (HalfCheetah's episodes have a fixed length): a resumed model starts a new episode,
+    so a pause inside one changes the data from there on."""
+    preset = dataclasses.replace(PRESETS["tiny"], env_id="HalfCheetah-v5", max_episode_steps=50)
+    run_seed(preset, 0, tmp_path / "whole", jobs=["collect"], log=lambda m: None)
+    for until in (150, 350, None):  # two pauses, one on each side of the switch at 200
+        run_seed(preset, 0, tmp_path / "parts", jobs=["collect"], log=lambda m: None, until=until)
+    for log in ("eval.csv", "q_sources.csv"):
+        whole = pd.read_csv(tmp_path / "whole" / "seed_0" / "collect" / log)
+        parts = pd.read_csv(tmp_path / "parts" / "seed_0" / "collect" / log)
+        assert len(whole) >= 6, log
+        pd.testing.assert_frame_equal(parts, whole, check_exact=True)
 
 
 def test_a_part_that_stopped_without_pausing_continues_from_the_pause(tmp_path):
@@ -993,7 +1005,6 @@ def test_imbalance_dose_adopts_a_stage1_and_branches(study, tmp_path):
 
 def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path, monkeypatch):
     """A student pauses at each evaluation; stopped after a pause, it continues from there as if never stopped."""
-    import dataclasses
 
     from sb3_lifelong.experiments import protocol
     from sb3_lifelong.experiments.protocol import distill_on_study
