@@ -233,6 +233,46 @@ def test_claims_follow_the_numbers(study):
         assert rows["C4a the imbalance drop"] == expected
 
 
+def test_forgetting_needs_a_steady_switch(study):
+    """``max_switch_spread``: the forgetting claims are tested only where MPO's last Env-A evaluations before the switch
+    were steady (their spread, std / mean, measured from ``eval.csv``); the other claims are untouched."""
+    from sb3_lifelong.experiments.presets import stage_ends
+    from sb3_lifelong.experiments.scores import SWITCH_SPREAD_EVALS
+
+    output, _ = study
+    study_data = load_study(output)
+    unchecked = {r["claim"]: r for r in evaluate_claims(study_data)}
+    spread = study_data.extra("MPO|switch_spread|Env-A")
+    switch = stage_ends(study_data.preset["stage_steps"])[0]
+    assert sorted(spread) == [0, 1]
+    for seed in (0, 1):
+        evals = pd.read_csv(output / f"seed_{seed}" / "collect" / "eval.csv")
+        before = evals[(evals["env"] == "Env-A") & (evals["timesteps"] <= switch)].sort_values("timesteps")
+        last = before["mean_reward"].tail(SWITCH_SPREAD_EVALS).to_numpy()
+        assert len(last) >= 2 and spread[seed] == pytest.approx(np.std(last, ddof=1) / abs(np.mean(last)))
+    # an upper bound: no seed as steady as asked, C1 is not testable, with each seed's spread; the rest as before
+    study_data.preset = {**study_data.preset, "max_switch_spread": min(spread.values()) / 2}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C1 forgetting"]["verdict"] == "not testable"
+    assert (
+        "std / mean" in rows["C1 forgetting"]["precondition"]
+        and "held on 0 of 2 measured seeds" in rows["C1 forgetting"]["precondition"]
+    )
+    for claim in set(unchecked) - {"C1 forgetting"}:
+        assert rows[claim]["verdict"] == unchecked[claim]["verdict"], claim
+    # every seed steady enough: C1 reads as without the check
+    study_data.preset = {**study_data.preset, "max_switch_spread": max(spread.values())}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C1 forgetting"]["verdict"] == unchecked["C1 forgetting"]["verdict"]
+    assert "held on 2 of 2" in rows["C1 forgetting"]["precondition"]
+    # the three-stage claims: forgetting Env-B asks for a steady Env-B at its switch (the end of Stage 2)
+    from sb3_lifelong.experiments.report import PRECONDITIONS, THREE_STAGE_CLAIMS
+
+    needs = {claim.name: claim.needs for claim in THREE_STAGE_CLAIMS}
+    assert "steady" in needs["T1a forgetting Env-A"] and "steady_b" in needs["T1b forgetting Env-B"]
+    assert PRECONDITIONS["steady_b"].values(study_data) == {}  # in two stages MPO never leaves Env-B
+
+
 def test_claims_are_tested_where_their_preconditions_hold(study):
     """A preset's thresholds (``env_a_learnt``, ``value_gap``, ``min_weight_ess``): a claim is tested on the seeds where
     its preconditions hold, reads *not testable* where they hold on none, and the other claims are untouched;

@@ -62,12 +62,16 @@ class Preset:
         and reads it *not testable* when every seed measured a failure of one
         (:data:`~sb3_lifelong.experiments.report.PRECONDITIONS`). None: not
         checked; the presets run before the report could check preconditions keep None, so their reports read as
-        they did. The same for the next two.
+        they did. The same for the next three.
     :param value_gap: the least ratio of the discounted return of the last environment's data to Env-A's data (the
         collector's Monte-Carlo measurement) for the imbalance claims to be testable: the paper's explanation needs the
         later data to be worth more
     :param min_weight_ess: the least effective sample size of the exp beta=1 student's weights (a fraction of a batch)
         for the claims that call it conservative: on a reward scale where ``beta=1`` is greedy, it is not
+    :param max_switch_spread: the largest spread (standard deviation over the mean) of MPO's last 5 Env-A evaluations
+        before the switch for the forgetting claims to be testable: forgetting is a drop from a level, and an agent
+        still oscillating when it leaves Env-A has none to drop from (one evaluation's dip turns "end / switch" into
+        any ratio)
     :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
@@ -96,6 +100,7 @@ class Preset:
     env_a_learnt: Optional[float] = None
     value_gap: Optional[float] = None
     min_weight_ess: Optional[float] = None
+    max_switch_spread: Optional[float] = None
     note: str = ""
 
     def __post_init__(self) -> None:
@@ -129,12 +134,14 @@ PRESETS: dict[str, Preset] = {
     # one core of a CPU machine: Hopper with the hip deformed, Env-B five times Env-A; the claims' preconditions are
     # the dose study's (benchmarks/results/imbalance_dose/README.md): Env-A learnt from a return of 1000 (P1 on Hopper:
     # a hop that moves forward; `paper_cpu`'s MPO had about 690 and 400 at the switch), a value gap of 1.1 (P3), a
-    # conservative student at an ESS of 0.8 (P4)
+    # conservative student at an ESS of 0.8 (P4); a steady Env-A at the switch, its last 5 evaluations within a spread
+    # of 0.25 (the standard error of their mean then about 0.11 of it, so that C1's 30 % drop stands out from it)
     "cpu": Preset(
         env_id="Hopper-v5",
         env_a_learnt=1000.0,
         value_gap=1.1,
         min_weight_ess=0.8,
+        max_switch_spread=0.25,
         stages=({}, {"hip_deformation": 0.3}),
         stage_steps=(50_000, 250_000),
         distill_steps=30_000,
@@ -421,10 +428,11 @@ LATER_SETTINGS: dict[str, Any] = {
     "env_a_learnt": None,
     "value_gap": None,
     "min_weight_ess": None,
+    "max_switch_spread": None,
 }
 #: settings that do not make two studies different ones: more repeats of the students, and the report's precondition
 #: (a study keeps the threshold it recorded, None for those recorded before there was one)
-REPORT_THRESHOLDS = ("env_a_learnt", "value_gap", "min_weight_ess")
+REPORT_THRESHOLDS = ("env_a_learnt", "value_gap", "min_weight_ess", "max_switch_spread")
 NOT_IDENTITY = ("student_repeats", *REPORT_THRESHOLDS)
 
 
@@ -455,9 +463,7 @@ STUDENT_SETTINGS = (
     "online",
     "student_repeats",
     "student_critic",
-    "env_a_learnt",
-    "value_gap",
-    "min_weight_ess",
+    *REPORT_THRESHOLDS,
     "note",
     "minutes_per_seed",
 )

@@ -180,7 +180,7 @@ CLAIMS: list[Claim] = [
         "MPO's Env-A return at the end of Stage 2 is <= 70 % of its Env-A return at the switch",
         lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
-        needs=("env_a_learnt",),
+        needs=("env_a_learnt", "steady"),
     ),
     Claim(
         "C2a conservative online CRR remembers",
@@ -281,13 +281,14 @@ THREE_STAGE_CLAIMS: list[Claim] = [
         "MPO's Env-A return at the end of Stage 3 is <= 70 % of its Env-A return at the end of Stage 1",
         lambda s: {"end / switch": ratio(s.score("MPO", "Env-A"), s.extra("MPO|switch|Env-A"))},
         lambda m: m["end / switch"] <= 0.7,
-        needs=("env_a_learnt",),
+        needs=("env_a_learnt", "steady"),
     ),
     Claim(
         "T1b forgetting Env-B",
         "MPO's Env-B return at the end of Stage 3 is <= 70 % of its Env-B return at the end of Stage 2",
         lambda s: {"end / switch": ratio(s.score("MPO", "Env-B"), s.extra("MPO|switch|Env-B"))},
         lambda m: m["end / switch"] <= 0.7,
+        needs=("steady_b",),
     ),
     Claim(
         "T2a distillation recovers the earlier environments",
@@ -339,11 +340,13 @@ class Precondition:
     :param setting: the preset's setting that holds the threshold (None there: the precondition is not checked)
     :param statement: the precondition in words, with ``{threshold}``
     :param values: the per-seed measurement the threshold applies to
+    :param at_most: the threshold is an upper bound (the measurement must not exceed it); else a lower bound
     """
 
     setting: str
     statement: str
     values: Callable[[Study], dict[int, float]]
+    at_most: bool = False
 
     def check(self, study: Study) -> Optional[tuple[str, dict[int, float], set[int]]]:
         """:return: None when the preset states no threshold; else its statement, the values, the seeds it holds on"""
@@ -351,7 +354,11 @@ class Precondition:
         if threshold is None:
             return None
         values = self.values(study)
-        held = {seed for seed, value in values.items() if np.isfinite(value) and value >= threshold}
+        held = {
+            seed
+            for seed, value in values.items()
+            if np.isfinite(value) and (value <= threshold if self.at_most else value >= threshold)
+        }
         return self.statement.format(threshold=f"{threshold:g}"), values, held
 
 
@@ -375,6 +382,18 @@ PRECONDITIONS: dict[str, Precondition] = {
         "min_weight_ess",
         "the exp beta=1 student stays close to the data (its weights' effective sample size >= {threshold} of a batch)",
         lambda s: s.extra("CRR_exp_beta1|weight_ess"),
+    ),
+    "steady": Precondition(
+        "max_switch_spread",
+        "MPO left Env-A steadily (the spread, std / mean, of its last 5 Env-A evaluations before the switch <= {threshold})",
+        lambda s: s.extra("MPO|switch_spread|Env-A"),
+        at_most=True,
+    ),
+    "steady_b": Precondition(
+        "max_switch_spread",
+        "MPO left Env-B steadily (the spread, std / mean, of its last 5 Env-B evaluations before its switch <= {threshold})",
+        lambda s: s.extra("MPO|switch_spread|Env-B"),
+        at_most=True,
     ),
 }
 

@@ -7,7 +7,8 @@ A seed's scores:
 
 * an online method's final return in an environment: the mean of its last ``ONLINE_LAST`` evaluations;
 * MPO's return in an environment *at the switch* (when it leaves that environment): the mean of its last
-  ``ONLINE_LAST_STAGE1`` evaluations of that environment's stage;
+  ``ONLINE_LAST_STAGE1`` evaluations of that environment's stage, and how steady it was: the relative spread (standard
+  deviation over the mean) of its last ``SWITCH_SPREAD_EVALS`` evaluations there (``MPO|switch_spread|<env>``);
 * Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
 * a student's final return: the mean of its last ``STUDENT_LAST`` evaluations (of each repeat, then the mean over its
   repeats);
@@ -31,6 +32,8 @@ from sb3_lifelong.experiments.presets import split_repeat, stage_ends
 ONLINE_LAST = 3
 ONLINE_LAST_STAGE1 = 2
 STUDENT_LAST = 2
+#: the evaluations before the switch whose relative spread says whether MPO left an environment steadily
+SWITCH_SPREAD_EVALS = 5
 STUDENT_TRAIN_LAST = 5
 
 
@@ -47,15 +50,34 @@ def read_eval(output: pathlib.Path, seed: int, job: str) -> Optional[pd.DataFram
     return pd.read_csv(path)
 
 
-def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = None, after: Optional[int] = None) -> float:
-    """:return: the mean return of the last ``count`` evaluations in ``env`` at timesteps in ``(after, until]`` (or NaN)"""
+def last_returns(
+    frame: pd.DataFrame, env: str, count: int, until: Optional[int] = None, after: Optional[int] = None
+) -> pd.Series:
+    """:return: the mean returns of the last ``count`` evaluations in ``env`` at timesteps in ``(after, until]``"""
     rows = frame[frame["env"] == env]
     if until is not None:
         rows = rows[rows["timesteps"] <= until]
     if after is not None:
         rows = rows[rows["timesteps"] > after]
-    rows = rows.sort_values("timesteps")
-    return float(rows["mean_reward"].tail(count).mean()) if len(rows) else float("nan")
+    return rows.sort_values("timesteps")["mean_reward"].tail(count)
+
+
+def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = None, after: Optional[int] = None) -> float:
+    """:return: the mean return of the last ``count`` evaluations in ``env`` at timesteps in ``(after, until]`` (or NaN)"""
+    returns = last_returns(frame, env, count, until, after)
+    return float(returns.mean()) if len(returns) else float("nan")
+
+
+def relative_spread(returns: pd.Series) -> float:
+    """
+    :param returns: evaluations' mean returns
+    :return: their standard deviation (``ddof=1``) over the absolute value of their mean; NaN for fewer than two or a
+        mean of 0
+    """
+    mean = float(returns.mean()) if len(returns) else 0.0
+    if len(returns) < 2 or mean == 0.0:
+        return float("nan")
+    return float(returns.std(ddof=1)) / abs(mean)
 
 
 def data_values(seed: int, q_log: pathlib.Path) -> list[dict[str, Any]]:
@@ -140,6 +162,8 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                     for env, end in zip(envs[:-1], ends[:-1]):
                         value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
                         extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
+                        spread = relative_spread(last_returns(frame, env, SWITCH_SPREAD_EVALS, until=end))
+                        extras.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=spread))
                     extras += data_values(seed, job_dir / "q_sources.csv")
             elif job.startswith("distill_"):
                 method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
