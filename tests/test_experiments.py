@@ -233,11 +233,31 @@ def test_claims_follow_the_numbers(study):
         assert rows["C4a the imbalance drop"] == expected
 
 
+def test_switch_spread_reads_the_end_of_the_stage():
+    """The spread MPO left an environment with: its last 3 evaluations in the second half of the stage (not the climb
+    before, not the next stage), the stage's last two where that half has fewer; no level, no spread."""
+    from sb3_lifelong.experiments.scores import relative_spread, switch_spread
+
+    steps = list(range(10, 201, 10))  # a stage from 100 to 200 (evaluations at 110 ... 200), then the next one
+    returns = [float(t) for t in steps]  # a climb: 10, 20, ...
+    frame = pd.DataFrame(dict(timesteps=steps, env="Env-B", mean_reward=returns))
+    expected = relative_spread(pd.Series([180.0, 190.0, 200.0]))
+    assert switch_spread(frame, "Env-B", 0, 200) == pytest.approx(expected)
+    assert expected == pytest.approx(np.std([180, 190, 200], ddof=1) / 190)
+    assert switch_spread(frame, "Env-B", 100, 170) == pytest.approx(relative_spread(pd.Series([150.0, 160.0, 170.0])))
+    sparse = frame[frame["timesteps"].isin([120, 140, 200])]  # second half (150, 200] holds one: the stage's last two
+    assert switch_spread(sparse, "Env-B", 100, 200) == pytest.approx(relative_spread(pd.Series([140.0, 200.0])))
+    assert np.isnan(switch_spread(sparse, "Env-B", 150, 200))  # one evaluation in the whole stage: not measured
+    assert np.isnan(switch_spread(frame, "Env-A", 0, 200))  # never evaluated there
+    assert relative_spread(pd.Series([-10.0, 10.0])) == np.inf  # a mean of 0: no level to drop from
+    assert relative_spread(pd.Series([-100.0, -120.0])) == pytest.approx(np.std([100, 120], ddof=1) / 110)  # |mean|
+
+
 def test_forgetting_needs_a_steady_switch(study):
     """``max_switch_spread``: the forgetting claims are tested only where MPO's last Env-A evaluations before the switch
     were steady (their spread, std / mean, measured from ``eval.csv``); the other claims are untouched."""
     from sb3_lifelong.experiments.presets import stage_ends
-    from sb3_lifelong.experiments.scores import SWITCH_SPREAD_EVALS
+    from sb3_lifelong.experiments.scores import switch_spread
 
     output, _ = study
     study_data = load_study(output)
@@ -247,9 +267,7 @@ def test_forgetting_needs_a_steady_switch(study):
     assert sorted(spread) == [0, 1]
     for seed in (0, 1):
         evals = pd.read_csv(output / f"seed_{seed}" / "collect" / "eval.csv")
-        before = evals[(evals["env"] == "Env-A") & (evals["timesteps"] <= switch)].sort_values("timesteps")
-        last = before["mean_reward"].tail(SWITCH_SPREAD_EVALS).to_numpy()
-        assert len(last) >= 2 and spread[seed] == pytest.approx(np.std(last, ddof=1) / abs(np.mean(last)))
+        assert spread[seed] == switch_spread(evals, "Env-A", 0, switch) and np.isfinite(spread[seed])
     # an upper bound: no seed as steady as asked, C1 is not testable, with each seed's spread; the rest as before
     study_data.preset = {**study_data.preset, "max_switch_spread": min(spread.values()) / 2}
     rows = {r["claim"]: r for r in evaluate_claims(study_data)}
@@ -271,6 +289,11 @@ def test_forgetting_needs_a_steady_switch(study):
     needs = {claim.name: claim.needs for claim in THREE_STAGE_CLAIMS}
     assert "steady" in needs["T1a forgetting Env-A"] and "steady_b" in needs["T1b forgetting Env-B"]
     assert PRECONDITIONS["steady_b"].values(study_data) == {}  # in two stages MPO never leaves Env-B
+    # a spread of infinity (a mean return of 0) is a measured failure, not a missing measurement
+    study_data.extras = study_data.extras.copy()
+    study_data.extras.loc[study_data.extras["metric"] == "MPO|switch_spread|Env-A", "value"] = np.inf
+    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    assert rows["C1 forgetting"]["verdict"] == "not testable" and "s0: inf" in rows["C1 forgetting"]["precondition"]
 
 
 def test_claims_are_tested_where_their_preconditions_hold(study):
@@ -483,7 +506,20 @@ def test_three_stage_study_end_to_end(tmp_path):
     assert study.extra("MPO|switch|Env-B")[0] == pytest.approx(at_switch_b["mean_reward"].tail(2).mean())
     stage2_b = collect[(collect["env"] == "Env-B") & (collect["timesteps"] > 200) & (collect["timesteps"] <= 400)]
     assert study.extra("MPO|stage2_area|Env-B")[0] == pytest.approx(stage2_b["mean_reward"].mean())  # not Stage 3's
+    # how steadily MPO left Env-B: from Stage 2's evaluations alone (its second half holds one: the stage's last two)
+    assert study.extra("MPO|switch_spread|Env-B")[0] == pytest.approx(
+        np.std(stage2_b.sort_values("timesteps")["mean_reward"].tail(2), ddof=1)
+        / abs(stage2_b.sort_values("timesteps")["mean_reward"].tail(2).mean())
+    )
+    study.preset = {**study.preset, "max_switch_spread": -1.0}  # no seed steady: T1a and T1b not testable, T2a as before
+    checked = {r["claim"]: r["verdict"] for r in evaluate_claims(study)}
+    assert checked["T1a forgetting Env-A"] == checked["T1b forgetting Env-B"] == "not testable"
     claims = pd.read_csv(output / "claims.csv")
+    recorded = claims.set_index("claim")["verdict"]
+    assert (
+        checked["T2a distillation recovers the earlier environments"]
+        == recorded["T2a distillation recovers the earlier environments"]
+    )
     assert list(claims["claim"]) == [claim.name for claim in THREE_STAGE_CLAIMS]
     assert "no data" not in set(claims["verdict"])  # every student and score these claims need ran
     assert (output / "fig_online.png").stat().st_size > 0
@@ -621,7 +657,7 @@ def test_student_repeats_are_scored_by_their_mean(study, tmp_path):
 def test_recorded_settings_predating_new_preset_fields(tmp_path):
     """A study recorded before a Preset field existed resumes; more student repeats may be added; nothing else."""
 
-    from sb3_lifelong.experiments.presets import LATER_SETTINGS
+    from sb3_lifelong.experiments.presets import LATER_SETTINGS, REPORT_THRESHOLDS
     from sb3_lifelong.experiments.protocol import record_settings
 
     preset = PRESETS["cpu"]  # a preset whose report thresholds are set now: an old study of it had none
@@ -636,7 +672,7 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
     recorded = json.loads((tmp_path / "preset.json").read_text())
     assert recorded["student_repeats"] == 3
     # the old study keeps its report as it was: no thresholds it did not record
-    assert all(recorded[key] is None for key in ("env_a_learnt", "value_gap", "min_weight_ess"))
+    assert all(recorded[key] is None for key in REPORT_THRESHOLDS)
     record_settings(preset, tmp_path)  # fewer repeats asked: the record keeps 3
     assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
     for changed in (dict(layer_norm=True), dict(distill_steps=7), dict(student_critic="categorical")):

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from sb3_lifelong.experiments.figures import plot_study
-from sb3_lifelong.experiments.scores import ONLINE_LAST, STUDENT_LAST, Study, load_study
+from sb3_lifelong.experiments.scores import ONLINE_LAST, STUDENT_LAST, SWITCH_SPREAD_EVALS, Study, load_study
 
 BOOTSTRAP_RESAMPLES = 10_000
 
@@ -357,7 +357,7 @@ class Precondition:
         held = {
             seed
             for seed, value in values.items()
-            if np.isfinite(value) and (value <= threshold if self.at_most else value >= threshold)
+            if not np.isnan(value) and (value <= threshold if self.at_most else value >= threshold)
         }
         return self.statement.format(threshold=f"{threshold:g}"), values, held
 
@@ -385,13 +385,15 @@ PRECONDITIONS: dict[str, Precondition] = {
     ),
     "steady": Precondition(
         "max_switch_spread",
-        "MPO left Env-A steadily (the spread, std / mean, of its last 5 Env-A evaluations before the switch <= {threshold})",
+        "MPO left Env-A steadily (the spread, std / mean, of its last "
+        + f"{SWITCH_SPREAD_EVALS} Env-A evaluations before the switch <= {{threshold}})",
         lambda s: s.extra("MPO|switch_spread|Env-A"),
         at_most=True,
     ),
     "steady_b": Precondition(
         "max_switch_spread",
-        "MPO left Env-B steadily (the spread, std / mean, of its last 5 Env-B evaluations before its switch <= {threshold})",
+        "MPO left Env-B steadily (the spread, std / mean, of its last "
+        + f"{SWITCH_SPREAD_EVALS} Env-B evaluations before its switch <= {{threshold}})",
         lambda s: s.extra("MPO|switch_spread|Env-B"),
         at_most=True,
     ),
@@ -413,7 +415,7 @@ def testable_seeds(
     seeds, failed = set(study.seeds), set()
     notes = []
     for statement, values, held in checked:
-        measured = {seed for seed, value in values.items() if np.isfinite(value)}
+        measured = {seed for seed, value in values.items() if not np.isnan(value)}  # inf too: a spread with no level
         seeds &= held
         failed |= measured - held
         per_seed = ", ".join(

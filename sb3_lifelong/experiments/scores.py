@@ -8,7 +8,8 @@ A seed's scores:
 * an online method's final return in an environment: the mean of its last ``ONLINE_LAST`` evaluations;
 * MPO's return in an environment *at the switch* (when it leaves that environment): the mean of its last
   ``ONLINE_LAST_STAGE1`` evaluations of that environment's stage, and how steady it was: the relative spread (standard
-  deviation over the mean) of its last ``SWITCH_SPREAD_EVALS`` evaluations there (``MPO|switch_spread|<env>``);
+  deviation over the mean) of its last ``SWITCH_SPREAD_EVALS`` evaluations in the second half of that stage
+  (``MPO|switch_spread|<env>``, :func:`switch_spread`);
 * Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
 * a student's final return: the mean of its last ``STUDENT_LAST`` evaluations (of each repeat, then the mean over its
   repeats);
@@ -32,8 +33,9 @@ from sb3_lifelong.experiments.presets import split_repeat, stage_ends
 ONLINE_LAST = 3
 ONLINE_LAST_STAGE1 = 2
 STUDENT_LAST = 2
-#: the evaluations before the switch whose relative spread says whether MPO left an environment steadily
-SWITCH_SPREAD_EVALS = 5
+#: the evaluations before the switch (in the second half of the stage) whose relative spread says whether MPO left
+#: an environment steadily (:func:`switch_spread`)
+SWITCH_SPREAD_EVALS = 3
 STUDENT_TRAIN_LAST = 5
 
 
@@ -71,13 +73,31 @@ def last_mean(frame: pd.DataFrame, env: str, count: int, until: Optional[int] = 
 def relative_spread(returns: pd.Series) -> float:
     """
     :param returns: evaluations' mean returns
-    :return: their standard deviation (``ddof=1``) over the absolute value of their mean; NaN for fewer than two or a
-        mean of 0
+    :return: their standard deviation (``ddof=1``) over the absolute value of their mean: NaN for fewer than two (not
+        measured), infinite for a mean of 0 (no level to speak of)
     """
-    mean = float(returns.mean()) if len(returns) else 0.0
-    if len(returns) < 2 or mean == 0.0:
+    if len(returns) < 2:
         return float("nan")
-    return float(returns.std(ddof=1)) / abs(mean)
+    mean = float(returns.mean())
+    return float(returns.std(ddof=1)) / abs(mean) if mean != 0.0 else float("inf")
+
+
+def switch_spread(frame: pd.DataFrame, env: str, start: int, end: int) -> float:
+    """
+    How steadily MPO left an environment: the :func:`relative_spread` of its last ``SWITCH_SPREAD_EVALS`` evaluations
+    there, taken from the second half of the environment's stage, so that the climb of its first steps is not read as
+    an oscillation (where that half holds fewer than two evaluations: the stage's last two).
+
+    :param frame: the collector's evaluations
+    :param env: the environment
+    :param start: the first timestep of its stage (0 for Env-A)
+    :param end: the last timestep of its stage (the switch)
+    :return: the spread (NaN with fewer than two evaluations in the stage)
+    """
+    returns = last_returns(frame, env, SWITCH_SPREAD_EVALS, until=end, after=start + (end - start) // 2)
+    if len(returns) < 2:
+        returns = last_returns(frame, env, 2, until=end, after=start)
+    return relative_spread(returns)
 
 
 def data_values(seed: int, q_log: pathlib.Path) -> list[dict[str, Any]]:
@@ -159,10 +179,10 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                     area = last_mean(frame, env, 10**9, after=switch, until=ends[1])  # Stage 2 only (of 2 or 3)
                     extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
                 if job == "collect":  # each environment's return when MPO leaves it (the end of its stage)
-                    for env, end in zip(envs[:-1], ends[:-1]):
+                    for env, start, end in zip(envs[:-1], [0, *ends[:-2]], ends[:-1]):
                         value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
                         extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
-                        spread = relative_spread(last_returns(frame, env, SWITCH_SPREAD_EVALS, until=end))
+                        spread = switch_spread(frame, env, start, end)
                         extras.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=spread))
                     extras += data_values(seed, job_dir / "q_sources.csv")
             elif job.startswith("distill_"):
