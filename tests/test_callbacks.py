@@ -37,12 +37,43 @@ def test_seeded_evaluations_are_reproducible():
         envs = {"env_a": gym.make("Pendulum-v1"), "env_b": gym.make("Pendulum-v1", g=5.0)}
         callback = MultiEnvEvalCallback(envs, eval_freq=100, n_eval_episodes=2, seed=seed)
         model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
-        model.learn(200, callback=callback)  # two evaluations: the second goes on from the first's episodes
+        model.learn(200, callback=callback)  # two evaluations, each on the episodes of its timestep
         return [row["mean_reward"] for row in callback.results]
 
     first = evaluations(3)
     assert len(first) == 4 and first == evaluations(3)
     assert first != evaluations(4)
+
+
+def test_seeded_episodes_follow_the_timestep_not_the_process():
+    """With a seed, an evaluation's episodes are chosen by the timestep: new environments and a new callback (a run
+    resumed in a new process) evaluate a policy as the callback that ran before did; each timestep plays new episodes,
+    or the same ones with ``same_episodes``."""
+    from stable_baselines3.common.logger import configure
+
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)  # a fixed policy: differences are the episodes'
+    model.set_logger(configure(None, []))
+
+    def new_callback(same_episodes: bool) -> MultiEnvEvalCallback:
+        envs = {"env_a": gym.make("Pendulum-v1"), "env_b": gym.make("Pendulum-v1", g=5.0)}
+        callback = MultiEnvEvalCallback(envs, eval_freq=100, n_eval_episodes=2, seed=7, same_episodes=same_episodes)
+        callback.init_callback(model)
+        return callback
+
+    def evaluate_at(callback: MultiEnvEvalCallback, timesteps: int) -> dict[str, float]:
+        callback.num_timesteps = timesteps
+        return callback.evaluate()
+
+    running = new_callback(same_episodes=False)
+    first, second = evaluate_at(running, 100), evaluate_at(running, 200)
+    assert first["env_a"] != second["env_a"] and first["env_b"] != second["env_b"]  # new episodes
+    assert evaluate_at(new_callback(same_episodes=False), 200) == second  # resumed: the episodes of its timestep
+    assert evaluate_at(running, 100) == first  # whatever ran in between
+    same = new_callback(same_episodes=True)
+    assert evaluate_at(same, 100) == evaluate_at(same, 200) == evaluate_at(new_callback(same_episodes=True), 300)
+    assert running.episode_seed(0) != running.episode_seed(1) and same.episode_seed(1) == 8
+    with pytest.raises(ValueError, match="non-negative int"):
+        MultiEnvEvalCallback([gym.make("Pendulum-v1")], seed=-1)
 
 
 def test_experiment_callbacks_seed_their_evaluations(tmp_path):

@@ -86,12 +86,13 @@ def test_vec_normalize_statistics_reach_the_evaluation_envs():
     training = VecNormalize(make_vec_env("Pendulum-v1", seed=0), norm_obs=True, norm_reward=False)
     callback = MultiEnvEvalCallback({"Env-A": gym.make("Pendulum-v1")}, eval_freq=10_000, n_eval_episodes=1, seed=5)
     model = MPO("MlpPolicy", training, seed=0, **SMALL)
-    model.learn(200, callback=callback)  # seeds the evaluation env, evaluates nothing
+    model.learn(200, callback=callback)  # evaluates nothing
     statistics = training.obs_rms.copy()
     means = callback.evaluate()
     wrapped = callback._normalized_envs["Env-A"]
     assert not wrapped.training and not wrapped.norm_reward
     np.testing.assert_array_equal(wrapped.obs_rms.mean, statistics.mean)  # the evaluation did not update them
     assert wrapped.obs_rms is not training.obs_rms
-    assert means["Env-A"] == pytest.approx(_evaluated_with(statistics, 5, True, model))
-    assert means["Env-A"] != pytest.approx(_evaluated_with(statistics, 5, False, model))
+    seed = callback.episode_seed(0)  # the seed of this evaluation's episodes (drawn from 5 and the timestep)
+    assert means["Env-A"] == pytest.approx(_evaluated_with(statistics, seed, True, model))
+    assert means["Env-A"] != pytest.approx(_evaluated_with(statistics, seed, False, model))

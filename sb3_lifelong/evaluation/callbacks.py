@@ -107,11 +107,13 @@ class MultiEnvEvalCallback(BaseCallback):
     :param sources: for models with one actor per source (CRR's ``actor_per_source=True`` diagnostic): the source
         id whose actor acts in each environment, by environment name (``{"Env-A": 0, "Env-B": 1}``); the model's
         ``select_source`` is called before each of these environments and the model's own selection is restored after
-    :param seed: seed of the evaluation environments: the k-th is seeded with ``seed + k`` before the first
-        evaluation and its episodes follow from there, so that a run's evaluations are reproducible (None: not seeded)
-    :param same_episodes: with ``seed``, seed the environments again before every evaluation, so that every
-        evaluation plays the same episodes (differences between evaluations are then the policy's alone, and a run
-        resumed in a new process evaluates as an uninterrupted one)
+    :param seed: seed of the evaluation environments (a non-negative int; None: not seeded): before every
+        evaluation each environment is seeded from ``seed``, its position and the timestep, so that an evaluation's
+        episodes depend on neither the process's history nor the evaluations before it: a run's evaluations are
+        reproducible, and a run resumed in a new process (new environments) evaluates as an uninterrupted one
+    :param same_episodes: with ``seed``, every evaluation plays the same episodes (the k-th environment is seeded with
+        ``seed + k`` before each): differences between evaluations are then the policy's alone. Without it each
+        evaluation plays new episodes (the mean over several evaluations then covers more starts)
     :param verbose: 1 prints each evaluation
     :param best_model_save_path: folder where the model is saved as ``best_model.zip`` whenever
         ``eval/mean_over_envs`` beats every earlier evaluation of this callback (None: not saved)
@@ -165,9 +167,10 @@ class MultiEnvEvalCallback(BaseCallback):
         self._next_eval = 0
         if same_episodes and seed is None:
             raise ValueError("same_episodes=True needs a seed: the evaluation environments are seeded before every evaluation")
+        if seed is not None and (not isinstance(seed, (int, np.integer)) or seed < 0):
+            raise ValueError(f"seed must be a non-negative int or None, got {seed!r}")
         self.seed = seed
         self.same_episodes = same_episodes
-        self._seeded = False
         self.best_model_save_path = pathlib.Path(best_model_save_path) if best_model_save_path is not None else None
         self.evaluations_dir = pathlib.Path(evaluations_dir) if evaluations_dir is not None else None
         self.callback_on_new_best = callback_on_new_best
@@ -196,10 +199,6 @@ class MultiEnvEvalCallback(BaseCallback):
             raise TypeError(
                 f"MultiEnvEvalCallback(sources=...) needs a model with one actor per source, got {type(self.model).__name__}"
             )
-        if self.seed is not None and not self._seeded:  # once: a callback reused by several learn() calls goes on
-            for index, env in enumerate(self.eval_envs.values()):
-                env.seed(self.seed + index)  # applied at the next reset, the first evaluation's
-            self._seeded = True
         # first evaluation at the next multiple of eval_freq (learn may resume at any timestep)
         self._next_eval = (self.model.num_timesteps // self.eval_freq + 1) * self.eval_freq
         if self.log_path is not None:
@@ -256,6 +255,18 @@ class MultiEnvEvalCallback(BaseCallback):
             continue_training = self.callback_after_eval.on_step() and continue_training
         self._continue_training = self._continue_training and continue_training
 
+    def episode_seed(self, index: int) -> int:
+        """
+        :param index: an evaluation environment's position
+        :return: the seed it gets before the evaluation at the current timestep: ``seed + index`` with
+            ``same_episodes``, else one drawn from ``(seed, index, num_timesteps)`` (a new one at every timestep, and
+            the same one for any run at that timestep)
+        """
+        assert self.seed is not None
+        if self.same_episodes:
+            return self.seed + index
+        return int(np.random.SeedSequence([self.seed, index, self.num_timesteps]).generate_state(1)[0])
+
     def evaluate(self) -> dict[str, float]:
         """
         Evaluate now on every environment, log and record the results.
@@ -270,9 +281,9 @@ class MultiEnvEvalCallback(BaseCallback):
         training_normalization = unwrap_vec_normalize(training_env) if training_env is not None else None
         all_rewards: list[list[float]] = []
         all_lengths: list[list[int]] = []
-        if self.same_episodes and self.seed is not None:
+        if self.seed is not None:
             for index, env in enumerate(self.eval_envs.values()):
-                env.seed(self.seed + index)
+                env.seed(self.episode_seed(index))  # applied at the reset that starts the evaluation
         for name, env in self.eval_envs.items():
             if self.sources is not None and name in self.sources:
                 model.select_source(self.sources[name])
