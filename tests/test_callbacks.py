@@ -72,8 +72,24 @@ def test_seeded_episodes_follow_the_timestep_not_the_process():
     same = new_callback(same_episodes=True)
     assert evaluate_at(same, 100) == evaluate_at(same, 200) == evaluate_at(new_callback(same_episodes=True), 300)
     assert running.episode_seed(0) != running.episode_seed(1) and same.episode_seed(1) == 8
-    with pytest.raises(ValueError, match="non-negative int"):
-        MultiEnvEvalCallback([gym.make("Pendulum-v1")], seed=-1)
+    for bad in (-1, True, 1.5):
+        with pytest.raises(ValueError, match="non-negative int"):
+            MultiEnvEvalCallback([gym.make("Pendulum-v1")], seed=bad)
+    envs = {"env_a": gym.make("Pendulum-v1"), "env_b": gym.make("Pendulum-v1", g=5.0)}
+    numpy_seeded = MultiEnvEvalCallback(envs, eval_freq=100, n_eval_episodes=2, seed=np.int64(7), same_episodes=True)
+    numpy_seeded.init_callback(model)  # gymnasium refuses numpy integers as seeds: the callback keeps a Python int
+    assert type(numpy_seeded.seed) is int and numpy_seeded.evaluate() == evaluate_at(same, 100)
+
+
+def test_protocol_evaluations_play_the_same_episodes(tmp_path):
+    """The protocol's jobs evaluate every time on the same seeded episodes (their returns are compared over time)."""
+    from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
+    from sb3_lifelong.experiments import PRESETS
+    from sb3_lifelong.experiments.protocol import job_callbacks
+
+    evaluation = job_callbacks(PRESETS["tiny"], tmp_path, eval_freq=100, seed=3)[1]
+    assert isinstance(evaluation, MultiEnvEvalCallback)
+    assert evaluation.same_episodes and evaluation.seed == EVAL_SEED_OFFSET + 3
 
 
 def test_experiment_callbacks_seed_their_evaluations(tmp_path):

@@ -110,7 +110,9 @@ class MultiEnvEvalCallback(BaseCallback):
     :param seed: seed of the evaluation environments (a non-negative int; None: not seeded): before every
         evaluation each environment is seeded from ``seed``, its position and the timestep, so that an evaluation's
         episodes depend on neither the process's history nor the evaluations before it: a run's evaluations are
-        reproducible, and a run resumed in a new process (new environments) evaluates as an uninterrupted one
+        reproducible, and a run resumed exactly in a new process (new environments) evaluates as an uninterrupted one
+        (with ``deterministic=True``: a stochastic policy's draws come from torch's generator, which is not seeded
+        here)
     :param same_episodes: with ``seed``, every evaluation plays the same episodes (the k-th environment is seeded with
         ``seed + k`` before each): differences between evaluations are then the policy's alone. Without it each
         evaluation plays new episodes (the mean over several evaluations then covers more starts)
@@ -167,9 +169,9 @@ class MultiEnvEvalCallback(BaseCallback):
         self._next_eval = 0
         if same_episodes and seed is None:
             raise ValueError("same_episodes=True needs a seed: the evaluation environments are seeded before every evaluation")
-        if seed is not None and (not isinstance(seed, (int, np.integer)) or seed < 0):
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f"seed must be a non-negative int or None, got {seed!r}")
-        self.seed = seed
+        self.seed = int(seed) if seed is not None else None  # a Python int: gymnasium refuses numpy integers
         self.same_episodes = same_episodes
         self.best_model_save_path = pathlib.Path(best_model_save_path) if best_model_save_path is not None else None
         self.evaluations_dir = pathlib.Path(evaluations_dir) if evaluations_dir is not None else None
@@ -199,7 +201,9 @@ class MultiEnvEvalCallback(BaseCallback):
             raise TypeError(
                 f"MultiEnvEvalCallback(sources=...) needs a model with one actor per source, got {type(self.model).__name__}"
             )
-        # first evaluation at the next multiple of eval_freq (learn may resume at any timestep)
+        # first evaluation at the next multiple of eval_freq (learn may resume at any timestep); an evaluate() called
+        # before training logs, and draws its episodes, at the model's timestep
+        self.num_timesteps = self.model.num_timesteps
         self._next_eval = (self.model.num_timesteps // self.eval_freq + 1) * self.eval_freq
         if self.log_path is not None:
             self.log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -281,10 +285,9 @@ class MultiEnvEvalCallback(BaseCallback):
         training_normalization = unwrap_vec_normalize(training_env) if training_env is not None else None
         all_rewards: list[list[float]] = []
         all_lengths: list[list[int]] = []
-        if self.seed is not None:
-            for index, env in enumerate(self.eval_envs.values()):
-                env.seed(self.episode_seed(index))  # applied at the reset that starts the evaluation
-        for name, env in self.eval_envs.items():
+        for index, (name, env) in enumerate(self.eval_envs.items()):
+            if self.seed is not None:
+                env.seed(self.episode_seed(index))  # applied at the reset that starts this evaluation
             if self.sources is not None and name in self.sources:
                 model.select_source(self.sources[name])
             if training_normalization is not None:
