@@ -233,6 +233,39 @@ def test_claims_follow_the_numbers(study):
         assert rows["C4a the imbalance drop"] == expected
 
 
+def test_report_shows_what_mpo_kept_beside_its_overestimation(study):
+    """The report's forgetting table: per seed, MPO in Env-A when it left (and how steadily), at the end, their ratio,
+    and the collector's overestimation of Env-A data when it left and at the end, from its ``q_sources.csv``."""
+    from sb3_lifelong.experiments.presets import stage_ends
+    from sb3_lifelong.experiments.report import forgetting_table
+
+    output, _ = study
+    study_data = load_study(output)
+    switch = stage_ends(study_data.preset["stage_steps"])[0]
+    for seed in (0, 1):
+        q = pd.read_csv(output / f"seed_{seed}" / "collect" / "q_sources.csv").dropna(subset=["overestimation"])
+        env_a = q[q["name"] == "Env-A"].sort_values("timesteps")
+        assert study_data.extra("MPO|overestimation_switch|Env-A")[seed] == pytest.approx(
+            env_a[env_a["timesteps"] <= switch]["overestimation"].iloc[-1]
+        )
+        assert study_data.extra("MPO|overestimation_end|Env-A")[seed] == pytest.approx(env_a["overestimation"].iloc[-1])
+        assert env_a["timesteps"].iloc[-1] > switch  # the end is measured after the switch
+    assert not study_data.extra("MPO|overestimation_end|Env-B")  # MPO never left Env-B
+    table = forgetting_table(study_data).splitlines()
+    assert len(table) == 2 + 2 and "overestimation" in table[0]  # a row per seed
+    at_switch, at_end = study_data.extra("MPO|switch|Env-A"), study_data.score("MPO", "Env-A")
+    for seed, row in zip((0, 1), table[2:]):
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[:2] == [str(seed), "Env-A"] and cells[2] == f"{at_switch[seed]:.0f}" and cells[4] == f"{at_end[seed]:.0f}"
+        over = (
+            study_data.extra("MPO|overestimation_switch|Env-A")[seed],
+            study_data.extra("MPO|overestimation_end|Env-A")[seed],
+        )
+        assert cells[6] == f"{over[0]:+.1f} -> {over[1]:+.1f}"
+        assert cells[5] == (f"{at_end[seed] / at_switch[seed]:.2f}" if at_switch[seed] > 0 else "-")  # C1's ratio
+    assert "## What MPO kept of the environments it left" in write_report(output, plots=False)
+
+
 def test_switch_spread_reads_the_end_of_the_stage():
     """The spread MPO left an environment with: its last 3 evaluations in the second half of the stage (not the climb
     before, not the next stage), the stage's last two where that half has fewer; no level, no spread."""

@@ -22,7 +22,14 @@ import numpy as np
 import pandas as pd
 
 from sb3_lifelong.experiments.figures import plot_study
-from sb3_lifelong.experiments.scores import ONLINE_LAST, STUDENT_LAST, SWITCH_SPREAD_EVALS, Study, load_study
+from sb3_lifelong.experiments.scores import (
+    ONLINE_LAST,
+    ONLINE_LAST_STAGE1,
+    STUDENT_LAST,
+    SWITCH_SPREAD_EVALS,
+    Study,
+    load_study,
+)
 
 BOOTSTRAP_RESAMPLES = 10_000
 
@@ -534,6 +541,43 @@ def weights_table(study: Study) -> str:
     return "\n".join(lines)
 
 
+def forgetting_table(study: Study) -> str:
+    """
+    :return: for each seed and each environment MPO left: its return there when it left (the switch score) and how
+        steady it was then, its return there at the end, their ratio (what the forgetting claims read), and the
+        collector's overestimation of that environment's data when it left and at the end (a source whose
+        overestimation grows is being forgotten); "" without MPO scores
+    """
+    envs = study.preset["env_names"][:-1]
+    if not any(study.extra(f"MPO|switch|{env}") for env in envs):
+        return ""
+    lines = [
+        "| seed | environment | when MPO left it | spread then | at the end | end / switch "
+        "| overestimation of its data: when MPO left it -> at the end |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+
+    def cell(values: Mapping[int, float], seed: int, form: str) -> str:
+        value = values.get(seed, float("nan"))
+        return form.format(value) if np.isfinite(value) else ("inf" if value == np.inf else "-")
+
+    for env in envs:
+        switch, spread, end = (
+            study.extra(f"MPO|switch|{env}"),
+            study.extra(f"MPO|switch_spread|{env}"),
+            study.score("MPO", env),
+        )
+        over_switch, over_end = study.extra(f"MPO|overestimation_switch|{env}"), study.extra(f"MPO|overestimation_end|{env}")
+        forgetting = ratio(end, switch)
+        for seed in study.seeds:
+            overestimation = f"{cell(over_switch, seed, '{:+.1f}')} -> {cell(over_end, seed, '{:+.1f}')}"
+            lines.append(
+                f"| {seed} | {env} | {cell(switch, seed, '{:.0f}')} | {cell(spread, seed, '{:.2f}')} | "
+                f"{cell(end, seed, '{:.0f}')} | {cell(forgetting, seed, '{:.2f}')} | {overestimation} |"
+            )
+    return "\n".join(lines)
+
+
 def claims_table(rows: list[dict[str, Any]]) -> str:
     """:return: the claims as a markdown table (with a precondition column when the rows have one)"""
     checked = any("precondition" in r for r in rows)
@@ -610,6 +654,15 @@ def write_report(output: pathlib.Path, plots: bool = True, seeds: Optional[Seque
         + "## Final returns\n\nmean +- std over seeds [95 % BCa bootstrap CI of the mean]; online methods: mean of the last "
         + f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
         + score_table(study)
+        + (
+            "\n\n## What MPO kept of the environments it left\n\nWhen it left: the mean of its last "
+            + f"{ONLINE_LAST_STAGE1} evaluations there; spread: std / mean of its last {SWITCH_SPREAD_EVALS} in the "
+            + "second half of that stage; at the end: the mean of its last "
+            + f"{ONLINE_LAST}; overestimation: the collector's mean Q minus the discounted return that followed, on "
+            + f"that environment's data.\n\n{forgetting}"
+            if (forgetting := forgetting_table(study))
+            else ""
+        )
         + (f"\n\n## The students' weights\n\n{weights}" if (weights := weights_table(study)) else "")
         + "\n\n## Claims\n\n"
         + claims_table(claims)

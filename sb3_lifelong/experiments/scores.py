@@ -15,7 +15,9 @@ A seed's scores:
   repeats);
 * Q per source: the student's last average Q-value over each environment's data;
 * the data's value per source: the discounted return that followed each sampled transition of an environment's data
-  in its stored episode (the collector's last Monte-Carlo measurement, ``data|mc_return|<env>``);
+  in its stored episode (the collector's last Monte-Carlo measurement, ``data|mc_return|<env>``), and how far the
+  collector's critic overestimates an environment's data when it leaves it and at the end
+  (:func:`collector_overestimation`);
 * a student's weights: the effective sample size and the share at the clip of its regression weights, the mean of
   its last ``STUDENT_TRAIN_LAST`` logged values (``<student>|weight_ess``, ``<student>|weight_clip_frac``).
 """
@@ -112,6 +114,35 @@ def data_values(seed: int, q_log: pathlib.Path) -> list[dict[str, Any]]:
     return [dict(seed=seed, metric=f"data|mc_return|{row.name}", value=float(row.mc_return)) for row in last.itertuples()]
 
 
+def collector_overestimation(seed: int, q_log: pathlib.Path, envs: Sequence[str], ends: Sequence[int]) -> list[dict[str, Any]]:
+    """
+    The forgetting-risk signal beside the forgetting claims: how far the collector's critic overestimates each left
+    environment's data (mean Q minus the discounted return that followed), when it left it and at the end.
+
+    :param seed: the seed
+    :param q_log: the collector's ``q_sources.csv``
+    :param envs: the environments, in stage order
+    :param ends: the last timestep of each stage
+    :return: the extras ``MPO|overestimation_switch|<env>`` (the last measurement up to the end of the environment's
+        stage) and ``MPO|overestimation_end|<env>`` (the last one), for each environment MPO left; none without
+        Monte-Carlo columns
+    """
+    if not q_log.exists():
+        return []
+    q = pd.read_csv(q_log)
+    if "overestimation" not in q.columns:
+        return []
+    q = q[q["overestimation"].notna()].sort_values("timesteps")
+    extras = []
+    for env, end in zip(envs[:-1], ends[:-1]):
+        rows = q[q["name"] == env]
+        for when, chosen in (("switch", rows[rows["timesteps"] <= end]), ("end", rows)):
+            if len(chosen):
+                value = float(chosen["overestimation"].iloc[-1])
+                extras.append(dict(seed=seed, metric=f"MPO|overestimation_{when}|{env}", value=value))
+    return extras
+
+
 def student_weights(seed: int, method: str, train_log: pathlib.Path) -> list[dict[str, Any]]:
     """:return: the extras ``<method>|weight_ess`` and ``<method>|weight_clip_frac`` of a student's ``train.csv``"""
     if not train_log.exists():
@@ -185,6 +216,7 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                         spread = switch_spread(frame, env, start, end)
                         extras.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=spread))
                     extras += data_values(seed, job_dir / "q_sources.csv")
+                    extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs, ends)
             elif job.startswith("distill_"):
                 method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
                 for env in envs:
