@@ -25,7 +25,10 @@ CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
 Q_CSV_FIELDS = ["timesteps", "source", "name", "q_mean", "n", "q_probe", "mc_return", "overestimation", "n_mc"]
 
 #: the experiments seed the evaluation environments of a run with seed ``s`` from ``EVAL_SEED_OFFSET + s`` (apart
-#: from the training environment's ``s``), so that a run's evaluations are reproducible
+#: from the training environment's ``s``), so that a run's evaluations are reproducible. With ``same_episodes`` the
+#: k-th environment gets ``EVAL_SEED_OFFSET + s + k``, so environment k + 1 of seed ``s`` starts its episodes from the
+#: same draws as environment k of seed ``s + 1`` (another robot, another policy; the protocol's seeds keep it so that
+#: their committed evaluations stay reproducible)
 EVAL_SEED_OFFSET = 10_000
 
 
