@@ -375,6 +375,17 @@ def _value_gap(study: Study) -> dict[int, float]:
     return ratio(study.extra(f"data|mc_return|{last}"), study.extra("data|mc_return|Env-A"))
 
 
+def _steady(env: str) -> Precondition:
+    """:return: the precondition that MPO left ``env`` at a level (``Preset.max_switch_spread``)"""
+    return Precondition(
+        "max_switch_spread",
+        f"MPO left {env} steadily (the spread, std / mean, of its last {SWITCH_SPREAD_EVALS} {env} evaluations before "
+        + "it left it <= {threshold})",
+        lambda s: s.extra(f"MPO|switch_spread|{env}"),
+        at_most=True,
+    )
+
+
 #: the preconditions of the claims (:attr:`Claim.needs`), each checked where the study's preset states its threshold
 PRECONDITIONS: dict[str, Precondition] = {
     "env_a_learnt": Precondition(
@@ -390,20 +401,8 @@ PRECONDITIONS: dict[str, Precondition] = {
         "the exp beta=1 student stays close to the data (its weights' effective sample size >= {threshold} of a batch)",
         lambda s: s.extra("CRR_exp_beta1|weight_ess"),
     ),
-    "steady": Precondition(
-        "max_switch_spread",
-        "MPO left Env-A steadily (the spread, std / mean, of its last "
-        + f"{SWITCH_SPREAD_EVALS} Env-A evaluations before the switch <= {{threshold}})",
-        lambda s: s.extra("MPO|switch_spread|Env-A"),
-        at_most=True,
-    ),
-    "steady_b": Precondition(
-        "max_switch_spread",
-        "MPO left Env-B steadily (the spread, std / mean, of its last "
-        + f"{SWITCH_SPREAD_EVALS} Env-B evaluations before its switch <= {{threshold}})",
-        lambda s: s.extra("MPO|switch_spread|Env-B"),
-        at_most=True,
-    ),
+    "steady": _steady("Env-A"),
+    "steady_b": _steady("Env-B"),
 }
 
 
