@@ -537,7 +537,7 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
         low.set_ylabel("overestimation")
         low.set_xlabel("environment steps of the collection")
         low.grid(alpha=0.3)
-        low.legend(fontsize=7, handlelength=4)
+        low.legend(fontsize=7, handlelength=4, ncol=2, loc="lower right")  # below the curves, which sit above zero
     fig.tight_layout()
     fig.savefig(root / f"collection_{robot}.png", dpi=110)
     plt.close(fig)
@@ -709,7 +709,7 @@ class Verdicts:
         """Test a claim: ``measure`` per testable seed, ``passed`` on them all. :return: its result"""
         testable, open_seeds = self.split(condition)
         values = [measure(s) for s in testable]
-        evidence = f"{label} " + ", ".join(f"seed {s}: {v:{spec}}" for s, v in zip(testable, values))
+        evidence = f"{label} " + (", ".join(f"seed {s}: {v:{spec}}" for s, v in zip(testable, values)) or "not measured")
         if len(testable) + len(open_seeds) < 2:
             return self.row(claim, testable, "not testable", f"preconditions held on {len(testable)} seed(s); {evidence}")
         if open_seeds:
