@@ -813,13 +813,16 @@ def dose_claims(v: Verdicts, dose: str, secondary: bool = False) -> None:
 
 
 def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
-    """Env-A return of each student against the dose, per seed (thin) and the mean (thick), with the references."""
+    """
+    Env-A and Env-B return of each student against the dose, per seed (thin) and the mean over the seeds that have
+    every dose (thick), with the references.
+    """
     from sb3_lifelong.experiments.style import pyplot
 
     plt = pyplot()
 
     doses = list(DOSES)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.8), sharex=True)
     for ax, env in zip(axes, ("Env-A", "Env-B")):
         for transform, color, label in (("ind", "C3", "indicator"), ("ess", "C0", f"exp, ESS {TARGET_ESS:g}")):
             curves = []
@@ -829,9 +832,12 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
                     continue
                 ax.plot(range(len(doses)), ys, color=color, alpha=0.3, lw=1, marker=".")
                 curves.append(ys)
-            if curves:
-                ax.plot(range(len(doses)), np.nanmean(curves, axis=0), color=color, lw=2.5, marker="o",
-                        label=f"{label} (n={len(curves)})")  # fmt: skip
+            # the mean over the seeds with every dose, so that no step of it is a change of seeds
+            complete = [ys for ys in curves if not any(math.isnan(y) for y in ys)]
+            partial = f"; {len(curves) - len(complete)} more incomplete, thin" if len(complete) < len(curves) else ""
+            if complete:
+                ax.plot(range(len(doses)), np.mean(complete, axis=0), color=color, lw=2.5, marker="o",
+                        label=f"{label} (n={len(complete)}{partial})")  # fmt: skip
         # the collector's references over the seeds that have students, so that lines and points share their seeds
         with_students = [c for c, students in data.values() if students]
         for key, style, name in (("stage1_last5", "--", "MPO at the switch (Stage-1)"), ("end_last5", "-.", "MPO at the end")):
@@ -848,8 +854,9 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
         ax.set_ylabel(f"return in {env} (last 3 evaluations)")
         ax.set_title(f"{robot}: students in {env}")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, ncol=3, loc="lower center")  # below the panels, clear of every line
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
     fig.savefig(root / f"dose_{robot}.png", dpi=110)
     plt.close(fig)
 
