@@ -710,6 +710,8 @@ class Verdicts:
         testable, open_seeds = self.split(condition)
         values = [measure(s) for s in testable]
         evidence = f"{label} " + (", ".join(f"seed {s}: {v:{spec}}" for s, v in zip(testable, values)) or "not measured")
+        if len(values) > 1:
+            evidence += f" (mean {np.mean(values):{spec}})"
         if len(testable) + len(open_seeds) < 2:
             return self.row(claim, testable, "not testable", f"preconditions held on {len(testable)} seed(s); {evidence}")
         if open_seeds:
@@ -788,7 +790,7 @@ def dose_claims(v: Verdicts, dose: str, secondary: bool = False) -> None:
         lambda s: v.dose_drop(s, "ind", dose),
         lambda drops: bool(np.mean(drops) >= 0.1 and sum(d > 0 for d in drops) >= 2),
         "drop / A_only",
-        "+.0%",
+        "+.1%",
     )
     c3 = f"{prefix}3 ESS student flat at {dose}"  # needs C2 passed and P4
     if c2 != "reproduced":
@@ -801,7 +803,7 @@ def dose_claims(v: Verdicts, dose: str, secondary: bool = False) -> None:
             lambda s: v.dose_drop(s, "ess", dose) - 0.5 * v.dose_drop(s, "ind", dose),
             lambda excess: bool(np.mean(excess) < 0),  # the ess drop below half the indicator's, on the mean
             "ess drop minus half the indicator's",
-            "+.0%",
+            "+.1%",
         )
     v.decide(
         f"{prefix}4 overestimation on A rises at {dose}",
