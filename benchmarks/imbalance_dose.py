@@ -7,7 +7,7 @@ pass criteria) before any run.
 One seed is two commands: the collection (``python -m sb3_lifelong.experiments run --preset dose_hopper --seed K
 --output runs/imbalance_dose_hopper``), then this script's ``run``, which measures the collector (frozen Stage-1 agent
 against the end, on the same evaluation episodes; its critic's overestimation per source at the switch and at the end;
-the Monte-Carlo value of each source at each reward dose) and trains the seven students on the seed's buffer (a
+the Monte-Carlo value of each source at each reward dose) and trains the eight students on the seed's buffer (a
 finished student is skipped when the command is run again)::
 
     OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py screen --robot hopper --seed 0   # at the switch, optional
@@ -1021,7 +1021,7 @@ def main() -> None:
     run_parser.add_argument("--robot", choices=sorted(ROBOTS), default="hopper")
     run_parser.add_argument("--seed", type=int, required=True)
     run_parser.add_argument("--updates", type=int, default=200_000, help="updates per student (pre-registered: 200k)")
-    run_parser.add_argument("--students", nargs="+", default=None, help="only these students (default: all seven)")
+    run_parser.add_argument("--students", nargs="+", default=None, help="only these students (default: all eight)")
     run_parser.add_argument("--runs", default="runs", help="where the collections are and the students go")
     run_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
     run_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
