@@ -845,7 +845,8 @@ def figure(robot: str, data: dict[int, Any], root: pathlib.Path) -> None:
         for key, style, name in (("stage1_last5", "--", "MPO at the switch (Stage-1)"), ("end_last5", "-.", "MPO at the end")):
             values = [c[f"{key}_{env}"] for c in with_students if not math.isnan(c.get(f"{key}_{env}", math.nan))]
             if values:  # (an adopted Stage-1 was evaluated in Env-A only)
-                ax.axhline(np.mean(values), color="k", ls=style, lw=1, label=f"{name} (n={len(values)})")
+                # no n in the label: the legend is shared, and a Stage-1 adopted from another study has no Env-B value
+                ax.axhline(np.mean(values), color="k", ls=style, lw=1, label=f"{name}, mean of the seeds measured")
         for name, color, label in (("A_only", "C2", "Env-A-only student"), ("B_only", "C1", "Env-B-only student")):
             reference = [s[name][f"return_{env}"] for _, s in data.values() if name in s]
             if reference:
