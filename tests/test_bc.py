@@ -60,11 +60,11 @@ def test_clones_a_linear_policy(loss):
     assert np.abs(predicted - data["actions"]).mean() < 0.15
     if loss == "nll":  # the standard deviation shrinks towards the (zero) noise of the data
         with th.no_grad():
-            _, std = model.actor.distribution_params(th.as_tensor(data["observations"]))
+            _, std = model.actor.distribution_params(th.as_tensor(data["observations"], device=model.device))
         assert float(std.mean()) < 0.2
     else:  # mse leaves the standard deviation alone
         with th.no_grad():
-            _, std = model.actor.distribution_params(th.as_tensor(data["observations"]))
+            _, std = model.actor.distribution_params(th.as_tensor(data["observations"], device=model.device))
         assert float(std.mean()) == pytest.approx(0.7, rel=0.2)
 
 

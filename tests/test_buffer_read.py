@@ -334,7 +334,7 @@ def test_pickle_keeps_read_mode(tmp_path):
     fill([buffer], 25, 1, seed=6)
     again = pickle.loads(pickle.dumps(buffer))  # a directory buffer pickles as a reference: hands the directory over
     assert again.read_mode == "pread" and again.size() == 25
-    reference = LifelongReplayBuffer.open(tmp_path / "b", read_only=True)
+    reference = LifelongReplayBuffer.open(tmp_path / "b", read_only=True, device="cpu")
     assert_same_samples(reference, again)
     again.close()
 

@@ -203,7 +203,7 @@ def test_round_trip_reopen_append(tmp_path):
 
 
 def test_n_envs_change_and_stream_ends():
-    buffer = LifelongReplayBuffer(0, OBS, ACT, n_steps=5, gamma=0.5)
+    buffer = LifelongReplayBuffer(0, OBS, ACT, n_steps=5, gamma=0.5, device="cpu")
     for width in (1, 1, 2, 2, 3, 1):
         obs = np.ones((width, 3))
         buffer.add(obs, obs, np.zeros((width, 2)), np.ones(width), np.zeros(width), [{}] * width)
@@ -417,7 +417,7 @@ def test_reward_range_reads_every_block():
 
 def test_sampling_weights_and_reward_scale():
     np.random.seed(0)
-    buffer = LifelongReplayBuffer(0, OBS, ACT)
+    buffer = LifelongReplayBuffer(0, OBS, ACT, device="cpu")
     fill(buffer, 1000, 1, stage=0)
     fill(buffer, 200, 1, stage=1)
     fill(buffer, 300, 1, stage=2)
@@ -511,7 +511,7 @@ def test_d4rl_round_trip(tmp_path):
 
 def test_d4rl_actions_in_environment_units():
     action_space = gym.spaces.Box(-2.0, 2.0, shape=(2,), dtype=np.float32)
-    buffer = LifelongReplayBuffer(0, OBS, action_space)
+    buffer = LifelongReplayBuffer(0, OBS, action_space, device="cpu")
     rng = np.random.default_rng(1)
     stored = rng.uniform(-1, 1, size=(20, 2)).astype(np.float32)  # SB3 stores normalised actions
     for t in range(20):
@@ -519,7 +519,7 @@ def test_d4rl_actions_in_environment_units():
     data = buffer.to_d4rl(by_episode=False)
     np.testing.assert_allclose(data["actions"], 2.0 * stored, rtol=1e-6)  # environment units
     np.testing.assert_array_equal(buffer.to_d4rl(by_episode=False, normalized_actions=True)["actions"], stored)
-    back = LifelongReplayBuffer.from_d4rl(data, observation_space=OBS, action_space=action_space)
+    back = LifelongReplayBuffer.from_d4rl(data, observation_space=OBS, action_space=action_space, device="cpu")
     np.testing.assert_allclose(back._get_samples(np.arange(20)).actions.numpy(), stored, rtol=1e-6, atol=1e-7)
 
 

@@ -141,11 +141,11 @@ def test_categorical_critic_returns_expected_values(data):
     model = offline_model(data, policy_kwargs=dict(net_arch=[16], distributional_critic=True, v_min=-10.0, v_max=10.0))
     critic = model.critic
     assert isinstance(critic, CategoricalCritic) and isinstance(model.critic_target, CategoricalCritic)
-    obs, actions = th.randn(5, 3), th.rand(5, 1) * 2 - 1
+    obs, actions = th.randn(5, 3, device=model.device), th.rand(5, 1, device=model.device) * 2 - 1
     (logits,) = critic.logits(obs, actions)
     assert logits.shape == (5, 51)
     (q,) = critic(obs, actions)
-    expected = (th.softmax(logits, dim=-1) * th.linspace(-10, 10, 51)).sum(-1, keepdim=True)
+    expected = (th.softmax(logits, dim=-1) * th.linspace(-10, 10, 51, device=model.device)).sum(-1, keepdim=True)
     th.testing.assert_close(q, expected)
     th.testing.assert_close(critic.q1_forward(obs, actions), expected)
 
@@ -359,10 +359,10 @@ def test_actor_averaging_is_an_average_of_the_iterates_and_leaves_training_alone
         th.testing.assert_close(p, mean, rtol=1e-5, atol=1e-6)
     # predict uses the averaged actor, which differs from the actor after 30 updates
     obs = np.random.default_rng(1).normal(size=(8, 3)).astype(np.float32)
-    tensor = th.as_tensor(obs)
+    tensor = th.as_tensor(obs, device=averaged.device)
     with th.no_grad():
-        want = averaged.policy.actor_average(tensor, deterministic=True).numpy()
-        online = averaged.actor(tensor, deterministic=True).numpy()
+        want = averaged.policy.actor_average(tensor, deterministic=True).cpu().numpy()
+        online = averaged.actor(tensor, deterministic=True).cpu().numpy()
     assert not np.allclose(want, online)
     np.testing.assert_allclose(averaged.policy.unscale_action(want), averaged.predict(obs, deterministic=True)[0], rtol=1e-6)
     # saved and loaded exactly, and training resumes with it

@@ -82,8 +82,8 @@ def test_an_actor_only_learns_from_its_source_and_the_critic_is_shared():
 def test_rows_are_routed_to_their_actor():
     model = per_source_model(two_source_buffer(50))
     assert isinstance(model.actor, PerSourceActor)
-    obs = th.rand(6, 3)
-    heads = th.tensor([0, 1, 1, 0, 1, 0])
+    obs = th.rand(6, 3, device=model.device)
+    heads = th.tensor([0, 1, 1, 0, 1, 0], device=model.device)
     mean, std = model.actor.distribution_params(obs, heads)
     for head in (0, 1):
         rows = heads == head

@@ -60,3 +60,46 @@ def test_compiled_student_matches_eager_on_cuda():
     assert compiled._forward.compiled is not None and not compiled._forward.failed
     difference = (flat_params(compiled) - flat_params(eager)).abs().max()
     assert difference <= 1e-4, float(difference)
+
+
+def test_a_cpu_buffer_trains_a_cuda_student():
+    """A buffer built (or opened) on the CPU samples onto the GPU once a model there uses it: one actor or one per
+    source."""
+    from sb3_lifelong import LifelongReplayBuffer
+
+    obs_space, act_space = spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,))
+    buffer = LifelongReplayBuffer(0, obs_space, act_space, device="cpu")
+    rng = np.random.default_rng(0)
+    for source in (0, 1):
+        buffer.set_source(source, name=f"env_{source}")
+        for _ in range(100):
+            obs = rng.uniform(-1, 1, (1, 3)).astype(np.float32)
+            buffer.add(obs, obs, np.full((1, 2), 0.5 - source, np.float32), np.ones(1), np.zeros(1), [{}])
+    for per_source in (False, True):
+        model = CRR.from_offline_data(buffer, actor_per_source=per_source, batch_size=32, seed=0, device="cuda")
+        model.learn_offline(20, log_interval=0)
+        assert buffer.device == CUDA and all(th.isfinite(p).all() for p in model.policy.parameters())
+
+
+def test_distill_follows_the_teacher_and_the_teacher_keeps_learning():
+    """The student runs where its teacher does unless told otherwise; a student on the CPU leaves the teacher's
+    buffer to the teacher, which samples on the GPU again when it learns on."""
+    teacher = MPO("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=64, batch_size=32, device="cuda", seed=0)
+    teacher.learn(128)
+    assert teacher.distill(CRR, gradient_steps=10, batch_size=32).device == CUDA
+    assert teacher.distill(CRR, gradient_steps=10, batch_size=32, device="cpu").device == th.device("cpu")
+    teacher.learn(64, reset_num_timesteps=False)
+    assert teacher.replay_buffer.device == CUDA
+
+
+def _cuda_sum(n: int) -> float:
+    return float(th.arange(n, device="cuda").sum())
+
+
+def test_a_process_pool_after_cuda_was_used():
+    """A local process pool started after this process used CUDA: its workers can use the GPU too (spawned, not
+    forked)."""
+    from sb3_lifelong.experiments.runner import map_parallel
+
+    th.zeros(1, device="cuda")
+    assert map_parallel(_cuda_sum, [dict(n=n) for n in (3, 4)], workers=2, backend="process") == [3.0, 6.0]

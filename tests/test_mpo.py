@@ -134,7 +134,7 @@ def test_dual_parametrisation():
 
 def test_sample_and_score_shapes():
     model = MPO("MlpPolicy", "Pendulum-v1", **SMALL)
-    obs = th.randn(5, 3)
+    obs = th.randn(5, 3, device=model.device)
     mean, std = model.actor_target.distribution_params(obs)
     actions = sample_gaussian(mean, std, 7)
     assert actions.shape == (7, 5, 1)
@@ -185,8 +185,8 @@ def test_train_logs_and_predict(tmp_path):
     assert action.shape == (1, 1)
     # deterministic action = mean of the Gaussian, rescaled to the action bounds
     with th.no_grad():
-        mean, _ = model.actor.distribution_params(th.as_tensor(obs))
-    np.testing.assert_allclose(action, model.policy.unscale_action(mean.clamp(-1, 1).numpy()), rtol=1e-5)
+        mean, _ = model.actor.distribution_params(th.as_tensor(obs, device=model.device))
+    np.testing.assert_allclose(action, model.policy.unscale_action(mean.clamp(-1, 1).cpu().numpy()), rtol=1e-5)
     stochastic = np.stack([model.predict(obs, deterministic=False)[0] for _ in range(20)])
     assert stochastic.std() > 0
     assert np.all(np.abs(stochastic) <= 2.0)
@@ -622,7 +622,7 @@ def test_td_target_hand_computed_with_episode_ends_and_n_step_discounts():
     from sb3_lifelong.common.losses import bootstrap_discount, td_target
 
     # one env, rewards 1, 2, 3, 4, 5; the episode terminates at the third step and a new one starts; n = 2, gamma = 0.5
-    buffer = LifelongReplayBuffer(10, spaces.Box(-1, 1, (1,)), spaces.Box(-1, 1, (1,)), n_steps=2, gamma=0.5)
+    buffer = LifelongReplayBuffer(10, spaces.Box(-1, 1, (1,)), spaces.Box(-1, 1, (1,)), n_steps=2, gamma=0.5, device="cpu")
     for t, (reward, done) in enumerate(zip([1.0, 2.0, 3.0, 4.0, 5.0], [False, False, True, False, False])):
         obs = np.array([[t]], dtype=np.float32)
         buffer.add(obs, obs + 1, np.zeros((1, 1), np.float32), np.array([reward]), np.array([done]), [{}])

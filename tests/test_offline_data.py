@@ -106,6 +106,27 @@ def test_replay_buffer_source_is_used_as_is():
         CRR.from_offline_data(buffer, normalized_actions=False, **SMALL)
 
 
+def test_a_buffer_on_another_device_samples_onto_the_model_device():
+    """A buffer built or opened for another device (here "meta", standing for a GPU) samples where the model's networks
+    are from the model's first use on: its construction, set_offline_data and every training run."""
+    import torch as th
+
+    buffer = _filled_sb3_buffer()
+    buffer.device = th.device("meta")
+    model = CRR.from_offline_data(buffer, device="cpu", **SMALL)
+    assert model.replay_buffer is buffer and buffer.device == model.device == th.device("cpu")
+    for adopt in (lambda: model.set_offline_data(buffer), lambda: None):  # the second: learn_offline alone adopts it
+        buffer.device = th.device("meta")
+        adopt()
+        model.learn_offline(3, log_interval=0)
+        assert buffer.device == th.device("cpu") and model.replay_buffer.sample(4).observations.device.type == "cpu"
+    online = CRR("MlpPolicy", "Pendulum-v1", learning_starts=10, device="cpu", **SMALL)
+    online.learn(20)
+    online.replay_buffer.device = th.device("meta")  # e.g. shared with a model on another device
+    online.learn(10, reset_num_timesteps=False)
+    assert online.replay_buffer.device == th.device("cpu")
+
+
 def test_replay_buffer_to_d4rl_time_order_and_sarsa():
     buffer = _filled_sb3_buffer(n_envs=2, size=60, steps=40)  # 30 rows per env: wrapped around
     data = replay_buffer_to_d4rl(buffer)
@@ -147,7 +168,7 @@ def test_lifelong_buffer_source():
 def test_next_actions_follow_each_env_stream(n_steps):
     """Two envs written interleaved, episodes of different lengths: the next action is the same env's next one."""
     obs_space, act_space = spaces.Box(-np.inf, np.inf, (2,)), spaces.Box(-1, 1, (1,))
-    buffer = LifelongReplayBuffer(200, obs_space, act_space, n_envs=2, n_steps=n_steps, gamma=0.9)
+    buffer = LifelongReplayBuffer(200, obs_space, act_space, n_envs=2, n_steps=n_steps, gamma=0.9, device="cpu")
     lengths = (4, 3)  # env 0 ends an episode every 4 steps (a terminal), env 1 every 3 (a timeout)
     actions = np.zeros((30, 2), dtype=np.float32)
     for t in range(30):

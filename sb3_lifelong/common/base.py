@@ -498,7 +498,17 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     ) -> tuple[int, BaseCallback]:
         self._restore_loaded_rng()
         self._sync_env_timestep(0 if reset_num_timesteps else self.num_timesteps)
+        self._sample_on_model_device()
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def _sample_on_model_device(self) -> None:
+        """
+        Have the replay buffer sample onto the model's device, as SB3's ``load_replay_buffer`` does: a buffer built or
+        opened on another device (e.g. on the CPU, for a model on a GPU), or shared with a model on another device
+        (``distill``'s teacher), gives its batches where this model's networks are. Called before each training run.
+        """
+        if self.replay_buffer is not None and self.replay_buffer.device != self.device:
+            self.replay_buffer.device = self.device
 
     def _sync_env_timestep(self, timestep: int) -> None:
         """

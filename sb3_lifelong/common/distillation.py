@@ -116,7 +116,7 @@ def distill(
     :param eval_sources: with ``actor_per_source=True`` (a CRR diagnostic): the source whose actor is evaluated in
         each environment of ``eval_env``, by name
     :param student_kwargs: the student's hyperparameters (``advantage_transform="exp"``, ``beta=1.0``,
-        ``batch_size``, ``seed``, ``tensorboard_log``, ``verbose``, ...)
+        ``batch_size``, ``seed``, ``tensorboard_log``, ``verbose``, ``device`` (default: the model's), ...)
     :return: the trained student, ready for ``predict`` and ``save``
     """
     if not isinstance(student_class, type) or not hasattr(student_class, "from_offline_data"):
@@ -133,6 +133,7 @@ def distill(
         student_kwargs.setdefault("verbose", teacher.verbose)
         student_kwargs.setdefault("observation_space", teacher.observation_space)
         student_kwargs.setdefault("action_space", teacher.action_space)
+        student_kwargs.setdefault("device", teacher.device)
     else:
         data = source  # a buffer directory is opened read-only by from_offline_data
 

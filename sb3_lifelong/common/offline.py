@@ -91,9 +91,10 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
         """
         Build a model whose replay buffer holds ``data``, ready for :meth:`learn_offline`.
 
-        :param data: an SB3 ``ReplayBuffer`` (used as it is, e.g. a ``LifelongReplayBuffer``), a d4rl-style dict
-            (``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals``, optional
-            ``timeouts``), the path of a ``.npz`` file holding one, or a Minari dataset (id or object)
+        :param data: an SB3 ``ReplayBuffer`` (used as it is, e.g. a ``LifelongReplayBuffer``; it samples onto the
+            model's device from then on, as after SB3's ``load_replay_buffer``), a d4rl-style dict (``observations``,
+            ``actions``, ``rewards``, ``next_observations``, ``terminals``, optional ``timeouts``), the path of a
+            ``.npz`` file holding one, or a Minari dataset (id or object)
         :param policy: the policy (``"MlpPolicy"``, ...)
         :param env: optional environment: gives the spaces, and lets the model ``learn()`` online afterwards
         :param observation_space: observation space (default: the env's, the buffer's, or inferred from the data)
@@ -126,6 +127,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
         model.replay_buffer = buffer
         model.buffer_size = buffer.buffer_size
         model._setup_model()
+        model._sample_on_model_device()
         return model
 
     def _check_offline_spaces(self) -> None:
@@ -147,6 +149,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
                 f"the data's observation space {buffer.observation_space} does not match the model's {self.observation_space}"
             )
         self.replay_buffer = buffer
+        self._sample_on_model_device()
 
     def _prepare_offline_buffer(self) -> None:
         """Hook: adapt ``self.replay_buffer`` before offline training (e.g. add next actions for SARSA)."""
@@ -195,6 +198,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
             raise ValueError(f"gradient_steps must be >= 0, got {gradient_steps}")
         self._check_eval_sources(eval_sources)  # before training, not at the first evaluation
         self._prepare_offline_buffer()
+        self._sample_on_model_device()
         self.start_time = time.time_ns()
         if self.ep_info_buffer is None or reset_num_timesteps:
             self.ep_info_buffer = deque(maxlen=self._stats_window_size)

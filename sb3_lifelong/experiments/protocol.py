@@ -103,8 +103,14 @@ def tensorboard_dir(directory: pathlib.Path) -> Optional[str]:
     return str(directory / "tb")
 
 
+#: where every model of a study runs: one process per CPU core (small networks, one transition per update). Models
+#: that continue a paused job load onto it too, so that a run in parts computes what an uninterrupted one does, also
+#: on a machine with a GPU.
+DEVICE = "cpu"
+
+
 def _common(preset: Preset, seed: int) -> dict[str, Any]:
-    return dict(policy_kwargs=dict(net_arch=list(preset.net_arch), layer_norm=preset.layer_norm), seed=seed)
+    return dict(policy_kwargs=dict(net_arch=list(preset.net_arch), layer_norm=preset.layer_norm), seed=seed, device=DEVICE)
 
 
 def value_support(reward_range: tuple[float, float], gamma: float, scales: Sequence[float] = ()) -> dict[str, float]:
@@ -264,7 +270,7 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
     return MPO.load(
         directory / PAUSED_MODEL,
         env=make_env(preset, switch_at=switch_points(preset)),
-        device="cpu",
+        device=DEVICE,
         replay_buffer_kwargs=dict(path=run_dir / "buffer", mode="append"),
     )
 
@@ -372,7 +378,7 @@ def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress
     shutil.rmtree(directory, ignore_errors=True)
     directory.mkdir(parents=True)
     # the agent only: its saved buffer settings point at the lifetime buffer, which other jobs may be reading
-    stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
+    stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device=DEVICE, custom_objects={"replay_buffer_kwargs": {}})
     start = int(stage1.num_timesteps)
     env = make_env(preset, switch_at=switch_points(preset))  # learn() tells it the timestep: model.num_timesteps
     model = CRR(
@@ -622,7 +628,7 @@ def distill_student(
             **common,
         )
     else:
-        model = algorithm.load(directory / paused["model"])
+        model = algorithm.load(directory / paused["model"], device=DEVICE)
         model.set_offline_data(data)
         model.tensorboard_log = tensorboard_dir(directory)
         forward = getattr(model, "_forward", None)

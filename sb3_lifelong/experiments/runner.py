@@ -12,6 +12,7 @@ graph. A job that fails prints its traceback; the others go on, and the jobs tha
 """
 
 import contextlib
+import multiprocessing
 import os
 import pathlib
 import time
@@ -161,7 +162,7 @@ def _run_pool(preset: Preset, graph: list[Job], output: str, workers: int, log: 
     progress = _Progress(graph, log)
     waiting = list(graph)
     running: dict[Future, Job] = {}
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=_process_context()) as pool:
         while waiting or running:
             for job in list(waiting):
                 if any(progress.failed(dep) for dep in job.after):
@@ -271,8 +272,18 @@ def map_parallel(
         with ray_session(workers, address):
             remote = ray.remote(num_cpus=1, max_retries=0)(function)
             return ray.get([remote.remote(**kwargs) for kwargs in calls])
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=_process_context()) as pool:
         return list(pool.map(_call, [function] * len(calls), calls))
+
+
+def _process_context() -> Any:
+    """
+    The start method of a local process pool: the platform's default, but ``spawn`` once this process has
+    initialised CUDA (a process forked after that cannot use the GPU: each of its models would fail).
+    """
+    import torch as th
+
+    return multiprocessing.get_context("spawn" if th.cuda.is_initialized() else None)
 
 
 def _call(function: Callable[..., Any], kwargs: dict[str, Any]) -> Any:
