@@ -61,7 +61,7 @@ def test_each_actor_learns_its_own_source(actor_averaging):
     shared.learn_offline(400)
     assert abs(mean_action(shared)) < 0.3
     # ... with the spread of the two sources' actions (+-0.6) as its standard deviation (untrained: 0.77)
-    obs = th.as_tensor(np.random.default_rng(1).uniform(-1, 1, (50, 3)).astype(np.float32))
+    obs = th.as_tensor(np.random.default_rng(1).uniform(-1, 1, (50, 3)).astype(np.float32), device=shared.device)
     with th.no_grad():
         assert float(shared.actor.distribution_params(obs)[1].mean()) == pytest.approx(0.6, abs=0.1)
 

@@ -103,3 +103,28 @@ def test_a_process_pool_after_cuda_was_used():
 
     th.zeros(1, device="cuda")
     assert map_parallel(_cuda_sum, [dict(n=n) for n in (3, 4)], workers=2, backend="process") == [3.0, 6.0]
+
+
+def _two_source_buffer(device: str):
+    from sb3_lifelong import LifelongReplayBuffer
+
+    buffer = LifelongReplayBuffer(0, spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,)), device=device)
+    for source in (0, 1):
+        buffer.set_source(source, name=f"env_{source}")
+        for t in range(60):
+            obs = np.full((1, 3), t / 60, np.float32)
+            buffer.add(obs, obs, np.zeros((1, 2), np.float32), np.ones(1), np.array([t % 20 == 19]), [{}])
+    return buffer
+
+
+def test_source_q_callback_on_data_held_on_another_device():
+    """The per-source Q diagnostic measures a CPU student on data that samples onto the GPU, and the reverse."""
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback
+
+    for model_device, data_device in (("cpu", "cuda"), ("cuda", "cpu")):
+        model = CRR.from_offline_data(_two_source_buffer(model_device), batch_size=32, seed=0, device=model_device)
+        data = _two_source_buffer(data_device)
+        callback = SourceQCallback(log_freq=5, batch_size=64, data=data)
+        model.learn_offline(10, log_interval=0, callback=callback)
+        assert data.device == th.device(data_device) and len(callback.results) == 4  # 2 measurements x 2 sources
+        assert all(np.isfinite(row["q_mean"]) and np.isfinite(row["overestimation"]) for row in callback.results)

@@ -447,9 +447,17 @@ class SourceQCallback(BaseCallback):
         # a model trained on a VecNormalize env sees normalised observations: so must its critic here
         normalizer = getattr(self.model, "_vec_normalize_env", None)
         samples, sources = buffer.sample(self.batch_size, env=normalizer, return_sources=True)
+        # ``data`` may sample onto another device than the model's (it is not the model's own buffer)
+        device = self.model.device
+        observations = samples.observations
+        if isinstance(observations, dict):
+            observations = {key: value.to(device) for key, value in observations.items()}
+        else:
+            observations = observations.to(device)
         critic: Any = self.model.critic  # type: ignore[attr-defined]
         with th.no_grad():
-            q_values = critic(samples.observations, samples.actions)[0].flatten()
+            q_values = critic(observations, samples.actions.to(device))[0].flatten().cpu()
+        sources = sources.cpu()
         names = buffer.sources
         truth = self._probe.measure(critic, self.model.device, normalizer) if self._probe is not None else {}
         means: dict[str, float] = {}
