@@ -1,5 +1,6 @@
-"""MPO and CRR on a CUDA GPU: training, the "auto" scoring precision, the compiled update and save/load. Skipped
-where torch sees no GPU (CI); run them on a machine that has one."""
+"""MPO and CRR on a CUDA GPU: training, the "auto" scoring precision, the compiled update and save/load, and data
+held on the other device (buffers, the per-source Q diagnostic, distill's student, process pools). Skipped where torch
+sees no GPU (CI); run them on a machine that has one."""
 
 import gymnasium as gym
 import numpy as np
