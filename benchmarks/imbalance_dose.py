@@ -230,6 +230,9 @@ def run(args: argparse.Namespace) -> None:
     study = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}")
     output = pathlib.Path(args.students_output or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}_students")
     results = pathlib.Path(args.results) / args.robot / f"seed_{args.seed}"
+    if args.student_seed is not None:  # a replicate: its own students' directory and results, the collector's kept
+        output = output.with_name(f"{output.name}_student{args.student_seed}")
+        results = pathlib.Path(args.results) / args.robot / "replicates" / f"seed_{args.seed}_student{args.student_seed}"
     results.mkdir(parents=True, exist_ok=True)
     collector_json = results / "collector.json"
     if not collector_json.exists():
@@ -244,7 +247,7 @@ def run(args: argparse.Namespace) -> None:
     students = student_settings(support)
     chosen = {name: students[name] for name in (args.students or students)}
     about = dict(study="imbalance_dose", robot=args.robot, updates=args.updates, support=support)
-    distill_on_study(study, args.seed, output, chosen, preset, about=about)
+    distill_on_study(study, args.seed, output, chosen, preset, student_seed=args.student_seed, about=about)
     rows = {}
     for name in students:
         directory = output / f"seed_{args.seed}" / f"distill_{name}"
@@ -1027,6 +1030,7 @@ def main() -> None:
     run_parser.add_argument("--study", default=None, help="the collection (default: <runs>/imbalance_dose_<robot>)")
     run_parser.add_argument("--students-output", default=None, help="default: <runs>/imbalance_dose_<robot>_students")
     run_parser.add_argument("--results", default=str(RESULTS), help="where the small results go")
+    run_parser.add_argument("--student-seed", type=int, default=None, help="a replicate: the students' own seed")
     collection_arguments(sub.add_parser("screen", help="the collection at the switch (Stage-1 agent and data) only"), "hopper")
     branch_parser = sub.add_parser("branch", help="a collection with another change, from a finished Stage-1")
     branch_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah")

@@ -880,7 +880,7 @@ def test_imbalance_dose_study(study, tmp_path):
     results = tmp_path / "results"
     args = argparse.Namespace(
         robot="tiny", seed=0, updates=60, students=None, runs=str(tmp_path), study=str(output),
-        students_output=str(tmp_path / "students"), results=str(results),
+        students_output=str(tmp_path / "students"), results=str(results), student_seed=None,
     )  # fmt: skip
     screen_args = argparse.Namespace(robot="tiny", seed=0, runs=str(tmp_path), study=str(output), results=str(results))
     dose.screen(screen_args)
@@ -909,6 +909,12 @@ def test_imbalance_dose_study(study, tmp_path):
     where = argparse.Namespace(robot="tiny", updates=60, runs=str(tmp_path), study=str(output),
                                students_output=str(tmp_path / "students"))  # fmt: skip
     assert "seed 0: collection finished; students done 8 of 8" in "\n".join(dose.progress(where))
+    # a replicate on the same buffer: another student seed, its own directories; the report reads the study's alone
+    dose.run(argparse.Namespace(**{**vars(args), "students": ["A_only"], "student_seed": 7}))
+    replicate = json.loads((results / "tiny" / "replicates" / "seed_0_student7" / "students.json").read_text())
+    done = json.loads((tmp_path / "students_student7" / "seed_0" / "distill_A_only" / "done.json").read_text())
+    assert set(replicate["students"]) == {"A_only"} and (done["student_seed"], done["buffer_seed"]) == (7, 0)
+    assert replicate["students"]["A_only"]["evals_Env-A"] != summary["students"]["A_only"]["evals_Env-A"]
     dose.report(argparse.Namespace(results=str(results)))
     claims = pd.read_csv(results / "claims.csv")
     assert {"claim", "preconditions_held", "result"} <= set(claims.columns)
