@@ -15,6 +15,9 @@ finished student is skipped when the command is run again)::
     python benchmarks/imbalance_dose.py report     # preconditions, claims.csv, tables, the figure, every seed so far
     python benchmarks/imbalance_dose.py same-collection --robot cheetah_hip --seed 0 --runs runs   # a collection
         # run again (after its run directory was lost) against the committed one's Q log: the same training?
+    OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot cheetah_hip --seed 0 --student-seed 1000 \
+        --students ess_x1_1to5 ess_x1_1to20    # the same students again on the seed's buffer, another student seed
+    python benchmarks/imbalance_dose.py replicates --robot cheetah_hip   # each replicate beside the study's student
 
 Small results go to ``benchmarks/results/imbalance_dose/<robot>/seed_<k>/``; buffers and students stay in ``runs/``.
 """
@@ -1009,6 +1012,46 @@ def merge_students(args: argparse.Namespace) -> dict[str, Any]:
     return merged
 
 
+def replicates(args: argparse.Namespace) -> list[str]:
+    """
+    The students trained again on a seed's buffer with another student seed (``run --student-seed``), beside the
+    study's own: each one's Env-A return, and each dose's drop over the study's ``A_only`` of that seed, where the
+    replicate holds the base dose's student and the dosed one of a transform. Written to ``replicates.md``.
+
+    :return: the table's lines
+    """
+    root = pathlib.Path(args.results)
+    students = ["| seed | student seed | student | Env-A, replicate | Env-A, study | replicate - study |"]
+    students.append("| --- | --- | --- | --- | --- | --- |")
+    drops = [
+        "| seed | student seed | transform, dose | drop / `A_only`, replicate | drop / `A_only`, study | replicate - study |"
+    ]
+    drops.append("| --- | --- | --- | --- | --- | --- |")
+    for path in sorted(root.glob(f"{args.robot}/replicates/seed_*_student*/students.json")):
+        seed, student_seed = path.parent.name[len("seed_") :].split("_student")
+        study = json.loads((root / args.robot / f"seed_{seed}" / "students.json").read_text())["students"]
+        replicate = json.loads(path.read_text())["students"]
+        for name, row in replicate.items():
+            original = study.get(name, {}).get("return_Env-A", math.nan)
+            returns = f"{row['return_Env-A']:.0f} | {original:.0f} | {row['return_Env-A'] - original:+.0f}"
+            students.append(f"| {seed} | {student_seed} | `{name}` | {returns} |")
+        reference = study["A_only"]["return_Env-A"]
+        for transform in TRANSFORMS:
+            for dose in DOSES:
+                base, dosed = f"{transform}_{BASE_DOSE}", f"{transform}_{dose}"
+                if dose == BASE_DOSE or base not in replicate or dosed not in replicate:
+                    continue
+                again = (replicate[base]["return_Env-A"] - replicate[dosed]["return_Env-A"]) / reference
+                first = (study[base]["return_Env-A"] - study[dosed]["return_Env-A"]) / reference
+                values = f"{100 * again:.1f} % | {100 * first:.1f} % | {100 * (again - first):+.1f} points"
+                drops.append(f"| {seed} | {student_seed} | {transform}, {dose} | {values} |")
+    lines = [f"# Replicates of {args.robot}'s students (another student seed, the same buffer)", "", *students, ""]
+    lines += ["Drops, each over the study's `A_only` of the seed (Env-A, last 3 evaluations):", "", *drops]
+    (root / "replicates.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return lines
+
+
 def collection_arguments(parser: argparse.ArgumentParser, robot: str) -> None:
     """The arguments of a command on one seed's collection: the robot (default ``robot``), the seed, where it is."""
     parser.add_argument("--robot", choices=sorted(ROBOTS), default=robot)
@@ -1060,6 +1103,11 @@ def main() -> None:
     merge_parser.add_argument("--seed", type=int, required=True)
     merge_parser.add_argument("--from", dest="source", required=True, help="the other results directory")
     merge_parser.add_argument("--results", default=str(RESULTS), help="the results directory merged into")
+    replicates_parser = sub.add_parser(
+        "replicates", help="students trained again with another student seed (run --student-seed)"
+    )
+    replicates_parser.add_argument("--robot", choices=sorted(ROBOTS), default="cheetah_hip")
+    replicates_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     report_parser = sub.add_parser("report", help="preconditions, claims, tables and figures of every seed so far")
     report_parser.add_argument("--results", default=str(RESULTS), help="the results directory")
     args = parser.parse_args()
@@ -1068,7 +1116,7 @@ def main() -> None:
     th.set_num_threads(1)
     if args.command == "same-collection":
         raise SystemExit(0 if same_collection(args) else 1)
-    commands = dict(run=run, screen=screen, branch=branch, progress=progress, report=report)
+    commands = dict(run=run, screen=screen, branch=branch, progress=progress, report=report, replicates=replicates)
     commands["adopt-stage1"] = adopt_stage1
     commands["merge-students"] = merge_students
     commands[args.command](args)

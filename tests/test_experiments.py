@@ -910,11 +910,18 @@ def test_imbalance_dose_study(study, tmp_path):
                                students_output=str(tmp_path / "students"))  # fmt: skip
     assert "seed 0: collection finished; students done 8 of 8" in "\n".join(dose.progress(where))
     # a replicate on the same buffer: another student seed, its own directories; the report reads the study's alone
-    dose.run(argparse.Namespace(**{**vars(args), "students": ["A_only"], "student_seed": 7}))
+    dose.run(argparse.Namespace(**{**vars(args), "students": ["ess_x1_1to5", "ess_x1_1to20"], "student_seed": 7}))
     replicate = json.loads((results / "tiny" / "replicates" / "seed_0_student7" / "students.json").read_text())
-    done = json.loads((tmp_path / "students_student7" / "seed_0" / "distill_A_only" / "done.json").read_text())
-    assert set(replicate["students"]) == {"A_only"} and (done["student_seed"], done["buffer_seed"]) == (7, 0)
-    assert replicate["students"]["A_only"]["evals_Env-A"] != summary["students"]["A_only"]["evals_Env-A"]
+    done = json.loads((tmp_path / "students_student7" / "seed_0" / "distill_ess_x1_1to5" / "done.json").read_text())
+    assert set(replicate["students"]) == {"ess_x1_1to5", "ess_x1_1to20"}
+    assert (done["student_seed"], done["buffer_seed"]) == (7, 0)
+    assert replicate["students"]["ess_x1_1to5"]["evals_Env-A"] != summary["students"]["ess_x1_1to5"]["evals_Env-A"]
+    table = dose.replicates(argparse.Namespace(robot="tiny", results=str(results)))
+    assert sum(line.startswith("| 0 | 7 | `ess_x1_") for line in table) == 2  # each replicate beside the study's
+    (drop,) = [line for line in table if line.startswith("| 0 | 7 | ess, x1_1to20 |")]  # the dose the replicate holds
+    study = summary["students"]
+    expected = (study["ess_x1_1to5"]["return_Env-A"] - study["ess_x1_1to20"]["return_Env-A"]) / study["A_only"]["return_Env-A"]
+    assert f"| {100 * expected:.1f} % |" in drop and (results / "replicates.md").exists()
     dose.report(argparse.Namespace(results=str(results)))
     claims = pd.read_csv(results / "claims.csv")
     assert {"claim", "preconditions_held", "result"} <= set(claims.columns)
