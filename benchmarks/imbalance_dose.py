@@ -15,8 +15,8 @@ finished student is skipped when the command is run again)::
     python benchmarks/imbalance_dose.py report     # preconditions, claims.csv, tables, the figure, every seed so far
     python benchmarks/imbalance_dose.py same-collection --robot cheetah_hip --seed 0 --runs runs   # a collection
         # run again (after its run directory was lost) against the committed one's Q log: the same training?
-    OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot cheetah_hip --seed 0 --student-seed 1000 \
-        --students ess_x1_1to5 ess_x1_1to20    # the same students again on the seed's buffer, another student seed
+    OMP_NUM_THREADS=1 python benchmarks/imbalance_dose.py run --robot cheetah_hip --seed 0 --student-seed 1000
+        --students ess_x1_1to5 ess_x1_1to20    # (one line) the same students again on the buffer, another student seed
     python benchmarks/imbalance_dose.py replicates --robot cheetah_hip   # each replicate beside the study's student
 
 Small results go to ``benchmarks/results/imbalance_dose/<robot>/seed_<k>/``; buffers and students stay in ``runs/``.
