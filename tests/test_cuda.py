@@ -63,20 +63,23 @@ def test_compiled_student_matches_eager_on_cuda():
     assert difference <= 1e-4, float(difference)
 
 
+def _two_source_buffer(device: str):
+    from sb3_lifelong import LifelongReplayBuffer
+
+    buffer = LifelongReplayBuffer(0, spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,)), device=device)
+    for source in (0, 1):
+        buffer.set_source(source, name=f"env_{source}")
+        for t in range(60):
+            obs = np.full((1, 3), t / 60, np.float32)
+            buffer.add(obs, obs, np.zeros((1, 2), np.float32), np.ones(1), np.array([t % 20 == 19]), [{}])
+    return buffer
+
+
 def test_a_cpu_buffer_trains_a_cuda_student():
     """A buffer built (or opened) on the CPU samples onto the GPU once a model there uses it: one actor or one per
     source."""
-    from sb3_lifelong import LifelongReplayBuffer
-
-    obs_space, act_space = spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,))
-    buffer = LifelongReplayBuffer(0, obs_space, act_space, device="cpu")
-    rng = np.random.default_rng(0)
-    for source in (0, 1):
-        buffer.set_source(source, name=f"env_{source}")
-        for _ in range(100):
-            obs = rng.uniform(-1, 1, (1, 3)).astype(np.float32)
-            buffer.add(obs, obs, np.full((1, 2), 0.5 - source, np.float32), np.ones(1), np.zeros(1), [{}])
     for per_source in (False, True):
+        buffer = _two_source_buffer("cpu")
         model = CRR.from_offline_data(buffer, actor_per_source=per_source, batch_size=32, seed=0, device="cuda")
         model.learn_offline(20, log_interval=0)
         assert buffer.device == CUDA and all(th.isfinite(p).all() for p in model.policy.parameters())
@@ -104,18 +107,6 @@ def test_a_process_pool_after_cuda_was_used():
 
     th.zeros(1, device="cuda")
     assert map_parallel(_cuda_sum, [dict(n=n) for n in (3, 4)], workers=2, backend="process") == [3.0, 6.0]
-
-
-def _two_source_buffer(device: str):
-    from sb3_lifelong import LifelongReplayBuffer
-
-    buffer = LifelongReplayBuffer(0, spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,)), device=device)
-    for source in (0, 1):
-        buffer.set_source(source, name=f"env_{source}")
-        for t in range(60):
-            obs = np.full((1, 3), t / 60, np.float32)
-            buffer.add(obs, obs, np.zeros((1, 2), np.float32), np.ones(1), np.array([t % 20 == 19]), [{}])
-    return buffer
 
 
 def test_source_q_callback_on_data_held_on_another_device():
