@@ -30,6 +30,8 @@ TEST_VALUES = dict(
     gravity=5.0,
     actuator_strength=0.5,
     joint_damping=10.0,
+    leg_motor_scale=-1.0,
+    joint_lock=1.0,
 )
 
 
@@ -135,6 +137,98 @@ def test_field_edits_update_derived_constants() -> None:
     assert total == pytest.approx(2.0 * float(env2.unwrapped.model.body_subtreemass[0]))  # mj_setConst ran
     np.testing.assert_allclose(model.opt.gravity, [0.0, 0.0, -3.0])
     np.testing.assert_allclose(model.actuator_gear[:, 0], 0.5 * env2.unwrapped.model.actuator_gear[:, 0])
+
+
+@pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5"])
+def test_leg_motor_scale_scales_and_reverses_one_leg(env_id: str) -> None:
+    env = DynamicsSchedule(gym.make(env_id))
+    model = env.unwrapped.model
+    nominal = model.actuator_gear[:, 0].copy()
+    leg = env.editor._leg_actuators
+    others = [a for a in range(model.nu) if a not in leg]
+    assert leg and len(leg) == len(env.editor.description.leg_joints)
+    for scale in (-1.0, 0.25, 2.0):
+        env.set_params({"leg_motor_scale": scale}, immediate=True)
+        np.testing.assert_allclose(model.actuator_gear[leg, 0], scale * nominal[leg])
+        np.testing.assert_array_equal(model.actuator_gear[others, 0], nominal[others])  # the other leg is untouched
+    env.set_params({}, immediate=True)
+    np.testing.assert_array_equal(model.actuator_gear[:, 0], nominal)
+
+
+def test_reversed_leg_pushes_the_other_way() -> None:
+    """A torque on the reversed leg's joints has the opposite sign for the same control."""
+    forces = {}
+    for scale in (1.0, -1.0):
+        env = DynamicsSchedule(gym.make("HalfCheetah-v5"), stages=[{"leg_motor_scale": scale}])
+        env.reset(seed=0)
+        env.unwrapped.data.ctrl[:] = 1.0
+        mujoco.mj_forward(env.unwrapped.model, env.unwrapped.data)
+        forces[scale] = env.unwrapped.data.qfrc_actuator[3:].copy()  # joint torques (after the root's three dofs)
+    np.testing.assert_allclose(forces[-1.0][:3], -forces[1.0][:3])
+    np.testing.assert_allclose(forces[-1.0][3:], forces[1.0][3:])
+    assert np.all(np.abs(forces[1.0]) > 0)
+
+
+def test_servo_reversal_mirrors_the_target_and_keeps_feedback_negative() -> None:
+    op3_or_skip()
+    env = DynamicsSchedule(gym.make(OP3_WALK_ID))
+    model = env.unwrapped.model
+    gain, bias, limit = model.actuator_gainprm[:, 0].copy(), model.actuator_biasprm.copy(), model.actuator_forcerange.copy()
+    leg = env.editor._leg_actuators
+    assert len(leg) == 6
+    env.set_params({"leg_motor_scale": -0.5}, immediate=True)
+    np.testing.assert_allclose(model.actuator_gainprm[leg, 0], -gain[leg])
+    np.testing.assert_array_equal(model.actuator_biasprm, bias)  # feedback (-kp q) keeps its sign
+    np.testing.assert_allclose(model.actuator_forcerange[leg], 0.5 * limit[leg])
+
+
+@pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5"])
+def test_joint_lock_holds_the_joint_near_its_reference(env_id: str) -> None:
+    moved = {}
+    for share in (0.0, 1.0):
+        env = DynamicsSchedule(gym.make(env_id), stages=[{"joint_lock": share}])
+        model, data = env.unwrapped.model, env.unwrapped.data
+        joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, env.editor.description.lock_joint)
+        address = model.jnt_qposadr[joint]
+        env.reset(seed=0)
+        env.action_space.seed(0)
+        angles = []
+        for _ in range(300):
+            _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            angles.append(float(data.qpos[address]))
+            if terminated or truncated:
+                env.reset()
+        moved[share] = np.ptp(angles)
+    assert moved[1.0] < 0.2 < moved[0.0], moved  # locked: a soft limit's give of a few degrees, free: a wide swing
+    env.set_params({"joint_lock": 0.5}, immediate=True)
+    low, high = env.editor._nominal["jnt_range"][joint]
+    np.testing.assert_allclose(model.jnt_range[joint], [low / 2, high / 2])  # reference 0: half the range either side
+
+
+def test_limb_perturbations_need_their_parts() -> None:
+    import dataclasses
+
+    from sb3_lifelong.envs.perturbations import ROBOTS, PhysicsEditor, find_mujoco
+
+    handle = find_mujoco(gym.make("Hopper-v5"))
+    handle.description = dataclasses.replace(ROBOTS["HopperEnv"], leg_joints=(), lock_joint=None)
+    editor = PhysicsEditor(handle)
+    assert "leg_motor_scale" not in editor.supported and "joint_lock" not in editor.supported
+    with pytest.raises(ValueError, match="unknown dynamics parameter 'joint_lock'"):
+        editor.validate({"joint_lock": 1.0})
+    handle.description = dataclasses.replace(ROBOTS["HopperEnv"], lock_joint="no_such_joint")
+    with pytest.raises(ValueError, match="no joint named 'no_such_joint'"):
+        PhysicsEditor(handle)
+    with pytest.raises(ValueError, match="outside its physical range"):
+        DynamicsSchedule(gym.make("Hopper-v5"), stages=[{"joint_lock": 1.5}])
+
+
+def test_an_unvaried_schedule_observes_the_whole_robot_parameters_only() -> None:
+    """The observation of a schedule whose stages vary nothing kept its size when the limb perturbations came."""
+    env = DynamicsSchedule(gym.make("Hopper-v5"), append_params=True)
+    assert env.observed_params == ["hip_deformation", "foot_scale", "ground_softness", "friction", "mass_scale", "gravity",
+                                   "actuator_strength", "joint_damping"]  # fmt: skip
+    assert env.observation_space.shape == (11 + 8,)
 
 
 def test_perturbations_are_documented() -> None:

@@ -21,6 +21,8 @@ DMC_WALKER_DESCRIPTION = RobotDescription(
     foot_geoms=("right_foot", "left_foot"),
     hip_body="right_thigh",
     hip_axis=(0.0, 1.0, 0.0),
+    leg_joints=("right_hip", "right_knee", "right_ankle"),
+    lock_joint="right_knee",
 )
 
 

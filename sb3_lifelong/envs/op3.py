@@ -44,6 +44,8 @@ OP3_DESCRIPTION = RobotDescription(
     foot_geoms=OP3_FOOT_GEOMS,
     hip_body="r_hip_pitch_link",
     hip_axis=(-1.0, 0.0, 0.0),  # roll: the right leg splays outwards for positive values
+    leg_joints=("r_hip_yaw", "r_hip_roll", "r_hip_pitch", "r_knee", "r_ank_pitch", "r_ank_roll"),
+    lock_joint="r_knee",
 )
 
 # knee bend of the standing pose (rad); hip and ankle pitch take half of it each, so the soles stay flat

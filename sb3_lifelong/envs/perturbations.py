@@ -97,10 +97,32 @@ PERTURBATIONS: Dict[str, Perturbation] = {
             1.0,
         ),
         Perturbation("joint_damping", "x nominal", "scale of every joint's viscous damping", 0.0, 100.0, 1.0),
+        Perturbation(
+            "leg_motor_scale",
+            "x nominal",
+            "scale of the motors of one leg (the robot description's leg_joints: the right leg, HalfCheetah's back "
+            "leg): torque of torque motors, force limit of position servos; below 0 the motors are reversed (a torque "
+            "motor pushes the other way, a servo is sent to the mirrored angle)",
+            -2.0,
+            5.0,
+            1.0,
+        ),
+        Perturbation(
+            "joint_lock",
+            "1",
+            "share of one joint's range of motion taken away (the robot description's lock_joint: the right knee, "
+            "HalfCheetah's back knee), shrinking the range toward the joint's reference angle; 1 locks the joint",
+            0.0,
+            1.0,
+            1.0,
+        ),
     ]
 }
 
 ALL_PERTURBATIONS: Tuple[str, ...] = tuple(PERTURBATIONS)
+#: perturbations of one part of the robot, supported where its description names that part (``leg_joints``,
+#: ``lock_joint``); the others act on the whole robot, its feet or the one deformed hip
+LIMB_PERTURBATIONS: Tuple[str, ...] = ("leg_motor_scale", "joint_lock")
 
 
 @dataclass(frozen=True)
@@ -114,6 +136,8 @@ class RobotDescription:
     :param hip_body: name of the body rotated by ``hip_deformation`` (the right thigh)
     :param hip_axis: axis of that rotation in the body's own frame
     :param perturbations: names of the perturbations that make sense for this robot
+    :param leg_joints: the joints of one leg, whose motors ``leg_motor_scale`` scales (empty: not supported)
+    :param lock_joint: the joint ``joint_lock`` locks (None: not supported)
     :param ranges: robot-specific physical ranges that replace the generic ones (``name -> (low, high)``)
     """
 
@@ -123,19 +147,53 @@ class RobotDescription:
     hip_body: str
     hip_axis: Tuple[float, float, float] = (1.0, 0.0, 0.0)
     perturbations: Tuple[str, ...] = ALL_PERTURBATIONS
+    leg_joints: Tuple[str, ...] = ()
+    lock_joint: Optional[str] = None
     ranges: Mapping[str, Tuple[float, float]] = field(default_factory=dict)
 
 
 #: Robot descriptions, keyed by the class name of the unwrapped env. An env may instead carry its own
 #: description as the attribute ``robot_description``.
 ROBOTS: Dict[str, RobotDescription] = {
-    "Walker2dEnv": RobotDescription("Walker2d", "floor", ("foot_geom", "foot_left_geom"), "thigh", (0.0, 1.0, 0.0)),
-    "HopperEnv": RobotDescription("Hopper", "floor", ("foot_geom",), "thigh", (0.0, 1.0, 0.0)),
-    # no left/right: the back thigh plays the deformed hip
-    "HalfCheetahEnv": RobotDescription("HalfCheetah", "floor", ("bfoot", "ffoot"), "bthigh", (0.0, 1.0, 0.0)),
+    "Walker2dEnv": RobotDescription(
+        "Walker2d",
+        "floor",
+        ("foot_geom", "foot_left_geom"),
+        "thigh",
+        (0.0, 1.0, 0.0),
+        leg_joints=("thigh_joint", "leg_joint", "foot_joint"),
+        lock_joint="leg_joint",
+    ),
+    # one leg: leg_motor_scale acts on all three motors
+    "HopperEnv": RobotDescription(
+        "Hopper",
+        "floor",
+        ("foot_geom",),
+        "thigh",
+        (0.0, 1.0, 0.0),
+        leg_joints=("thigh_joint", "leg_joint", "foot_joint"),
+        lock_joint="leg_joint",
+    ),
+    # no left/right: the back leg plays the deformed hip, the weak or reversed leg and the locked knee
+    "HalfCheetahEnv": RobotDescription(
+        "HalfCheetah",
+        "floor",
+        ("bfoot", "ffoot"),
+        "bthigh",
+        (0.0, 1.0, 0.0),
+        leg_joints=("bthigh", "bshin", "bfoot"),
+        lock_joint="bshin",
+    ),
     # Humanoid integrates with RK4 (damping is explicit): above ~3x nominal damping the simulation diverges
     "HumanoidEnv": RobotDescription(
-        "Humanoid", "floor", ("right_foot", "left_foot"), "right_thigh", (1.0, 0.0, 0.0), ranges={"joint_damping": (0.0, 3.0)}
+        "Humanoid",
+        "floor",
+        ("right_foot", "left_foot"),
+        "right_thigh",
+        (1.0, 0.0, 0.0),
+        leg_joints=("right_hip_x", "right_hip_z", "right_hip_y", "right_knee"),
+        lock_joint="right_knee",
+        ranges={"joint_damping": (0.0, 3.0)},
     ),
 }
 
@@ -157,6 +215,8 @@ _EDITED_FIELDS = (
     "actuator_gainprm",
     "actuator_biasprm",
     "dof_damping",
+    "jnt_range",
+    "jnt_limited",
 )
 
 
@@ -283,6 +343,14 @@ class PhysicsEditor:
         self._floor = self._id(mujoco.mjtObj.mjOBJ_GEOM, desc.floor_geom)
         self._feet = [self._id(mujoco.mjtObj.mjOBJ_GEOM, name) for name in desc.foot_geoms]
         self._hip = self._id(mujoco.mjtObj.mjOBJ_BODY, desc.hip_body)
+        leg = [self._id(mujoco.mjtObj.mjOBJ_JOINT, name) for name in desc.leg_joints]
+        driven = [a for a in range(m.nu) if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT]
+        self._leg_actuators = [a for a in driven if int(m.actuator_trnid[a, 0]) in leg]
+        if leg and not self._leg_actuators:
+            raise ValueError(f"{desc.name}: no actuator drives the leg joints {desc.leg_joints}")
+        self._lock = None if desc.lock_joint is None else self._id(mujoco.mjtObj.mjOBJ_JOINT, desc.lock_joint)
+        if self._lock is not None and int(m.jnt_type[self._lock]) != int(mujoco.mjtJoint.mjJNT_HINGE):
+            raise ValueError(f"{desc.name}: joint_lock needs a hinge joint, {desc.lock_joint!r} is not one")
         self._nominal = {name: getattr(m, name).copy() for name in _EDITED_FIELDS}
         self._nominal_gravity = m.opt.gravity.copy()
         # feet whose mass comes from their geometry need a recompile when they change size
@@ -300,8 +368,11 @@ class PhysicsEditor:
             "gravity": float(np.linalg.norm(self._nominal_gravity)),
             "actuator_strength": 1.0,
             "joint_damping": 1.0,
+            "leg_motor_scale": 1.0,
+            "joint_lock": 0.0,
         }
-        self.nominal_params = {k: v for k, v in self.nominal_params.items() if k in desc.perturbations}
+        parts = {"leg_motor_scale": bool(self._leg_actuators), "joint_lock": self._lock is not None}
+        self.nominal_params = {k: v for k, v in self.nominal_params.items() if k in desc.perturbations and parts.get(k, True)}
         self.params: Dict[str, float] = dict(self.nominal_params)
         self.last_apply_recompiled = False
 
@@ -473,10 +544,41 @@ class PhysicsEditor:
                     m.actuator_biasprm[a, 1:3] *= s
         if full.get("joint_damping", 1.0) != 1.0:
             m.dof_damping[:] *= full["joint_damping"]
+        if full.get("leg_motor_scale", 1.0) != 1.0:
+            self._scale_leg_motors(full["leg_motor_scale"])
+        if full.get("joint_lock", 0.0) != 0.0:
+            self._lock_joint(full["joint_lock"])
         mujoco.mj_setConst(m, self._scratch)
         self.params = full
         self.last_apply_recompiled = recompile
         return dict(full)
+
+    def _scale_leg_motors(self, scale: float) -> None:
+        """Scale one leg's motors by ``abs(scale)``; a negative ``scale`` also reverses them."""
+        m = self.model
+        for a in self._leg_actuators:
+            if m.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE:
+                m.actuator_gear[a] *= scale  # torque motor: torque per unit of control, its sign reversed below 0
+                continue
+            # position servo (force = kp * ctrl - kp * q): reversing negates the commanded angle only; negating the
+            # bias too would turn its feedback positive
+            if scale < 0:
+                m.actuator_gainprm[a, 0] *= -1
+            if m.actuator_forcelimited[a]:
+                m.actuator_forcerange[a] *= abs(scale)
+            else:
+                m.actuator_gainprm[a, 0] *= abs(scale)
+                m.actuator_biasprm[a, 1:3] *= abs(scale)
+
+    def _lock_joint(self, share: float) -> None:
+        """Shrink the locked joint's range by ``share`` toward its reference angle (``qpos0``, clipped to the range)."""
+        m, j = self.model, self._lock
+        low, high = (float(x) for x in self._nominal["jnt_range"][j])
+        if not self._nominal["jnt_limited"][j]:  # an unlimited hinge: its range is shrunk from +-pi
+            low, high = -np.pi, np.pi
+        reference = float(np.clip(m.qpos0[m.jnt_qposadr[j]], low, high))
+        m.jnt_limited[j] = 1
+        m.jnt_range[j] = [reference + (1 - share) * (low - reference), reference + (1 - share) * (high - reference)]
 
     def _compiled_arrays(self, foot: float) -> Dict[str, np.ndarray]:
         """Arrays of the model recompiled with scaled feet (cached per scale)."""

@@ -29,7 +29,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
-from sb3_lifelong.envs.perturbations import PERTURBATIONS, PhysicsEditor, find_mujoco, stable_seed
+from sb3_lifelong.envs.perturbations import LIMB_PERTURBATIONS, PERTURBATIONS, PhysicsEditor, find_mujoco, stable_seed
 from sb3_lifelong.envs.stages import NAMED_STAGES
 
 StageLike = Union[str, Mapping[str, float]]
@@ -354,7 +354,7 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
     :param append_params: append the observed parameters, normalised as ``(value - nominal) / obs_scale``, to the
         observation (and widen the observation space)
     :param observed_params: parameters appended by ``append_params``; default: those the stages or schedules vary
-        (all parameters if none vary)
+        (all whole-robot parameters, not the limb ones, if none vary)
     :param schedule_seed: seed from which the random schedulers without their own seed are seeded
     :param start_timestep: global timestep of the first step (to continue a schedule, e.g. after loading a model).
         Only needed outside this package's algorithms: their ``learn`` sets the model's ``num_timesteps``
@@ -431,8 +431,8 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
         varied = sorted({k for s in self._stages for k in s} | set(self.schedules))
         self.observed_params: List[str] = list(observed_params) if observed_params is not None else varied
-        if not self.observed_params:
-            self.observed_params = list(self.editor.supported)
+        if not self.observed_params:  # the whole-robot ones (limb perturbations came later: the observation kept its size)
+            self.observed_params = [name for name in self.editor.supported if name not in LIMB_PERTURBATIONS]
         self.editor.validate({k: self.editor.nominal_params.get(k, math.nan) for k in self.observed_params}, "observed_params")
         self.append_params = bool(append_params)
         if self.append_params:
