@@ -33,6 +33,8 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from sb3_lifelong.experiments.branching import adopt_stage1 as adopt
+from sb3_lifelong.experiments.branching import measure_agent
 from sb3_lifelong.experiments.report import t_interval
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "imbalance_dose"
@@ -99,37 +101,6 @@ def last_mean(eval_csv: pathlib.Path, env: str, upto: Optional[int], count: int)
     rows = [row for row in rows if upto is None or int(row["timesteps"]) <= upto]
     values = [float(row["mean_reward"]) for row in rows[-count:]]
     return float(np.mean(values)), values
-
-
-def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Any, seed: int, episodes: int) -> dict[str, Any]:
-    """
-    One saved collector agent (``collect/<name>.zip``): its return in every environment on the same evaluation
-    episodes, and its critic's Q and overestimation on each source of ``buffer``.
-
-    :return: ``<name>_same_episodes_<env>``, ``<name>_q_<source>``, ``<name>_overestimation_<source>``,
-        ``mc_return_x1_<source>``
-    """
-    from stable_baselines3.common.evaluation import evaluate_policy
-    from stable_baselines3.common.monitor import Monitor
-
-    from sb3_lifelong import MPO
-    from sb3_lifelong.envs import stage_envs
-    from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
-    from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
-
-    agent = MPO.load(run_dir / "collect" / f"{name}.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
-    out: dict[str, Any] = {}
-    envs = stage_envs(preset.env_id, list(preset.stages), preset.env_names, preset.env_kwargs, append_params=True)
-    for env_name, env in envs.items():
-        monitored = Monitor(env)
-        monitored.reset(seed=EVAL_SEED_OFFSET + seed)
-        out[f"{name}_same_episodes_{env_name}"] = float(evaluate_policy(agent, monitored, episodes, deterministic=True)[0])
-    names = {source: meta.get("name", f"source_{source}") for source, meta in buffer.sources.items()}
-    for source, measured in MonteCarloProbe(buffer, agent.gamma, per_source=4096, seed=seed).measure(agent.critic).items():
-        out[f"{name}_overestimation_{names[source]}"] = measured.overestimation
-        out[f"{name}_q_{names[source]}"] = measured.q_mean
-        out[f"mc_return_x1_{names[source]}"] = measured.mc_return
-    return out
 
 
 def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int) -> dict[str, Any]:
@@ -293,49 +264,6 @@ def branch(args: argparse.Namespace) -> None:
     (results / "branch.json").write_text((run_dir / "branch.json").read_text())
     copy_collection_curve(run_dir, results)
     print(f"branch {change} finished -> {run_dir}; its curve -> {results}")
-
-
-def adopt(preset: Any, source: pathlib.Path, run_dir: pathlib.Path) -> None:
-    """
-    Lay out ``preset``'s collection in ``run_dir``, paused at its switch, from the finished Stage-1 of the seed
-    directory ``source`` (the same robot, seed and Env-A; :func:`branch` says why Env-A is the same): the Stage-1
-    agent as the pause's checkpoint, the Stage-1 buffer as the lifetime buffer, Env-A's evaluations.
-    """
-    import shutil
-
-    from sb3_lifelong import LifelongReplayBuffer
-    from sb3_lifelong.buffers import merge_buffers
-    from sb3_lifelong.buffers.files import write_json_atomic
-    from sb3_lifelong.experiments.presets import describe_stage
-    from sb3_lifelong.experiments.protocol import PAUSED_MODEL, PAUSED_RECORD
-
-    if run_dir.exists():
-        raise FileExistsError(f"{run_dir} exists: a Stage-1 is adopted into a new seed directory only")
-    switch = preset.stage_steps[0]
-    with LifelongReplayBuffer.open(source / "buffer_stage1", read_only=True) as stage1:
-        if stage1.size() != switch or set(stage1.source_counts()) != {0}:
-            raise ValueError(f"{source / 'buffer_stage1'} holds {stage1.source_counts()}, not {switch:,} Env-A steps")
-        directory = run_dir / "collect"
-        directory.mkdir(parents=True)
-        merge_buffers([stage1], path=run_dir / "buffer_stage1").close()
-        buffer = merge_buffers([stage1], path=run_dir / "buffer")
-    for index in reversed(range(len(preset.env_names))):
-        buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=describe_stage(preset.stages[index])))
-    buffer.flush()
-    buffer.close()
-    for name in ("stage1.zip", "train.csv"):  # (collections before TrainLogCallback have no train.csv)
-        if (source / "collect" / name).exists():
-            shutil.copy(source / "collect" / name, directory / name)
-    shutil.copy(source / "collect" / "stage1.zip", directory / PAUSED_MODEL)
-    for name, keep in (("eval.csv", "env"), ("q_sources.csv", "name")):  # Env-A's rows: the other Env-B was not this one
-        with open(source / "collect" / name, newline="") as handle:
-            rows = list(csv.DictReader(handle))
-        with open(directory / name, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(r for r in rows if int(r["timesteps"]) <= switch and r[keep] == preset.env_names[0])
-    write_json_atomic(str(directory / PAUSED_RECORD), dict(timesteps=switch, transitions=switch))
-    (run_dir / "adopted.json").write_text(json.dumps(dict(stage1_from=str(source)), indent=1))
 
 
 def adopt_stage1(args: argparse.Namespace) -> None:

@@ -1,0 +1,398 @@
+"""
+The forgetting screen: where does MPO, keeping every transition, lose Env-A after the robot changes?
+
+Pre-registered in ``README.md`` beside this script (candidates, budgets, thresholds, the selection rule) before any
+run. Per robot and seed, MPO learns Env-A once (``stage1``); each candidate change of that robot continues from that
+Stage-1 (agent, optimisers, buffer) into its own Env-B for three times as long (``candidate``). The measurement at the
+end: the Env-A return at the end against the Stage-1 agent's (last evaluations, the same seeded episodes every
+evaluation), the frozen Stage-1 agent and the end agent on the same ten episodes, and the critic's overestimation of
+Env-A data against its Monte-Carlo return through Stage 2.
+
+One seed is one command that runs the pre-registered order and skips what is done; a killed command continues from
+its last part (``PART`` steps)::
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/forgetting_screen/screen.py queue --seed 0 --runs /work/runs
+    python benchmarks/studies/forgetting_screen/screen.py progress --runs /work/runs
+    python benchmarks/studies/forgetting_screen/screen.py report      # screen.csv, results.md, screen.png
+
+Small results go to ``results/<candidate>/seed_<k>/`` beside this script; buffers and agents stay in ``--runs``.
+"""
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import pathlib
+import time
+from typing import Any, Optional
+
+import numpy as np
+
+STUDY = pathlib.Path(__file__).resolve().parent
+RESULTS = STUDY / "results"
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """A robot of the screen: its environment, its Env-A budget and what counts as Env-A learnt."""
+
+    env_id: str
+    env_a_steps: int
+    threshold: float
+
+
+#: the robots, in the order a seed runs them
+ROBOTS = {
+    "cheetah": Robot("HalfCheetah-v5", 60_000, 1500.0),
+    "hopper": Robot("Hopper-v5", 100_000, 1000.0),
+    "walker": Robot("Walker2d-v5", 100_000, 1000.0),
+}
+#: the candidate changes (Env-A is the nominal robot), in the order a seed runs them
+CANDIDATES: dict[str, tuple[str, dict[str, float]]] = {
+    "cheetah_back_reversed": ("cheetah", {"leg_motor_scale": -1.0}),
+    "cheetah_back_knee_locked": ("cheetah", {"joint_lock": 1.0}),
+    "cheetah_back_weak": ("cheetah", {"leg_motor_scale": 0.25}),
+    "cheetah_hip": ("cheetah", {"hip_deformation": 1.0}),
+    "hopper_reversed": ("hopper", {"leg_motor_scale": -1.0}),
+    "hopper_feet": ("hopper", {"foot_scale": 2.0}),
+    "walker_right_reversed": ("walker", {"leg_motor_scale": -1.0}),
+    "walker_right_knee_locked": ("walker", {"joint_lock": 1.0}),
+    "walker_soft_ground": ("walker", {"ground_softness": 0.1}),
+}
+SEEDS = (0, 1)
+ENV_B_FACTOR = 3  # Env-B runs three times as long as Env-A
+EVAL_FREQ = 5_000
+EVAL_EPISODES = 5  # per evaluation and environment, the same seeded episodes every time
+LAST = 5  # evaluations in a last-k mean
+SAME_EPISODES = 10  # episodes of the frozen-against-end comparison
+MAX_SPREAD = 0.2  # Env-A steady: sd / mean of the last LAST Env-A evaluations before the switch
+FORGETS = 0.8  # a seed forgets when the end's Env-A last-k mean is at most this share of the Stage-1 agent's
+PART = 20_000  # steps per part of a collection: a killed command loses at most this much
+
+
+def preset(candidate: str) -> Any:
+    """The collection of one candidate: the ``cpu`` preset's collector on the candidate's robot and change."""
+    from sb3_lifelong.experiments.presets import PRESETS
+
+    robot_name, change = CANDIDATES[candidate]
+    robot = ROBOTS[robot_name]
+    return dataclasses.replace(
+        PRESETS["cpu"],
+        env_id=robot.env_id,
+        stages=({}, dict(change)),
+        stage_steps=(robot.env_a_steps, ENV_B_FACTOR * robot.env_a_steps),
+        eval_freq=EVAL_FREQ,
+        eval_episodes=EVAL_EPISODES,
+        env_a_learnt=robot.threshold,
+        max_switch_spread=MAX_SPREAD,
+        students=(),
+        online=False,
+        note=f"forgetting screen, {candidate}",
+    )
+
+
+def first_candidate(robot: str) -> str:
+    return next(name for name, (r, _) in CANDIDATES.items() if r == robot)
+
+
+def paused_at(run_dir: pathlib.Path) -> int:
+    """:return: the timestep a collection paused at (0: not started)"""
+    record = run_dir / "collect" / "paused.json"
+    return int(json.loads(record.read_text())["timesteps"]) if record.exists() else 0
+
+
+def collect_in_parts(settings: Any, seed: int, run_dir: pathlib.Path, stop: int) -> None:
+    """Collect to ``stop`` steps in parts of ``PART``; each part ends with a checkpoint that the next continues."""
+    from sb3_lifelong.experiments.protocol import collect
+
+    done = paused_at(run_dir)
+    while done < stop:
+        start = time.perf_counter()
+        until = min(stop, (done // PART + 1) * PART)
+        finished = collect(settings, seed, run_dir, log=print, until=until)
+        print(f"{run_dir}: to step {until:,} in {time.perf_counter() - start:.0f} s", flush=True)
+        if finished:
+            return
+        done = paused_at(run_dir)
+
+
+def stage1_dir(runs: pathlib.Path, robot: str, seed: int) -> pathlib.Path:
+    return runs / "forgetting_screen" / robot / "stage1" / f"seed_{seed}"
+
+
+def run_stage1(robot: str, seed: int, runs: pathlib.Path) -> pathlib.Path:
+    """MPO learns Env-A of ``robot`` (the Stage-1 every candidate of the robot continues from)."""
+    run_dir = stage1_dir(runs, robot, seed)
+    if not (run_dir / "collect" / "stage1.zip").exists():
+        collect_in_parts(preset(first_candidate(robot)), seed, run_dir, ROBOTS[robot].env_a_steps)
+    return run_dir
+
+
+def run_candidate(candidate: str, seed: int, runs: pathlib.Path, results: pathlib.Path) -> Optional[dict[str, Any]]:
+    """One candidate's Env-B from its robot's Stage-1, then its measurement (skipped when measured)."""
+    from sb3_lifelong.experiments.branching import adopt_stage1
+
+    out = results / candidate / f"seed_{seed}" / "measure.json"
+    if out.exists():
+        return json.loads(out.read_text())
+    robot = CANDIDATES[candidate][0]
+    source = run_stage1(robot, seed, runs)
+    settings = preset(candidate)
+    run_dir = runs / "forgetting_screen" / candidate / f"seed_{seed}"
+    if not run_dir.exists():
+        adopt_stage1(settings, source, run_dir)
+    start = time.perf_counter()
+    collect_in_parts(settings, seed, run_dir, sum(settings.stage_steps))
+    measured = measure(candidate, seed, run_dir)
+    measured["measure_seconds"] = time.perf_counter() - start
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for name in ("eval.csv", "q_sources.csv"):
+        (out.parent / name).write_text((run_dir / "collect" / name).read_text())
+    out.write_text(json.dumps(measured, indent=1))
+    print(f"{candidate} seed {seed}: forgetting ratio {measured['forgetting_ratio']:.3f} -> {out}", flush=True)
+    return measured
+
+
+def last_evaluations(eval_csv: pathlib.Path, env: str, upto: Optional[int], count: int = LAST) -> list[float]:
+    """:return: the mean returns of the last ``count`` evaluations in ``env`` at timesteps <= ``upto``"""
+    with open(eval_csv, newline="") as handle:
+        rows = [row for row in csv.DictReader(handle) if row["env"] == env]
+    rows = [row for row in rows if upto is None or int(row["timesteps"]) <= upto]
+    rows.sort(key=lambda row: int(row["timesteps"]))
+    return [float(row["mean_reward"]) for row in rows[-count:]]
+
+
+def overestimation_at(q_csv: pathlib.Path, name: str, timesteps: int) -> float:
+    """:return: the critic's overestimation of source ``name`` logged at ``timesteps`` (NaN when not logged)"""
+    with open(q_csv, newline="") as handle:
+        for row in csv.DictReader(handle):
+            if row["name"] == name and int(row["timesteps"]) == timesteps and row.get("overestimation"):
+                return float(row["overestimation"])
+    return math.nan
+
+
+def measure(candidate: str, seed: int, run_dir: pathlib.Path) -> dict[str, Any]:
+    """The pre-registered measurements of one candidate and seed (README, "What is measured")."""
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.experiments.branching import measure_agent
+
+    settings = preset(candidate)
+    robot_name, change = CANDIDATES[candidate]
+    robot = ROBOTS[robot_name]
+    switch, end = settings.stage_steps[0], sum(settings.stage_steps)
+    eval_csv = run_dir / "collect" / "eval.csv"
+    stage1 = last_evaluations(eval_csv, "Env-A", switch)
+    end_a = last_evaluations(eval_csv, "Env-A", None)
+    end_b = last_evaluations(eval_csv, "Env-B", None)
+    stage1_mean, end_mean = float(np.mean(stage1)), float(np.mean(end_a))
+    spread = float(np.std(stage1, ddof=1) / abs(stage1_mean)) if stage1_mean else math.inf
+    learnt = bool(stage1_mean >= robot.threshold and spread <= MAX_SPREAD)
+    out: dict[str, Any] = dict(
+        candidate=candidate, robot=robot_name, change=change, seed=seed, switch=switch, end=end,
+        stage1_evals_env_a=stage1, end_evals_env_a=end_a, end_evals_env_b=end_b,
+        stage1_env_a=stage1_mean, end_env_a=end_mean, end_env_b=float(np.mean(end_b)), stage1_spread=spread,
+        env_a_learnt=learnt, forgetting_ratio=end_mean / stage1_mean if stage1_mean else math.nan,
+    )  # fmt: skip
+    out["forgets"] = bool(out["forgetting_ratio"] <= FORGETS) if learnt else None
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        for name in ("stage1", "final"):
+            out.update(measure_agent(name, run_dir, buffer, settings, seed, SAME_EPISODES))
+    out["same_episode_ratio"] = out["final_same_episodes_Env-A"] / out["stage1_same_episodes_Env-A"]
+    out["zero_shot_env_b"] = out["stage1_same_episodes_Env-B"]
+    q_csv = run_dir / "collect" / "q_sources.csv"
+    out["overestimation_env_a_switch"] = overestimation_at(q_csv, "Env-A", switch)
+    out["overestimation_env_a_end"] = overestimation_at(q_csv, "Env-A", end)
+    return out
+
+
+def queue(args: argparse.Namespace) -> None:
+    """One seed: every robot's Stage-1 and candidates, in the pre-registered order (what is measured is skipped)."""
+    runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
+    names = args.candidates or list(CANDIDATES)
+    for candidate in names:
+        run_candidate(candidate, args.seed, runs, results)
+
+
+def progress(args: argparse.Namespace) -> list[str]:
+    """Where each candidate and seed stands."""
+    runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
+    lines = []
+    for candidate in CANDIDATES:
+        for seed in SEEDS:
+            if (results / candidate / f"seed_{seed}" / "measure.json").exists():
+                state = "measured"
+            else:
+                run_dir = runs / "forgetting_screen" / candidate / f"seed_{seed}"
+                robot = CANDIDATES[candidate][0]
+                at = paused_at(run_dir) if run_dir.exists() else paused_at(stage1_dir(runs, robot, seed))
+                state = f"paused at {at:,}" if at else "not started"
+            lines.append(f"{candidate:28s} seed {seed}: {state}")
+    print("\n".join(lines))
+    return lines
+
+
+# ------------------------------------------------------------------------------------------------- the report
+SCREEN_COLUMNS = [
+    "candidate", "seed", "env_a_learnt", "forgetting_ratio", "robot", "change", "stage1_env_a", "stage1_spread",
+    "end_env_a", "same_episode_ratio", "stage1_same_episodes_Env-A", "final_same_episodes_Env-A", "zero_shot_env_b",
+    "end_env_b", "overestimation_env_a_switch", "overestimation_env_a_end", "forgets",
+]  # fmt: skip
+
+
+def measured_rows(results: pathlib.Path) -> list[dict[str, Any]]:
+    rows = []
+    for candidate in CANDIDATES:
+        for seed in SEEDS:
+            path = results / candidate / f"seed_{seed}" / "measure.json"
+            if path.exists():
+                rows.append(json.loads(path.read_text()))
+    return rows
+
+
+def candidate_verdict(rows: list[dict[str, Any]]) -> tuple[str, float]:
+    """
+    The pre-registered reading of one candidate's seeds.
+
+    :return: the verdict (``forgets``, ``does not forget``, ``mixed``, ``not testable``, ``pending``) and the mean
+        forgetting ratio over the seeds where Env-A was learnt (NaN when none)
+    """
+    learnt = [row for row in rows if row["env_a_learnt"]]
+    mean = float(np.mean([row["forgetting_ratio"] for row in learnt])) if learnt else math.nan
+    if len(rows) < len(SEEDS):
+        return "pending", mean
+    if len(learnt) < 2:
+        return "not testable", mean
+    if all(row["forgets"] for row in learnt):
+        return "forgets", mean
+    if not any(row["forgets"] for row in learnt):
+        return "does not forget", mean
+    return "mixed", mean
+
+
+def select(verdicts: dict[str, tuple[str, float]]) -> tuple[Optional[str], str]:
+    """The selection rule (README): the forgetting candidate with the lowest mean ratio, else the closest one."""
+    cost = {robot: i for i, robot in enumerate(ROBOTS)}
+
+    def key(name: str) -> tuple[float, int]:
+        return (round(verdicts[name][1] / 0.05), cost[CANDIDATES[name][0]])  # ratios within 0.05: the cheaper robot
+
+    if any(verdict == "pending" for verdict, _ in verdicts.values()):
+        return None, "pending: not every candidate has both seeds"
+    forgetting = [name for name, (verdict, _) in verdicts.items() if verdict == "forgets"]
+    if forgetting:
+        return min(forgetting, key=key), "forgets"
+    testable = [name for name, (verdict, mean) in verdicts.items() if verdict != "not testable" and not math.isnan(mean)]
+    if testable:
+        return min(testable, key=key), "closest (no candidate forgets)"
+    return None, "no candidate testable"
+
+
+def fmt(values: list[float], digits: int = 2) -> str:
+    if not values:
+        return "-"
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f}"
+    return f"{np.mean(values):.{digits}f} +- {np.std(values, ddof=1):.{digits}f}"
+
+
+def report(args: argparse.Namespace) -> None:
+    results = pathlib.Path(args.results)
+    rows = measured_rows(results)
+    with open(results / "screen.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=SCREEN_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({**row, "change": json.dumps(row["change"])})
+    verdicts = {c: candidate_verdict([r for r in rows if r["candidate"] == c]) for c in CANDIDATES}
+    chosen, why = select(verdicts)
+    lines = [
+        "# Forgetting screen: results",
+        "",
+        "Generated by `python benchmarks/studies/forgetting_screen/screen.py report` from `results/*/seed_*/measure.json`.",
+        f"Forgetting ratio: the end's Env-A last-{LAST} mean over the Stage-1 agent's (same seeded episodes every "
+        f"evaluation); a seed forgets at <= {FORGETS}. Same-episode ratio: the end agent over the frozen Stage-1 agent "
+        f"on the same {SAME_EPISODES} Env-A episodes.",
+        "",
+        "| candidate | change | seeds | Env-A learnt | Stage-1 Env-A | forgetting ratio (per seed) | same-episode ratio "
+        "| zero-shot Env-B -> end Env-B | overestimation of Env-A data, switch -> end | verdict |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for candidate, (robot, change) in CANDIDATES.items():
+        mine = [r for r in rows if r["candidate"] == candidate]
+        verdict, _ = verdicts[candidate]
+        if not mine:
+            lines.append(f"| {candidate} | `{json.dumps(change)}` | 0 | | | | | | | {verdict} |")
+            continue
+        learnt = "".join("y" if r["env_a_learnt"] else "n" for r in mine)
+        ratios = ", ".join(f"{r['forgetting_ratio']:.2f}" for r in mine)
+        lines.append(
+            f"| {candidate} | `{json.dumps(change)}` | {len(mine)} | {learnt} | {fmt([r['stage1_env_a'] for r in mine], 0)} "
+            f"| {ratios} | {fmt([r['same_episode_ratio'] for r in mine])} "
+            f"| {fmt([r['zero_shot_env_b'] for r in mine], 0)} -> {fmt([r['end_env_b'] for r in mine], 0)} "
+            f"| {fmt([r['overestimation_env_a_switch'] for r in mine], 0)} -> "
+            f"{fmt([r['overestimation_env_a_end'] for r in mine], 0)} | {verdict} |"
+        )
+    lines += ["", f"**Selection:** {chosen or '-'} ({why})."]
+    (results / "results.md").write_text("\n".join(lines) + "\n")
+    figure(rows, results / "screen.png")
+    print("\n".join(lines))
+
+
+def figure(rows: list[dict[str, Any]], path: pathlib.Path) -> None:
+    """Every candidate's collection: Env-A and Env-B returns per seed, the switch and the Stage-1 agent's level."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [c for c in CANDIDATES if any(r["candidate"] == c for r in rows)]
+    if not names:
+        return
+    columns = 3
+    fig, axes = plt.subplots(math.ceil(len(names) / columns), columns, figsize=(12, 3.2 * math.ceil(len(names) / columns)),
+                             squeeze=False)  # fmt: skip
+    colours = {"Env-A": "tab:blue", "Env-B": "tab:orange"}
+    for ax, candidate in zip(axes.flat, names):
+        for row in (r for r in rows if r["candidate"] == candidate):
+            curve = path.parent / candidate / f"seed_{row['seed']}" / "eval.csv"
+            with open(curve, newline="") as handle:
+                evals = list(csv.DictReader(handle))
+            for env, colour in colours.items():
+                points = sorted((int(e["timesteps"]), float(e["mean_reward"])) for e in evals if e["env"] == env)
+                if points:
+                    style = "-" if row["seed"] == SEEDS[0] else "--"
+                    ax.plot(*zip(*points), style, color=colour, lw=1.2, label=f"{env}, seed {row['seed']}")
+            ax.hlines(row["stage1_env_a"], row["switch"], row["end"], colors="grey", linestyles=":", lw=1)
+            ax.axvline(row["switch"], color="k", lw=0.8)
+        ax.set_title(f"{candidate}  {json.dumps(CANDIDATES[candidate][1])}", fontsize=9)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("return")
+        ax.legend(fontsize=6, loc="lower left")
+    for ax in list(axes.flat)[len(names) :]:
+        ax.axis("off")
+    fig.suptitle("MPO through Env-A then Env-B (vertical line: the switch; dotted: the Stage-1 agent's Env-A level)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in ("queue", "progress", "report"):
+        command = sub.add_parser(name)
+        command.add_argument("--results", default=str(RESULTS), help="where the small results go")
+        if name != "report":
+            command.add_argument("--runs", default="runs", help="where buffers and agents go")
+        if name == "queue":
+            command.add_argument("--seed", type=int, required=True)
+            command.add_argument("--candidates", nargs="*", choices=list(CANDIDATES), help="default: all, in order")
+    args = parser.parse_args()
+    {"queue": queue, "progress": progress, "report": report}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,111 @@
+"""benchmarks/studies/forgetting_screen/screen.py: one Stage-1 per robot and seed, each candidate continued from it,
+measured, and read by the pre-registered rule."""
+
+import argparse
+import csv
+import dataclasses
+import importlib.util
+import json
+import pathlib
+import types
+
+import pytest
+
+SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "studies" / "forgetting_screen" / "screen.py"
+
+
+def load_screen() -> types.ModuleType:
+    spec = importlib.util.spec_from_file_location("forgetting_screen", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def tiny_screen(monkeypatch):
+    """The screen at seconds' scale: one robot, two candidates, 600 steps of Env-A, tiny networks."""
+    screen = load_screen()
+    monkeypatch.setattr(screen, "ROBOTS", {"cheetah": screen.Robot("HalfCheetah-v5", 600, -1e9)})
+    monkeypatch.setattr(screen, "CANDIDATES", {
+        "cheetah_back_reversed": ("cheetah", {"leg_motor_scale": -1.0}),
+        "cheetah_back_knee_locked": ("cheetah", {"joint_lock": 1.0}),
+    })  # fmt: skip
+    monkeypatch.setattr(screen, "ENV_B_FACTOR", 2)
+    monkeypatch.setattr(screen, "EVAL_FREQ", 200)
+    monkeypatch.setattr(screen, "EVAL_EPISODES", 1)
+    monkeypatch.setattr(screen, "SAME_EPISODES", 1)
+    monkeypatch.setattr(screen, "PART", 400)
+    full = screen.preset
+
+    def small(candidate):
+        return dataclasses.replace(full(candidate), net_arch=(16, 16), batch_size=32, num_samples=4, learning_starts=100,
+                                   max_episode_steps=100)  # fmt: skip
+
+    monkeypatch.setattr(screen, "preset", small)
+    return screen
+
+
+def test_screen_shares_stage1_measures_and_reports(tiny_screen, tmp_path):
+    screen = tiny_screen
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    screen.queue(argparse.Namespace(runs=str(runs), results=str(results), seed=0, candidates=None))
+    stage1 = runs / "forgetting_screen" / "cheetah" / "stage1" / "seed_0"
+    assert (stage1 / "collect" / "stage1.zip").exists()
+    for candidate in screen.CANDIDATES:
+        measured = json.loads((results / candidate / "seed_0" / "measure.json").read_text())
+        run_dir = runs / "forgetting_screen" / candidate / "seed_0"
+        assert json.loads((run_dir / "adopted.json").read_text())["stage1_from"] == str(stage1)
+        # both candidates continued from the same Stage-1: the same Env-A evaluations up to the switch
+        evals = [r for r in csv.DictReader(open(results / candidate / "seed_0" / "eval.csv")) if r["env"] == "Env-A"]
+        assert [int(r["timesteps"]) for r in evals] == list(range(200, 1801, 200))
+        assert measured["stage1_evals_env_a"] == [float(r["mean_reward"]) for r in evals if int(r["timesteps"]) <= 600][-5:]
+        assert measured["forgetting_ratio"] == pytest.approx(measured["end_env_a"] / measured["stage1_env_a"])
+        assert measured["switch"] == 600 and measured["end"] == 1800
+        for key in ("same_episode_ratio", "zero_shot_env_b", "overestimation_env_a_switch", "overestimation_env_a_end"):
+            assert isinstance(measured[key], float)
+    first = json.loads((results / "cheetah_back_reversed" / "seed_0" / "measure.json").read_text())
+    second = json.loads((results / "cheetah_back_knee_locked" / "seed_0" / "measure.json").read_text())
+    assert first["stage1_evals_env_a"] == second["stage1_evals_env_a"]
+    assert first["stage1_same_episodes_Env-A"] == second["stage1_same_episodes_Env-A"]  # the same frozen agent
+    # a second call skips what is measured
+    screen.queue(argparse.Namespace(runs=str(runs), results=str(results), seed=0, candidates=None))
+    screen.report(argparse.Namespace(results=str(results)))
+    rows = list(csv.DictReader(open(results / "screen.csv")))
+    assert [r["candidate"] for r in rows] == list(screen.CANDIDATES)
+    assert {"candidate", "seed", "env_a_learnt", "forgetting_ratio"} <= set(rows[0])
+    text = (results / "results.md").read_text()
+    assert "pending" in text and (results / "screen.png").exists()
+
+
+def _row(ratio, learnt=True):
+    return dict(forgetting_ratio=ratio, env_a_learnt=learnt, forgets=(ratio <= 0.8) if learnt else None)
+
+
+@pytest.mark.parametrize(
+    "rows, verdict",
+    [
+        ([_row(0.79), _row(0.5)], "forgets"),
+        ([_row(0.81), _row(0.5)], "mixed"),
+        ([_row(0.81), _row(1.2)], "does not forget"),
+        ([_row(0.5), _row(0.5, learnt=False)], "not testable"),
+        ([_row(0.5)], "pending"),
+    ],
+)
+def test_candidate_verdict_in_both_directions(rows, verdict):
+    assert load_screen().candidate_verdict(rows)[0] == verdict
+
+
+def test_selection_prefers_forgetting_then_the_cheaper_robot_then_the_closest():
+    screen = load_screen()
+    verdicts = {name: ("does not forget", 1.0) for name in screen.CANDIDATES}
+    verdicts["walker_right_reversed"] = ("forgets", 0.50)
+    verdicts["cheetah_back_weak"] = ("forgets", 0.52)  # within 0.05 of the walker's: the cheaper robot wins
+    verdicts["hopper_feet"] = ("forgets", 0.70)
+    assert screen.select(verdicts) == ("cheetah_back_weak", "forgets")
+    verdicts = {name: ("does not forget", 1.1) for name in screen.CANDIDATES}
+    verdicts["hopper_reversed"] = ("does not forget", 0.9)
+    verdicts["cheetah_hip"] = ("not testable", 0.1)
+    assert screen.select(verdicts) == ("hopper_reversed", "closest (no candidate forgets)")
+    verdicts["cheetah_hip"] = ("pending", 0.1)
+    assert screen.select(verdicts)[0] is None
