@@ -318,7 +318,7 @@ def report(args: argparse.Namespace) -> None:
         "| zero-shot Env-B -> end Env-B | overestimation of Env-A data, switch -> end | verdict |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for candidate, (robot, change) in CANDIDATES.items():
+    for candidate, (_, change) in CANDIDATES.items():
         mine = [r for r in rows if r["candidate"] == candidate]
         verdict, _ = verdicts[candidate]
         if not mine:
