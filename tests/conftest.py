@@ -3,6 +3,9 @@ import pathlib
 
 import pytest
 import torch as th
+from testkit import JOBS
+
+from sb3_lifelong.experiments import PRESETS, run_seed
 
 # One torch thread per test process: the suite runs with pytest-xdist on 2 cores.
 th.set_num_threads(1)
@@ -16,3 +19,14 @@ if "MENAGERIE_ROOT" not in os.environ and _SHARED_MENAGERIE.is_dir():
 def _single_torch_thread():
     th.set_num_threads(1)
     yield
+
+
+@pytest.fixture(scope="session")
+def study(tmp_path_factory):
+    """Two seeds of the tiny study with every job (shared, read-only, by the experiments and studies tests)."""
+    output = tmp_path_factory.mktemp("study")
+    messages: list[str] = []
+    for seed in (0, 1):
+        ran = run_seed(PRESETS["tiny"], seed, output, jobs=JOBS, log=messages.append)
+        assert ran == JOBS
+    return output, messages

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from testkit import flat_params, pendulum_data
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import compiling
-from tests.test_crr import flat_params, pendulum_data
 
 pytestmark = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
 CUDA = th.device("cuda")

@@ -6,14 +6,13 @@ import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import create_mlp
+from testkit import benchmark_module, flat_params, pendulum_data
 from torch import nn
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import compiling, hardware
 from sb3_lifelong.common.fast_ops import HiddenLinear
 from sb3_lifelong.common.policies import mlp_layers
-from tests.test_crr import flat_params, pendulum_data
-from tests.test_experiments import benchmark_module
 
 KWARGS = dict(device="cpu", batch_size=64, policy_kwargs=dict(net_arch=[64, 64], layer_norm=True), seed=0)
 

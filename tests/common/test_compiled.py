@@ -6,11 +6,11 @@ import warnings
 import pytest
 import torch as th
 from gymnasium import spaces
+from testkit import flat_params, pendulum_data
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import compiling, hardware, scoring
 from sb3_lifelong.crr import distributional
-from tests.test_crr import flat_params, pendulum_data
 
 # on the CPU even where a GPU is present: these tests pin the CPU's arithmetic (bit-identical eager steps, inductor's
 # C++ kernels); tests/test_cuda.py covers a GPU

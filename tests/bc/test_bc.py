@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from testkit import flat_params
 
 from sb3_lifelong import BC
 from sb3_lifelong.bc.policies import BCPolicy
@@ -22,10 +23,6 @@ def linear_data(n: int = 300, seed: int = 0) -> dict:
         "next_observations": obs,
         "terminals": np.ones(n, dtype=bool),
     }
-
-
-def flat_params(model: BC) -> th.Tensor:
-    return th.cat([p.detach().flatten() for p in model.policy.parameters()])
 
 
 def bc_model(seed: int = 0, **kwargs) -> BC:

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from testkit import Recorder, flat_params, pendulum_data
 
 from sb3_lifelong import CRR
 from sb3_lifelong.crr.losses import advantage_weights, crr_weights, effective_sample_size, ess_temperature
-from tests.test_crr import Recorder, flat_params, pendulum_data
 
 
 @pytest.fixture(scope="module")

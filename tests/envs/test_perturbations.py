@@ -4,7 +4,6 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import gymnasium as gym
 import mujoco
@@ -14,11 +13,6 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 from sb3_lifelong.envs import DMC_WALKER_ID, OP3_WALK_ID, PAPER_STAGES, PERTURBATIONS, DynamicsSchedule
-
-# the OP3 model is read from the local mujoco-menagerie copy beside the checkout when there is one
-_SHARED_MENAGERIE = Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
-if _SHARED_MENAGERIE.is_dir():
-    os.environ.setdefault("MENAGERIE_ROOT", str(_SHARED_MENAGERIE))
 
 GYM_ROBOTS = ["Walker2d-v5", "Hopper-v5", "HalfCheetah-v5", "Humanoid-v5", DMC_WALKER_ID]
 TEST_VALUES = dict(

@@ -12,6 +12,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
+from testkit import flat_params
 
 from sb3_lifelong import MPO, LifelongReplayBuffer
 from sb3_lifelong.common.base import EpisodeRngRecorder
@@ -56,12 +57,6 @@ class DictObsWrapper(gym.ObservationWrapper):
 
     def observation(self, observation):
         return {"state": observation, "scale": np.ones(1, dtype=np.float32)}
-
-
-def flat_params(model: MPO) -> th.Tensor:
-    tensors = [p.detach().flatten() for p in model.policy.parameters()]
-    tensors += [model.log_temperature.detach(), model.log_alpha_mean.detach(), model.log_alpha_stddev.detach()]
-    return th.cat(tensors)
 
 
 # ---------------------------------------------------------------------------------------------------------------------

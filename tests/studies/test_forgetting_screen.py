@@ -11,7 +11,7 @@ import types
 
 import pytest
 
-SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "studies" / "forgetting_screen" / "screen.py"
+SCRIPT = pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "studies" / "forgetting_screen" / "screen.py"
 
 
 def load_screen() -> types.ModuleType:

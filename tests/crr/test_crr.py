@@ -8,6 +8,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
+from testkit import Recorder, flat_params, pendulum_data
 
 from sb3_lifelong import CRR
 from sb3_lifelong.crr.distributional import CategoricalCritic, categorical_projection
@@ -15,21 +16,6 @@ from sb3_lifelong.crr.losses import advantage_baseline, advantage_weights, crr_w
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50)
 LOGGED = ("critic_loss", "actor_loss", "advantage_mean", "weight_mean", "weight_clip_frac", "q_mean")
-
-
-def pendulum_data(n: int = 400, seed: int = 0) -> dict:
-    """Random-action Pendulum transitions (d4rl dict, actions in env units)."""
-    env = gym.make("Pendulum-v1")
-    rng = np.random.default_rng(seed)
-    columns: dict = {key: [] for key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")}
-    obs, _ = env.reset(seed=seed)
-    for _ in range(n):
-        action = rng.uniform(-2, 2, size=1).astype(np.float32)
-        next_obs, reward, terminated, truncated, _ = env.step(action)
-        for key, value in zip(columns, (obs, action, reward, next_obs, terminated, truncated)):
-            columns[key].append(value)
-        obs = env.reset()[0] if terminated or truncated else next_obs
-    return {key: np.asarray(value) for key, value in columns.items()}
 
 
 @pytest.fixture(scope="module")
@@ -52,22 +38,6 @@ def default_offline_run(data) -> CRR:
 def test_the_default_offline_run_is_reproducible(data, default_offline_run):
     again = offline_model(data).learn_offline(110, log_interval=0)
     assert th.equal(flat_params(again), flat_params(default_offline_run))
-
-
-def flat_params(model: CRR) -> th.Tensor:
-    return th.cat([p.detach().flatten() for p in model.policy.parameters()])
-
-
-class Recorder(BaseCallback):
-    """Keeps the logger's values after every step."""
-
-    def __init__(self):
-        super().__init__()
-        self.values: dict = {}
-
-    def _on_step(self) -> bool:
-        self.values.update(self.logger.name_to_value)
-        return True
 
 
 # ---------------------------------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from testkit import flat_params
 
 from sb3_lifelong import BC, CRR, MPO, LifelongReplayBuffer
 
@@ -34,11 +35,6 @@ def pendulum_model(path, chunk_size: int = 1000) -> MPO:
 
 def committed(path) -> int:
     return json.loads((path / "manifest.json").read_text())["num_transitions"]
-
-
-def flat_params(model: MPO) -> th.Tensor:
-    tensors = [p.detach().flatten() for p in model.policy.parameters()]
-    return th.cat([*tensors, model.log_temperature.detach(), model.log_alpha_mean.detach(), model.log_alpha_stddev.detach()])
 
 
 def test_save_commits_the_buffer_and_records_it(tmp_path):
