@@ -1,6 +1,7 @@
 """
 Fault injection into LifelongReplayBuffer directories, both layouts ("single": one file per field, no capacity;
-"chunked": one file per chunk, with a capacity). Prints a table and writes it to ``benchmarks/results/buffer_faults.md``:
+"chunked": one file per chunk, with a capacity). Prints a table and writes it to
+``benchmarks/results/faults/buffer_faults.md``:
 faults injected, transitions committed, transitions recovered bit-identical, lost, wrong rows served (the goal is 0
 lost and 0 wrong).
 
@@ -1057,7 +1058,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--kills", type=int, default=32, help="SIGKILLs per layout")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "buffer_faults.md"))
+    parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "faults", "buffer_faults.md"))
     args = parser.parse_args()
     if not os.path.isdir("/proc/self/fd"):
         sys.exit("needs Linux (/proc/self/fd)")

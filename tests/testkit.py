@@ -13,6 +13,8 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_lifelong.core.datasets import record_transitions
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 #: the jobs of the tiny study every experiments test reads (the ``study`` fixture)
@@ -41,17 +43,8 @@ def benchmark_module(name: str) -> types.ModuleType:
 
 def pendulum_data(n: int = 400, seed: int = 0) -> dict:
     """Random-action Pendulum transitions (d4rl dict, actions in env units)."""
-    env = gym.make("Pendulum-v1")
     rng = np.random.default_rng(seed)
-    columns: dict = {key: [] for key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")}
-    obs, _ = env.reset(seed=seed)
-    for _ in range(n):
-        action = rng.uniform(-2, 2, size=1).astype(np.float32)
-        next_obs, reward, terminated, truncated, _ = env.step(action)
-        for key, value in zip(columns, (obs, action, reward, next_obs, terminated, truncated)):
-            columns[key].append(value)
-        obs = env.reset()[0] if terminated or truncated else next_obs
-    return {key: np.asarray(value) for key, value in columns.items()}
+    return record_transitions(gym.make("Pendulum-v1"), lambda obs: rng.uniform(-2, 2, size=1).astype(np.float32), n, seed)
 
 
 def flat_params(model) -> th.Tensor:

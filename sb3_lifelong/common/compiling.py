@@ -4,7 +4,7 @@ and eager everywhere else (:class:`LazyCompiled`).
 
 Compiling fuses the elementwise work around the matrix products (the LayerNorm, tanh, softmax, log-likelihood) and
 plans the buffers of the forward and backward passes. Measured on an AMD EPYC without AMX, one thread
-(``benchmarks/results/fast_paths.md``): a CRR student of the imbalance dose study 1.21-1.31x faster per update than
+(``benchmarks/results/speed/fast_paths.md``): a CRR student of the imbalance dose study 1.21-1.31x faster per update than
 before, MPO 1.09x (0.77x -> 0.84x SAC on Walker2d), after 30-40 s of compiling once per process. A short run (the
 tests, a demo) would spend more on compiling than it saves, so ``"auto"`` compiles only when the ``learn`` call under
 way has at least :data:`AUTO_MIN_UPDATES` steps to go (environment steps online, updates offline).

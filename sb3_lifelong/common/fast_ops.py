@@ -76,7 +76,7 @@ def fast_tanh(x: th.Tensor) -> th.Tensor:
     if x.dtype == th.float32 and x.device.type == "cpu":
         if th.compiler.is_compiling():
             # out of place, its gradient derived by autograd: torch 2.11's compiler got the in-place autograd.Function's
-            # gradient wrong on an AVX-512 (AMX) Xeon, by up to 30 % (benchmarks/results/fast_paths.md)
+            # gradient wrong on an AVX-512 (AMX) Xeon, by up to 30 % (benchmarks/results/speed/fast_paths.md)
             return 2.0 * th.sigmoid(2.0 * x) - 1.0
         return _TanhBySigmoid.apply(x)
     return th.tanh(x)
@@ -110,7 +110,7 @@ class HiddenLinear(nn.Linear):
     gradient and the gradients it gives are rounded the same way (autograd's rule for the casts). Only the sums differ
     from a bf16 kernel's, in order and, on AMX, in how they accumulate: a result can differ by one bf16 rounding step,
     and where a sum nearly cancels by up to 2^-14 of the sum of its terms' absolute values (measured on an AMX Xeon;
-    ``benchmarks/bf16_kernel_vs_simulation.py``). It costs about a float32 product, where a CPU without native bf16
+    ``benchmarks/speed/bf16_kernel_vs_simulation.py``). It costs about a float32 product, where a CPU without native bf16
     emulates it several times slower: it measures what bf16 does to learning on any hardware. Eager only:
     ``torch.compile`` fuses a round trip through bf16 away.
     """

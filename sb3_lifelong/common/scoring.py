@@ -143,7 +143,7 @@ class LowPrecisionCopy:
     With ``fused``, each hidden ``Linear`` runs as one oneDNN product on a weight laid out once per :meth:`sync`,
     with its bias and the ReLU after it as post-ops (:meth:`fused_linear`), instead of ``addmm`` then an in-place
     ReLU: on an AMX CPU the separate bias copy, the ReLU pass and the weight's layout per call cost more than the
-    bf16 product itself (``benchmarks/results/fast_paths.md``).
+    bf16 product itself (``benchmarks/results/speed/fast_paths.md``).
 
     :param critic: a critic the engine runs (:func:`runs_no_grad_pass`)
     :param dtype: the precision of the copy
@@ -356,7 +356,7 @@ def _layer_norm_no_grad(
 
 #: the first layer is split into a per-state and a per-sample product (:func:`_first_layer_split`) when the
 #: features are at least this wide and at least twice the action: measured on this CPU, the first layer 3x faster
-#: for OP3-sized inputs (68 + 20; the whole pass 1.18x, benchmarks/results/scoring_split.md), and slower than one
+#: for OP3-sized inputs (68 + 20; the whole pass 1.18x, benchmarks/results/scoring_split.md (retired: `git show 9cccda3:benchmarks/results/scoring_split.md`)), and slower than one
 #: product for Hopper-sized ones (11 + 3)
 SPLIT_MIN_FEATURES = 32
 

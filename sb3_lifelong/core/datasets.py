@@ -16,7 +16,7 @@ trajectories, so it also gives the next action in the data (for SARSA targets).
 
 import os
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple, Optional, Union
 
 import numpy as np
@@ -38,6 +38,7 @@ __all__ = [
     "minari_to_d4rl",
     "normalize_actions",
     "read_npz",
+    "record_transitions",
     "replay_buffer_to_d4rl",
     "validate_d4rl",
 ]
@@ -199,6 +200,33 @@ def validate_d4rl(
             )
         clean["sources"] = sources.reshape(total).astype(np.int64)
     return clean
+
+
+def record_transitions(env: Any, act: Callable[[Any], Any], steps: int, seed: Optional[int] = None) -> dict[str, np.ndarray]:
+    """
+    Run a policy in an env and keep what it did as d4rl columns: a dataset for :meth:`CRR.from_offline_data` or
+    :func:`~sb3_lifelong.buffers.from_d4rl`, recorded with any policy (an SB3 model's ``predict``, a script, random).
+
+    The env is reset with ``seed`` once, then without a seed after each episode's end, so one seed gives one dataset.
+
+    :param env: a Gymnasium env
+    :param act: the policy: an observation in, an action (in the env's units) out, e.g.
+        ``lambda obs: model.predict(obs, deterministic=False)[0]``
+    :param steps: transitions to record (an unfinished last episode is kept, not flagged)
+    :param seed: the seed of the first reset
+    :return: ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals``, ``timeouts``
+    """
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise ValueError(f"steps must be a positive integer, got {steps!r}")
+    columns: dict[str, list] = {key: [] for key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")}
+    obs, _ = env.reset(seed=seed)
+    for _ in range(int(steps)):
+        action = act(obs)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        for key, value in zip(columns, (obs, action, reward, next_obs, terminated, truncated)):
+            columns[key].append(value)
+        obs = env.reset()[0] if terminated or truncated else next_obs
+    return {key: np.asarray(value) for key, value in columns.items()}
 
 
 def load_d4rl(data: Union[Mapping[str, Any], str, os.PathLike]) -> dict[str, np.ndarray]:

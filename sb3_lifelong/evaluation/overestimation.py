@@ -11,7 +11,7 @@ Monte-Carlo return is that of the action followed by the policy that *collected*
 current policy's improvement over the collector on that data plus the critic's error:
 ``Q_hat - G = (Q^pi - Q^behaviour) + (Q_hat - Q^pi)``. An improving learner has a positive gap on its own older data
 even with an exact critic (MPO's critic at the end of Env-A: +56 on Hopper, +94 on HalfCheetah,
-``benchmarks/results/imbalance_dose``). Read it as a trend on a source the policy no longer improves on: when the
+``benchmarks/studies/imbalance_dose/results``). Read it as a trend on a source the policy no longer improves on: when the
 policy gets worse there (forgetting), the first term shrinks, so a gap that grows is the critic's error.
 """
 

@@ -50,12 +50,12 @@ class Preset:
     :param layer_norm: the LayerNorm torso for every network of the study (collector, students, online
         baselines); the presets run before MPO's default changed keep ``False``, the setting they ran with
     :param student_repeats: how many times each student is trained on a seed's buffer (each with its own student
-        seed); the report scores a student by the mean of its repeats (``benchmarks/results/student_spread.md``: most
+        seed); the report scores a student by the mean of its repeats (``benchmarks/studies/student_spread/student_spread.md``: most
         of a student's seed-to-seed spread is its own training)
     :param student_critic: the CRR students' critic: ``"mse"`` (regression on the TD target) or ``"categorical"``
         (the paper's kind: 51 atoms on a support that holds every return of the seed's buffer,
         :func:`~sb3_lifelong.experiments.protocol.value_support`, so it cannot diverge;
-        ``benchmarks/results/paper_cpu_three/bounded_critic``)
+        ``benchmarks/studies/paper_cpu_three/bounded_critic``)
     :param env_a_learnt: the Env-A return MPO must have reached when it leaves Env-A (the mean of its last evaluations
         there) for the claims about Env-A (forgetting it, remembering it, the imbalance drop and its diagnostics) to
         be testable on a seed. The report tests a claim on the seeds where its preconditions were measured and hold,
@@ -132,7 +132,7 @@ class Preset:
 
 PRESETS: dict[str, Preset] = {
     # one core of a CPU machine: Hopper with the hip deformed, Env-B five times Env-A; the claims' preconditions are
-    # the dose study's (benchmarks/results/imbalance_dose/README.md): Env-A learnt from a return of 1000 (P1 on Hopper:
+    # the dose study's (benchmarks/studies/imbalance_dose/README.md): Env-A learnt from a return of 1000 (P1 on Hopper:
     # a hop that moves forward; `paper_cpu`'s MPO had about 690 and 400 at the switch), a value gap of 1.1 (P3), a
     # conservative student at an ESS of 0.8 (P4); a steady Env-A at the switch, its last 3 evaluations within a spread
     # of 0.2 (the switch score, the mean of the last two, then has a standard error of about 0.14 of itself, so that
@@ -192,7 +192,7 @@ PRESETS: dict[str, Preset] = {
 }
 
 # the cpu protocol with the one Env-B of the env-pair table that hurt in both directions, the foot twice as long
-# (benchmarks/results/env_pairs); evaluated on 10 episodes, as the 5 of `cpu` left the students' scores noisy
+# (benchmarks/studies/env_pairs/results); evaluated on 10 episodes, as the 5 of `cpu` left the students' scores noisy
 PRESETS["cpu_foot"] = dataclasses.replace(
     PRESETS["cpu"],
     stages=({}, {"foot_scale": 2.0}),
@@ -200,13 +200,13 @@ PRESETS["cpu_foot"] = dataclasses.replace(
     note=(
         "Env-B: the foot twice as long, the candidate with a zero-shot drop in both directions (Env-A policy in "
         "Env-B -87 %, Env-B policy in Env-A -42 %, one seed each at 50k steps). Claims pre-registered in "
-        "benchmarks/results/paper_cpu_foot/README.md before any seed ran."
+        "benchmarks/studies/paper_cpu_foot/README.md before any seed ran."
     ),
 )
 
 # the paper's three-stage set-up (its appendix: Env-A 0.2M, Env-B 0.2M, Env-C 1M steps) at the cpu budgets: 0.2 : 0.2 : 1
 # of 250k steps; the order follows the env-pair table: each switch hurts the policy of the stage before, and the
-# Env-C (foot x2) policy is poor in both earlier environments (benchmarks/results/env_pairs)
+# Env-C (foot x2) policy is poor in both earlier environments (benchmarks/studies/env_pairs/results)
 PRESETS["cpu_three"] = dataclasses.replace(
     PRESETS["cpu"],
     stages=({}, {"friction": 0.2}, {"foot_scale": 2.0}),
@@ -218,21 +218,21 @@ PRESETS["cpu_three"] = dataclasses.replace(
     note=(
         "Three stages (the paper's appendix): default robot, then the floor's friction 0.2, then the foot twice as long, "
         "in the proportions 0.2 : 0.2 : 1; the students that need no task boundaries only, no online baselines. Claims "
-        "pre-registered in benchmarks/results/paper_cpu_three/README.md before any seed ran."
+        "pre-registered in benchmarks/studies/paper_cpu_three/README.md before any seed ran."
     ),
 )
 
 # cpu_three again with what its first study asked for: the paper's kind of critic for the CRR students (a categorical
-# one on the data's return bounds: no student diverged with it, benchmarks/results/paper_cpu_three/bounded_critic) and
+# one on the data's return bounds: no student diverged with it, benchmarks/studies/paper_cpu_three/bounded_critic) and
 # every student trained three times per buffer and scored by the mean (most of a student's spread is its own training,
-# benchmarks/results/student_spread.md); its collection is cpu_three's, so cpu_three's buffers can be reused
+# benchmarks/studies/student_spread/student_spread.md); its collection is cpu_three's, so cpu_three's buffers can be reused
 PRESETS["cpu_three_c51"] = dataclasses.replace(
     PRESETS["cpu_three"],
     student_critic="categorical",
     student_repeats=3,
     note=(
         "cpu_three's set-up and claims, with categorical-critic CRR students each trained three times per buffer and "
-        "scored by the mean. Pre-registered in benchmarks/results/paper_cpu_three_c51/README.md before any seed ran."
+        "scored by the mean. Pre-registered in benchmarks/studies/paper_cpu_three_c51/README.md before any seed ran."
     ),
 )
 
@@ -255,7 +255,7 @@ for _number, _stages in enumerate(
         note=f"The paper's three-stage set-up, its environment combination {_number}, at its scale (a GPU machine).",
     )
 
-# the dose-response study of the imbalance (benchmarks/results/imbalance_dose/README.md, pre-registered before any run):
+# the dose-response study of the imbalance (benchmarks/studies/imbalance_dose/README.md, pre-registered before any run):
 # the collector at MPO's defaults (256x256 LayerNorm torso, 20 samples), Env-A and Env-B 100k steps each; the
 # imbalance is a dose applied by the students (Env-B sampling share, Env-B reward scale), not by the collection
 PRESETS["dose_hopper"] = Preset(
@@ -281,7 +281,7 @@ PRESETS["dose_cheetah"] = dataclasses.replace(
     note="Collection of the imbalance dose study (HalfCheetah, foot x2); students: benchmarks/imbalance_dose.py.",
 )
 
-# the dose study's HalfCheetah pair with a long Env-B (benchmarks/results/imbalance_dose/README.md, "Long Env-B"): the
+# the dose study's HalfCheetah pair with a long Env-B (benchmarks/studies/imbalance_dose/README.md, "Long Env-B"): the
 # hip turned by 1 rad (the Env-A gait fails in Env-B: 4635 -> 199) and Env-B five times Env-A, as the paper's 200k : 1M;
 # about 8 hours of collection on one core: run it in parts (`run --until STEPS`)
 PRESETS["dose_cheetah_hip"] = dataclasses.replace(
@@ -290,7 +290,7 @@ PRESETS["dose_cheetah_hip"] = dataclasses.replace(
     stage_steps=(100_000, 500_000),
     note=(
         "Collection of the imbalance dose study, long Env-B (HalfCheetah, hip +1 rad, 100k : 500k steps); about 8 hours "
-        "on one core, so run it in parts with --until; students: benchmarks/imbalance_dose.py --robot cheetah_hip."
+        "on one core, so run it in parts with --until; students: benchmarks/studies/imbalance_dose/imbalance_dose.py --robot cheetah_hip."
     ),
 )
 
@@ -311,7 +311,7 @@ PRESETS["demo"] = dataclasses.replace(
         "forgetting claims also need it steady there) and "
         "the others are evaluated for the record, not expected to hold. The study that tests them is the 'cpu' preset "
         "(collection and students about 80 min per seed on one core, the online baselines about as long again): "
-        "see benchmarks/results/paper_cpu/report.md."
+        "see benchmarks/studies/paper_cpu/report.md."
     ),
 )
 

@@ -281,7 +281,7 @@ CLAIMS: list[Claim] = [
 
 
 #: the claims of the three-stage set-up (Env-A, Env-B, Env-C; the paper's appendix), pre-registered in
-#: benchmarks/results/paper_cpu_three/README.md before any seed ran
+#: benchmarks/studies/paper_cpu_three/README.md before any seed ran
 THREE_STAGE_CLAIMS: list[Claim] = [
     Claim(
         "T1a forgetting Env-A",

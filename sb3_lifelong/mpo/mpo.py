@@ -115,7 +115,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         products, eager: what bf16 does to learning, measured at float32's speed where the hardware has no bf16), or
         ``"auto"``: bfloat16 where the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16).
         The default stays float32 until bf16's learning results are measured on such a CPU
-        (``benchmarks/results/fast_paths.md``)
+        (``benchmarks/results/speed/fast_paths.md``)
     :param compile_losses: compile the update's forward pass (the target, the critic's loss, the E-step, the M-step
         and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under
         way has at least 50,000 steps to go and inductor can compile here (a C++ compiler on a CPU); see

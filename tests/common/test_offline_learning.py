@@ -10,6 +10,7 @@ import torch as th
 from stable_baselines3 import SAC
 
 from sb3_lifelong import BC, CRR
+from sb3_lifelong.core.datasets import record_transitions
 
 EVAL_SEEDS = range(100, 120)
 NET = dict(net_arch=[64, 64])
@@ -36,16 +37,8 @@ def collect_behaviour() -> tuple[dict, float]:
         "MlpPolicy", "Pendulum-v1", policy_kwargs=dict(NET), batch_size=128, learning_rate=1e-3, learning_starts=500, seed=0
     )
     sac.learn(5_000)
-    env = gym.make("Pendulum-v1")
-    columns: dict = {key: [] for key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")}
-    obs, _ = env.reset(seed=0)
-    for _ in range(10_000):  # 50 episodes with the (stochastic) behaviour policy
-        action, _ = sac.predict(obs, deterministic=False)
-        next_obs, reward, terminated, truncated, _ = env.step(action)
-        for key, value in zip(columns, (obs, action, reward, next_obs, terminated, truncated)):
-            columns[key].append(value)
-        obs = env.reset()[0] if terminated or truncated else next_obs
-    data = {key: np.asarray(value) for key, value in columns.items()}
+    # 50 episodes with the (stochastic) behaviour policy
+    data = record_transitions(gym.make("Pendulum-v1"), lambda obs: sac.predict(obs, deterministic=False)[0], 10_000, seed=0)
     # the behaviour policy's return, as it collected the data, on the evaluation episodes
     behaviour_return = rollout_returns(lambda o: sac.predict(o, deterministic=False)[0], EVAL_SEEDS)
     return data, behaviour_return

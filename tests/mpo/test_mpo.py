@@ -238,7 +238,7 @@ def test_layer_norm_networks_and_round_trip(tmp_path):
 
 
 def test_layer_norm_is_mpos_default_and_can_be_turned_off(tmp_path):
-    """MPO's policies default to the LayerNorm torso (measured: benchmarks/results/mpo_quality.md); ``False`` is
+    """MPO's policies default to the LayerNorm torso (measured: benchmarks/studies/mpo_quality/mpo_quality.md); ``False`` is
     SB3's plain MLP, kept through save and load; CRR keeps the plain default."""
     from gymnasium import spaces
 

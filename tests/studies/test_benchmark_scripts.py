@@ -2,12 +2,10 @@
 
 import dataclasses
 import json
-import pathlib
 
 import numpy as np
 import pandas as pd
 import pytest
-import torch as th
 from testkit import benchmark_module
 
 from sb3_lifelong import LifelongReplayBuffer
@@ -24,7 +22,8 @@ def test_seeds_needed_is_the_paired_t_test():
 
 
 def test_student_spread_on_one_buffer(study, tmp_path):
-    """benchmarks/student_spread.py: the same students, several seeds, one buffer; the spread against the study's."""
+    """benchmarks/studies/student_spread/student_spread.py: the same students, several seeds, one buffer; the spread
+    against the study's."""
     spread = benchmark_module("student_spread")
     output, _ = study
     write_report(output, plots=False)  # the study's scores.csv: the between-seed reference
@@ -54,7 +53,8 @@ def test_student_spread_on_one_buffer(study, tmp_path):
 
 
 def test_bounded_critic_diagnostic(study, tmp_path):
-    """benchmarks/bounded_critic.py: the study's CRR students with a categorical critic on the data's bounds."""
+    """benchmarks/studies/paper_cpu_three/bounded_critic.py: the study's CRR students with a categorical critic on
+    the data's bounds."""
     from sb3_lifelong import CRR
     from sb3_lifelong.experiments.protocol import value_support
 
@@ -87,7 +87,8 @@ def test_bounded_critic_diagnostic(study, tmp_path):
 
 
 def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
-    """benchmarks/repeat_spread.py: per-seed spread over repeats, and repeat 0 against the study without repeats."""
+    """benchmarks/studies/student_spread/repeat_spread.py: per-seed spread over repeats, and repeat 0 against the
+    study without repeats."""
 
     spread = benchmark_module("repeat_spread")
     source, _ = study
@@ -134,33 +135,9 @@ def test_repeat_spread_reads_a_study_with_repeats(study, tmp_path):
         spread.spread(data, pair=("BC", "CRR_exp_beta1"))
 
 
-def test_bench_crr_levers_lean_adam_is_adams_update(monkeypatch: pytest.MonkeyPatch) -> None:
-    """benchmarks/bench_crr_levers.py: its lean Adam step gives torch's fused Adam update, bit for bit."""
-    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[2] / "benchmarks"))
-    levers = benchmark_module("bench_crr_levers")
-
-    def make() -> tuple[th.nn.Sequential, th.optim.Optimizer]:
-        th.manual_seed(0)
-        net = th.nn.Sequential(th.nn.Linear(5, 16), th.nn.ReLU(), th.nn.Linear(16, 2))
-        return net, th.optim.Adam(net.parameters(), lr=1e-2, fused=True)
-
-    reference, lean = make(), make()
-    inputs = th.randn(32, 5)
-    for step in range(20):
-        for net, optimizer in (reference, lean):
-            optimizer.zero_grad(set_to_none=True)
-            net(inputs).pow(2).mean().backward()
-            optimizer.step()
-        if step == 0:  # Adam's state exists after its first step
-            levers.lean_adam(lean[1])
-            assert "step" in vars(lean[1])  # the lean step replaced the optimizer's own on this instance
-    for param, lean_param in zip(reference[0].parameters(), lean[0].parameters()):
-        assert th.equal(param, lean_param)
-    assert not th.equal(next(reference[0].parameters()), next(make()[0].parameters()))  # the steps moved the weights
-
-
 def test_crr_train_dtype_return_verdict() -> None:
-    """benchmarks/crr_train_dtype_return.py: its pre-registered rule, pass / fail / not testable, paired by seed."""
+    """benchmarks/studies/crr_train_dtype_return/crr_train_dtype_return.py: its pre-registered rule, pass / fail /
+    not testable, paired by seed."""
     check = benchmark_module("crr_train_dtype_return")
 
     def rows(base: list[float], other: list[float]) -> list[dict]:
@@ -220,7 +197,8 @@ def test_crr_train_dtype_return_merges_seeds_run_apart() -> None:
 
 
 def test_mpo_quality_paired_verdict(tmp_path, monkeypatch) -> None:
-    """benchmarks/bench_mpo_quality.py: the rule pre-registered for bf16 gradient passes, pass / fail / inconclusive."""
+    """benchmarks/studies/mpo_quality/bench_mpo_quality.py: the rule pre-registered for bf16 gradient passes, pass /
+    fail / inconclusive."""
     quality = benchmark_module("bench_mpo_quality")
     base = {0: 1000.0, 1: 1400.0, 2: 1200.0, 3: 800.0, 4: 1600.0}  # a spread of 316 across seeds
     close = quality.paired_verdict(base, {seed: value + (-1) ** seed * 30.0 for seed, value in base.items()})

@@ -12,7 +12,8 @@ from sb3_lifelong.experiments import PRESETS, run_seed
 
 
 def test_imbalance_dose_study(study, tmp_path):
-    """benchmarks/imbalance_dose.py: the collector measured, the eight students, preconditions and claims."""
+    """benchmarks/studies/imbalance_dose/imbalance_dose.py: the collector measured, the eight students, preconditions
+    and claims."""
     import argparse
 
     dose = benchmark_module("imbalance_dose")
@@ -246,4 +247,5 @@ def test_imbalance_dose_progress_counts_committed_students(tmp_path, monkeypatch
     (study / "seed_0" / "collect" / "done.json").unlink()
     (results / "tiny" / "seed_0" / "students.json").write_text(json.dumps({"students": {n: {} for n in names[:-1]}}))
     text = "\n".join(dose.progress(where))
-    assert "aaaaaaa" in text and "bbbbbbb" in text and "PYTHONPATH=<collect-tree>:<repo>/benchmarks/study_float32" in text
+    assert "aaaaaaa" in text and "bbbbbbb" in text
+    assert "PYTHONPATH=<collect-tree>:<repo>/benchmarks/studies/imbalance_dose/study_float32" in text
