@@ -8,7 +8,7 @@
 # tables at the end; each check's whole output is in OUTPUT_DIR/<name>.log:
 #   flags              the CPU's matrix flags and oneDNN's bf16 kernel
 #   compiled_vs_eager  compiled against eager (and float64) on this CPU and torch (the tanh bug, the check)
-#   test_compiled      tests/test_compiled.py and tests/test_train_dtype.py
+#   test_compiled      tests/common/test_compiled.py and tests/common/test_train_dtype.py
 #   student_compiled   a study student, eager against compiled
 #   student_train      a study student, compiled, float32 against bf16 gradient passes (train_dtype)
 #   mpo_train          MPO (N=20, LayerNorm, compiled) against SAC, float32 and bf16 gradient passes, Walker2d
@@ -46,7 +46,7 @@ run() {  # run NAME SECONDS COMMAND...: in the background, on the next core (whe
 }
 $PY -c "from sb3_lifelong.common.hardware import machine_description; print(machine_description())" > "$OUT/flags.log" 2>&1
 run compiled_vs_eager $seconds $PY benchmarks/compiled_vs_eager.py (retired: `git show 9cccda3:benchmarks/compiled_vs_eager.py`)
-run test_compiled $seconds $PY -m pytest -q -p no:cacheprovider -rs tests/test_compiled.py tests/test_train_dtype.py
+run test_compiled $seconds $PY -m pytest -q -p no:cacheprovider -rs tests/common/test_compiled.py tests/common/test_train_dtype.py
 run student_compiled $seconds $PY benchmarks/speed/student_anatomy.py compare --blocks 6
 run student_train $seconds $PY benchmarks/speed/student_anatomy.py compare --train-dtype --compile-losses --blocks 6
 run mpo_train $seconds $PY benchmarks/speed/bench_mpo_throughput.py --envs Walker2d-v5 --rounds 3 --steps 500 --num-samples 20 \

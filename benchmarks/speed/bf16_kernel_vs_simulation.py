@@ -3,7 +3,7 @@ The bf16 kernel of this CPU against ``train_dtype="simulated_bfloat16"`` (the sa
 products), on one 128 x 256 x 256 hidden layer, forward and backward: per tensor, the fraction of elements that differ,
 the largest difference in bf16 rounding steps of the element, and the largest difference relative to the sum of the
 absolute values of the products summed into the element (its conditioning; a reordered float32 sum differs by at most
-K 2^-24 of it). ``tests/test_train_dtype.py`` bounds the difference by one step plus 2^-12 of that sum
+K 2^-24 of it). ``tests/common/test_train_dtype.py`` bounds the difference by one step plus 2^-12 of that sum
 (:func:`bounds_apart`), with this script's functions.
 
     OMP_NUM_THREADS=1 python benchmarks/bf16_kernel_vs_simulation.py

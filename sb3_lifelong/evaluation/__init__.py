@@ -1,6 +1,7 @@
 """
 Measuring a model while it trains, in any algorithm: evaluation in several named environments, the critic's values
-per data source against the Monte-Carlo returns of the stored data, and the ``train/`` values as CSV.
+per data source against the Monte-Carlo returns of the stored data, the ``train/`` values as CSV, and forgetting and
+transfer in the continual-learning field's terms.
 """
 
 from sb3_lifelong.evaluation.callbacks import (
@@ -10,14 +11,17 @@ from sb3_lifelong.evaluation.callbacks import (
     TrainLogCallback,
     make_eval_envs,
 )
+from sb3_lifelong.evaluation.continual import ContinualMetricsCallback, continual_metrics
 from sb3_lifelong.evaluation.overestimation import MonteCarloProbe, discounted_returns, monte_carlo_horizon
 
 __all__ = [
     "EVAL_SEED_OFFSET",
+    "ContinualMetricsCallback",
     "MonteCarloProbe",
     "MultiEnvEvalCallback",
     "SourceQCallback",
     "TrainLogCallback",
+    "continual_metrics",
     "discounted_returns",
     "make_eval_envs",
     "monte_carlo_horizon",

@@ -1,6 +1,6 @@
 """
 What ``beta`` means on a narrow dataset, and what ``target_ess`` costs: CRR trained offline on 10,000 transitions of
-one SAC policy on Pendulum-v1 (the dataset of ``tests/test_offline_learning.py``: returns of about -200 per
+one SAC policy on Pendulum-v1 (the dataset of ``tests/common/test_offline_learning.py``: returns of about -200 per
 episode, Q differences of tens) with the indicator transform, ``exp`` at ``beta`` = 1 and 10, and ``exp`` at
 ``target_ess=0.9``; then the time of the ``target_ess`` temperature search per batch of 256 advantages.
 
@@ -110,7 +110,7 @@ def main() -> None:
         "",
         f"Machine: {machine_description()}",
         "",
-        f"Data: 10,000 transitions of one SAC policy (`tests/test_offline_learning.py`); its return on the 20 evaluation "
+        f"Data: 10,000 transitions of one SAC policy (`tests/common/test_offline_learning.py`); its return on the 20 evaluation "
         f"episodes: {behaviour_return:.1f}. CRR: 64x64 networks, batch 128, learning rate 1e-3, {args.updates} updates; "
         "the return of the deterministic policy on the same 20 episodes; the weights' effective sample size (a fraction "
         "of the batch) and mean weight over the last 500 updates.",

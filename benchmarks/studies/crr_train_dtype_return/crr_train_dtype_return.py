@@ -4,7 +4,7 @@ Does bf16 in CRR's gradient passes keep its learning result? The fixed-dataset r
 each run its own process (``bench_crr.py --impl ours``), the two settings interleaved per seed.
 
 On a CPU without native bf16, ``--other simulated_bfloat16`` gives bf16's numbers from float32 products at float32's
-speed (``HiddenLinear.simulated``; ``tests/test_train_dtype.py`` checks it against the bf16 kernel); on one with it,
+speed (``HiddenLinear.simulated``; ``tests/common/test_train_dtype.py`` checks it against the bf16 kernel); on one with it,
 ``--other bfloat16`` runs the real thing.
 
 Pre-registered before the runs (written into the results):
