@@ -2,7 +2,7 @@
 # The checks that need a CPU with native bf16 (AMX or AVX-512 BF16), as one run of under 10 minutes on a machine
 # with at least 14 cores: each check one process with one torch thread, pinned to its own core, all at once.
 #
-#   bash benchmarks/speed/amx_checks.sh [OUTPUT_DIR]      # default benchmarks/results/amx_checks
+#   bash benchmarks/speed/amx_checks.sh [OUTPUT_DIR]      # default benchmarks/results/speed/amx_checks
 #
 # It needs the package importable (installed, or PYTHONPATH=<repo>) with gymnasium[mujoco] and SB3. It prints the
 # tables at the end; each check's whole output is in OUTPUT_DIR/<name>.log:
@@ -25,7 +25,7 @@
 # ones by their names): a second visit to a machine need not repeat the first one's checks.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-OUT=${1:-benchmarks/results/amx_checks}
+OUT=${1:-benchmarks/results/speed/amx_checks}
 mkdir -p "$OUT"
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONUNBUFFERED=1
 PY=${PYTHON:-python}

@@ -21,7 +21,7 @@ The table gives GFLOP/s (median over rounds), bf16's speed over float32's, and t
 float32 layer's. The machine line names the
 CPU, its matrix flags and the oneDNN kernel that ran the bf16 product.
 
-    OMP_NUM_THREADS=1 python benchmarks/speed/bench_matmul.py      # -> benchmarks/results/matmul.json
+    OMP_NUM_THREADS=1 python benchmarks/speed/bench_matmul.py      # -> benchmarks/results/speed/matmul.json
 """
 
 import argparse

@@ -6,7 +6,7 @@ absolute values of the products summed into the element (its conditioning; a reo
 K 2^-24 of it). ``tests/common/test_train_dtype.py`` bounds the difference by one step plus 2^-12 of that sum
 (:func:`bounds_apart`), with this script's functions.
 
-    OMP_NUM_THREADS=1 python benchmarks/bf16_kernel_vs_simulation.py
+    OMP_NUM_THREADS=1 python benchmarks/speed/bf16_kernel_vs_simulation.py
 """
 
 import torch as th

@@ -356,7 +356,8 @@ def _layer_norm_no_grad(
 
 #: the first layer is split into a per-state and a per-sample product (:func:`_first_layer_split`) when the
 #: features are at least this wide and at least twice the action: measured on this CPU, the first layer 3x faster
-#: for OP3-sized inputs (68 + 20; the whole pass 1.18x, benchmarks/results/scoring_split.md (retired: `git show 9cccda3:benchmarks/results/scoring_split.md`)), and slower than one
+#: for OP3-sized inputs (68 + 20; the whole pass 1.18x, a retired probe,
+#: ``git show 9cccda3:benchmarks/results/scoring_split.md``), and slower than one
 #: product for Hopper-sized ones (11 + 3)
 SPLIT_MIN_FEATURES = 32
 

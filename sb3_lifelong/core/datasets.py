@@ -218,7 +218,8 @@ def record_transitions(env: Any, act: Callable[[Any], Any], steps: int, seed: Op
     """
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValueError(f"steps must be a positive integer, got {steps!r}")
-    columns: dict[str, list] = {key: [] for key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")}
+    keys = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")
+    columns: dict[str, list] = {key: [] for key in keys}
     obs, _ = env.reset(seed=seed)
     for _ in range(int(steps)):
         action = act(obs)

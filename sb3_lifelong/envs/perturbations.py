@@ -532,6 +532,15 @@ class PhysicsEditor:
             norm = float(np.linalg.norm(g0))
             direction = g0 / norm if norm > 0 else np.array([0.0, 0.0, -1.0])
             m.opt.gravity[:] = direction * full["gravity"]
+        self._scale_motors_and_joints(full)
+        mujoco.mj_setConst(m, self._scratch)
+        self.params = full
+        self.last_apply_recompiled = recompile
+        return dict(full)
+
+    def _scale_motors_and_joints(self, full: Mapping[str, float]) -> None:
+        """The actuator and joint perturbations: strength of every motor, damping, one leg's motors, one joint's lock."""
+        m = self.model
         if full.get("actuator_strength", 1.0) != 1.0:
             s = full["actuator_strength"]
             for a in range(m.nu):
@@ -548,10 +557,6 @@ class PhysicsEditor:
             self._scale_leg_motors(full["leg_motor_scale"])
         if full.get("joint_lock", 0.0) != 0.0:
             self._lock_joint(full["joint_lock"])
-        mujoco.mj_setConst(m, self._scratch)
-        self.params = full
-        self.last_apply_recompiled = recompile
-        return dict(full)
 
     def _scale_leg_motors(self, scale: float) -> None:
         """Scale one leg's motors by ``abs(scale)``; a negative ``scale`` also reverses them."""

@@ -28,7 +28,7 @@ from typing import Any, Optional
 
 import torch as th
 
-from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, split_repeat
+from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job
 from sb3_lifelong.experiments.protocol import run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
@@ -141,12 +141,12 @@ def main(argv: Optional[list[str]] = None) -> int:
         preset = PRESETS[args.preset]
         print(f"preset {args.preset}: {preset.env_id}, stages {list(preset.stages)}, steps {list(preset.stage_steps)}")
         for job in preset.jobs():
-            name = job.split("_", 1)[-1]
-            if job.startswith("distill_"):
-                name, repeat = split_repeat(name)
-                about = STUDENTS[name].about + (f" (repeat {repeat}, its own student seed)" if repeat else "")
+            parsed = Job.parse(job)
+            if parsed.kind == "distill":
+                repeat = parsed.repeat
+                about = STUDENTS[parsed.name].about + (f" (repeat {repeat}, its own student seed)" if repeat else "")
             else:
-                about = str(ONLINE.get(name, "MPO through every stage"))
+                about = str(ONLINE.get(parsed.name, "MPO through every stage"))
             print(f"  {job:<34} {about}")
         if preset.minutes_per_seed is not None:
             print(f"one seed took {preset.minutes_per_seed:.0f} min on one core of the reference machine")
@@ -172,7 +172,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         preset = PRESETS[args.preset]
         if args.student_repeats is not None:
             preset = dataclasses.replace(preset, student_repeats=args.student_repeats)
-        jobs = args.jobs or [j for j in preset.jobs() if not (args.no_online and j.startswith("online_"))]
+        jobs = args.jobs or [j for j in preset.jobs() if not (args.no_online and Job.parse(j).kind == "online")]
         start = time.perf_counter()
         reuse = args.collection_from
         results = run_study(
@@ -201,11 +201,10 @@ def main(argv: Optional[list[str]] = None) -> int:
         changes["student_repeats"] = args.student_repeats
     if changes:
         preset = dataclasses.replace(preset, **changes)
-    jobs = (
-        args.jobs if args.jobs is not None else [j for j in preset.jobs() if not (args.no_online and j.startswith("online_"))]
-    )
+    every = [j for j in preset.jobs() if not (args.no_online and Job.parse(j).kind == "online")]
+    jobs = args.jobs if args.jobs is not None else every
     output = pathlib.Path(args.output)
-    online = sum(job.startswith("online_") for job in jobs)
+    online = sum(Job.parse(job).kind == "online" for job in jobs)
     steps = sum(preset.stage_steps) + online * sum(preset.stage_steps[1:])
     print(
         f"{len(preset.env_names)}-stage protocol, preset {args.preset}: {preset.env_id}, {' -> '.join(preset.env_names)}, "

@@ -20,8 +20,8 @@ from sb3_lifelong.buffers.files import write_json_atomic
 from sb3_lifelong.envs import stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
 from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
+from sb3_lifelong.experiments.collection import PAUSED_MODEL, PAUSED_RECORD
 from sb3_lifelong.experiments.presets import Preset, describe_stage
-from sb3_lifelong.experiments.protocol import PAUSED_MODEL, PAUSED_RECORD
 from sb3_lifelong.mpo import MPO
 
 
@@ -29,7 +29,7 @@ def adopt_stage1(preset: Preset, source: pathlib.Path, run_dir: pathlib.Path) ->
     """
     Lay out ``preset``'s collection in ``run_dir``, paused at its switch, from the finished Stage-1 of the seed
     directory ``source``: the Stage-1 agent as the pause's checkpoint, the Stage-1 buffer as the lifetime buffer,
-    Env-A's evaluations. The protocol's :func:`~sb3_lifelong.experiments.protocol.collect` then continues it in Env-B.
+    Env-A's evaluations. The protocol's :func:`~sb3_lifelong.experiments.collection.collect` then continues it in Env-B.
 
     ``source`` must hold the same robot, seed and Env-A. Env-A does not depend on the change when each collection's
     stages vary one parameter: the appended column is that parameter's nominal value, 0 after normalisation, in Env-A

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from sb3_lifelong.experiments.presets import STUDENTS, preset_name, split_repeat, stage_ends
+from sb3_lifelong.experiments.presets import STUDENTS, Job, preset_name, stage_ends
 from sb3_lifelong.experiments.scores import Study
 from sb3_lifelong.experiments.style import (
     band,
@@ -169,7 +169,7 @@ def _q_frame(study: Study, method: str) -> pd.DataFrame:
         run_dir = study.output / f"seed_{seed}"
         for path in sorted(run_dir.glob(f"distill_{method}*/q_sources.csv")):  # with the student's repeats
             finished = (path.parent / "done.json").exists()  # a repeat still running: not yet
-            if finished and split_repeat(path.parent.name[len("distill_") :])[0] == method:
+            if finished and Job.parse(path.parent.name).name == method:
                 frames.append(pd.read_csv(path).assign(seed=seed))
     if not frames:
         return pd.DataFrame(columns=["seed", "timesteps", "env", "q_mean"])

@@ -50,11 +50,11 @@ class Preset:
     :param layer_norm: the LayerNorm torso for every network of the study (collector, students, online
         baselines); the presets run before MPO's default changed keep ``False``, the setting they ran with
     :param student_repeats: how many times each student is trained on a seed's buffer (each with its own student
-        seed); the report scores a student by the mean of its repeats (``benchmarks/studies/student_spread/student_spread.md``: most
-        of a student's seed-to-seed spread is its own training)
+        seed); the report scores a student by the mean of its repeats (most of a student's seed-to-seed spread is its
+        own training: ``benchmarks/studies/student_spread/student_spread.md``)
     :param student_critic: the CRR students' critic: ``"mse"`` (regression on the TD target) or ``"categorical"``
         (the paper's kind: 51 atoms on a support that holds every return of the seed's buffer,
-        :func:`~sb3_lifelong.experiments.protocol.value_support`, so it cannot diverge;
+        :func:`~sb3_lifelong.experiments.jobs.value_support`, so it cannot diverge;
         ``benchmarks/studies/paper_cpu_three/bounded_critic``)
     :param env_a_learnt: the Env-A return MPO must have reached when it leaves Env-A (the mean of its last evaluations
         there) for the claims about Env-A (forgetting it, remembering it, the imbalance drop and its diagnostics) to
@@ -271,14 +271,20 @@ PRESETS["dose_hopper"] = Preset(
     students=(),
     online=False,
     student_critic="categorical",
-    note="Collection of the imbalance dose study (Hopper, foot x2); students: benchmarks/imbalance_dose.py.",
+    note=(
+        "Collection of the imbalance dose study (Hopper, foot x2); students: "
+        "benchmarks/studies/imbalance_dose/imbalance_dose.py."
+    ),
 )
 # the natural-value-gap candidate (no healthy reward); its episodes are 1000 steps long, so 5 evaluation episodes
 PRESETS["dose_cheetah"] = dataclasses.replace(
     PRESETS["dose_hopper"],
     env_id="HalfCheetah-v5",
     eval_episodes=5,
-    note="Collection of the imbalance dose study (HalfCheetah, foot x2); students: benchmarks/imbalance_dose.py.",
+    note=(
+        "Collection of the imbalance dose study (HalfCheetah, foot x2); students: "
+        "benchmarks/studies/imbalance_dose/imbalance_dose.py."
+    ),
 )
 
 # the dose study's HalfCheetah pair with a long Env-B (benchmarks/studies/imbalance_dose/README.md, "Long Env-B"): the
@@ -290,7 +296,8 @@ PRESETS["dose_cheetah_hip"] = dataclasses.replace(
     stage_steps=(100_000, 500_000),
     note=(
         "Collection of the imbalance dose study, long Env-B (HalfCheetah, hip +1 rad, 100k : 500k steps); about 8 hours "
-        "on one core, so run it in parts with --until; students: benchmarks/studies/imbalance_dose/imbalance_dose.py --robot cheetah_hip."
+        "on one core, so run it in parts with --until; students: "
+        "benchmarks/studies/imbalance_dose/imbalance_dose.py --robot cheetah_hip."
     ),
 )
 
@@ -322,7 +329,7 @@ class Student:
     """
     One offline student of the lifetime buffer.
 
-    :param algorithm: "CRR" or "BC"
+    :param algorithm: the student's algorithm class, by name: one of :data:`STUDENT_ALGORITHMS`
     :param kwargs: the student's hyperparameters (``advantage_transform``, ``beta``, ``actor_per_source``)
     :param ratio: sampling ratio Env-A : Env-B as ``(a, b)`` (None: the raw sizes); ``(1, 0)``: Env-A only
     :param reward_scale: per-source reward scale, by environment index
@@ -338,6 +345,13 @@ class Student:
     uses_boundaries: bool = False
     about: str = ""
 
+    def __post_init__(self) -> None:
+        if self.algorithm not in STUDENT_ALGORITHMS:
+            raise ValueError(f"a student's algorithm is one of {STUDENT_ALGORITHMS}, got {self.algorithm!r}")
+
+
+#: the algorithms a study's student can be (the classes of :mod:`sb3_lifelong`, by name)
+STUDENT_ALGORITHMS = ("CRR", "BC")
 
 EXP = dict(advantage_transform="exp", beta=1.0)
 INDICATOR = dict(advantage_transform="indicator")
@@ -385,6 +399,51 @@ def split_repeat(student_job: str) -> tuple[str, int]:
     return student_job, 0
 
 
+@dataclass(frozen=True)
+class Job:
+    """
+    One job of a seed, parsed once from its name (which is also its directory's): ``collect``,
+    ``distill_<student>`` (``distill_<student>__r<k>`` for the student's repeat ``k``) or ``online_<method>``.
+
+    :param kind: ``"collect"``, ``"distill"`` or ``"online"``
+    :param name: the student's name (:data:`STUDENTS`) or the online method's (:data:`ONLINE`); empty for ``collect``
+    :param repeat: the student's repeat (0: its first training)
+    """
+
+    kind: str
+    name: str = ""
+    repeat: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind not in JOB_KINDS or (self.kind == "collect") != (self.name == ""):
+            raise ValueError(f"not a job: kind {self.kind!r}, name {self.name!r} (kinds: {JOB_KINDS})")
+        if self.repeat < 0 or (self.repeat and self.kind != "distill"):
+            raise ValueError(f"only a distillation job has repeats, and they count from 0: {self.kind} {self.repeat}")
+
+    @classmethod
+    def parse(cls, text: str) -> "Job":
+        """:return: the job named ``text``; a name that is no job raises ``ValueError``"""
+        if text == "collect":
+            return cls("collect")
+        for kind in ("distill", "online"):
+            prefix = f"{kind}_"
+            if text.startswith(prefix) and len(text) > len(prefix):
+                name, repeat = split_repeat(text[len(prefix) :]) if kind == "distill" else (text[len(prefix) :], 0)
+                return cls(kind, name, repeat)
+        raise ValueError(f"not a job name: {text!r} (collect, distill_<student>[{REPEAT_MARK}<k>], online_<method>)")
+
+    @property
+    def student_job(self) -> str:
+        """:return: a distillation job's name without ``distill_``: the student and its repeat mark"""
+        return self.name + (f"{REPEAT_MARK}{self.repeat}" if self.repeat else "")
+
+    def __str__(self) -> str:
+        return "collect" if self.kind == "collect" else f"{self.kind}_{self.student_job}"
+
+
+JOB_KINDS = ("collect", "distill", "online")
+
+
 def job_names(students: Optional[Sequence[str]] = None, online: bool = True, student_repeats: int = 1) -> list[str]:
     """
     :param students: the students (default: every one of :data:`STUDENTS`)
@@ -395,11 +454,10 @@ def job_names(students: Optional[Sequence[str]] = None, online: bool = True, stu
     if student_repeats < 1:
         raise ValueError(f"student_repeats must be >= 1, got {student_repeats}")
     names = list(students if students is not None else STUDENTS)
-    jobs = ["collect"]
-    jobs += [f"distill_{name}" for name in names]
-    jobs += [f"distill_{name}{REPEAT_MARK}{k}" for k in range(1, student_repeats) for name in names]
-    jobs += [f"online_{name}" for name in ONLINE] if online else []
-    return jobs
+    jobs = [Job("collect")]
+    jobs += [Job("distill", name, k) for k in range(student_repeats) for name in names]
+    jobs += [Job("online", name) for name in ONLINE] if online else []
+    return [str(job) for job in jobs]
 
 
 # ------------------------------------------------------------------------------------------------- stages

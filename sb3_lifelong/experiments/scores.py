@@ -30,7 +30,7 @@ from typing import Any, Optional
 
 import pandas as pd
 
-from sb3_lifelong.experiments.presets import split_repeat, stage_ends
+from sb3_lifelong.experiments.presets import Job, stage_ends
 
 ONLINE_LAST = 3
 ONLINE_LAST_STAGE1 = 2
@@ -201,8 +201,9 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
             frame = read_eval(output, seed, job)
             if frame is None:
                 continue
-            if job == "collect" or job.startswith("online_"):
-                method = "MPO" if job == "collect" else f"online {job[len('online_'):]}"
+            parsed = Job.parse(job)
+            if parsed.kind in ("collect", "online"):
+                method = "MPO" if parsed.kind == "collect" else f"online {parsed.name}"
                 for env in envs:
                     finals.append(
                         dict(seed=seed, method=method, kind="online", env=env, score=last_mean(frame, env, ONLINE_LAST))
@@ -217,8 +218,8 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                         extras.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=spread))
                     extras += data_values(seed, job_dir / "q_sources.csv")
                     extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs, ends)
-            elif job.startswith("distill_"):
-                method, _ = split_repeat(job[len("distill_") :])  # a student's repeats score as their mean
+            else:
+                method = parsed.name  # a student's repeats score as their mean
                 for env in envs:
                     score = last_mean(frame, env, STUDENT_LAST)
                     finals.append(dict(seed=seed, method=method, kind="student", env=env, score=score))

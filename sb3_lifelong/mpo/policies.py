@@ -16,7 +16,8 @@ class MPOPolicy(GaussianActorCriticPolicy):
     :param layer_norm: Acme's LayerNorm torso (LayerNorm and tanh after the first hidden layer of the actor and
         critics), on by default for MPO: at 100k steps, three seeds each, it took Walker2d-v5 from 305 to 927 (mean of
         the last three evaluations) and kept Hopper-v5 where it was (852 -> 1102), both above SAC
-        (``benchmarks/studies/mpo_quality/mpo_quality.md``). ``False`` gives SB3's plain MLPs (MPO's default before 2026-11-25).
+        (``benchmarks/studies/mpo_quality/mpo_quality.md``). ``False`` gives SB3's plain MLPs (MPO's default before
+        2026-11-25).
     """
 
     actor: GaussianActor

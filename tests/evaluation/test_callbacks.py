@@ -85,7 +85,7 @@ def test_protocol_evaluations_play_the_same_episodes(tmp_path):
     """The protocol's jobs evaluate every time on the same seeded episodes (their returns are compared over time)."""
     from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
     from sb3_lifelong.experiments import PRESETS
-    from sb3_lifelong.experiments.protocol import job_callbacks
+    from sb3_lifelong.experiments.jobs import job_callbacks
 
     evaluation = job_callbacks(PRESETS["tiny"], tmp_path, eval_freq=100, seed=3)[1]
     assert isinstance(evaluation, MultiEnvEvalCallback)

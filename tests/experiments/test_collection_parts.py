@@ -13,7 +13,7 @@ from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.buffers import merge_buffers
 from sb3_lifelong.experiments import PRESETS, STUDENTS, run_seed
 from sb3_lifelong.experiments.__main__ import main
-from sb3_lifelong.experiments.protocol import REWIND_STAGING
+from sb3_lifelong.experiments.collection import REWIND_STAGING
 
 
 def test_a_collection_runs_in_parts(tmp_path, capsys):
@@ -143,7 +143,7 @@ def test_rewinds_that_stopped_half_way_or_repeat_keep_everything(tmp_path):
 def test_rewind_copies_the_head_and_keeps_the_whole_buffer(tmp_path):
     from tests.test_buffers import ACT, OBS, all_rows, fill
 
-    from sb3_lifelong.experiments.protocol import _rewind_to_pause
+    from sb3_lifelong.experiments.collection import _rewind_to_pause
 
     with LifelongReplayBuffer(0, OBS, ACT, path=tmp_path / "buffer", chunk_size=16) as buffer:
         fill(buffer, 40, 1, stage=0)

@@ -78,7 +78,7 @@ def test_three_stage_study_end_to_end(tmp_path):
 
 
 def test_value_support_holds_every_return():
-    from sb3_lifelong.experiments.protocol import value_support
+    from sb3_lifelong.experiments.jobs import value_support
 
     support = value_support((-2.0, 5.0), 0.9)
     assert support == pytest.approx(dict(v_min=-20.0, v_max=50.0))
@@ -169,8 +169,8 @@ def test_collection_reused_by_a_study_of_other_students(study, tmp_path):
     """``--collection-from``: another study's buffers, linked; only the students run, with a categorical critic."""
 
     from sb3_lifelong import CRR
+    from sb3_lifelong.experiments.jobs import value_support
     from sb3_lifelong.experiments.presets import Preset
-    from sb3_lifelong.experiments.protocol import value_support
     from sb3_lifelong.experiments.report import incomplete_repeats
 
     source, _ = study

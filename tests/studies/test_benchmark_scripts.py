@@ -56,7 +56,7 @@ def test_bounded_critic_diagnostic(study, tmp_path):
     """benchmarks/studies/paper_cpu_three/bounded_critic.py: the study's CRR students with a categorical critic on
     the data's bounds."""
     from sb3_lifelong import CRR
-    from sb3_lifelong.experiments.protocol import value_support
+    from sb3_lifelong.experiments.jobs import value_support
 
     bounded = benchmark_module("bounded_critic")
     output, _ = study

@@ -110,8 +110,9 @@ def main() -> None:
         "",
         f"Machine: {machine_description()}",
         "",
-        f"Data: 10,000 transitions of one SAC policy (`tests/common/test_offline_learning.py`); its return on the 20 evaluation "
-        f"episodes: {behaviour_return:.1f}. CRR: 64x64 networks, batch 128, learning rate 1e-3, {args.updates} updates; "
+        "Data: 10,000 transitions of one SAC policy (as `tests/common/test_offline_learning.py`); its return on the 20 "
+        f"evaluation episodes: {behaviour_return:.1f}. CRR: 64x64 networks, batch 128, learning rate 1e-3, "
+        f"{args.updates} updates; "
         "the return of the deterministic policy on the same 20 episodes; the weights' effective sample size (a fraction "
         "of the batch) and mean weight over the last 500 updates.",
         "",

@@ -104,7 +104,7 @@ def paused_at(run_dir: pathlib.Path) -> int:
 
 def collect_in_parts(settings: Any, seed: int, run_dir: pathlib.Path, stop: int) -> None:
     """Collect to ``stop`` steps in parts of ``PART``; each part ends with a checkpoint that the next continues."""
-    from sb3_lifelong.experiments.protocol import collect
+    from sb3_lifelong.experiments.collection import collect
 
     done = paused_at(run_dir)
     while done < stop:

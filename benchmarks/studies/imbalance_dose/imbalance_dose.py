@@ -196,8 +196,9 @@ def copy_collection_curve(run_dir: pathlib.Path, results: pathlib.Path) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.experiments.jobs import value_support
     from sb3_lifelong.experiments.presets import PRESETS
-    from sb3_lifelong.experiments.protocol import distill_on_study, value_support
+    from sb3_lifelong.experiments.protocol import distill_on_study
 
     preset_name, _ = ROBOTS[args.robot]
     preset = dataclasses.replace(PRESETS[preset_name], distill_steps=args.updates)
@@ -242,8 +243,8 @@ def branch(args: argparse.Namespace) -> None:
     that collection paused at its switch (:func:`adopt`), which the protocol's ``collect`` continues in Env-B; its
     Env-A return after Env-B is P2's test of the change (the change screen, README).
     """
+    from sb3_lifelong.experiments.collection import collect
     from sb3_lifelong.experiments.presets import PRESETS
-    from sb3_lifelong.experiments.protocol import collect
 
     change = json.loads(args.change)
     if not isinstance(change, dict) or len(change) != 1:

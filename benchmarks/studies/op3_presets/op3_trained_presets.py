@@ -16,7 +16,7 @@ Usage::
     OMP_NUM_THREADS=1 MENAGERIE_ROOT=../shared/menagerie python benchmarks/studies/op3_presets/op3_trained_presets.py \\
         --train-seconds 6000 --out benchmarks/studies/op3_presets/envs_op3_trained_ppo.md
     # evaluate an existing checkpoint only
-    python benchmarks/studies/op3_presets/op3_trained_presets.py --eval-only --workdir benchmarks/results/op3_ppo
+    python benchmarks/studies/op3_presets/op3_trained_presets.py --eval-only --workdir benchmarks/studies/op3_presets/op3_ppo
 """
 
 import argparse
@@ -146,7 +146,7 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--eval-episodes", type=int, default=5)
-    parser.add_argument("--workdir", type=str, default="benchmarks/results/op3_ppo")
+    parser.add_argument("--workdir", type=str, default="benchmarks/studies/op3_presets/op3_ppo")
     parser.add_argument("--eval-only", action="store_true")
     parser.add_argument("--out", type=str, default=None, help="markdown file for the table")
     args = parser.parse_args()

@@ -25,8 +25,9 @@ import shutil
 
 import pandas as pd
 
+from sb3_lifelong.experiments.jobs import value_support
 from sb3_lifelong.experiments.presets import PRESETS, STUDENTS, Preset, Student, same_settings
-from sb3_lifelong.experiments.protocol import distill_on_study, value_support
+from sb3_lifelong.experiments.protocol import distill_on_study
 from sb3_lifelong.experiments.report import write_report
 from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean
 

@@ -1,0 +1,39 @@
+"""A seed's jobs are typed: parsed once from their names, printed back to the same names; a student names a known
+algorithm."""
+
+import pytest
+
+from sb3_lifelong.experiments.presets import STUDENTS, Job, Student, job_names
+
+
+def test_every_job_name_parses_and_prints_back():
+    names = job_names(student_repeats=3)
+    for name in names:
+        assert str(Job.parse(name)) == name
+    assert Job.parse("collect") == Job("collect")
+    assert Job.parse("distill_CRR_exp_beta1__r2") == Job("distill", "CRR_exp_beta1", 2)
+    assert Job.parse("distill_CRR_exp_beta1__r2").student_job == "CRR_exp_beta1__r2"
+    assert Job.parse("online_CRR_indicator") == Job("online", "CRR_indicator")
+    kinds = [Job.parse(n).kind for n in names]
+    assert kinds[0] == "collect" and kinds.count("distill") == 3 * len(STUDENTS) and kinds.count("online") == 2
+
+
+@pytest.mark.parametrize("name", ["", "distill_", "online_", "collect_more", "train_CRR", "Collect"])
+def test_a_name_that_is_no_job_is_refused(name):
+    with pytest.raises(ValueError, match="not a job name"):
+        Job.parse(name)
+
+
+def test_a_job_is_consistent():
+    with pytest.raises(ValueError, match="not a job"):
+        Job("collect", "CRR")
+    with pytest.raises(ValueError, match="not a job"):
+        Job("distill")
+    with pytest.raises(ValueError, match="only a distillation job has repeats"):
+        Job("online", "CRR_indicator", 1)
+
+
+def test_a_student_names_a_known_algorithm():
+    with pytest.raises(ValueError, match="one of \\('CRR', 'BC'\\), got 'SAC'"):
+        Student("SAC")
+    assert {student.algorithm for student in STUDENTS.values()} == {"CRR", "BC"}
