@@ -11,6 +11,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "sb3_lifelong"
 #: layer of each module prefix, lowest first; a module may import its own layer and the layers below it
 LAYERS = [
     ("sb3_lifelong.core", 0),
+    ("sb3_lifelong.numerics", 1),
     ("sb3_lifelong.envs", 1),
     ("sb3_lifelong.buffers", 1),
     ("sb3_lifelong.evaluation", 1),

@@ -44,7 +44,7 @@ run() {  # run NAME SECONDS COMMAND...: in the background, on the next core (whe
     core=$((core + 1))
     (timeout "$seconds" "${pin[@]}" "$@" > "$OUT/$name.log" 2>&1; echo "exit $?" >> "$OUT/$name.log") &
 }
-$PY -c "from sb3_lifelong.common.hardware import machine_description; print(machine_description())" > "$OUT/flags.log" 2>&1
+$PY -c "from sb3_lifelong.numerics.hardware import machine_description; print(machine_description())" > "$OUT/flags.log" 2>&1
 run compiled_vs_eager $seconds $PY benchmarks/compiled_vs_eager.py (retired: `git show 9cccda3:benchmarks/compiled_vs_eager.py`)
 run test_compiled $seconds $PY -m pytest -q -p no:cacheprovider -rs tests/common/test_compiled.py tests/common/test_train_dtype.py
 run student_compiled $seconds $PY benchmarks/speed/student_anatomy.py compare --blocks 6

@@ -126,7 +126,7 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(1)
     th.manual_seed(0)
-    from sb3_lifelong.common.hardware import machine_description
+    from sb3_lifelong.numerics.hardware import machine_description
 
     machine = machine_description()
     print(machine)

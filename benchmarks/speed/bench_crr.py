@@ -208,7 +208,7 @@ def main() -> None:
             behaviour = json.load(file)
     # the CPU's matrix flags and oneDNN's bf16 kernel decide these ratios (imported here: the d3rlpy child runs this
     # file in an interpreter without the package)
-    from sb3_lifelong.common.hardware import machine_description
+    from sb3_lifelong.numerics.hardware import machine_description
 
     machine = machine_description()
     print(machine)

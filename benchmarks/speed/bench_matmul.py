@@ -34,7 +34,7 @@ from typing import Callable, Optional
 
 import torch as th
 
-from sb3_lifelong.common.hardware import machine_description
+from sb3_lifelong.numerics.hardware import machine_description
 
 RESULTS = pathlib.Path(__file__).resolve().parents[1] / "results" / "speed" / "matmul.json"
 SHAPES = {

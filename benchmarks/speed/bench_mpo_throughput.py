@@ -25,7 +25,7 @@ from stable_baselines3 import SAC
 from torch.profiler import ProfilerActivity, profile
 
 from sb3_lifelong import MPO
-from sb3_lifelong.common.hardware import machine_description
+from sb3_lifelong.numerics.hardware import machine_description
 
 RESULTS = pathlib.Path(__file__).resolve().parents[1] / "results" / "speed"
 

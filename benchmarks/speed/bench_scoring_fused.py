@@ -1,7 +1,7 @@
 """
 MPO's target pass (``num_samples x batch`` rows through the target critic, no autograd) with the hidden layers as
 fused oneDNN products (bias and ReLU as post-ops, weights laid out once per sync:
-``sb3_lifelong.common.scoring.LowPrecisionCopy(fused=True)``) against the same precision unfused (``addmm`` into a
+``sb3_lifelong.numerics.scoring.LowPrecisionCopy(fused=True)``) against the same precision unfused (``addmm`` into a
 reused buffer, then an in-place ReLU) and against the exact float32 pass without a copy. With the LayerNorm torso,
 each copy also runs with its LayerNorm and tanh as one compiled kernel (``compile_layer_norm``, what a compiled update
 uses; compiled in the warm-up round), besides the eager way (converted to float32, normalised, converted back).
@@ -26,10 +26,10 @@ import numpy as np
 import torch as th
 
 from sb3_lifelong import MPO
-from sb3_lifelong.common.compiling import can_compile
-from sb3_lifelong.common.hardware import fused_products_supported, machine_description
 from sb3_lifelong.common.policies import sample_gaussian
-from sb3_lifelong.common.scoring import LowPrecisionCopy, score_actions
+from sb3_lifelong.numerics.compiling import can_compile
+from sb3_lifelong.numerics.hardware import fused_products_supported, machine_description
+from sb3_lifelong.numerics.scoring import LowPrecisionCopy, score_actions
 
 RESULTS = pathlib.Path(__file__).resolve().parents[1] / "results" / "speed"
 

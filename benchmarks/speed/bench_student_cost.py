@@ -129,7 +129,7 @@ def main() -> None:
     if args.worker:
         worker(args.scoring_dtype, args.compile_losses)
         return
-    from sb3_lifelong.common.hardware import machine_description
+    from sb3_lifelong.numerics.hardware import machine_description
 
     here = pathlib.Path(__file__).resolve().parents[2]  # the checkout
     trees = {"this tree": here} | ({"peer": pathlib.Path(args.peer)} if args.peer else {})

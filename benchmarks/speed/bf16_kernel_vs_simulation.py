@@ -12,8 +12,8 @@ K 2^-24 of it). ``tests/common/test_train_dtype.py`` bounds the difference by on
 import torch as th
 from torch import nn
 
-from sb3_lifelong.common.fast_ops import HiddenLinear
-from sb3_lifelong.common.hardware import machine_description
+from sb3_lifelong.numerics.fast_ops import HiddenLinear
+from sb3_lifelong.numerics.hardware import machine_description
 
 #: the tensors compared: the layer's output, then the gradients of a loss with respect to its input, weight and bias
 NAMES = ("output", "input grad", "weight grad", "bias grad")

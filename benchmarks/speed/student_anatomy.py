@@ -29,8 +29,8 @@ import warnings
 import torch as th
 from bench_student_cost import make_students
 
-from sb3_lifelong.common.hardware import machine_description
-from sb3_lifelong.common.scoring import LowPrecisionCopy
+from sb3_lifelong.numerics.hardware import machine_description
+from sb3_lifelong.numerics.scoring import LowPrecisionCopy
 
 
 def student(compile_losses: bool, online_copy: str = "default", train_dtype: str = "float32"):

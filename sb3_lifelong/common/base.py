@@ -25,14 +25,14 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_lifelong.common.compiling import CHECK_TOLERANCE, LOW_PRECISION_CHECK_TOLERANCE, LazyCompiled
 from sb3_lifelong.common.distillation import distill
-from sb3_lifelong.common.fast_ops import HiddenLinear
-from sb3_lifelong.common.hardware import SIMULATED_BFLOAT16, resolve_train_dtype
 from sb3_lifelong.common.losses import sum_of
-from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, runs_no_grad_pass
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.core.safe_load import safe_custom_objects, saved_data, saved_policy_class
+from sb3_lifelong.numerics.compiling import CHECK_TOLERANCE, LOW_PRECISION_CHECK_TOLERANCE, LazyCompiled
+from sb3_lifelong.numerics.fast_ops import HiddenLinear
+from sb3_lifelong.numerics.hardware import SIMULATED_BFLOAT16, resolve_train_dtype
+from sb3_lifelong.numerics.scoring import LowPrecisionCopy, resolve_scoring_dtype, runs_no_grad_pass
 
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
 
@@ -386,11 +386,11 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     def _make_scoring_copy(self, critic: th.nn.Module, scoring_dtype: str) -> Optional[LowPrecisionCopy]:
         """
         A low-precision copy of ``critic`` for the no-grad scoring passes, when ``scoring_dtype`` asks for one
-        (see :func:`sb3_lifelong.common.scoring.resolve_scoring_dtype`); it is synchronised by
+        (see :func:`sb3_lifelong.numerics.scoring.resolve_scoring_dtype`); it is synchronised by
         :meth:`_sync_scoring_copies` after loads and by the algorithm after its updates.
 
         :return: the copy, or None to score in the critic's own precision (always for a critic that the scoring
-            engine does not run, :func:`~sb3_lifelong.common.scoring.runs_no_grad_pass`: it is scored by calling it)
+            engine does not run, :func:`~sb3_lifelong.numerics.scoring.runs_no_grad_pass`: it is scored by calling it)
         """
         dtype = resolve_scoring_dtype(scoring_dtype, critic, self.device)
         if dtype == th.float32 or not runs_no_grad_pass(critic):
@@ -414,8 +414,8 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     def _apply_train_dtype(self, train_dtype: str) -> None:
         """
         Set the precision of the policy's hidden-to-hidden products in the passes that record gradients
-        (:class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), from ``train_dtype`` (see
-        :func:`~sb3_lifelong.common.hardware.resolve_train_dtype`). Called at every setup, loads included.
+        (:class:`~sb3_lifelong.numerics.fast_ops.HiddenLinear`), from ``train_dtype`` (see
+        :func:`~sb3_lifelong.numerics.hardware.resolve_train_dtype`). Called at every setup, loads included.
 
         :param train_dtype: the algorithm's ``train_dtype``
         :raises ValueError: what :meth:`_refuse_compiled_simulation` refuses (for a load with ``compile_losses=True``)
@@ -430,7 +430,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     def _compiled_check_tolerance(self) -> float:
         """
         :return: the relative tolerance of the compiled update's first-call check against the eager one
-            (:class:`~sb3_lifelong.common.compiling.LazyCompiled`): wider where the gradient passes multiply in
+            (:class:`~sb3_lifelong.numerics.compiling.LazyCompiled`): wider where the gradient passes multiply in
             bfloat16 (:meth:`_apply_train_dtype` first), whose roundings the compiled graph places differently
         """
         low = any(isinstance(m, HiddenLinear) and m.compute_dtype is not None for m in self.policy.modules())
@@ -439,7 +439,7 @@ class LifelongOffPolicyAlgorithm(OffPolicyAlgorithm):
     def _compile_scoring_copies(self, compiled: bool) -> None:
         """
         Have the scoring copies run their LayerNorm and tanh as one compiled kernel in the ``train`` calls whose update
-        is compiled (:attr:`~sb3_lifelong.common.scoring.LowPrecisionCopy.compile_layer_norm`), and eagerly in the others.
+        is compiled (:attr:`~sb3_lifelong.numerics.scoring.LowPrecisionCopy.compile_layer_norm`), and eagerly in the others.
 
         :param compiled: whether this ``train`` call runs the compiled update (:meth:`_compiles_now`)
         """

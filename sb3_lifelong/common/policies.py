@@ -24,7 +24,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_lifelong.common.fast_ops import HiddenLinear, Tanh
+from sb3_lifelong.numerics.fast_ops import HiddenLinear, Tanh
 
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -94,7 +94,7 @@ def mlp_layers(
     """
     SB3's ``create_mlp``, or with ``layer_norm`` the torso of Acme's ``LayerNormMLP`` (its MPO's actor and critic
     networks): the first hidden layer is ``Linear -> LayerNorm -> tanh``, the others ``Linear -> activation_fn``. The
-    tanh is :class:`sb3_lifelong.common.fast_ops.Tanh` (an ``nn.Tanh``, faster on a CPU, within about 1e-7 of it).
+    tanh is :class:`sb3_lifelong.numerics.fast_ops.Tanh` (an ``nn.Tanh``, faster on a CPU, within about 1e-7 of it).
 
     :param input_dim: Input features
     :param output_dim: Output units of a last ``Linear`` without activation (none if <= 0)
@@ -102,7 +102,7 @@ def mlp_layers(
     :param activation_fn: Activation of the hidden layers (all of them without ``layer_norm``; the later ones with)
     :param layer_norm: LayerNorm and tanh after the first hidden layer
     :return: the modules, for ``nn.Sequential``; the ``Linear`` layers from one hidden layer to the next are
-        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear` (the same parameters, initialised as SB3 does)
+        :class:`~sb3_lifelong.numerics.fast_ops.HiddenLinear` (the same parameters, initialised as SB3 does)
     """
     if not layer_norm or not net_arch:
         layers = create_mlp(input_dim, output_dim, net_arch, activation_fn)

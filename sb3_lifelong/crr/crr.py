@@ -13,12 +13,9 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_lifelong.buffers.loading import as_lifelong_data
-from sb3_lifelong.common.compiling import COMPILE_CHOICES, LazyCompiled
-from sb3_lifelong.common.hardware import TRAIN_DTYPES
 from sb3_lifelong.common.losses import bootstrap_discount
 from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian
-from sb3_lifelong.common.scoring import SCORING_DTYPES, score_actions
 from sb3_lifelong.crr.distributional import CategoricalCritic, CriticLoss
 from sb3_lifelong.crr.losses import (
     ADVANTAGE_BASELINES,
@@ -32,6 +29,9 @@ from sb3_lifelong.crr.losses import (
     target_actions,
 )
 from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor, actor_distribution
+from sb3_lifelong.numerics.compiling import COMPILE_CHOICES, LazyCompiled
+from sb3_lifelong.numerics.hardware import TRAIN_DTYPES
+from sb3_lifelong.numerics.scoring import SCORING_DTYPES, score_actions
 
 SelfCRR = TypeVar("SelfCRR", bound="CRR")
 
@@ -134,9 +134,9 @@ class CRR(LifelongOfflineAlgorithm):
         with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` / ``learn_offline`` call under
         way has at least 50,000 steps to go (updates offline) and inductor can compile here (a C++ compiler on a
         CPU). Measured on a study student: 1.2-1.3x faster updates after about 30 s of compiling once per process
-        (:mod:`sb3_lifelong.common.compiling`). The sampling noise is drawn outside the compiled graph, from the same
+        (:mod:`sb3_lifelong.numerics.compiling`). The sampling noise is drawn outside the compiled graph, from the same
         generator as the eager update; the arithmetic differs from eager's by rounding. The bf16 scoring copies' LayerNorm
-        and tanh run as one compiled kernel then (:class:`~sb3_lifelong.common.scoring.LowPrecisionCopy`). With one actor
+        and tanh run as one compiled kernel then (:class:`~sb3_lifelong.numerics.scoring.LowPrecisionCopy`). With one actor
         per source it stays eager. A compilation that fails warns once and leaves the update eager. With
         ``train_dtype="simulated_bfloat16"`` it is always eager (``True`` is refused)
     :param stats_window_size: Window size for the rollout logging

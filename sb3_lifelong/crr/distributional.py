@@ -13,7 +13,7 @@ from torch.nn import functional as F
 
 from sb3_lifelong.common.losses import sum_of
 from sb3_lifelong.common.policies import mlp_layers
-from sb3_lifelong.common.scoring import LowPrecisionCopy, eager_network_outputs, tile_obs, uses_engine
+from sb3_lifelong.numerics.scoring import LowPrecisionCopy, eager_network_outputs, tile_obs, uses_engine
 
 __all__ = ["CategoricalCritic", "CriticLoss", "categorical_projection"]
 
@@ -140,8 +140,8 @@ class CategoricalCritic(BaseModel):
         The distributional TD target: per transition and next action, the distribution of the Q-network with the
         lowest expected value, averaged over the next actions, shifted by ``rewards + discounts * Z`` and projected
         back onto the support. Call it on the target critic, without autograd: the logits are then the scoring
-        engine's (:func:`~sb3_lifelong.common.scoring.network_outputs`: bit for bit :meth:`logits` in float32;
-        :func:`~sb3_lifelong.common.scoring.uses_engine`).
+        engine's (:func:`~sb3_lifelong.numerics.scoring.network_outputs`: bit for bit :meth:`logits` in float32;
+        :func:`~sb3_lifelong.numerics.scoring.uses_engine`).
 
         :param next_obs: next observations ``[batch, ...]``
         :param next_actions: normalised next actions ``[n_next_actions, batch, action_dim]``
@@ -187,7 +187,7 @@ class CategoricalCritic(BaseModel):
 
     def q_values_of(self, output: th.Tensor) -> th.Tensor:
         """
-        What a Q-network's output means, for the scoring engine (:func:`~sb3_lifelong.common.scoring.runs_no_grad_pass`).
+        What a Q-network's output means, for the scoring engine (:func:`~sb3_lifelong.numerics.scoring.runs_no_grad_pass`).
 
         :param output: a Q-network's logits ``[rows, n_atoms]``
         :return: the expected Q-values ``[rows, 1]``

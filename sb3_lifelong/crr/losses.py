@@ -13,9 +13,9 @@ from stable_baselines3.common.policies import ContinuousCritic
 
 from sb3_lifelong.common.losses import q_regression_loss, td_target
 from sb3_lifelong.common.policies import gaussian_log_prob, sample_gaussian
-from sb3_lifelong.common.scoring import LowPrecisionCopy, score_actions
 from sb3_lifelong.crr.distributional import CategoricalCritic, CriticLoss
 from sb3_lifelong.crr.policies import GaussianActor, PerSourceActor, actor_distribution
+from sb3_lifelong.numerics.scoring import LowPrecisionCopy, score_actions
 
 ADVANTAGE_TRANSFORMS = ("exp", "indicator")
 ADVANTAGE_BASELINES = ("mean", "max")

@@ -12,13 +12,13 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayB
 from torch.profiler import record_function
 
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
-from sb3_lifelong.common.compiling import COMPILE_CHOICES, LazyCompiled
-from sb3_lifelong.common.hardware import TRAIN_DTYPES
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
-from sb3_lifelong.common.scoring import SCORING_DTYPES, score_actions
 from sb3_lifelong.mpo.losses import DUAL_RAW_FLOOR, dual_value, e_step, inverse_softplus, m_step_loss, trust_region
 from sb3_lifelong.mpo.policies import MlpPolicy, MPOPolicy, MultiInputPolicy
+from sb3_lifelong.numerics.compiling import COMPILE_CHOICES, LazyCompiled
+from sb3_lifelong.numerics.hardware import TRAIN_DTYPES
+from sb3_lifelong.numerics.scoring import SCORING_DTYPES, score_actions
 
 SelfMPO = TypeVar("SelfMPO", bound="MPO")
 
@@ -111,7 +111,7 @@ class MPO(LifelongOffPolicyAlgorithm):
     :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
         (the critic's and the actor's losses): ``"float32"`` (the default), ``"bfloat16"`` (mixed precision for
         those layers: bf16 products; float32 parameters, optimizer and everything else;
-        :class:`~sb3_lifelong.common.fast_ops.HiddenLinear`), ``"simulated_bfloat16"`` (the same numbers from float32
+        :class:`~sb3_lifelong.numerics.fast_ops.HiddenLinear`), ``"simulated_bfloat16"`` (the same numbers from float32
         products, eager: what bf16 does to learning, measured at float32's speed where the hardware has no bf16), or
         ``"auto"``: bfloat16 where the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16).
         The default stays float32 until bf16's learning results are measured on such a CPU
@@ -119,9 +119,9 @@ class MPO(LifelongOffPolicyAlgorithm):
     :param compile_losses: compile the update's forward pass (the target, the critic's loss, the E-step, the M-step
         and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under
         way has at least 50,000 steps to go and inductor can compile here (a C++ compiler on a CPU); see
-        :mod:`sb3_lifelong.common.compiling`. The sampling noise is drawn outside the graph, as the eager update draws
+        :mod:`sb3_lifelong.numerics.compiling`. The sampling noise is drawn outside the graph, as the eager update draws
         it; a bf16 scoring pass stays on the engine, eagerly, but for its LayerNorm and tanh, which run as one compiled
-        kernel (:class:`~sb3_lifelong.common.scoring.LowPrecisionCopy`). A compilation that fails warns once and leaves the
+        kernel (:class:`~sb3_lifelong.numerics.scoring.LowPrecisionCopy`). A compilation that fails warns once and leaves the
         update eager. With ``train_dtype="simulated_bfloat16"`` the update is always eager (``True`` is refused)
     :param policy_on_next_obs: improve the policy on the batch's next observations, so that one target critic
         call serves both the E-step and the critic target; if False the policy is improved on the observations

@@ -6,7 +6,7 @@ from testkit import flat_params
 
 from sb3_lifelong import BC
 from sb3_lifelong.bc.policies import BCPolicy
-from sb3_lifelong.common.fast_ops import Tanh
+from sb3_lifelong.numerics.fast_ops import Tanh
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32)
 

@@ -8,10 +8,10 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import compiling, fast_ops, scoring
-from sb3_lifelong.common.hardware import fused_products_supported
 from sb3_lifelong.common.policies import QCritic, mlp_layers, sample_gaussian
-from sb3_lifelong.common.scoring import LowPrecisionCopy, resolve_scoring_dtype, score_actions
 from sb3_lifelong.mpo.losses import dual_value, temperature_loss_and_weights
+from sb3_lifelong.numerics.hardware import fused_products_supported
+from sb3_lifelong.numerics.scoring import LowPrecisionCopy, resolve_scoring_dtype, score_actions
 
 # Stated tolerances of the bf16 pass, on a critic trained on Pendulum (256x256, 20 samples per state; measured:
 # mean error 6 % of the spread, max error 0.3 % of |Q|, max weight change 0.0034):

@@ -11,8 +11,8 @@ from torch import nn
 
 from sb3_lifelong import CRR, MPO
 from sb3_lifelong.common import compiling, hardware
-from sb3_lifelong.common.fast_ops import HiddenLinear
 from sb3_lifelong.common.policies import mlp_layers
+from sb3_lifelong.numerics.fast_ops import HiddenLinear
 
 KWARGS = dict(device="cpu", batch_size=64, policy_kwargs=dict(net_arch=[64, 64], layer_norm=True), seed=0)
 

@@ -16,10 +16,10 @@ from testkit import flat_params
 
 from sb3_lifelong import MPO, LifelongReplayBuffer
 from sb3_lifelong.common.base import EpisodeRngRecorder
-from sb3_lifelong.common.fast_ops import HiddenLinear, Tanh
 from sb3_lifelong.common.policies import gaussian_kl_per_dim, gaussian_log_prob, sample_gaussian
-from sb3_lifelong.common.scoring import q_min, score_actions, tile_obs
 from sb3_lifelong.mpo.losses import dual_value, inverse_softplus, m_step_loss, temperature_loss_and_weights
+from sb3_lifelong.numerics.fast_ops import HiddenLinear, Tanh
+from sb3_lifelong.numerics.scoring import q_min, score_actions, tile_obs
 
 SMALL = dict(policy_kwargs=dict(net_arch=[32, 32]), batch_size=32, learning_starts=50, num_samples=8)
 

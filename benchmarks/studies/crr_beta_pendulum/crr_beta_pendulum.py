@@ -23,8 +23,8 @@ import torch as th
 from stable_baselines3 import SAC
 
 from sb3_lifelong import CRR
-from sb3_lifelong.common.hardware import machine_description
 from sb3_lifelong.core.datasets import record_transitions
+from sb3_lifelong.numerics.hardware import machine_description
 
 HERE = pathlib.Path(__file__).resolve().parent
 #: the dataset and evaluation of ``tests/common/test_offline_learning.py``: a briefly trained SAC on Pendulum-v1

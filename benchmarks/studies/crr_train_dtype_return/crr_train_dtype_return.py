@@ -131,7 +131,7 @@ def main() -> None:
         help="no runs: the verdict over the runs in each DIR/OTHER.json (seeds run as separate commands), into OUTPUT",
     )
     args = parser.parse_args()
-    from sb3_lifelong.common.hardware import machine_description
+    from sb3_lifelong.numerics.hardware import machine_description
 
     output = pathlib.Path(args.output)
     behaviour = json.loads(pathlib.Path(args.data).with_suffix(".json").read_text())

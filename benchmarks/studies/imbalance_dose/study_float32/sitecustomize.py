@@ -11,8 +11,8 @@ hardware check answer "no native bf16".
 
 import sys
 
-import sb3_lifelong.common.hardware as _hardware
-import sb3_lifelong.common.scoring as _scoring
+import sb3_lifelong.numerics.hardware as _hardware
+import sb3_lifelong.numerics.scoring as _scoring
 
 _hardware.cpu_has_fast_bf16 = lambda: False  # type: ignore[assignment]
 _scoring.cpu_has_fast_bf16 = lambda: False  # type: ignore[assignment]

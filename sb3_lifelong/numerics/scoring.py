@@ -38,9 +38,9 @@ from stable_baselines3.common.policies import BaseModel, ContinuousCritic
 from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 
-from sb3_lifelong.common.compiling import LazyCompiled
-from sb3_lifelong.common.fast_ops import layer_norm_tanh_into, relu_in_place, tanh_in_place
-from sb3_lifelong.common.hardware import cpu_has_fast_bf16, cuda_has_native_bf16, fused_products_supported
+from sb3_lifelong.numerics.compiling import LazyCompiled
+from sb3_lifelong.numerics.fast_ops import layer_norm_tanh_into, relu_in_place, tanh_in_place
+from sb3_lifelong.numerics.hardware import cpu_has_fast_bf16, cuda_has_native_bf16, fused_products_supported
 
 SCORING_DTYPES = ("auto", "float32", "bfloat16")
 #: narrowest hidden layer for which ``scoring_dtype="auto"`` picks bfloat16: below it the matrices are too small
@@ -148,12 +148,12 @@ class LowPrecisionCopy:
     :param critic: a critic the engine runs (:func:`runs_no_grad_pass`)
     :param dtype: the precision of the copy
     :param fused: run the hidden layers as fused oneDNN products; ``None`` (default): where they are supported
-        (:func:`~sb3_lifelong.common.hardware.fused_products_supported`) and the copy is bfloat16 on a CPU;
+        (:func:`~sb3_lifelong.numerics.hardware.fused_products_supported`) and the copy is bfloat16 on a CPU;
         ``True`` raises a ``ValueError`` where they are not supported
 
     With :attr:`compile_layer_norm` (an algorithm sets it on the ``train`` calls whose update it compiles, see
     ``compile_losses``), each LayerNorm of the LayerNorm torso and its tanh run as one compiled kernel from the copy's
-    activations to the next layer's input (:func:`~sb3_lifelong.common.fast_ops.layer_norm_tanh_into`), instead of a
+    activations to the next layer's input (:func:`~sb3_lifelong.numerics.fast_ops.layer_norm_tanh_into`), instead of a
     conversion to float32, the LayerNorm, the tanh and a conversion back; it is compiled at its first use (seconds)
     and a failed compilation warns once and leaves the eager way.
     """

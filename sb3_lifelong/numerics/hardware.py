@@ -1,6 +1,6 @@
 """
 What this machine multiplies fast: whether the CPU has native bfloat16 (what ``scoring_dtype="auto"`` asks,
-:func:`sb3_lifelong.common.scoring.resolve_scoring_dtype`), and the one line the benchmarks record of the CPU, its
+:func:`sb3_lifelong.numerics.scoring.resolve_scoring_dtype`), and the one line the benchmarks record of the CPU, its
 matrix flags, oneDNN's bf16 kernel and torch (:func:`machine_description`).
 """
 
@@ -30,7 +30,7 @@ def cuda_has_native_bf16() -> bool:
 
 
 #: the ``train_dtype`` that gives bfloat16's numbers from float32 products
-#: (:attr:`sb3_lifelong.common.fast_ops.HiddenLinear.simulated`)
+#: (:attr:`sb3_lifelong.numerics.fast_ops.HiddenLinear.simulated`)
 SIMULATED_BFLOAT16 = "simulated_bfloat16"
 
 #: what ``train_dtype`` accepts (:func:`resolve_train_dtype`)
@@ -40,7 +40,7 @@ TRAIN_DTYPES = ("float32", "bfloat16", SIMULATED_BFLOAT16, "auto")
 def resolve_train_dtype(train_dtype: str, device: th.device) -> th.dtype:
     """
     The precision of the hidden-to-hidden products in the passes that record gradients
-    (:class:`sb3_lifelong.common.fast_ops.HiddenLinear`).
+    (:class:`sb3_lifelong.numerics.fast_ops.HiddenLinear`).
 
     :param train_dtype: ``"float32"``, ``"bfloat16"``, ``"simulated_bfloat16"`` (bfloat16's roundings around float32
         products, the same numbers as ``"bfloat16"`` at float32's speed: to measure what bf16 does to learning on
@@ -108,7 +108,7 @@ def fused_products_supported(dtype: th.dtype) -> bool:
     answer is checked by running a small product once, so a build whose ops are missing or broken reads False.
 
     :param dtype: ``torch.float32`` or ``torch.bfloat16``
-    :return: whether :class:`sb3_lifelong.common.scoring.LowPrecisionCopy` can use the fused products
+    :return: whether :class:`sb3_lifelong.numerics.scoring.LowPrecisionCopy` can use the fused products
     """
     mkldnn = getattr(th.ops, "mkldnn", None)
     if mkldnn is None or not th.backends.mkldnn.is_available() or dtype not in (th.float32, th.bfloat16):
