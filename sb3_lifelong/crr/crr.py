@@ -23,12 +23,10 @@ from sb3_lifelong.crr.losses import (
     AdvantageWeights,
     actor_loss,
     advantage_weights,
-    critic_loss,
-    critic_td_target,
     effective_sample_size,
-    target_actions,
 )
 from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor, actor_distribution
+from sb3_lifelong.crr.targets import critic_loss, critic_td_target, target_actions
 from sb3_lifelong.numerics.compiling import COMPILE_CHOICES, LazyCompiled
 from sb3_lifelong.numerics.hardware import TRAIN_DTYPES
 from sb3_lifelong.numerics.scoring import SCORING_DTYPES, score_actions

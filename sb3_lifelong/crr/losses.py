@@ -1,21 +1,17 @@
 """
-CRR's losses, as pure functions of tensors (as d3rlpy's CRR overrides only its actor's loss and its target): the TD
-target and the critic's loss, the advantage of the data's actions over the policy's and its weights (``exp`` or
-indicator, a fixed temperature or one chosen from the weights' effective sample size), and the actor's weighted
-regression. ``CRR.train`` calls them in that order (:class:`sb3_lifelong.crr.crr.CRR`).
+CRR's losses, as pure functions of tensors: the TD target's next actions with the data's where SARSA has them, the
+advantage of the data's actions over the policy's and its weights (``exp`` or indicator, a fixed temperature or one
+chosen from the weights' effective sample size), and the actor's weighted regression. What calls the networks (the
+target policy's samples, the target critic's values, the critic's own loss) is :mod:`sb3_lifelong.crr.targets`;
+``CRR.train`` calls both (:class:`sb3_lifelong.crr.crr.CRR`).
 """
 
 import math
-from typing import Any, NamedTuple, Optional, Union
+from typing import NamedTuple, Optional, Union
 
 import torch as th
-from stable_baselines3.common.policies import ContinuousCritic
 
-from sb3_lifelong.common.losses import q_regression_loss, td_target
-from sb3_lifelong.common.policies import gaussian_log_prob, sample_gaussian
-from sb3_lifelong.crr.distributional import CategoricalCritic, CriticLoss
-from sb3_lifelong.crr.policies import GaussianActor, PerSourceActor, actor_distribution
-from sb3_lifelong.numerics.scoring import LowPrecisionCopy, score_actions
+from sb3_lifelong.common.policies import gaussian_log_prob
 
 ADVANTAGE_TRANSFORMS = ("exp", "indicator")
 ADVANTAGE_BASELINES = ("mean", "max")
@@ -152,81 +148,17 @@ def ess_temperature(
     return advantages.new_tensor(math.exp(low + min(max(share, 0.0), 1.0) * (high - low)))
 
 
-def target_actions(
-    actor_target: Union[GaussianActor, PerSourceActor],
-    replay_data: Any,
-    heads: Optional[th.Tensor],
-    n_target_samples: int,
-    data_next_actions: bool = False,
-    noise: Optional[th.Tensor] = None,
-) -> th.Tensor:
+def sarsa_next_actions(sampled: th.Tensor, data_next_actions: th.Tensor, mask: th.Tensor) -> th.Tensor:
     """
-    The next actions of the TD target: samples of the target policy, or (``data_next_actions``, SARSA) the data's
-    next action where the data shows it.
+    The next actions of a SARSA target: the data's next action where the data shows it, the policy's samples elsewhere.
 
-    :param actor_target: the target actor
-    :param replay_data: the batch (with ``next_actions`` and ``next_action_mask`` for ``data_next_actions``)
-    :param heads: with one actor per source, the actor of each row ``[batch]``
-    :param n_target_samples: number of target-policy actions per transition
-    :param data_next_actions: use the data's next actions (``critic_target="sarsa"``)
-    :param noise: the standard normal draws of the samples (:func:`sample_gaussian`; None: drawn here)
-    :return: ``[n_target_samples, batch, action_dim]``, in ``[-1, 1]``
+    :param sampled: the target policy's samples ``[n_samples, batch, action_dim]``
+    :param data_next_actions: the data's next actions ``[batch, action_dim]`` (any value where ``mask`` is 0)
+    :param mask: 1 where the data holds the next action, 0 where it does not (the episode's last stored step) ``[batch, 1]``
+    :return: ``[n_samples, batch, action_dim]``
     """
-    mean, std = actor_distribution(actor_target, replay_data.next_observations, heads)
-    actions = sample_gaussian(mean, std, n_target_samples, noise).clamp(-1.0, 1.0)
-    if data_next_actions:
-        next_actions = getattr(replay_data, "next_actions", None)
-        if next_actions is None:
-            raise ValueError(
-                "critic_target='sarsa' needs the data's next actions: train offline (learn_offline) on offline data"
-            )
-        mask = replay_data.next_action_mask.unsqueeze(0)  # [1, B, 1]
-        actions = mask * next_actions.unsqueeze(0) + (1.0 - mask) * actions
-    return actions
-
-
-def critic_td_target(
-    critic_target: Union[ContinuousCritic, CategoricalCritic],
-    next_obs: Any,
-    next_actions: th.Tensor,
-    rewards: th.Tensor,
-    bootstrap: th.Tensor,
-    scoring_copy: Optional[LowPrecisionCopy] = None,
-) -> th.Tensor:
-    """
-    The critic's TD target, averaged over the next actions: ``rewards + bootstrap * Q'(s', a')`` (the lowest over
-    the Q-networks) for a regression critic, the projected distribution (:meth:`CategoricalCritic.td_target`) for
-    a categorical one. Without autograd.
-
-    :param critic_target: the target critic
-    :param next_obs: next observations ``[batch, ...]``
-    :param next_actions: ``[n_next_actions, batch, action_dim]``
-    :param rewards: ``[batch, 1]``
-    :param bootstrap: ``(1 - done) * discount``, ``[batch, 1]``
-    :param scoring_copy: a low-precision copy of ``critic_target`` to score the actions with
-    :return: ``[batch, 1]`` (regression) or ``[batch, n_atoms]`` (categorical)
-    """
-    if isinstance(critic_target, CategoricalCritic):
-        return critic_target.td_target(next_obs, next_actions, rewards, bootstrap, scoring_copy)
-    return td_target(rewards, bootstrap, score_actions(critic_target, next_obs, next_actions, scoring_copy).mean(0))
-
-
-def critic_loss(
-    critic: Union[ContinuousCritic, CategoricalCritic], obs: Any, actions: th.Tensor, target: th.Tensor
-) -> CriticLoss:
-    """
-    :param critic: the online critic
-    :param obs: observations ``[batch, ...]``
-    :param actions: the data's normalised actions ``[batch, action_dim]``
-    :param target: :func:`critic_td_target`'s target
-    :return: the loss (half the squared error of each Q-network, summed; a categorical critic's cross-entropy, see
-        :meth:`CategoricalCritic.loss`) and the lowest Q-value of each action over the Q-networks
-    """
-    if isinstance(critic, CategoricalCritic):
-        return critic.loss(obs, actions, target)
-    current_q_values = critic(obs, actions)
-    loss = q_regression_loss(current_q_values, target)
-    return CriticLoss(loss, th.cat(current_q_values, dim=1).detach().min(dim=1).values)
+    mask = mask.unsqueeze(0)  # [1, B, 1]
+    return mask * data_next_actions.unsqueeze(0) + (1.0 - mask) * sampled
 
 
 def advantage_weights(

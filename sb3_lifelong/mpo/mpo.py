@@ -265,10 +265,6 @@ class MPO(LifelongOffPolicyAlgorithm):
         return isinstance(self.policy_class, type) and issubclass(self.policy_class, MPOPolicy)
 
     def _setup_model(self) -> None:
-        if self._policy_has_torso_choice():
-            # a model saved before LayerNorm became MPO's default (2026-11-25) has no "layer_norm" in its
-            # policy_kwargs: it was built, and is loaded, without it
-            self.policy_kwargs = {"layer_norm": False, **self.policy_kwargs}
         super()._setup_model()
         self._create_aliases()
         action_dim = get_action_dim(self.action_space)

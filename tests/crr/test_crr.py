@@ -343,3 +343,16 @@ def test_actor_averaging_is_an_average_of_the_iterates_and_leaves_training_alone
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], averaged.predict(obs, deterministic=True)[0])
     loaded.set_offline_data(data)
     loaded.learn_offline(5, reset_num_timesteps=False, log_interval=0)
+
+
+def test_sarsa_next_actions_row_by_row():
+    """The data's next action where the mask is 1, the policy's samples where it is 0, for every sample."""
+    from sb3_lifelong.crr.losses import sarsa_next_actions
+
+    sampled = th.arange(12, dtype=th.float32).reshape(2, 3, 2)  # [n_samples, batch, action_dim]
+    data = th.tensor([[-1.0, -2.0], [-3.0, -4.0], [-5.0, -6.0]])
+    mask = th.tensor([[1.0], [0.0], [1.0]])
+    out = sarsa_next_actions(sampled, data, mask)
+    for k in range(2):
+        assert th.equal(out[k, 0], data[0]) and th.equal(out[k, 2], data[2])  # shown in the data: the data's
+        assert th.equal(out[k, 1], sampled[k, 1])  # not shown (an episode's last stored step): the policy's sample

@@ -255,12 +255,6 @@ def test_layer_norm_is_mpos_default_and_can_be_turned_off(tmp_path):
     plain.save(tmp_path / "plain.zip")
     assert MPO.load(tmp_path / "plain.zip").policy.layer_norm is False  # a saved setting wins over the default
     assert default.policy_kwargs["layer_norm"] is True  # every save says which torso it has
-    # a model saved before LayerNorm was the default has no "layer_norm" in its policy_kwargs: loaded without it
-    del plain.policy_kwargs["layer_norm"]
-    plain.save(tmp_path / "older.zip")
-    older = MPO.load(tmp_path / "older.zip")
-    assert older.policy.layer_norm is False
-    th.testing.assert_close(flat_params(older), flat_params(plain), rtol=0, atol=0)
     env = gym.make("Pendulum-v1")
     dict_space = spaces.Dict({"obs": env.observation_space})
     multi = MPO.policy_aliases["MultiInputPolicy"](dict_space, env.action_space, lambda _: 1e-3, net_arch=[32, 32])
