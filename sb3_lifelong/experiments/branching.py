@@ -89,7 +89,8 @@ def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Preset,
     for env_name, env in envs.items():
         monitored = Monitor(env)
         monitored.reset(seed=EVAL_SEED_OFFSET + seed)
-        out[f"{name}_same_episodes_{env_name}"] = float(evaluate_policy(agent, monitored, episodes, deterministic=True)[0])
+        mean_return, _ = evaluate_policy(agent, monitored, episodes, deterministic=True)
+        out[f"{name}_same_episodes_{env_name}"] = float(mean_return)  # type: ignore[arg-type]
     names = {source: meta.get("name", f"source_{source}") for source, meta in buffer.sources.items()}
     for source, measured in MonteCarloProbe(buffer, agent.gamma, per_source=4096, seed=seed).measure(agent.critic).items():
         out[f"{name}_overestimation_{names[source]}"] = measured.overestimation

@@ -302,7 +302,7 @@ def distill_student(
     sources = None
     if kwargs.get("actor_per_source"):
         sources = {env_name: index for index, env_name in enumerate(preset.env_names)}
-    algorithm = {"CRR": CRR, "BC": BC}[student.algorithm]  # Student checks the name
+    algorithm: Any = {"CRR": CRR, "BC": BC}[student.algorithm]  # Student checks the name
     common = _common(preset, seed)
     if algorithm is CRR and preset.student_critic == "categorical":
         common["policy_kwargs"]["distributional_critic"] = True

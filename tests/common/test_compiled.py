@@ -204,7 +204,7 @@ def test_clipping_counts_the_parameters_each_optimizer_steps(data):
     """A features extractor shared with the actor is the actor's to step: the critic's clip leaves it out."""
     from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
-    from sb3_lifelong.common.base import optimized_parameters
+    from sb3_lifelong.common.updates import optimized_parameters
 
     class Learnt(BaseFeaturesExtractor):
         def __init__(self, observation_space):
