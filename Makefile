@@ -26,7 +26,7 @@ test-all: install
 # report: tables, the pre-registered claims, figures (the "demo" preset: minutes; the study itself is "--preset cpu")
 demo: install
 	$(PYTHON) -m sb3_lifelong.experiments run --preset demo --seed 0 --output $(DEMO_DIR) --progress-bar
-	$(PYTHON) -m sb3_lifelong.experiments report $(DEMO_DIR)
+	$(PYTHON) -m sb3_lifelong.experiments report $(DEMO_DIR) --claims benchmarks/studies/paper_cpu/claims.py
 
 # MPO alone on a small MuJoCo task, with a learning curve
 demo-mpo: install

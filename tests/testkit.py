@@ -13,9 +13,15 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_lifelong.buffers.manifest import FIELD_NAMES
 from sb3_lifelong.core.datasets import record_transitions
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+#: the claims files of the studies that test the paper's two-stage and three-stage claims (a study's claims are data
+#: of its folder: ``sb3_lifelong.experiments.load_claims`` reads them)
+PAPER_CLAIMS = ROOT / "benchmarks" / "studies" / "paper_cpu" / "claims.py"
+THREE_STAGE_CLAIMS = ROOT / "benchmarks" / "studies" / "paper_cpu_three" / "claims.py"
 
 #: the jobs of the tiny study every experiments test reads (the ``study`` fixture)
 JOBS = [
@@ -66,3 +72,32 @@ class Recorder(BaseCallback):
     def _on_step(self) -> bool:
         self.values.update(self.logger.name_to_value)
         return True
+
+
+# the small buffer of the buffer tests: 3-dimensional observations, 2-dimensional actions
+OBS = gym.spaces.Box(-10, 10, (3,), np.float32)
+ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
+
+
+def fill(buffer, steps, n_envs, seed=0, start=0, stage=None, rng=None):
+    """Add `steps` add() calls of random transitions, with episode ends and timeouts."""
+    rng = rng if rng is not None else np.random.default_rng(seed)
+    for _ in range(steps):
+        done = rng.random(n_envs) < 0.15
+        trunc = done & (rng.random(n_envs) < 0.5)
+        infos = [{"TimeLimit.truncated": bool(trunc[i])} for i in range(n_envs)]
+        if stage is not None:
+            for info in infos:
+                info.update(stage=stage, dynamics_params={"mass": 1.0 + stage})
+        buffer.add(
+            rng.normal(size=(n_envs, 3)).astype(np.float32),
+            rng.normal(size=(n_envs, 3)).astype(np.float32),
+            rng.uniform(-1, 1, size=(n_envs, 2)).astype(np.float32),
+            rng.normal(size=n_envs).astype(np.float32),
+            done,
+            infos,
+        )
+
+
+def all_rows(buffer):
+    return {name: np.array(buffer.store.read_range(name, 0, buffer.size())) for name in FIELD_NAMES}

@@ -5,21 +5,22 @@ report with the pre-registered claims (:mod:`.report`) and the figures (:mod:`.f
 Command line: ``python -m sb3_lifelong.experiments {run,study,report,list}``.
 """
 
+from sb3_lifelong.experiments.claims import Claim, evaluate_claims, load_claims
 from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Preset, Student, job_names
 from sb3_lifelong.experiments.protocol import run_seed
-from sb3_lifelong.experiments.report import CLAIMS, THREE_STAGE_CLAIMS, claims_of, write_report
+from sb3_lifelong.experiments.report import write_report
 from sb3_lifelong.experiments.scores import load_study
 
 __all__ = [
-    "CLAIMS",
     "ONLINE",
     "PRESETS",
     "STUDENTS",
-    "THREE_STAGE_CLAIMS",
+    "Claim",
     "Preset",
     "Student",
-    "claims_of",
+    "evaluate_claims",
     "job_names",
+    "load_claims",
     "load_study",
     "run_seed",
     "write_report",

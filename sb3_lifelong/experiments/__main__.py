@@ -12,7 +12,7 @@ Several seeds at once, as a graph of jobs (Ray when installed, on this machine o
 
 Gather the finished seeds into the tables, the pre-registered claims and the figures::
 
-    python -m sb3_lifelong.experiments report runs/paper_cpu
+    python -m sb3_lifelong.experiments report runs/paper_cpu --claims benchmarks/studies/paper_cpu/claims.py
 
 List the jobs of a preset and what a seed costs::
 
@@ -90,6 +90,12 @@ def _parser() -> argparse.ArgumentParser:
         "--seeds", type=int, nargs="+", default=None, help="only these seeds, into report_seeds_<k>_<l>.md (no figures)"
     )
     report.add_argument(
+        "--claims",
+        default=None,
+        metavar="FILE",
+        help="the study's claims file (a claims.py defining CLAIMS; default: the claims.py in the study's directory)",
+    )
+    report.add_argument(
         "--export", default=None, help="also copy the small result files (CSV, JSON, MD, PNG; no buffers) into this directory"
     )
 
@@ -155,7 +161,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         return 0
     if args.command == "report":
         try:
-            text = write_report(pathlib.Path(args.output), plots=not args.no_plots, seeds=args.seeds)
+            text = write_report(pathlib.Path(args.output), plots=not args.no_plots, seeds=args.seeds, claims=args.claims)
         except FileNotFoundError as error:  # e.g. no seed has finished its collect job yet
             parser.exit(1, f"{parser.prog} report: error: {error}\n")
         print(text)

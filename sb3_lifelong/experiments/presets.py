@@ -5,7 +5,8 @@ seed's jobs (:func:`job_names`), and how a study's recorded settings (``preset.j
 
 Plain data and small functions of it: the jobs that run a preset are :mod:`sb3_lifelong.experiments.protocol`, the
 report that reads a study is :mod:`sb3_lifelong.experiments.report`; both read this module, and it imports neither.
-A new study preset goes here (and its pre-registered claims in :mod:`~sb3_lifelong.experiments.report`).
+A new study preset goes here; its pre-registered claims go in its study folder's ``claims.py``
+(:mod:`~sb3_lifelong.experiments.claims`).
 """
 
 import dataclasses
@@ -60,7 +61,7 @@ class Preset:
         there) for the claims about Env-A (forgetting it, remembering it, the imbalance drop and its diagnostics) to
         be testable on a seed. The report tests a claim on the seeds where its preconditions were measured and hold,
         and reads it *not testable* when every seed measured a failure of one
-        (:data:`~sb3_lifelong.experiments.report.PRECONDITIONS`). None: not
+        (:data:`~sb3_lifelong.experiments.claims.PRECONDITIONS`). None: not
         checked; the presets run before the report could check preconditions keep None, so their reports read as
         they did. The same for the next three.
     :param value_gap: the least ratio of the discounted return of the last environment's data to Env-A's data (the

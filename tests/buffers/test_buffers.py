@@ -14,40 +14,14 @@ import torch as th
 from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
+from testkit import ACT, OBS, all_rows, fill
 
 import sb3_lifelong
 from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.buffers import BufferFormatError, LifelongBufferView, merge_buffers
-from sb3_lifelong.buffers.manifest import FIELD_NAMES
 from sb3_lifelong.buffers.rowstore import RowStore
 
-OBS = gym.spaces.Box(-10, 10, (3,), np.float32)
-ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
 PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
-
-
-def fill(buffer, steps, n_envs, seed=0, start=0, stage=None, rng=None):
-    """Add `steps` add() calls of random transitions, with episode ends and timeouts."""
-    rng = rng if rng is not None else np.random.default_rng(seed)
-    for _ in range(steps):
-        done = rng.random(n_envs) < 0.15
-        trunc = done & (rng.random(n_envs) < 0.5)
-        infos = [{"TimeLimit.truncated": bool(trunc[i])} for i in range(n_envs)]
-        if stage is not None:
-            for info in infos:
-                info.update(stage=stage, dynamics_params={"mass": 1.0 + stage})
-        buffer.add(
-            rng.normal(size=(n_envs, 3)).astype(np.float32),
-            rng.normal(size=(n_envs, 3)).astype(np.float32),
-            rng.uniform(-1, 1, size=(n_envs, 2)).astype(np.float32),
-            rng.normal(size=n_envs).astype(np.float32),
-            done,
-            infos,
-        )
-
-
-def all_rows(buffer):
-    return {name: np.array(buffer.store.read_range(name, 0, buffer.size())) for name in FIELD_NAMES}
 
 
 # ---------------------------------------------------------------------------------------------- SB3 semantics

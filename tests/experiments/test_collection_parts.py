@@ -141,7 +141,7 @@ def test_rewinds_that_stopped_half_way_or_repeat_keep_everything(tmp_path):
 
 
 def test_rewind_copies_the_head_and_keeps_the_whole_buffer(tmp_path):
-    from tests.test_buffers import ACT, OBS, all_rows, fill
+    from testkit import ACT, OBS, all_rows, fill
 
     from sb3_lifelong.experiments.collection import _rewind_to_pause
 

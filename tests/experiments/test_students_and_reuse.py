@@ -7,17 +7,16 @@ import pathlib
 import numpy as np
 import pandas as pd
 import pytest
+from testkit import THREE_STAGE_CLAIMS
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.experiments import CLAIMS, PRESETS, job_names, load_study, run_seed, write_report
+from sb3_lifelong.experiments import PRESETS, job_names, load_claims, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
-from sb3_lifelong.experiments.report import evaluate_claims
+from sb3_lifelong.experiments.claims import evaluate_claims
 
 
 def test_three_stage_study_end_to_end(tmp_path):
     """The three-stage preset's shape at a tiny budget: one buffer of three sources, switch scores, its own claims."""
-
-    from sb3_lifelong.experiments import THREE_STAGE_CLAIMS, claims_of
 
     three = PRESETS["cpu_three"]
     assert three.stages[0] == {} and len(three.stages) == len(three.stage_steps) == len(three.env_names) == 3
@@ -45,7 +44,7 @@ def test_three_stage_study_end_to_end(tmp_path):
         assert set(counts) == {0, 1, 2} and 200 <= counts[0] < 250 and counts[2] > 300
     evals = pd.read_csv(run_dir / "distill_CRR_exp_beta1" / "eval.csv")
     assert set(evals["env"]) == {"Env-A", "Env-B", "Env-C"}
-    write_report(output)
+    write_report(output, claims=THREE_STAGE_CLAIMS)
     study = load_study(output)
     assert set(study.extra("MPO|switch|Env-A")) == {0} and set(study.extra("MPO|switch|Env-B")) == {0}
     assert not study.extra("MPO|switch|Env-C")  # MPO never leaves the last environment
@@ -60,7 +59,8 @@ def test_three_stage_study_end_to_end(tmp_path):
         / abs(stage2_b.sort_values("timesteps")["mean_reward"].tail(2).mean())
     )
     study.preset = {**study.preset, "max_switch_spread": -1.0}  # no seed steady: T1a and T1b not testable, T2a as before
-    checked = {r["claim"]: r["verdict"] for r in evaluate_claims(study)}
+    three_stage = load_claims(THREE_STAGE_CLAIMS)
+    checked = {r["claim"]: r["verdict"] for r in evaluate_claims(study, three_stage)}
     assert checked["T1a forgetting Env-A"] == checked["T1b forgetting Env-B"] == "not testable"
     claims = pd.read_csv(output / "claims.csv")
     recorded = claims.set_index("claim")["verdict"]
@@ -68,13 +68,12 @@ def test_three_stage_study_end_to_end(tmp_path):
         checked["T2a distillation recovers the earlier environments"]
         == recorded["T2a distillation recovers the earlier environments"]
     )
-    assert list(claims["claim"]) == [claim.name for claim in THREE_STAGE_CLAIMS]
+    assert list(claims["claim"]) == [claim.name for claim in three_stage]
     assert "no data" not in set(claims["verdict"])  # every student and score these claims need ran
     assert (output / "fig_online.png").stat().st_size > 0
     assert not (output / "fig_sampling_ratio.png").exists()  # Env-A : Env-B ratios mean nothing here
-    assert claims_of(dict(env_names=["Env-A", "Env-B"])) is CLAIMS
-    with pytest.raises(ValueError, match="a study of 4 environments"):
-        claims_of(dict(env_names=["a", "b", "c", "d"]))
+    write_report(output, plots=False)  # no claims given, none beside the seeds: the report says so
+    assert "No claims were given" in (output / "report.md").read_text()
 
 
 def test_value_support_holds_every_return():

@@ -7,13 +7,16 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
-from testkit import JOBS
+from testkit import JOBS, PAPER_CLAIMS, THREE_STAGE_CLAIMS
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.experiments import CLAIMS, PRESETS, STUDENTS, job_names, load_study, run_seed, write_report
+from sb3_lifelong.experiments import PRESETS, STUDENTS, job_names, load_claims, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
+from sb3_lifelong.experiments.claims import evaluate_claims
 from sb3_lifelong.experiments.protocol import job_lock, sampling_weights
-from sb3_lifelong.experiments.report import bootstrap_ci, evaluate_claims
+from sb3_lifelong.experiments.statistics import bootstrap_ci
+
+CLAIMS = load_claims(PAPER_CLAIMS)  # the paper's two-stage claims, as the paper_cpu study declares them
 
 
 def test_a_seed_writes_every_job(study):
@@ -98,7 +101,7 @@ def test_a_job_another_process_runs_is_skipped(study):
 
 def test_report_claims_and_figures(study):
     output, _ = study
-    text = write_report(output)
+    text = write_report(output, claims=PAPER_CLAIMS)
     assert "## Claims" in text
     # the students' weights, per seed (the CRR students log them; BC has none)
     weights = text.split("## The students' weights")[1].split("## Claims")[0]
@@ -167,7 +170,7 @@ def test_export_keeps_results_not_data(study, tmp_path):
     from sb3_lifelong.experiments.report import export_results
 
     output, _ = study
-    write_report(output, plots=False)
+    write_report(output, plots=False, claims=PAPER_CLAIMS)
     copied = export_results(output, tmp_path / "export")
     assert (tmp_path / "export" / "seed_0" / "collect" / "eval.csv").exists() and (tmp_path / "export" / "report.md").exists()
     assert not any("buffer" in str(p.relative_to(tmp_path)) or p.suffix == ".zip" for p in copied)
@@ -193,7 +196,7 @@ def test_claims_follow_the_numbers(study):
             edited["method"] == "CRR_indicator_A_only", "score"
         ].abs()
         study_data.finals = edited
-        rows = {r["claim"]: r["verdict"] for r in evaluate_claims(study_data)}
+        rows = {r["claim"]: r["verdict"] for r in evaluate_claims(study_data, CLAIMS)}
         assert rows["C4a the imbalance drop"] == expected
 
 
@@ -227,7 +230,7 @@ def test_report_shows_what_mpo_kept_beside_its_overestimation(study):
         )
         assert cells[6] == f"{over[0]:+.1f} -> {over[1]:+.1f}"
         assert cells[5] == (f"{at_end[seed] / at_switch[seed]:.2f}" if at_switch[seed] > 0 else "-")  # C1's ratio
-    assert "## What MPO kept of the environments it left" in write_report(output, plots=False)
+    assert "## What MPO kept of the environments it left" in write_report(output, plots=False, claims=PAPER_CLAIMS)
 
 
 def test_switch_spread_reads_the_end_of_the_stage():
@@ -258,7 +261,7 @@ def test_forgetting_needs_a_steady_switch(study):
 
     output, _ = study
     study_data = load_study(output)
-    unchecked = {r["claim"]: r for r in evaluate_claims(study_data)}
+    unchecked = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     spread = study_data.extra("MPO|switch_spread|Env-A")
     switch = stage_ends(study_data.preset["stage_steps"])[0]
     assert sorted(spread) == [0, 1]
@@ -267,7 +270,7 @@ def test_forgetting_needs_a_steady_switch(study):
         assert spread[seed] == switch_spread(evals, "Env-A", 0, switch) and np.isfinite(spread[seed])
     # an upper bound: no seed as steady as asked, C1 is not testable, with each seed's spread; the rest as before
     study_data.preset = {**study_data.preset, "max_switch_spread": min(spread.values()) / 2}
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C1 forgetting"]["verdict"] == "not testable"
     assert (
         "std / mean" in rows["C1 forgetting"]["precondition"]
@@ -277,19 +280,19 @@ def test_forgetting_needs_a_steady_switch(study):
         assert rows[claim]["verdict"] == unchecked[claim]["verdict"], claim
     # every seed steady enough: C1 reads as without the check
     study_data.preset = {**study_data.preset, "max_switch_spread": max(spread.values())}
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C1 forgetting"]["verdict"] == unchecked["C1 forgetting"]["verdict"]
     assert "held on 2 of 2" in rows["C1 forgetting"]["precondition"]
     # the three-stage claims: forgetting Env-B asks for a steady Env-B at its switch (the end of Stage 2)
-    from sb3_lifelong.experiments.report import PRECONDITIONS, THREE_STAGE_CLAIMS
+    from sb3_lifelong.experiments.claims import PRECONDITIONS
 
-    needs = {claim.name: claim.needs for claim in THREE_STAGE_CLAIMS}
+    needs = {claim.name: claim.needs for claim in load_claims(THREE_STAGE_CLAIMS)}
     assert "steady" in needs["T1a forgetting Env-A"] and "steady_b" in needs["T1b forgetting Env-B"]
     assert PRECONDITIONS["steady_b"].values(study_data) == {}  # in two stages MPO never leaves Env-B
     # a spread of infinity (a mean return of 0) is a measured failure, not a missing measurement
     study_data.extras = study_data.extras.copy()
     study_data.extras.loc[study_data.extras["metric"] == "MPO|switch_spread|Env-A", "value"] = np.inf
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C1 forgetting"]["verdict"] == "not testable" and "s0: inf" in rows["C1 forgetting"]["precondition"]
 
 
@@ -297,11 +300,12 @@ def test_claims_are_tested_where_their_preconditions_hold(study):
     """A preset's thresholds (``env_a_learnt``, ``value_gap``, ``min_weight_ess``): a claim is tested on the seeds where
     its preconditions hold, reads *not testable* where they hold on none, and the other claims are untouched;
     without thresholds nothing is checked."""
-    from sb3_lifelong.experiments.report import PRECONDITIONS, claims_table
+    from sb3_lifelong.experiments.claims import PRECONDITIONS
+    from sb3_lifelong.experiments.report import claims_table
 
     output, _ = study
     study_data = load_study(output)
-    unchecked = {r["claim"]: r for r in evaluate_claims(study_data)}
+    unchecked = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert all(p.check(study_data) is None for p in PRECONDITIONS.values())
     assert all("precondition" not in r for r in unchecked.values())
     # what the preconditions measure is in the scores: MPO at the switch, the data's value, the student's weights
@@ -318,7 +322,7 @@ def test_claims_are_tested_where_their_preconditions_hold(study):
     needs = {"C1 forgetting", "C2a conservative online CRR remembers", "C4a the imbalance drop", "C4b beta=1 fixes it"}
     # a threshold no seed reached: every claim about Env-A is not testable, with the measured values
     study_data.preset = {**study_data.preset, "env_a_learnt": max(at_switch.values()) + 1.0}
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     for claim in needs:
         assert rows[claim]["verdict"] == "not testable", claim
         note = rows[claim]["precondition"]
@@ -329,37 +333,37 @@ def test_claims_are_tested_where_their_preconditions_hold(study):
     # a threshold one seed reached: the claims about Env-A are tested on that seed alone
     best = max(at_switch, key=at_switch.get)
     study_data.preset = {**study_data.preset, "env_a_learnt": at_switch[best]}
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C1 forgetting"]["verdict"] in ("reproduced", "not reproduced")
     assert f"s{best}: " in rows["C1 forgetting"]["values"] and f"s{1 - best}: n/a" in rows["C1 forgetting"]["values"]
     assert "held on 1 of 2 measured seeds" in rows["C1 forgetting"]["precondition"]
     # every seed learnt Env-A, but no seed's exp beta=1 student is conservative enough: only the claims calling it so
     study_data.preset = {**study_data.preset, "env_a_learnt": min(at_switch.values()) - 1.0, "min_weight_ess": 1.01}
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C4b beta=1 fixes it"]["verdict"] == "not testable"
     assert rows["C4a the imbalance drop"]["verdict"] == unchecked["C4a the imbalance drop"]["verdict"]
     assert "effective sample size >= 1.01" in rows["C4b beta=1 fixes it"]["precondition"]
     # no value gap on any seed: the imbalance claims are not testable, forgetting still is
     study_data.preset = {**study_data.preset, "min_weight_ess": None, "value_gap": max(gap.values()) + 1.0}
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C4a the imbalance drop"]["verdict"] == "not testable"
     assert rows["C1 forgetting"]["verdict"] == unchecked["C1 forgetting"]["verdict"]
     # a precondition not measured (no Monte-Carlo columns): no data, not "not testable"; one seed measured failing and
     # the other not measured: still no data (the other seed may yet hold it)
     measured_extras = study_data.extras
     study_data.extras = measured_extras[~measured_extras["metric"].str.startswith("data|mc_return|")]
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C4a the imbalance drop"]["verdict"] == "no data"
     assert "not measured on s0, s1" in rows["C4a the imbalance drop"]["precondition"]
     study_data.extras = measured_extras[
         ~measured_extras["metric"].isin(["data|mc_return|Env-A"]) | (measured_extras["seed"] == 0)
     ]
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert rows["C4a the imbalance drop"]["verdict"] == "no data"
     study_data.extras = measured_extras
     # thresholds every seed reached: the verdicts are those of the unchecked report
     study_data.preset = {**study_data.preset, "value_gap": min(gap.values()) - 1.0, "min_weight_ess": 0.0}
-    rows = {r["claim"]: r for r in evaluate_claims(study_data)}
+    rows = {r["claim"]: r for r in evaluate_claims(study_data, CLAIMS)}
     assert {c: r["verdict"] for c, r in rows.items()} == {c: r["verdict"] for c, r in unchecked.items()}
 
 
@@ -393,7 +397,8 @@ def test_bootstrap_interval():
 
 
 def test_claims_pair_the_compared_series_by_seed():
-    from sb3_lifelong.experiments.report import CLAIMS, describe_pair, paired_difference
+    from sb3_lifelong.experiments.claims import describe_pair
+    from sb3_lifelong.experiments.statistics import paired_difference
 
     # seeds differ a lot, the first method is 8-12 above the second on every seed: paired, the difference is sure
     second = {0: 100.0, 1: 500.0, 2: 900.0, 3: 1300.0, 4: 1700.0}
@@ -447,7 +452,7 @@ def test_cli_list_and_errors(capsys, tmp_path):
 
 
 def test_a_ratio_with_a_non_positive_denominator_is_left_out():
-    from sb3_lifelong.experiments.report import ratio, undefined_ratios
+    from sb3_lifelong.experiments.claims import ratio, undefined_ratios
 
     numerator, denominator = {0: 180.0, 1: 630.0, 2: 360.0}, {0: 480.0, 1: 0.0, 2: -2.3}
     assert ratio(numerator, denominator) == {0: 0.375}  # not 360 / -2.3 = -157, which would swamp the mean

@@ -73,7 +73,7 @@ def verdict(rows: list[dict], other: str, behaviour_mean: float) -> dict:
     seeds = sorted({row["seed"] for row in rows if ("float32", row["seed"]) in by and (other, row["seed"]) in by})
     if len(seeds) < 2:
         return {"seeds": seeds, "verdict": "too few seeds"}
-    from sb3_lifelong.experiments.report import t_interval
+    from sb3_lifelong.experiments.statistics import t_interval
 
     base_mean, spread, _, _ = t_interval([by["float32", seed] for seed in seeds])
     other_mean, other_std, _, _ = t_interval([by[other, seed] for seed in seeds])

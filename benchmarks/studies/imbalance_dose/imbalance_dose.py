@@ -35,7 +35,7 @@ import numpy as np
 
 from sb3_lifelong.experiments.branching import adopt_stage1 as adopt
 from sb3_lifelong.experiments.branching import measure_agent
-from sb3_lifelong.experiments.report import t_interval
+from sb3_lifelong.experiments.statistics import t_interval
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 

@@ -178,7 +178,7 @@ def run_one(config: tuple[str, str, int, int, int, int, int]) -> str:
 
 
 def summarise() -> None:
-    from sb3_lifelong.experiments.report import bootstrap_ci, paired_difference
+    from sb3_lifelong.experiments.statistics import bootstrap_ci, paired_difference
     from sb3_lifelong.experiments.style import method_color, pyplot, save, steps_axis
 
     plt = pyplot()
@@ -287,7 +287,7 @@ def paired_verdict(base: dict[int, float], other: dict[int, float]) -> dict[str,
     :return: the statistics and ``verdict`` (``"too few seeds"`` under 2 paired, ``"non-finite return"`` where a
         paired return is NaN or infinite, e.g. a diverged run)
     """
-    from sb3_lifelong.experiments.report import t_interval
+    from sb3_lifelong.experiments.statistics import t_interval
 
     seeds = sorted(set(base) & set(other))
     if len(seeds) < 2:
