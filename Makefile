@@ -9,7 +9,7 @@ export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 DEMO_DIR ?= demo_output
 
-.PHONY: install test test-all demo demo-mpo lint format check-codestyle type doc clean
+.PHONY: install test demo demo-mpo lint format check-codestyle type doc clean
 
 # torch first, pinned to the CPU wheel: a bare "torch" requirement would download a CUDA build
 install:
@@ -18,9 +18,6 @@ install:
 
 test: install
 	$(PYTHON) -m pytest -n 2 --timeout 900 tests/
-
-test-all: install
-	$(PYTHON) -m pytest -n 2 -m "" tests/
 
 # a short run of the paper's two-stage protocol (Env-A then Env-B, distillation of the lifetime buffer), then its
 # report: tables, the pre-registered claims, figures (the "demo" preset: minutes; the study itself is "--preset cpu")

@@ -1,5 +1,6 @@
 """
-Command line of the paper's two-stage protocol (and its three-stage variant, preset ``cpu_three``).
+Command line of the paper's two-stage protocol (and its three-stage variant: a study's own presets, ``--presets
+benchmarks/studies/paper_cpu_three/presets.py --preset cpu_three``).
 
 Run one seed (every job of it that has not finished yet)::
 
@@ -28,7 +29,7 @@ from typing import Any, Optional
 
 import torch as th
 
-from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job
+from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, load_presets
 from sb3_lifelong.experiments.protocol import run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
@@ -44,7 +45,17 @@ def _parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     run = commands.add_parser("run", help="run one seed of the protocol")
-    run.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="the protocol's settings (default: cpu)")
+    run.add_argument(
+        "--presets",
+        default=None,
+        metavar="FILE",
+        help="a study's presets file (a presets.py defining PRESETS) whose presets --preset may name too",
+    )
+    run.add_argument(
+        "--preset",
+        default="cpu",
+        help=f"the protocol's settings: {', '.join(sorted(PRESETS))} or one of --presets (default: cpu)",
+    )
     run.add_argument("--seed", type=int, required=True, help="the seed: one seed is one self-contained command")
     run.add_argument("--output", required=True, help="the study's directory (seeds go into seed_<k>/ inside it)")
     run.add_argument(
@@ -69,7 +80,17 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--threads", type=int, default=1, help="torch threads (default 1: more only slows small networks down)")
 
     study = commands.add_parser("study", help="several seeds as a parallel graph of jobs (Ray or a process pool)")
-    study.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="the protocol's settings (default: cpu)")
+    study.add_argument(
+        "--presets",
+        default=None,
+        metavar="FILE",
+        help="a study's presets file (a presets.py defining PRESETS) whose presets --preset may name too",
+    )
+    study.add_argument(
+        "--preset",
+        default="cpu",
+        help=f"the protocol's settings: {', '.join(sorted(PRESETS))} or one of --presets (default: cpu)",
+    )
     study.add_argument("--seeds", type=int, nargs="+", required=True, help="the seeds of the study")
     study.add_argument("--output", required=True, help="the study's directory (on a cluster: a path every node sees)")
     study.add_argument("--workers", type=int, default=1, help="jobs at a time on this machine (one CPU each)")
@@ -100,7 +121,13 @@ def _parser() -> argparse.ArgumentParser:
     )
 
     listing = commands.add_parser("list", help="the jobs of one seed, and the measured cost of a seed")
-    listing.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
+    listing.add_argument(
+        "--presets",
+        default=None,
+        metavar="FILE",
+        help="a study's presets file (a presets.py defining PRESETS) whose presets --preset may name too",
+    )
+    listing.add_argument("--preset", default="cpu")
     return parser
 
 
@@ -116,12 +143,22 @@ def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) 
     :param parser: the command line's parser
     :param args: its parsed arguments
     """
+    if args.command in ("run", "study", "list"):
+        try:
+            available = {**PRESETS, **(load_presets(args.presets) if args.presets else {})}
+        except (FileNotFoundError, ValueError) as error:
+            parser.error(str(error))
+        if args.preset not in available:
+            parser.error(
+                f"unknown preset {args.preset!r}: the presets are {sorted(available)} (a study's own: --presets FILE)"
+            )
+        args.settings = available[args.preset]
     seeds = [args.seed] if args.command == "run" else list(args.seeds or []) if args.command in ("study", "report") else []
     bad = [seed for seed in seeds if not 0 <= seed <= MAX_SEED]
     if bad:
         parser.error(f"seeds are ints in [0, 2**32 - 1] (numpy's range), got {bad[0]}")
     if args.command == "run" and args.stage_steps is not None:
-        stages = len(PRESETS[args.preset].stages)
+        stages = len(args.settings.stages)
         if len(args.stage_steps) != stages:
             parser.error(f"--stage-steps needs one value per stage: preset {args.preset} has {stages}, got {args.stage_steps}")
     if args.command in ("run", "study"):
@@ -144,7 +181,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = parser.parse_args(argv)
     _check_arguments(parser, args)
     if args.command == "list":
-        preset = PRESETS[args.preset]
+        preset = args.settings
         print(f"preset {args.preset}: {preset.env_id}, stages {list(preset.stages)}, steps {list(preset.stage_steps)}")
         for job in preset.jobs():
             parsed = Job.parse(job)
@@ -175,7 +212,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         return 0
 
     if args.command == "study":
-        preset = PRESETS[args.preset]
+        preset = args.settings
         if args.student_repeats is not None:
             preset = dataclasses.replace(preset, student_repeats=args.student_repeats)
         jobs = args.jobs or [j for j in preset.jobs() if not (args.no_online and Job.parse(j).kind == "online")]
@@ -197,7 +234,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         return 1 if failed else 0
 
     th.set_num_threads(args.threads)
-    preset = PRESETS[args.preset]
+    preset = args.settings
     changes: dict[str, Any] = {}
     if args.stage_steps is not None:
         changes["stage_steps"] = tuple(args.stage_steps)

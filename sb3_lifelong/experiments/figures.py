@@ -51,7 +51,7 @@ def study_title(study: Study) -> str:
         after the first (what changes), and the students' critic and repeats when they are not the default
     """
     preset = study.preset
-    name = preset_name(preset) or study.output.name
+    name = preset_name(preset, study.output) or study.output.name
     changes = [
         f"{env} = {_stage_text(stage) or 'default'}" for env, stage in zip(preset["env_names"][1:], preset["stages"][1:])
     ]

@@ -10,8 +10,11 @@ A new study preset goes here; its pre-registered claims go in its study folder's
 """
 
 import dataclasses
+import importlib.util
 import itertools
 import json
+import os
+import pathlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Optional, Union
@@ -191,116 +194,6 @@ PRESETS: dict[str, Preset] = {
         max_episode_steps=50,
     ),
 }
-
-# the cpu protocol with the one Env-B of the env-pair table that hurt in both directions, the foot twice as long
-# (benchmarks/studies/env_pairs/results); evaluated on 10 episodes, as the 5 of `cpu` left the students' scores noisy
-PRESETS["cpu_foot"] = dataclasses.replace(
-    PRESETS["cpu"],
-    stages=({}, {"foot_scale": 2.0}),
-    eval_episodes=10,
-    note=(
-        "Env-B: the foot twice as long, the candidate with a zero-shot drop in both directions (Env-A policy in "
-        "Env-B -87 %, Env-B policy in Env-A -42 %, one seed each at 50k steps). Claims pre-registered in "
-        "benchmarks/studies/paper_cpu_foot/README.md before any seed ran."
-    ),
-)
-
-# the paper's three-stage set-up (its appendix: Env-A 0.2M, Env-B 0.2M, Env-C 1M steps) at the cpu budgets: 0.2 : 0.2 : 1
-# of 250k steps; the order follows the env-pair table: each switch hurts the policy of the stage before, and the
-# Env-C (foot x2) policy is poor in both earlier environments (benchmarks/studies/env_pairs/results)
-PRESETS["cpu_three"] = dataclasses.replace(
-    PRESETS["cpu"],
-    stages=({}, {"friction": 0.2}, {"foot_scale": 2.0}),
-    stage_steps=(50_000, 50_000, 250_000),
-    env_names=("Env-A", "Env-B", "Env-C"),
-    eval_episodes=10,
-    students=("CRR_exp_beta1", "CRR_indicator", "BC"),
-    online=False,
-    note=(
-        "Three stages (the paper's appendix): default robot, then the floor's friction 0.2, then the foot twice as long, "
-        "in the proportions 0.2 : 0.2 : 1; the students that need no task boundaries only, no online baselines. Claims "
-        "pre-registered in benchmarks/studies/paper_cpu_three/README.md before any seed ran."
-    ),
-)
-
-# cpu_three again with what its first study asked for: the paper's kind of critic for the CRR students (a categorical
-# one on the data's return bounds: no student diverged with it, benchmarks/studies/paper_cpu_three/bounded_critic) and
-# every student trained three times per buffer and scored by the mean (most of a student's spread is its own training,
-# benchmarks/studies/student_spread/student_spread.md); its collection is cpu_three's, so cpu_three's buffers can be reused
-PRESETS["cpu_three_c51"] = dataclasses.replace(
-    PRESETS["cpu_three"],
-    student_critic="categorical",
-    student_repeats=3,
-    note=(
-        "cpu_three's set-up and claims, with categorical-critic CRR students each trained three times per buffer and "
-        "scored by the mean. Pre-registered in benchmarks/studies/paper_cpu_three_c51/README.md before any seed ran."
-    ),
-)
-
-# the same at the paper's scale, one preset per environment combination of its appendix (OP3; a GPU machine)
-for _number, _stages in enumerate(
-    (
-        ("default", "hip_0.2", "hip_0.2+foot_1.6"),
-        ("default", "hip_0.3", "hip_0.3+foot_1.6"),
-        ("default", "foot_1.2", "foot_1.2+ground_0.1"),
-    ),
-    start=1,
-):
-    PRESETS[f"paper_three_{_number}"] = dataclasses.replace(
-        PRESETS["paper"],
-        stages=_stages,
-        stage_steps=(200_000, 200_000, 1_000_000),
-        env_names=("Env-A", "Env-B", "Env-C"),
-        students=PRESETS["cpu_three"].students,
-        online=False,
-        note=f"The paper's three-stage set-up, its environment combination {_number}, at its scale (a GPU machine).",
-    )
-
-# the dose-response study of the imbalance (benchmarks/studies/imbalance_dose/README.md, pre-registered before any run):
-# the collector at MPO's defaults (256x256 LayerNorm torso, 20 samples), Env-A and Env-B 100k steps each; the
-# imbalance is a dose applied by the students (Env-B sampling share, Env-B reward scale), not by the collection
-PRESETS["dose_hopper"] = Preset(
-    env_id="Hopper-v5",
-    stages=({}, {"foot_scale": 2.0}),
-    stage_steps=(100_000, 100_000),
-    distill_steps=200_000,
-    eval_freq=10_000,
-    distill_eval_freq=25_000,
-    eval_episodes=10,
-    learning_starts=5_000,
-    layer_norm=True,
-    students=(),
-    online=False,
-    student_critic="categorical",
-    note=(
-        "Collection of the imbalance dose study (Hopper, foot x2); students: "
-        "benchmarks/studies/imbalance_dose/imbalance_dose.py."
-    ),
-)
-# the natural-value-gap candidate (no healthy reward); its episodes are 1000 steps long, so 5 evaluation episodes
-PRESETS["dose_cheetah"] = dataclasses.replace(
-    PRESETS["dose_hopper"],
-    env_id="HalfCheetah-v5",
-    eval_episodes=5,
-    note=(
-        "Collection of the imbalance dose study (HalfCheetah, foot x2); students: "
-        "benchmarks/studies/imbalance_dose/imbalance_dose.py."
-    ),
-)
-
-# the dose study's HalfCheetah pair with a long Env-B (benchmarks/studies/imbalance_dose/README.md, "Long Env-B"): the
-# hip turned by 1 rad (the Env-A gait fails in Env-B: 4635 -> 199) and Env-B five times Env-A, as the paper's 200k : 1M;
-# about 8 hours of collection on one core: run it in parts (`run --until STEPS`)
-PRESETS["dose_cheetah_hip"] = dataclasses.replace(
-    PRESETS["dose_cheetah"],
-    stages=({}, {"hip_deformation": 1.0}),
-    stage_steps=(100_000, 500_000),
-    note=(
-        "Collection of the imbalance dose study, long Env-B (HalfCheetah, hip +1 rad, 100k : 500k steps); about 8 hours "
-        "on one core, so run it in parts with --until; students: "
-        "benchmarks/studies/imbalance_dose/imbalance_dose.py --robot cheetah_hip."
-    ),
-)
 
 # `make demo`: the cpu preset, shortened to minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
 PRESETS["demo"] = dataclasses.replace(
@@ -541,12 +434,38 @@ def collection_differences(recorded: Mapping[str, Any], described: Mapping[str, 
     return [key for key in keys if filled[0].get(key) != filled[1].get(key)]
 
 
-def preset_name(recorded: Mapping[str, Any]) -> str:
+def load_presets(path: Union[str, os.PathLike]) -> dict[str, Preset]:
+    """
+    Read a study's presets file: a Python file that defines ``PRESETS``, a dict of name -> :class:`Preset` (it is run, as
+    any Python file: load only your own studies' files). A study's presets are data of its folder
+    (``benchmarks/studies/<study>/presets.py``); the package keeps those users run (:data:`PRESETS`).
+
+    :param path: the file
+    :return: its presets
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no presets file {path}: a study's presets are a presets.py in its folder, defining PRESETS")
+    spec = importlib.util.spec_from_file_location(f"study_presets_{abs(hash(str(path.resolve())))}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    presets = getattr(module, "PRESETS", None)
+    if not isinstance(presets, dict) or not all(isinstance(p, Preset) for p in presets.values()):
+        raise ValueError(f"{path} must define PRESETS, a dict of name -> sb3_lifelong.experiments.presets.Preset")
+    return dict(presets)
+
+
+def preset_name(recorded: Mapping[str, Any], folder: Optional[pathlib.Path] = None) -> str:
     """
     :param recorded: a study's recorded settings (``preset.json``)
-    :return: the name of the preset it was run with (:data:`PRESETS`), or ``""``
+    :param folder: the study's directory: the presets of its ``presets.py``, when it has one, are looked at too
+    :return: the name of the preset it was run with (:data:`PRESETS`, or the study's own), or ``""``
     """
-    for name, candidate in PRESETS.items():
+    candidates = dict(PRESETS)
+    if folder is not None and (folder / "presets.py").is_file():
+        candidates.update(load_presets(folder / "presets.py"))
+    for name, candidate in candidates.items():
         if same_settings(recorded, json.loads(json.dumps(candidate.describe()))):
             return name
     return ""

@@ -13,17 +13,19 @@ from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import PRESETS, job_names, load_claims, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
 from sb3_lifelong.experiments.claims import evaluate_claims
+from sb3_lifelong.experiments.presets import load_presets
 
 
 def test_three_stage_study_end_to_end(tmp_path):
     """The three-stage preset's shape at a tiny budget: one buffer of three sources, switch scores, its own claims."""
 
-    three = PRESETS["cpu_three"]
+    own = load_presets(THREE_STAGE_CLAIMS.parent / "presets.py")  # the three-stage study's presets
+    three = own["cpu_three"]
     assert three.stages[0] == {} and len(three.stages) == len(three.stage_steps) == len(three.env_names) == 3
     assert three.stage_steps[0] == three.stage_steps[1] and three.stage_steps[2] == 5 * three.stage_steps[0]  # 0.2:0.2:1
     assert three.jobs() == ["collect", "distill_CRR_exp_beta1", "distill_CRR_indicator", "distill_BC"]
     for number in (1, 2, 3):  # the paper's own environment combinations, at its scale
-        paper = PRESETS[f"paper_three_{number}"]
+        paper = own[f"paper_three_{number}"]
         assert paper.stages[0] == "default" and paper.stages[2].startswith(paper.stages[1] + "+")
         assert paper.stage_steps == (200_000, 200_000, 1_000_000) and paper.jobs() == three.jobs()
     tiny = dataclasses.replace(

@@ -4,11 +4,11 @@ Env-B's reward grows, while a student held close to the data (the exp transform 
 ``target_ess``) stays flat? Pre-registered in ``benchmarks/studies/imbalance_dose/README.md`` (design, preconditions,
 pass criteria) before any run.
 
-One seed is two commands: the collection (``python -m sb3_lifelong.experiments run --preset dose_hopper --seed K
---output runs/imbalance_dose_hopper``), then this script's ``run``, which measures the collector (frozen Stage-1 agent
-against the end, on the same evaluation episodes; its critic's overestimation per source at the switch and at the end;
-the Monte-Carlo value of each source at each reward dose) and trains the eight students on the seed's buffer (a
-finished student is skipped when the command is run again). With ``S=benchmarks/studies/imbalance_dose``::
+One seed is two commands: the collection (``python -m sb3_lifelong.experiments run --presets $S/presets.py --preset
+dose_hopper --seed K --output runs/imbalance_dose_hopper``), then this script's ``run``, which measures the collector
+(frozen Stage-1 agent against the end, on the same evaluation episodes; its critic's overestimation per source at the
+switch and at the end; the Monte-Carlo value of each source at each reward dose) and trains the eight students on the
+seed's buffer (a finished student is skipped when the command is run again). With ``S=benchmarks/studies/imbalance_dose``::
 
     OMP_NUM_THREADS=1 python $S/imbalance_dose.py screen --robot hopper --seed 0   # at the switch, optional
     OMP_NUM_THREADS=1 python $S/imbalance_dose.py run --robot hopper --seed 0
@@ -38,6 +38,18 @@ from sb3_lifelong.experiments.branching import measure_agent
 from sb3_lifelong.experiments.statistics import t_interval
 
 RESULTS = pathlib.Path(__file__).parent / "results"
+
+
+#: this study's presets file, as a command line names it
+STUDY_PRESETS = "benchmarks/studies/imbalance_dose/presets.py"
+
+
+def study_preset(name: str) -> Any:
+    """:return: the preset ``name``: this study's own (``presets.py`` beside this script) or the package's (``tiny``)"""
+    from sb3_lifelong.experiments.presets import PRESETS, load_presets
+
+    return {**PRESETS, **load_presets(pathlib.Path(__file__).parent / "presets.py")}[name]
+
 
 #: robot -> (the collection's preset, P1's Env-A return threshold)
 #: (``tiny``: the tests' smoke run, no threshold)
@@ -107,9 +119,8 @@ def measure_collector(robot: str, seed: int, study: pathlib.Path, episodes: int)
     """The collector's side of the preconditions and claims C1, C5; the data's Monte-Carlo value per source."""
     from sb3_lifelong import LifelongReplayBuffer
     from sb3_lifelong.evaluation.overestimation import discounted_returns
-    from sb3_lifelong.experiments.presets import PRESETS
 
-    preset = PRESETS[ROBOTS[robot][0]]
+    preset = study_preset(ROBOTS[robot][0])
     run_dir = study / f"seed_{seed}"
     eval_csv = run_dir / "collect" / "eval.csv"
     switch = preset.stage_steps[0]
@@ -163,9 +174,8 @@ def screen(args: argparse.Namespace) -> None:
     Monte-Carlo value. Works on a collection still running in Env-B (it reads the Stage-1 agent and buffer).
     """
     from sb3_lifelong import LifelongReplayBuffer
-    from sb3_lifelong.experiments.presets import PRESETS
 
-    preset = PRESETS[ROBOTS[args.robot][0]]
+    preset = study_preset(ROBOTS[args.robot][0])
     run_dir = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}") / f"seed_{args.seed}"
     switch = preset.stage_steps[0]
     out: dict[str, Any] = dict(robot=args.robot, seed=args.seed, switch=switch, threshold_P1=ROBOTS[args.robot][1])
@@ -197,11 +207,10 @@ def copy_collection_curve(run_dir: pathlib.Path, results: pathlib.Path) -> None:
 def run(args: argparse.Namespace) -> None:
     from sb3_lifelong import LifelongReplayBuffer
     from sb3_lifelong.experiments.jobs import value_support
-    from sb3_lifelong.experiments.presets import PRESETS
     from sb3_lifelong.experiments.protocol import distill_on_study
 
     preset_name, _ = ROBOTS[args.robot]
-    preset = dataclasses.replace(PRESETS[preset_name], distill_steps=args.updates)
+    preset = dataclasses.replace(study_preset(preset_name), distill_steps=args.updates)
     study = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}")
     output = pathlib.Path(args.students_output or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}_students")
     results = pathlib.Path(args.results) / args.robot / f"seed_{args.seed}"
@@ -244,12 +253,11 @@ def branch(args: argparse.Namespace) -> None:
     Env-A return after Env-B is P2's test of the change (the change screen, README).
     """
     from sb3_lifelong.experiments.collection import collect
-    from sb3_lifelong.experiments.presets import PRESETS
 
     change = json.loads(args.change)
     if not isinstance(change, dict) or len(change) != 1:
         raise ValueError(f"--change must be one parameter as JSON, e.g. '{{\"hip_deformation\": 1.0}}', got {args.change}")
-    base = PRESETS[ROBOTS[args.robot][0]]
+    base = study_preset(ROBOTS[args.robot][0])
     if len(base.stages) != 2 or base.stages[0] or len(base.stages[1]) != 1:
         raise ValueError(f"{ROBOTS[args.robot][0]} is not a two-stage collection from the nominal robot with one change")
     preset = dataclasses.replace(base, stages=({}, change), stage_steps=(base.stage_steps[0], args.steps))
@@ -273,10 +281,9 @@ def adopt_stage1(args: argparse.Namespace) -> None:
     (:func:`adopt`). The protocol's ``run --preset <preset> --seed K --output <output> --until STEPS`` then continues
     it in Env-B, in parts.
     """
-    from sb3_lifelong.experiments.presets import PRESETS
     from sb3_lifelong.experiments.protocol import record_settings
 
-    preset = PRESETS[ROBOTS[args.robot][0]]
+    preset = study_preset(ROBOTS[args.robot][0])
     output = pathlib.Path(args.output)
     run_dir = output / f"seed_{args.seed}"
     if run_dir.exists():
@@ -284,7 +291,8 @@ def adopt_stage1(args: argparse.Namespace) -> None:
     record_settings(preset, output)
     adopt(preset, pathlib.Path(args.source) / f"seed_{args.seed}", run_dir)
     print(f"{run_dir}: paused at the switch ({preset.stage_steps[0]:,} steps); continue with `python -m "
-          f"sb3_lifelong.experiments run --preset {ROBOTS[args.robot][0]} --seed {args.seed} --output {output} "
+          f"sb3_lifelong.experiments run --presets {STUDY_PRESETS} --preset {ROBOTS[args.robot][0]} --seed {args.seed} "
+          f"--output {output} "
           "--until STEPS`")  # fmt: skip
 
 
@@ -408,9 +416,7 @@ def collection_figure(robot: str, curves: list[pathlib.Path], root: pathlib.Path
     plt = pyplot()
     import pandas as pd
 
-    from sb3_lifelong.experiments.presets import PRESETS
-
-    preset = PRESETS[ROBOTS[robot][0]]
+    preset = study_preset(ROBOTS[robot][0])
     q_logs = [path.with_name("collect_q_sources.csv") for path in curves]
     q_frames = {path: pd.read_csv(path) for path in q_logs if path.exists()}
     q_frames = {path: frame for path, frame in q_frames.items() if frame.get("overestimation", pd.Series()).notna().any()}
@@ -508,9 +514,7 @@ def change_screen(robot: str, curves: list[pathlib.Path], root: pathlib.Path) ->
     plt = pyplot()
     import pandas as pd
 
-    from sb3_lifelong.experiments.presets import PRESETS
-
-    preset = PRESETS[ROBOTS[robot][0]]
+    preset = study_preset(ROBOTS[robot][0])
     switch = preset.stage_steps[0]
     study = sorted(root.glob(f"{robot}/seed_0/collect_eval.csv"))  # the study's own change, for comparison
     named = [(p, json.loads((p.parent / "branch.json").read_text())["change"]) for p in curves]
@@ -807,9 +811,8 @@ def progress(args: argparse.Namespace) -> list[str]:
 
     :return: the lines printed
     """
-    from sb3_lifelong.experiments.presets import PRESETS
 
-    preset = PRESETS[ROBOTS[args.robot][0]]
+    preset = study_preset(ROBOTS[args.robot][0])
     total = sum(preset.stage_steps)
     study = pathlib.Path(args.study or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}")
     students = pathlib.Path(args.students_output or pathlib.Path(args.runs) / f"imbalance_dose_{args.robot}_students")
@@ -852,7 +855,8 @@ def progress(args: argparse.Namespace) -> list[str]:
         tree = f"PYTHONPATH=<collect-tree>:{float32} " if pinned is not None else ""
         if state != "collection finished":
             lines.append(
-                f"    next: {tree}OMP_NUM_THREADS=1 python -m sb3_lifelong.experiments run --preset {ROBOTS[args.robot][0]} "
+                f"    next: {tree}OMP_NUM_THREADS=1 python -m sb3_lifelong.experiments run --presets {STUDY_PRESETS} "
+                f"--preset {ROBOTS[args.robot][0]} "
                 f"--seed {seed} --output {study.resolve()} --until <steps> (or "
                 "benchmarks/studies/imbalance_dose/collect_in_parts.sh with "
                 f"STUDY_TREE), then the students {', '.join(missing)}"

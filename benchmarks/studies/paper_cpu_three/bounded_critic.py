@@ -26,7 +26,7 @@ import shutil
 import pandas as pd
 
 from sb3_lifelong.experiments.jobs import value_support
-from sb3_lifelong.experiments.presets import PRESETS, STUDENTS, Preset, Student, same_settings
+from sb3_lifelong.experiments.presets import PRESETS, STUDENTS, Preset, Student, load_presets, same_settings
 from sb3_lifelong.experiments.protocol import distill_on_study
 from sb3_lifelong.experiments.report import write_report
 from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean
@@ -49,7 +49,8 @@ def categorical(name: str) -> Student:
 def study_preset(study: pathlib.Path) -> tuple[str, Preset]:
     """:return: the name and settings of the preset ``study`` was run with (its ``preset.json``)"""
     recorded = json.loads((study / "preset.json").read_text())
-    for name, preset in PRESETS.items():
+    own = load_presets(pathlib.Path(__file__).resolve().parent / "presets.py")
+    for name, preset in {**PRESETS, **own}.items():
         if same_settings(recorded, json.loads(json.dumps(preset.describe()))):
             return name, preset
     raise ValueError(f"{study / 'preset.json'} matches no preset of this version of sb3_lifelong")

@@ -30,9 +30,13 @@ import numpy as np
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.experiments.presets import PRESETS, STUDENTS
+from sb3_lifelong.experiments.presets import PRESETS as PACKAGE_PRESETS
+from sb3_lifelong.experiments.presets import STUDENTS, load_presets
 from sb3_lifelong.experiments.protocol import distill_on_study
 from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean
+
+#: the package's presets and the study's own (``cpu_foot``: ``benchmarks/studies/paper_cpu_foot/presets.py``)
+PRESETS = {**PACKAGE_PRESETS, **load_presets(pathlib.Path(__file__).resolve().parents[1] / "paper_cpu_foot" / "presets.py")}
 
 ENV = "Env-A"
 #: the difference whose spread the criteria of ``results/student_spread.md`` judge

@@ -25,8 +25,12 @@ import numpy as np
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.experiments.presets import EXP, PRESETS, Student
+from sb3_lifelong.experiments.presets import EXP, Student, load_presets
+from sb3_lifelong.experiments.presets import PRESETS as PACKAGE_PRESETS
 from sb3_lifelong.experiments.protocol import distill_on_study
+
+#: the package's presets and the study's own (``cpu_foot``: ``benchmarks/studies/paper_cpu_foot/presets.py``)
+PRESETS = {**PACKAGE_PRESETS, **load_presets(pathlib.Path(__file__).resolve().parents[1] / "paper_cpu_foot" / "presets.py")}
 
 #: variant name -> (the student's CRR settings, the preset's fields changed)
 VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
