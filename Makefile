@@ -17,7 +17,7 @@ install:
 	$(PYTHON) -m pip install -q -e ".[tests,extra,mujoco,cluster]"
 
 test: install
-	$(PYTHON) -m pytest -n 2 --timeout 900 tests/
+	$(PYTHON) -m pytest -n 2 --timeout 900 -rs tests/
 
 # a short run of the paper's two-stage protocol (Env-A then Env-B, distillation of the lifetime buffer), then its
 # report: tables, the pre-registered claims, figures (the "demo" preset: minutes; the study itself is "--preset cpu")

@@ -6,9 +6,11 @@ Usage::
     python examples/three_stage.py                    # quick CPU preset (HalfCheetah, minutes)
     python examples/three_stage.py --paper            # OP3: default, hip 0.2 rad, hip 0.2 rad + feet x1.6
 
-The three-stage study with the pre-registered claims (Hopper, students, report and figures) is a preset of the
-paper's protocol: ``python -m sb3_lifelong.experiments run --presets benchmarks/studies/paper_cpu_three/presets.py
---preset cpu_three --seed K --output DIR``.
+The three-stage study with the pre-registered claims (Hopper, students, report and figures) is a preset of its study
+folder, run by the paper's protocol::
+
+    S=benchmarks/studies/paper_cpu_three
+    python -m sb3_lifelong.experiments run --presets $S/presets.py --preset cpu_three --seed K --output DIR
 """
 
 import argparse

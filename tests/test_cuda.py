@@ -10,7 +10,7 @@ from gymnasium import spaces
 from testkit import flat_params, pendulum_data
 
 from sb3_lifelong import CRR, MPO
-from sb3_lifelong.common import compiling
+from sb3_lifelong.numerics import compiling
 
 pytestmark = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
 CUDA = th.device("cuda")

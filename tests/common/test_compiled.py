@@ -9,8 +9,8 @@ from gymnasium import spaces
 from testkit import flat_params, pendulum_data
 
 from sb3_lifelong import CRR, MPO
-from sb3_lifelong.common import compiling, hardware, scoring
 from sb3_lifelong.crr import distributional
+from sb3_lifelong.numerics import compiling, hardware, scoring
 
 # on the CPU even where a GPU is present: these tests pin the CPU's arithmetic (bit-identical eager steps, inductor's
 # C++ kernels); tests/test_cuda.py covers a GPU

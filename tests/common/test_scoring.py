@@ -7,9 +7,9 @@ import torch as th
 from stable_baselines3.common.torch_layers import FlattenExtractor
 
 from sb3_lifelong import CRR, MPO
-from sb3_lifelong.common import compiling, fast_ops, scoring
 from sb3_lifelong.common.policies import QCritic, mlp_layers, sample_gaussian
 from sb3_lifelong.mpo.losses import dual_value, temperature_loss_and_weights
+from sb3_lifelong.numerics import compiling, fast_ops, scoring
 from sb3_lifelong.numerics.hardware import fused_products_supported
 from sb3_lifelong.numerics.scoring import LowPrecisionCopy, resolve_scoring_dtype, score_actions
 
@@ -277,7 +277,7 @@ def test_a_layer_norm_kernel_that_fails_to_compile_leaves_the_eager_way(monkeypa
 
 
 def test_machine_description_names_the_matrix_flags_and_the_bf16_kernel(monkeypatch):
-    from sb3_lifelong.common import hardware
+    from sb3_lifelong.numerics import hardware
 
     flags = hardware.cpu_matrix_flags()
     assert set(flags) <= set(hardware.MATRIX_FLAGS)

@@ -10,8 +10,8 @@ from testkit import benchmark_module, flat_params, pendulum_data
 from torch import nn
 
 from sb3_lifelong import CRR, MPO
-from sb3_lifelong.common import compiling, hardware
 from sb3_lifelong.common.policies import mlp_layers
+from sb3_lifelong.numerics import compiling, hardware
 from sb3_lifelong.numerics.fast_ops import HiddenLinear
 
 KWARGS = dict(device="cpu", batch_size=64, policy_kwargs=dict(net_arch=[64, 64], layer_norm=True), seed=0)
