@@ -349,9 +349,9 @@ def figure(rows: list[dict[str, Any]], path: pathlib.Path) -> None:
     names = [c for c in CANDIDATES if any(r["candidate"] == c for r in rows)]
     if not names:
         return
-    columns = 3
-    fig, axes = plt.subplots(math.ceil(len(names) / columns), columns, figsize=(12, 3.2 * math.ceil(len(names) / columns)),
-                             squeeze=False)  # fmt: skip
+    columns = min(3, len(names))
+    grid_rows = math.ceil(len(names) / columns)
+    fig, axes = plt.subplots(grid_rows, columns, figsize=(4.6 * columns, 3.4 * grid_rows + 0.6), squeeze=False)
     colours = {"Env-A": "tab:blue", "Env-B": "tab:orange"}
     for ax, candidate in zip(axes.flat, names):
         for row in (r for r in rows if r["candidate"] == candidate):
@@ -368,10 +368,12 @@ def figure(rows: list[dict[str, Any]], path: pathlib.Path) -> None:
         ax.set_title(f"{candidate}  {json.dumps(CANDIDATES[candidate][1])}", fontsize=9)
         ax.set_xlabel("environment steps")
         ax.set_ylabel("return")
-        ax.legend(fontsize=6, loc="lower left")
+        ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=2, frameon=False)
     for ax in list(axes.flat)[len(names) :]:
         ax.axis("off")
-    fig.suptitle("MPO through Env-A then Env-B (vertical line: the switch; dotted: the Stage-1 agent's Env-A level)")
+    fig.suptitle(
+        "MPO through Env-A then Env-B\n(vertical line: the switch; dotted: the Stage-1 agent's Env-A level)", fontsize=10
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
