@@ -9,15 +9,14 @@ defines ``CLAIMS`` with the helpers of this module (``benchmarks/studies/paper_c
 or the file given to ``report --claims``.
 """
 
-import importlib.util
 import os
-import pathlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Union
 
 import numpy as np
 
+from sb3_lifelong.experiments.presets import read_study_file
 from sb3_lifelong.experiments.scores import SWITCH_SPREAD_EVALS, Study
 from sb3_lifelong.experiments.statistics import bootstrap_ci, paired_difference
 
@@ -257,14 +256,7 @@ def load_claims(path: Union[str, os.PathLike]) -> list[Claim]:
     :param path: the file (a study folder's ``claims.py``)
     :return: its claims
     """
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no claims file {path}: a study's claims are a claims.py in its folder, defining CLAIMS")
-    spec = importlib.util.spec_from_file_location(f"study_claims_{abs(hash(str(path.resolve())))}", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    claims = getattr(module, "CLAIMS", None)
+    claims = read_study_file(path, "CLAIMS")
     if not isinstance(claims, list) or not all(isinstance(claim, Claim) for claim in claims):
         raise ValueError(f"{path} must define CLAIMS, a list of sb3_lifelong.experiments.claims.Claim")
     return claims

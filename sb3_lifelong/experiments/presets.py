@@ -434,6 +434,25 @@ def collection_differences(recorded: Mapping[str, Any], described: Mapping[str, 
     return [key for key in keys if filled[0].get(key) != filled[1].get(key)]
 
 
+def read_study_file(path: Union[str, os.PathLike], name: str) -> Any:
+    """
+    Run a study folder's Python file (its ``presets.py`` or ``claims.py``) and return one of its names.
+
+    :param path: the file
+    :param name: the name it defines (``PRESETS``, ``CLAIMS``)
+    :return: its value (None when the file does not define it)
+    :raises FileNotFoundError: naming the file and what it should define
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no file {path}: a study's {name} are defined in a Python file of its folder")
+    spec = importlib.util.spec_from_file_location(f"study_file_{abs(hash(str(path.resolve())))}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return getattr(module, name, None)
+
+
 def load_presets(path: Union[str, os.PathLike]) -> dict[str, Preset]:
     """
     Read a study's presets file: a Python file that defines ``PRESETS``, a dict of name -> :class:`Preset` (it is run, as
@@ -443,14 +462,7 @@ def load_presets(path: Union[str, os.PathLike]) -> dict[str, Preset]:
     :param path: the file
     :return: its presets
     """
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no presets file {path}: a study's presets are a presets.py in its folder, defining PRESETS")
-    spec = importlib.util.spec_from_file_location(f"study_presets_{abs(hash(str(path.resolve())))}", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    presets = getattr(module, "PRESETS", None)
+    presets = read_study_file(path, "PRESETS")
     if not isinstance(presets, dict) or not all(isinstance(p, Preset) for p in presets.values()):
         raise ValueError(f"{path} must define PRESETS, a dict of name -> sb3_lifelong.experiments.presets.Preset")
     return dict(presets)

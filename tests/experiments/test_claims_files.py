@@ -13,7 +13,7 @@ from sb3_lifelong.experiments.__main__ import main
 def test_claims_files_are_read_or_refused_clearly(tmp_path):
     claims = load_claims(PAPER_CLAIMS)
     assert [claim.name for claim in claims][:2] == ["C1 forgetting", "C2a conservative online CRR remembers"]
-    with pytest.raises(FileNotFoundError, match="no claims file"):
+    with pytest.raises(FileNotFoundError, match=r"no file .*claims\.py: a study.s CLAIMS are defined"):
         load_claims(tmp_path / "claims.py")
     (tmp_path / "empty.py").write_text("X = 1\n")
     with pytest.raises(ValueError, match="must define CLAIMS"):
@@ -33,3 +33,25 @@ def test_the_report_reads_the_claims_beside_the_seeds_or_given(study, tmp_path, 
     write_report(output, plots=False)
     beside = pd.read_csv(output / "claims.csv")
     pd.testing.assert_frame_equal(beside, given)
+
+
+def test_study_presets_files_are_read_or_refused_clearly(tmp_path):
+    from testkit import ROOT
+
+    from sb3_lifelong.experiments import PRESETS
+    from sb3_lifelong.experiments.presets import load_presets
+
+    assert sorted(PRESETS) == ["cpu", "demo", "paper", "tiny"]  # the package keeps the presets users run
+    three = load_presets(ROOT / "benchmarks" / "studies" / "paper_cpu_three_c51" / "presets.py")
+    assert three["cpu_three_c51"].student_critic == "categorical" and len(three["cpu_three_c51"].stages) == 3
+    with pytest.raises(FileNotFoundError, match=r"no file .*presets\.py: a study's PRESETS are defined"):
+        load_presets(tmp_path / "presets.py")
+    (tmp_path / "bad.py").write_text("PRESETS = {'x': 1}\n")
+    with pytest.raises(ValueError, match="must define PRESETS"):
+        load_presets(tmp_path / "bad.py")
+    main_exit = pytest.raises(SystemExit)
+    with main_exit:
+        main(["list", "--preset", "cpu_three"])  # a study's preset needs its file
+    assert (
+        main(["list", "--presets", str(ROOT / "benchmarks/studies/paper_cpu_three/presets.py"), "--preset", "cpu_three"]) == 0
+    )
