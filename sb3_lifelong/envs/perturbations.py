@@ -460,10 +460,9 @@ class PhysicsEditor:
                 raise ValueError(
                     f"{prefix}unknown dynamics parameter {name!r} for {self.description.name}. Allowed: {self.allowed_text()}"
                 )
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"{prefix}{name} must be a number, got {value!r}") from None
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise ValueError(f"{prefix}{name} must be a real number (not a bool or a string), got {value!r}")
+            value = float(value)
             low, high = self.valid_range(name)
             if not (np.isfinite(value) and low <= value <= high):
                 raise ValueError(

@@ -449,6 +449,8 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self._obs_scale = np.array([PERTURBATIONS[k].obs_scale for k in self.observed_params])
 
         self._local_steps = 0
+        if isinstance(start_timestep, bool) or not isinstance(start_timestep, (int, np.integer)) or start_timestep < 0:
+            raise ValueError(f"start_timestep must be a non-negative integer (a global timestep), got {start_timestep!r}")
         self._start = int(start_timestep)
         self._pinned: Optional[int] = None
         self._stage = -1  # stage applied to the physics; -1 until the first application

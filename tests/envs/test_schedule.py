@@ -313,3 +313,18 @@ def test_stage_envs_pins_one_copy_per_stage():
         stage_envs("Hopper-v5", stages, switch_at=[10, 20])
     with pytest.raises(ValueError, match="one distinct name per stage"):
         stage_envs("Hopper-v5", stages, names=["a", "a", "b"])
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(stages=[{"friction": True}]), "friction must be a real number"),
+        (dict(stages=[{"foot_scale": "2.0"}]), "foot_scale must be a real number"),
+        (dict(start_timestep=-1), "start_timestep must be a non-negative integer"),
+        (dict(start_timestep=2.5), "start_timestep must be a non-negative integer"),
+        (dict(start_timestep=True), "start_timestep must be a non-negative integer"),
+    ],
+)
+def test_a_schedule_refuses_values_of_the_wrong_type_or_sign(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        DynamicsSchedule(gym.make("Hopper-v5"), **kwargs)
