@@ -67,7 +67,7 @@ def continual_metrics(
     scores = (matrix - low) / (high - low)
     last = stages - 1
     forgetting = {j: float(scores[j, j] - scores[last, j]) for j in range(last)}
-    forward = [float(scores[j - 1, j]) for j in range(1, min(stages + 1, envs)) if j - 1 <= last]
+    forward = [float(scores[j - 1, j]) for j in range(1, min(stages + 1, envs))]  # the rows before each stage
     return dict(
         scores=scores.tolist(),
         average_performance=float(scores[last].mean()),
