@@ -120,3 +120,37 @@ def test_source_q_callback_on_data_held_on_another_device():
         model.learn_offline(10, log_interval=0, callback=callback)
         assert data.device == th.device(data_device) and len(callback.results) == 4  # 2 measurements x 2 sources
         assert all(np.isfinite(row["q_mean"]) and np.isfinite(row["overestimation"]) for row in callback.results)
+
+
+def test_a_study_runs_every_model_on_the_gpu_with_device_cuda(tmp_path):
+    import json
+
+    from sb3_lifelong.experiments.__main__ import main
+
+    output = tmp_path / "study"
+    assert (
+        main(
+            [
+                "run",
+                "--preset",
+                "tiny",
+                "--seed",
+                "0",
+                "--output",
+                str(output),
+                "--device",
+                "cuda",
+                "--jobs",
+                "distill_CRR_exp_beta1",
+            ]
+        )
+        == 0
+    )
+    assert json.loads((output / "preset.json").read_text())["device"] == "cuda"
+    seed = output / "seed_0"
+    collector = MPO.load(seed / "collect" / "final.zip", custom_objects={"replay_buffer_kwargs": {}})
+    student = CRR.load(seed / "distill_CRR_exp_beta1" / "student.zip")
+    assert collector.device.type == "cuda" and student.device.type == "cuda"
+    # the study is one device's: the same seed on the CPU is refused, not mixed in
+    with pytest.raises(SystemExit):
+        main(["run", "--preset", "tiny", "--seed", "1", "--output", str(output), "--device", "cpu"])

@@ -29,11 +29,15 @@ from typing import Any, Optional
 
 import torch as th
 
-from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, load_presets
-from sb3_lifelong.experiments.protocol import run_seed
+from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, Preset, check_device, load_presets
+from sb3_lifelong.experiments.protocol import record_settings, run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
+DEVICE_HELP = (
+    "where every model runs: cpu (the presets' default: small networks run fastest as one process per core), cuda, "
+    "cuda:<k> (larger networks, e.g. the paper preset); a study runs on one device"
+)
 REPEATS_HELP = "train each student this many times per seed (its own student seed each); the report scores the mean"
 REUSE_HELP = "reuse this study's collection of the seed (same collection settings): its buffers are linked, only students run"
 
@@ -78,6 +82,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--progress-bar", action="store_true", help="a progress bar for every job (needs tqdm and rich)")
     run.add_argument("--threads", type=int, default=1, help="torch threads (default 1: more only slows small networks down)")
+    run.add_argument("--device", default=None, help=DEVICE_HELP)
 
     study = commands.add_parser("study", help="several seeds as a parallel graph of jobs (Ray or a process pool)")
     study.add_argument(
@@ -103,6 +108,7 @@ def _parser() -> argparse.ArgumentParser:
     study.add_argument("--student-repeats", type=int, default=None, help=REPEATS_HELP)
     study.add_argument("--collection-from", default=None, metavar="STUDY", help=REUSE_HELP)
     study.add_argument("--no-report", action="store_true", help="do not write the report at the end")
+    study.add_argument("--device", default=None, help=DEVICE_HELP)
 
     report = commands.add_parser("report", help="tables, claims and figures of every finished seed in a study")
     report.add_argument("output", help="the study's directory")
@@ -162,6 +168,15 @@ def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) 
         if len(args.stage_steps) != stages:
             parser.error(f"--stage-steps needs one value per stage: preset {args.preset} has {stages}, got {args.stage_steps}")
     if args.command in ("run", "study"):
+        if args.device is not None:
+            try:
+                args.settings = dataclasses.replace(args.settings, device=args.device)
+            except ValueError as error:
+                parser.error(f"--device: {error}")
+        try:
+            check_device(args.settings.device)
+        except ValueError as error:
+            parser.error(f"preset {args.preset}: {error}")
         output = pathlib.Path(args.output)
         if output.exists() and not output.is_dir():
             parser.error(f"--output {output} exists and is not a directory: give the study's directory (created if missing)")
@@ -216,6 +231,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         if args.student_repeats is not None:
             preset = dataclasses.replace(preset, student_repeats=args.student_repeats)
         jobs = args.jobs or [j for j in preset.jobs() if not (args.no_online and Job.parse(j).kind == "online")]
+        _check_study(parser, preset, pathlib.Path(args.output))
         start = time.perf_counter()
         reuse = args.collection_from
         results = run_study(
@@ -258,6 +274,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(preset.note)
     if preset.minutes_per_seed is not None and not changes:
         print(f"expect about {preset.minutes_per_seed:.0f} min on one core (measured on a 2-core AMD EPYC machine)")
+    _check_study(parser, preset, output)
     start = time.perf_counter()
     ran = run_seed(
         preset,
@@ -271,6 +288,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     )
     print(_closing(output, args.seed, len(ran), (time.perf_counter() - start) / 60))
     return 0
+
+
+def _check_study(parser: argparse.ArgumentParser, preset: Preset, output: pathlib.Path) -> None:
+    """Record the study's settings, or exit with the reason when ``output`` holds a study of other settings."""
+    try:
+        record_settings(preset, output)
+    except ValueError as error:
+        parser.exit(2, f"{parser.prog}: error: {error}\n")
 
 
 def _closing(output: pathlib.Path, seed: int, ran: int, minutes: float) -> str:

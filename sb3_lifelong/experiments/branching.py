@@ -83,7 +83,7 @@ def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Preset,
     :return: ``<name>_same_episodes_<env>``, ``<name>_q_<source>``, ``<name>_overestimation_<source>``,
         ``mc_return_x1_<source>``
     """
-    agent = MPO.load(run_dir / "collect" / f"{name}.zip", device="cpu", custom_objects={"replay_buffer_kwargs": {}})
+    agent = MPO.load(run_dir / "collect" / f"{name}.zip", device=preset.device, custom_objects={"replay_buffer_kwargs": {}})
     out: dict[str, Any] = {}
     envs = stage_envs(preset.env_id, list(preset.stages), preset.env_names, preset.env_kwargs, append_params=True)
     for env_name, env in envs.items():

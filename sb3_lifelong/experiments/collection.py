@@ -18,7 +18,7 @@ if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skip
 
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.buffers.files import write_json_atomic
-from sb3_lifelong.experiments.jobs import DEVICE, _common, job_callbacks, make_env, tensorboard_dir
+from sb3_lifelong.experiments.jobs import _common, job_callbacks, make_env, tensorboard_dir
 from sb3_lifelong.experiments.presets import (
     Preset,
     describe_stage,
@@ -119,7 +119,7 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
     return MPO.load(
         directory / PAUSED_MODEL,
         env=make_env(preset, switch_at=switch_points(preset)),
-        device=DEVICE,
+        device=preset.device,
         replay_buffer_kwargs=dict(path=run_dir / "buffer", mode="append"),
     )
 

@@ -1,5 +1,5 @@
 """
-What every job of a study shares: the robot through its stages (:func:`make_env`), where models run (:data:`DEVICE`),
+What every job of a study shares: the robot through its stages (:func:`make_env`), where models run (the preset's ``device``),
 a job's callbacks and logs (:func:`job_callbacks`, :func:`tensorboard_dir`), and the value support of a bounded critic
 (:func:`value_support`). The jobs themselves: :mod:`~sb3_lifelong.experiments.collection` (MPO through the stages) and
 :mod:`~sb3_lifelong.experiments.protocol` (the students, the online baselines, one seed).
@@ -49,14 +49,12 @@ def tensorboard_dir(directory: pathlib.Path) -> Optional[str]:
     return str(directory / "tb")
 
 
-#: where every model of a study runs: one process per CPU core (small networks, one transition per update). Models
-#: that continue a paused job load onto it too, so that a run in parts computes what an uninterrupted one does, also
-#: on a machine with a GPU.
-DEVICE = "cpu"
-
-
 def _common(preset: Preset, seed: int) -> dict[str, Any]:
-    return dict(policy_kwargs=dict(net_arch=list(preset.net_arch), layer_norm=preset.layer_norm), seed=seed, device=DEVICE)
+    # every model of a study runs on the preset's device (``--device``); models that continue a paused job load onto
+    # it too, so that a run in parts computes what an uninterrupted one does
+    return dict(
+        policy_kwargs=dict(net_arch=list(preset.net_arch), layer_norm=preset.layer_norm), seed=seed, device=preset.device
+    )
 
 
 def value_support(reward_range: tuple[float, float], gamma: float, scales: Sequence[float] = ()) -> dict[str, float]:

@@ -25,6 +25,33 @@ Stage = Union[str, Mapping[str, float]]
 STUDENT_CRITICS = ("mse", "categorical")
 
 
+def check_device(device: str, here: bool = True) -> None:
+    """
+    :param device: a torch device's name
+    :param here: check that this machine has it too (False: the name only, e.g. for the report of a study that ran
+        on another machine)
+    :raises ValueError: when torch does not know the name (``"gpu"``), or (``here``) names a GPU that this machine
+        does not have
+    """
+    import torch as th
+
+    try:
+        parsed = th.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise ValueError(f"device {device!r} is not a torch device (e.g. 'cpu', 'cuda', 'cuda:1'): {error}") from None
+    if parsed.type not in ("cpu", "cuda", "mps"):
+        raise ValueError(f"device {device!r}: a study runs on 'cpu' or a GPU ('cuda', 'cuda:<k>', 'mps')")
+    if not here:
+        return
+    if parsed.type == "cuda":
+        if not th.cuda.is_available():
+            raise ValueError(f"device {device!r}: torch sees no CUDA GPU on this machine (run with --device cpu)")
+        if parsed.index is not None and parsed.index >= th.cuda.device_count():
+            raise ValueError(f"device {device!r}: this machine has {th.cuda.device_count()} CUDA GPU(s)")
+    elif parsed.type == "mps" and not th.backends.mps.is_available():
+        raise ValueError(f"device {device!r}: torch sees no MPS device on this machine (run with --device cpu)")
+
+
 @dataclass(frozen=True)
 class Preset:
     """
@@ -76,6 +103,10 @@ class Preset:
         environment before it leaves it (:func:`~sb3_lifelong.experiments.scores.switch_spread`) for the claims that it
         forgets that environment to be testable: forgetting is a drop from a level, and an agent still climbing or
         oscillating when it leaves has none to drop from (one evaluation's dip turns "end / switch" into any ratio)
+    :param device: where every model of the study runs (a torch device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``). The
+        presets' small networks, one transition per update, run fastest as one process per CPU core; larger networks
+        (the ``paper`` preset) gain from a GPU. A study runs on one device: the settings record it, and a paused job
+        continues on it, so that a run in parts computes what an uninterrupted one does
     :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
@@ -105,6 +136,7 @@ class Preset:
     value_gap: Optional[float] = None
     min_weight_ess: Optional[float] = None
     max_switch_spread: Optional[float] = None
+    device: str = "cpu"
     note: str = ""
 
     def __post_init__(self) -> None:
@@ -117,6 +149,7 @@ class Preset:
             raise ValueError(f"student_repeats must be >= 1, got {self.student_repeats}")
         if self.student_critic not in STUDENT_CRITICS:
             raise ValueError(f"student_critic must be one of {STUDENT_CRITICS}, got {self.student_critic!r}")
+        check_device(self.device, here=False)
 
     def jobs(self) -> list[str]:
         """:return: the jobs of one seed of this preset, in the order they run"""
@@ -383,6 +416,7 @@ LATER_SETTINGS: dict[str, Any] = {
     "value_gap": None,
     "min_weight_ess": None,
     "max_switch_spread": None,
+    "device": "cpu",
 }
 #: settings that do not make two studies different ones: more repeats of the students, and the report's precondition
 #: (a study keeps the threshold it recorded, None for those recorded before there was one)

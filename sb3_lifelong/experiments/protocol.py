@@ -57,7 +57,6 @@ from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.experiments.collection import _aside_name, collect
 from sb3_lifelong.experiments.jobs import (
-    DEVICE,
     _common,
     job_callbacks,
     make_env,
@@ -65,6 +64,8 @@ from sb3_lifelong.experiments.jobs import (
     value_support,
 )
 from sb3_lifelong.experiments.presets import (
+    LATER_SETTINGS,
+    NOT_IDENTITY,
     ONLINE,
     REPEAT_SEED_STRIDE,
     REPORT_THRESHOLDS,
@@ -86,7 +87,7 @@ def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress
     shutil.rmtree(directory, ignore_errors=True)
     directory.mkdir(parents=True)
     # the agent only: its saved buffer settings point at the lifetime buffer, which other jobs may be reading
-    stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device=DEVICE, custom_objects={"replay_buffer_kwargs": {}})
+    stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device=preset.device, custom_objects={"replay_buffer_kwargs": {}})
     start = int(stage1.num_timesteps)
     env = make_env(preset, switch_at=switch_points(preset))  # learn() tells it the timestep: model.num_timesteps
     model = CRR(
@@ -336,7 +337,7 @@ def distill_student(
             **common,
         )
     else:
-        model = algorithm.load(directory / paused["model"], device=DEVICE)
+        model = algorithm.load(directory / paused["model"], device=preset.device)
         model.set_offline_data(data)
         model.tensorboard_log = tensorboard_dir(directory)
         forward = getattr(model, "_forward", None)
@@ -431,9 +432,14 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
             # keeps the report's thresholds it recorded (None where it predates them)
             described.update({key: recorded.get(key) for key in REPORT_THRESHOLDS})
         else:
+            differ = sorted(
+                key
+                for key in set(recorded) | set(described)
+                if key not in NOT_IDENTITY and {**LATER_SETTINGS, **recorded}.get(key) != described.get(key)
+            )
             raise ValueError(
-                f"{output} holds a study run with other settings ({settings}); its seeds cannot be mixed with these. "
-                "Choose another --output, or delete that directory to start again."
+                f"{output} holds a study run with other settings ({settings}: {', '.join(differ)} differ); its seeds "
+                "cannot be mixed with these. Choose another --output, or delete that directory to start again."
             )
     output.mkdir(parents=True, exist_ok=True)
     write_json_atomic(str(settings), described)
