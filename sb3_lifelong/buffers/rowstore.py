@@ -222,7 +222,8 @@ class RowStore(ManifestRecords):
                 self._open_or_create(fields, capacity, verify, evict)
                 return
             self._layout.create()
-            self._buffer_id = new_buffer_id()  # the new buffer's identity (a buffer created again here gets another)
+            if self._layout.persistent:  # the new buffer's identity (a buffer created again here gets another)
+                self._buffer_id = new_buffer_id()
             self._write_manifest()
 
     # ------------------------------------------------------------------ positions
