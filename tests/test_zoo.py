@@ -143,7 +143,15 @@ def test_each_run_of_a_hyperparameter_file_gets_its_own_buffer(tmp_path, monkeyp
 
     def train(seed: int, **kwargs) -> str:
         manager = ExperimentManager(
-            argparse.Namespace(), "mpo", "Pendulum-v1", "logs", config="lifelong.yml", seed=seed, eval_freq=-1, verbose=0, **kwargs
+            argparse.Namespace(),
+            "mpo",
+            "Pendulum-v1",
+            "logs",
+            config="lifelong.yml",
+            seed=seed,
+            eval_freq=-1,
+            verbose=0,
+            **kwargs
         )
         model, _ = manager.setup_experiment()
         manager.learn(model)

@@ -108,7 +108,9 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
             # load() rebuilds the buffer from the zip's replay_buffer_kwargs: plain data anyone can edit. A directory
             # they name is only opened read-only, if it holds the model's buffer; learn() reattaches it for writing
             # (sb3_lifelong.common.reattach). capacity, evict, mode, ... of the zip are never applied
-            saved = reattach.plan(self, self.replay_buffer_class, self.replay_buffer_kwargs, self.__dict__.get("_buffer_checkpoint"))
+            saved = reattach.plan(
+                self, self.replay_buffer_class, self.replay_buffer_kwargs, self.__dict__.get("_buffer_checkpoint")
+            )
         # A buffer class that computes n-step returns itself (e.g. LifelongReplayBuffer) gets the algorithm's
         # n_steps and gamma. SB3 warns that n_steps "is ignored" whenever a replay_buffer_class is given; that is
         # false when the buffer computes n-step returns of the same length (forwarded here, or saved with the

@@ -192,11 +192,12 @@ def open_for_reading(model: Any, saved: SavedBuffer, where: str) -> LifelongRepl
     if buffer is None:
         warnings.warn(
             f"{where}: the replay buffer this model was saved with is not attached: {saved.problem}. Nothing was written "
-            "there; the model has an empty buffer in memory, and learn() refuses to start until you choose. "
-            + saved.how_to(),
+            "there; the model has an empty buffer in memory, and learn() refuses to start until you choose. " + saved.how_to(),
             stacklevel=4,
         )
-        in_memory = {key: saved.kwargs[key] for key in ("n_steps", "gamma", "handle_timeout_termination") if key in saved.kwargs}
+        in_memory = {
+            key: saved.kwargs[key] for key in ("n_steps", "gamma", "handle_timeout_termination") if key in saved.kwargs
+        }
         buffer = saved.buffer_class(model.buffer_size, model.observation_space, model.action_space, **common, **in_memory)
     saved.placeholder = buffer
     return buffer

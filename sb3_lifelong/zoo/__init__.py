@@ -78,9 +78,8 @@ def run_buffer_path(path: Any, save_path: str, seed: Any, algo: str, env: str) -
     values = {"seed": seed, "run": os.path.basename(os.path.normpath(save_path)), "env": env, "algo": algo}
     for _, name, _, _ in string.Formatter().parse(text):
         if name is not None and name not in PATH_FIELDS:
-            raise ValueError(
-                f"replay_buffer_kwargs path {text!r} names {{{name}}}: a buffer path may use {', '.join(f'{{{n}}}' for n in PATH_FIELDS)}"
-            )
+            allowed = ", ".join(f"{{{field}}}" for field in PATH_FIELDS)
+            raise ValueError(f"replay_buffer_kwargs path {text!r} names {{{name}}}: a buffer path may use {allowed}")
     text = text.format(**values)
     return text if os.path.isabs(text) else os.path.join(save_path, text)
 

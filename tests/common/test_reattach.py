@@ -181,7 +181,9 @@ def test_replay_buffer_kwargs_given_to_load_are_used_as_they_are(tmp_path):
     saved_model(tmp_path)
     with pytest.warns(UserWarning, match="lags the model by 60"):  # a buffer of the caller's choice: as before
         fresh = MPO.load(
-            tmp_path / "model.zip", env=gym.make("Pendulum-v1"), replay_buffer_kwargs=dict(path=tmp_path / "new", chunk_size=16)
+            tmp_path / "model.zip",
+            env=gym.make("Pendulum-v1"),
+            replay_buffer_kwargs=dict(path=tmp_path / "new", chunk_size=16),
         )
     fresh.learn(10, reset_num_timesteps=False)
     assert fresh.replay_buffer.path == str(tmp_path / "new") and fresh.replay_buffer.size() == 10
