@@ -99,13 +99,10 @@ def test_crash_right_after_a_save_resumes_bit_identical(tmp_path):
     uninterrupted.learn(200, reset_num_timesteps=False)
 
     with warnings_as_errors():  # the buffer does not lag the checkpoint: no warning
-        resumed = MPO.load(
-            tmp_path / "model.zip",
-            env=gym.make("Pendulum-v1"),
-            replay_buffer_kwargs=dict(path=tmp_path / "resumed", chunk_size=1000, mode="append"),
-        )
+        resumed = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"))  # no buffer argument: as in SB3
     assert resumed.replay_buffer.size() == resumed.num_timesteps == 200
-    resumed.learn(200, reset_num_timesteps=False)
+    resumed.learn(200, reset_num_timesteps=False)  # reattaches the directory the model was saved with
+    assert resumed.replay_buffer.path == str(tmp_path / "resumed")
     for name in FIELDS:
         expected = np.array(uninterrupted.replay_buffer.store.read_range(name, 0, 400))
         np.testing.assert_array_equal(np.array(resumed.replay_buffer.store.read_range(name, 0, 400)), expected, name)
