@@ -242,7 +242,8 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         Commit the replay buffer for a checkpoint, when it can (a ``LifelongReplayBuffer`` directory: its pending
         transitions are flushed), and say what the checkpoint records of it.
 
-        :return: ``{"path", "transitions"}`` (the transitions the buffer has committed), or None
+        :return: ``{"path", "transitions", "buffer_id"}`` (the transitions the buffer has committed, its identity), or
+            None. A model loaded and not trained since records what its zip recorded, as it was
         """
         if self.replay_buffer is None or self._pending_saved_buffer() is not None:
             # loaded without its buffer, or not trained since load: what the loaded checkpoint recorded, as it was
