@@ -32,6 +32,7 @@ import warnings
 from dataclasses import dataclass
 from typing import Any, Optional
 
+from sb3_lifelong.buffers import rowstore
 from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer
 from sb3_lifelong.buffers.manifest import ID_PATTERN, BufferFormatError, buffer_id_of, read_manifest
 
@@ -203,21 +204,42 @@ def open_for_reading(model: Any, saved: SavedBuffer, where: str) -> LifelongRepl
     return buffer
 
 
+def _take_over(path: str) -> None:
+    """
+    Close the writer of ``path`` that this process holds, if any (e.g. the model that was saved, still alive beside
+    the loaded one), as unpickling a buffer does: its pending transitions are committed first, and it refuses to add
+    from then on. A writer in another process is left alone (reopening then raises ``RuntimeError``).
+    """
+    stale = rowstore._WRITERS.get(path)  # writers of this process, by directory
+    if stale is None or stale.read_only:
+        return
+    stale.close()  # flushes first: if that fails, the error goes through and nothing is taken over
+    warnings.warn(
+        f"{path} was open for writing by another buffer of this process (e.g. the model that was saved): it is closed "
+        "(its pending transitions committed) and the loaded model continues the buffer",
+        stacklevel=5,
+    )
+
+
 def open_for_writing(model: Any, saved: SavedBuffer) -> LifelongReplayBuffer:
     """
     At ``learn``: reopen the buffer ``load`` attached read-only for writing (``mode="append"``), after checking that it
     is still the model's buffer and that it holds the transitions the checkpoint committed; checked again once this
-    process holds the directory's writer lock. Nothing is evicted or cut back (the stored capacity is kept).
+    process holds the directory's writer lock. Nothing is evicted or cut back (the stored capacity is kept). A writer
+    of this process that holds the directory is closed first (:func:`_take_over`).
 
     :param model: The loaded model
     :param saved: The plan
     :return: The buffer, open for writing
     :raises FileNotFoundError: there is no buffer there
     :raises ValueError: another buffer, or fewer transitions than the checkpoint committed; or as the constructor
-    :raises RuntimeError: another writer has the directory open
+    :raises RuntimeError: a writer in another process has the directory open
     """
-    problem, held = identity_problem(saved.path, saved.buffer_id)
-    problem = problem or lag_problem(saved.path, held, saved.committed)
+    problem, _ = identity_problem(saved.path, saved.buffer_id)
+    if problem is None:
+        _take_over(saved.path)
+        problem, held = identity_problem(saved.path, saved.buffer_id)  # again: the writer closed may have committed rows
+        problem = problem or lag_problem(saved.path, held, saved.committed)
     if problem is None:
         buffer = saved.buffer_class(
             model.buffer_size,

@@ -162,7 +162,7 @@ def test_a_buffer_without_an_id_is_not_the_buffer_of_a_zip_that_records_one(tmp_
         loaded.learn(10)
 
 
-def test_a_loaded_model_saved_again_keeps_its_record_and_a_live_writer_is_refused(tmp_path):
+def test_a_loaded_model_saved_again_keeps_its_record(tmp_path):
     model = make_model(tmp_path / "buffer")
     model.learn(40)
     model.save(tmp_path / "model.zip")  # the writer stays open
@@ -170,11 +170,36 @@ def test_a_loaded_model_saved_again_keeps_its_record_and_a_live_writer_is_refuse
     model.learn(16, reset_num_timesteps=False)  # the writer goes on meanwhile
     loaded.save(tmp_path / "again.zip")
     assert record(tmp_path / "again.zip") == record(tmp_path / "model.zip")  # as loaded: 40, the same id
-    loaded.set_env(gym.make("Pendulum-v1"))
-    with pytest.raises(RuntimeError, match="open for writing by another buffer"):
-        loaded.learn(10, reset_num_timesteps=False)
     model.replay_buffer.close()
-    assert len(rewards(tmp_path / "buffer")) == 56
+
+
+def test_the_saved_model_still_open_in_this_process_hands_its_buffer_over(tmp_path):
+    model = make_model(tmp_path / "buffer")
+    model.learn(40)
+    model.save(tmp_path / "model.zip")
+    model.learn(10, reset_num_timesteps=False)  # 10 more, pending in the old writer
+    loaded = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"))
+    with pytest.warns(UserWarning, match="open for writing by another buffer of this process"):
+        loaded.learn(10, reset_num_timesteps=False)
+    assert loaded.replay_buffer.size() == 60  # the old writer's rows were committed first, none lost
+    with pytest.raises(RuntimeError, match="buffer is closed"):
+        model.learn(5, reset_num_timesteps=False)
+    loaded.replay_buffer.close()
+
+
+def test_a_writer_in_another_process_is_refused(tmp_path):
+    fcntl = pytest.importorskip("fcntl")
+    saved_model(tmp_path)
+    before = snapshot(tmp_path / "buffer")
+    loaded = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"))
+    with open(tmp_path / "buffer" / "writer.lock", "a+") as lock:  # what another process's writer holds
+        fcntl.flock(lock.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(RuntimeError, match="open for writing by another buffer"):
+            loaded.learn(10, reset_num_timesteps=False)
+    assert snapshot(tmp_path / "buffer") == before
+    loaded.learn(10, reset_num_timesteps=False)  # once it is gone
+    assert loaded.replay_buffer.size() == 70
+    loaded.replay_buffer.close()
 
 
 def test_replay_buffer_kwargs_given_to_load_are_used_as_they_are(tmp_path):
