@@ -182,6 +182,27 @@ def test_buffer_paths_of_a_hyperparameter_file():
         run_buffer_path("/data/{user}", run, 3, "mpo", "Hopper-v5")
 
 
+def test_each_optimization_trial_gets_its_own_buffer():
+    from types import SimpleNamespace
+
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.zoo import _objective
+
+    kwargs = dict(path=os.path.join("logs", "run", "lifetime"), chunk_size=16)
+    manager = SimpleNamespace(_hyperparams=dict(replay_buffer_class=LifelongReplayBuffer, replay_buffer_kwargs=kwargs))
+    seen = []
+
+    def objective(manager, trial):
+        seen.append(manager._hyperparams["replay_buffer_kwargs"])
+        return 0.0
+
+    for number in (0, 1):
+        _objective(objective, manager, SimpleNamespace(number=number))
+    assert [entry["path"] for entry in seen] == [os.path.join(kwargs["path"], f"trial_{n}") for n in (0, 1)]
+    assert all(entry["chunk_size"] == 16 for entry in seen)
+    assert manager._hyperparams["replay_buffer_kwargs"] is kwargs and kwargs["path"] == os.path.join("logs", "run", "lifetime")
+
+
 def test_optimize_searches_mpo(tmp_path):
     (tmp_path / "tiny.yml").write_text("Pendulum-v1:\n  n_timesteps: 200\n  policy: 'MlpPolicy'\n  learning_starts: 100\n")
     out = zoo(
