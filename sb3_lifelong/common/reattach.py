@@ -17,7 +17,10 @@ suggestion:
 - At the first ``learn`` (online training resumes), the same buffer is reopened for writing (``mode="append"``,
   its stored capacity, never evicting or cutting committed rows), after checking again, under the directory's writer
   lock, that it is that buffer and that it holds at least the transitions the checkpoint committed; otherwise
-  ``learn`` raises, naming what to pass to ``load`` instead. New transitions continue after those it holds.
+  ``learn`` raises, naming what to pass to ``load`` instead. New transitions continue after those it holds (all of
+  them, also those committed after the save). A writer of this process that still holds the directory (the saved
+  model, still alive) is closed first, its pending transitions committed. As any writer, the reopened buffer discards
+  the uncommitted bytes a crashed writer left after the committed rows.
 
 A buffer created before buffers had an identity, or a zip saved before checkpoints recorded it, has an unknown
 identity: then only the number of committed transitions is checked (and, as for any reopening, that the directory
@@ -188,7 +191,7 @@ def open_for_reading(model: Any, saved: SavedBuffer, where: str) -> LifelongRepl
                 **common,
                 **saved.kwargs,
             )
-        except (OSError, ValueError) as error:  # e.g. another buffer's spaces (ValueError), a corrupted chunk
+        except (OSError, ValueError, TypeError) as error:  # e.g. another buffer's spaces (ValueError), a corrupted chunk
             saved.problem = f"the buffer at {saved.path!r} cannot be reopened ({error})"
     if buffer is None:
         warnings.warn(
