@@ -151,7 +151,7 @@ def test_each_run_of_a_hyperparameter_file_gets_its_own_buffer(tmp_path, monkeyp
             seed=seed,
             eval_freq=-1,
             verbose=0,
-            **kwargs
+            **kwargs,
         )
         model, _ = manager.setup_experiment()
         manager.learn(model)
