@@ -102,7 +102,7 @@ def test_two_stage_run_into_the_lifetime_buffer_from_a_hyperparameter_file(tmp_p
         "-1",
         cwd=tmp_path,
     )
-    buffer = LifelongReplayBuffer.open(tmp_path / "lifetime", read_only=True)
+    buffer = LifelongReplayBuffer.open(tmp_path / "logs" / "mpo" / "Hopper-v5_1" / "lifetime", read_only=True)  # the run's
     counts = buffer.source_counts()
     assert sum(counts.values()) == 400 and set(counts) == {0, 1}  # every transition, tagged with its stage
     assert buffer.sources[1]["metadata"]["hip_deformation"] == pytest.approx(0.3)
@@ -111,6 +111,96 @@ def test_two_stage_run_into_the_lifetime_buffer_from_a_hyperparameter_file(tmp_p
         rows = [line.split(",")[:2] for line in handle.read().splitlines()[1:]]
     assert rows == [["200", "Env-A"], ["200", "Env-B"], ["400", "Env-A"], ["400", "Env-B"]]
     zoo("enjoy", "--algo", "mpo", "--env", "Hopper-v5", "-f", "logs", "-n", "50", "--no-render", cwd=tmp_path)
+
+
+SEEDED_YML = """
+Pendulum-v1:
+  n_timesteps: 30
+  policy: 'MlpPolicy'
+  learning_starts: 1000
+  batch_size: 8
+  num_samples: 2
+  policy_kwargs: "dict(net_arch=[8])"
+  replay_buffer_class: sb3_lifelong.LifelongReplayBuffer
+  replay_buffer_kwargs: "dict(path='lifetime', chunk_size=16)"
+"""
+
+
+def test_each_run_of_a_hyperparameter_file_gets_its_own_buffer(tmp_path, monkeypatch):
+    """Before: the yaml's path was the same directory for every run, and a second run (--seed 1) refused to add to the
+    first run's buffer. Now a relative path is a folder of the run's, and -i continues the saved model's buffer."""
+    import argparse
+
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.zoo import register
+
+    register()
+    register()  # again: patched once
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lifelong.yml").write_text(SEEDED_YML)
+
+    def train(seed: int, **kwargs) -> str:
+        manager = ExperimentManager(
+            argparse.Namespace(),
+            "mpo",
+            "Pendulum-v1",
+            "logs",
+            config="lifelong.yml",
+            seed=seed,
+            eval_freq=-1,
+            verbose=0,
+            **kwargs,
+        )
+        model, _ = manager.setup_experiment()
+        manager.learn(model)
+        manager.save_trained_model(model)
+        model.replay_buffer.close()
+        return manager.save_path
+
+    runs = [train(0), train(1)]
+    assert [os.path.basename(run) for run in runs] == ["Pendulum-v1_1", "Pendulum-v1_2"]
+    buffers = [LifelongReplayBuffer.open(os.path.join(run, "lifetime"), read_only=True) for run in runs]
+    assert [buffer.size() for buffer in buffers] == [30, 30] and buffers[0].buffer_id != buffers[1].buffer_id
+    assert not (tmp_path / "lifetime").exists()
+    continued = train(0, trained_agent=os.path.join(runs[0], "Pendulum-v1.zip"))  # -i: the saved model's buffer goes on
+    assert not os.path.exists(os.path.join(continued, "lifetime"))
+    assert buffers[0].refresh() == 60 and buffers[1].refresh() == 30
+    for buffer in buffers:
+        buffer.close()
+
+
+def test_buffer_paths_of_a_hyperparameter_file():
+    from sb3_lifelong.zoo import run_buffer_path
+
+    run = os.path.join("logs", "mpo", "Hopper-v5_2")
+    assert run_buffer_path("lifetime", run, 3, "mpo", "Hopper-v5") == os.path.join(run, "lifetime")
+    assert run_buffer_path("/data/{algo}/{env}_{seed}", run, 3, "mpo", "Hopper-v5") == "/data/mpo/Hopper-v5_3"
+    assert run_buffer_path("/data/{run}", run, 3, "mpo", "Hopper-v5") == "/data/Hopper-v5_2"
+    with pytest.raises(ValueError, match=r"names \{user\}: a buffer path may use \{seed\}, \{run\}, \{env\}, \{algo\}"):
+        run_buffer_path("/data/{user}", run, 3, "mpo", "Hopper-v5")
+
+
+def test_each_optimization_trial_gets_its_own_buffer():
+    from types import SimpleNamespace
+
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.zoo import _objective
+
+    kwargs = dict(path=os.path.join("logs", "run", "lifetime"), chunk_size=16)
+    manager = SimpleNamespace(_hyperparams=dict(replay_buffer_class=LifelongReplayBuffer, replay_buffer_kwargs=kwargs))
+    seen = []
+
+    def objective(manager, trial):
+        seen.append(manager._hyperparams["replay_buffer_kwargs"])
+        return 0.0
+
+    for number in (0, 1):
+        _objective(objective, manager, SimpleNamespace(number=number))
+    assert [entry["path"] for entry in seen] == [os.path.join(kwargs["path"], f"trial_{n}") for n in (0, 1)]
+    assert all(entry["chunk_size"] == 16 for entry in seen)
+    assert manager._hyperparams["replay_buffer_kwargs"] is kwargs and kwargs["path"] == os.path.join("logs", "run", "lifetime")
 
 
 def test_optimize_searches_mpo(tmp_path):

@@ -422,9 +422,11 @@ class LifelongReplayBuffer(LifelongSampler):
         """Raise before the first write into a directory that held transitions when it was opened with mode="new"."""
         if self._refused_writes:
             raise FileExistsError(
-                f"{self._refused_writes}: adding would mix this run's data into it. Pass mode='append' to continue it "
-                "(as LifelongReplayBuffer.open does; in SB3: replay_buffer_kwargs={'path': ..., 'mode': 'append'}), "
-                "mode='overwrite' to delete it and start again, or choose another path."
+                f"{self._refused_writes}: adding would mix this run's data into it. To continue the run that wrote it, "
+                "load its saved model (MPO.load(zip, env=env), then learn(..., reset_num_timesteps=False): the model "
+                "reattaches the buffer it was saved with), or pass mode='append' (as LifelongReplayBuffer.open does; in "
+                "SB3: replay_buffer_kwargs={'path': ..., 'mode': 'append'}); pass mode='overwrite' to delete it and start "
+                "again, or choose another path."
             )
 
     def append_rows(self, rows: dict[str, np.ndarray]) -> None:
@@ -469,14 +471,18 @@ class LifelongReplayBuffer(LifelongSampler):
         Commit the buffer for a model checkpoint (what the ``save`` of this package's algorithms calls): flush the
         pending transitions, so that a crash right after the checkpoint loses none of them.
 
-        :return: ``{"path": directory, "transitions": global number of transitions committed}`` (transitions ever
-            committed, evicted ones included), recorded in the checkpoint; None in memory
+        :return: ``{"path": directory, "transitions": global number of transitions committed, "buffer_id": its
+            identity}`` (transitions ever committed, evicted ones included; ``buffer_id`` only for a buffer that has
+            one, see :attr:`buffer_id`), recorded in the checkpoint; None in memory
         :raises OSError: the flush failed (then nothing new is committed, and the checkpoint must not be written)
         """
         if self.store.path is None:
             return None
         self.store.flush()  # no-op for a read-only buffer: it records what the writer committed
-        return {"path": self.store.path, "transitions": int(self.store.num_committed)}
+        record: dict[str, Any] = {"path": self.store.path, "transitions": int(self.store.num_committed)}
+        if self.store.buffer_id is not None:
+            record["buffer_id"] = self.store.buffer_id
+        return record
 
     def check_checkpoint(self, record: dict[str, Any], checkpoint: str = "the checkpoint") -> None:
         """
@@ -512,6 +518,9 @@ class LifelongReplayBuffer(LifelongSampler):
         Read-only buffers: see the transitions another process committed (and evicted) since opening.
 
         :return: The number of transitions
+        :raises BufferFormatError: the directory now holds another buffer (deleted and created again at the same path:
+            its manifest records another :attr:`buffer_id`), or, for a buffer without an id, its committed rows went
+            down; the buffer still reads what it read before
         """
         indexed = self._runs.total
         self.store.refresh()
@@ -537,6 +546,15 @@ class LifelongReplayBuffer(LifelongSampler):
     def path(self) -> Optional[str]:
         """The buffer directory, or None in memory."""
         return self.store.path
+
+    @property
+    def buffer_id(self) -> Optional[str]:
+        """
+        The buffer's identity: a random id (32 hexadecimal digits) written in the directory's manifest when the buffer
+        was created, kept by every writer after it (a copy of the directory keeps it too). A buffer deleted and created
+        again at the same path gets another one. None in memory, and for a directory created before buffers had an id.
+        """
+        return self.store.buffer_id
 
     @property
     def read_mode(self) -> str:

@@ -27,6 +27,7 @@ import json
 import math
 import os
 import re
+import uuid
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import Any, Optional
@@ -48,6 +49,9 @@ DATA_FILE_PATTERN = re.compile(
     r"|widths)\.bin|chunk\.[0-9]{12,19}\.bin"
 )
 MANIFEST_NAME = "manifest.json"
+# the buffer's identity: a random id written when the buffer is created, never changed (optional: older buffers have none)
+ID_KEY = "buffer_id"
+ID_PATTERN = re.compile(r"[0-9a-f]{32}")
 LOCK_NAME = "writer.lock"
 MAX_MANIFEST_BYTES = 256 * 1024 * 1024
 MAX_ROW_ELEMENTS = 1 << 24
@@ -272,8 +276,12 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     expected = {"format", "version", "fields", "num_transitions", "chunks", "sources", "next_stream_id", "spaces"}
     if version >= 2:
         expected |= set(V2_KEYS)
-    if set(manifest) != expected:
-        raise BufferFormatError(f"manifest keys must be {sorted(expected)}, got {sorted(map(str, manifest))}")
+    if set(manifest) - {ID_KEY} != expected:
+        raise BufferFormatError(
+            f"manifest keys must be {sorted(expected)} (and optionally {ID_KEY!r}), got {sorted(map(str, manifest))}"
+        )
+    if ID_KEY in manifest and (not isinstance(manifest[ID_KEY], str) or ID_PATTERN.fullmatch(manifest[ID_KEY]) is None):
+        raise BufferFormatError(f"manifest {ID_KEY!r} must be 32 lowercase hexadecimal digits, got {manifest[ID_KEY]!r}")
     fields = validate_fields(manifest["fields"])
     if version == 1 and obs_keys_of(fields) is not None:
         raise BufferFormatError("manifest: Dict observation fields need format version 2")
@@ -340,6 +348,7 @@ def make_manifest(
     sources: Mapping[int, dict[str, Any]],
     next_stream_id: int,
     spaces: Mapping[str, Any],
+    buffer_id: Optional[str] = None,
 ) -> dict[str, Any]:
     """
     The manifest of a committed state: version 1 when it can describe it (layout "single", one observation field),
@@ -354,6 +363,7 @@ def make_manifest(
     :param sources: source id -> ``{"name": str, "metadata": dict}``
     :param next_stream_id: The first stream id not reserved yet
     :param spaces: The JSON description of the observation and action spaces
+    :param buffer_id: The buffer's identity (see :func:`new_buffer_id`); None: a buffer created without one
     :return: The document (see :func:`validate_manifest`)
     """
     plain = layout == "single" and obs_keys_of(fields) is None
@@ -369,7 +379,19 @@ def make_manifest(
     }
     if not plain:
         manifest.update(layout=layout, capacity=capacity, first_row=first_row)
+    if buffer_id is not None:
+        manifest[ID_KEY] = buffer_id
     return manifest
+
+
+def new_buffer_id() -> str:
+    """:return: a new buffer identity: 128 random bits as 32 hexadecimal digits, written in the manifest at creation"""
+    return uuid.uuid4().hex
+
+
+def buffer_id_of(manifest: Mapping[str, Any]) -> Optional[str]:
+    """:return: the identity a validated manifest records, or None (a buffer created before buffers had one)"""
+    return manifest.get(ID_KEY)
 
 
 def committed_transitions(path: str) -> Optional[int]:
@@ -410,12 +432,23 @@ class ManifestRecords:
         self._sources: dict[int, dict[str, Any]] = {}
         self._spaces: dict[str, Any] = {}
         self._next_stream_id = 0
+        self._buffer_id: Optional[str] = None
 
     def _load_records(self, manifest: dict[str, Any]) -> None:
         """Take the records of a manifest just read (validated)."""
         self._sources = {int(k): v for k, v in manifest["sources"].items()}
         self._spaces = manifest["spaces"]
         self._next_stream_id = manifest["next_stream_id"]
+        self._buffer_id = buffer_id_of(manifest)
+
+    @property
+    def buffer_id(self) -> Optional[str]:
+        """
+        The buffer's identity: a random id written in its manifest when the directory's buffer was created and never
+        changed, so that a reader, or a model that reattaches its buffer, can tell a buffer deleted and created again at
+        the same path. None in memory and for a buffer created before buffers had one (identity unknown).
+        """
+        return self._buffer_id
 
     @property
     def next_stream_id(self) -> int:

@@ -28,7 +28,9 @@ from sb3_lifelong.buffers.layouts import Layout, LayoutState, make_layout
 from sb3_lifelong.buffers.manifest import (
     BufferFormatError,
     ManifestRecords,
+    buffer_id_of,
     make_manifest,
+    new_buffer_id,
     validate_fields,
     validated_fields,
 )
@@ -220,6 +222,8 @@ class RowStore(ManifestRecords):
                 self._open_or_create(fields, capacity, verify, evict)
                 return
             self._layout.create()
+            if self._layout.persistent:  # the new buffer's identity (a buffer created again here gets another)
+                self._buffer_id = new_buffer_id()
             self._write_manifest()
 
     # ------------------------------------------------------------------ positions
@@ -300,14 +304,27 @@ class RowStore(ManifestRecords):
         Read-only stores: re-read the manifest to see the rows a writer committed (and evicted) since.
 
         :return: The number of retained committed rows
+        :raises BufferFormatError: the directory now holds another buffer (its manifest records another id: deleted and
+            created again), or its rows or fields went back (buffers without an id: only these can be told)
         """
         if not self.read_only:
             return len(self)
         manifest = self._layout.read_manifest(consistent=True)
+        found = buffer_id_of(manifest)
+        if found != self._buffer_id:
+            now, opened = found or "none recorded", self._buffer_id or "none recorded"
+            raise BufferFormatError(
+                f"{self.path} now holds another buffer (its id is {now}; this reader opened id {opened}): it was deleted "
+                "and created again while open, so its rows are not the ones read so far. Refusing to refresh rather than "
+                "serve old and new rows together; open it again to read the new buffer"
+            )
         if validate_fields(manifest["fields"]) != self._fields or manifest.get("layout", "single") != self.layout:
             raise BufferFormatError(f"{self.path}: fields or layout changed while open")
         if manifest["num_transitions"] < self.num_committed or manifest.get("first_row", 0) < self.committed_first:
-            raise BufferFormatError(f"{self.path}: committed rows went down from {self.num_committed}")
+            raise BufferFormatError(
+                f"{self.path}: committed rows went down from {self.num_committed} to {manifest['num_transitions']}: the "
+                "buffer was replaced or cut back while open; open it again to read what it holds now"
+            )
         changed = manifest["num_transitions"] != self.num_committed or manifest.get("first_row", 0) != self.committed_first
         self._state.capacity = manifest.get("capacity")
         self._load_manifest(manifest)
@@ -567,6 +584,7 @@ class RowStore(ManifestRecords):
             sources=self._sources,
             next_stream_id=self._next_stream_id,
             spaces=self._spaces,
+            buffer_id=self._buffer_id,
         )
         self._layout.write_manifest(manifest)
 

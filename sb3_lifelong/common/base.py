@@ -21,6 +21,8 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer
+from sb3_lifelong.common import reattach
 from sb3_lifelong.common.distillation import distill
 from sb3_lifelong.common.resume import EpisodeRngRecorder, ExactResume, capture_rng_state, restore_rng_state
 from sb3_lifelong.common.updates import UpdateMechanics
@@ -30,9 +32,10 @@ from sb3_lifelong.core.safe_load import safe_custom_objects, saved_data, saved_p
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
 
 
-#: True while ``load`` rebuilds a model whose replay buffer comes from the saved ``replay_buffer_kwargs``
-_LOADING_SAVED_BUFFER_KWARGS: contextvars.ContextVar[bool] = contextvars.ContextVar(
-    "loading_saved_buffer_kwargs", default=False
+#: While ``load`` rebuilds a model whose replay buffer comes from the saved ``replay_buffer_kwargs``: the zip, for
+#: messages (None otherwise)
+_LOADING_SAVED_BUFFER_KWARGS: contextvars.ContextVar[Optional[str]] = contextvars.ContextVar(
+    "loading_saved_buffer_kwargs", default=None
 )
 
 
@@ -83,9 +86,9 @@ def _check_saved_algorithm(
 class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorithm):
     """
     SB3's ``OffPolicyAlgorithm`` whose ``save``/``load`` also carry the random streams, so that ``load`` (with an
-    environment, or ``set_env`` after it) + the replay buffer (``load_replay_buffer``, or a ``LifelongReplayBuffer``
-    directory reopened with ``mode="append"``) + ``learn(..., reset_num_timesteps=False)`` continues exactly as an
-    uninterrupted run would when the model was saved at an episode start of every env.
+    environment, or ``set_env`` after it) + the replay buffer (the ``LifelongReplayBuffer`` directory the model was
+    saved with, which ``learn`` reattaches, or ``load_replay_buffer``) + ``learn(..., reset_num_timesteps=False)``
+    continues exactly as an uninterrupted run would when the model was saved at an episode start of every env.
 
     Saved: torch's, numpy's and Python's global generators, the action space's, and for each env wrapped in
     :class:`EpisodeRngRecorder` (every ``gym.Env`` given to the algorithm is), what its pending episode start was
@@ -99,10 +102,15 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
     """
 
     def _setup_model(self) -> None:
-        if _LOADING_SAVED_BUFFER_KWARGS.get() and (self.replay_buffer_kwargs or {}).get("mode") == "overwrite":
-            # load() rebuilds the buffer from the saved replay_buffer_kwargs: a model created with mode="overwrite" must
-            # not delete, when loaded, the very buffer it was trained and saved with (reopened as mode="new" instead)
-            self.replay_buffer_kwargs = {**self.replay_buffer_kwargs, "mode": "new"}
+        loading = _LOADING_SAVED_BUFFER_KWARGS.get()
+        saved = None
+        if loading is not None and self.replay_buffer is None:
+            # load() rebuilds the buffer from the zip's replay_buffer_kwargs: plain data anyone can edit. A directory
+            # they name is only opened read-only, if it holds the model's buffer; learn() reattaches it for writing
+            # (sb3_lifelong.common.reattach). capacity, evict, mode, ... of the zip are never applied
+            saved = reattach.plan(
+                self, self.replay_buffer_class, self.replay_buffer_kwargs, self.__dict__.get("_buffer_checkpoint")
+            )
         # A buffer class that computes n-step returns itself (e.g. LifelongReplayBuffer) gets the algorithm's
         # n_steps and gamma. SB3 warns that n_steps "is ignored" whenever a replay_buffer_class is given; that is
         # false when the buffer computes n-step returns of the same length (forwarded here, or saved with the
@@ -114,6 +122,11 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
                 if "n_steps" not in self.replay_buffer_kwargs:
                     self.replay_buffer_kwargs.update({"n_steps": self.n_steps, "gamma": self.gamma})
                 honoured = self.replay_buffer_kwargs["n_steps"] == self.n_steps
+        if saved is not None:
+            assert loading is not None
+            saved.kwargs.update({k: v for k, v in self.replay_buffer_kwargs.items() if k in ("n_steps", "gamma")})
+            self.replay_buffer = reattach.open_for_reading(self, saved, loading)
+            self.__dict__["_saved_buffer"] = saved
         with warnings.catch_warnings():
             if honoured:
                 warnings.filterwarnings("ignore", message=rf"`n_steps={self.n_steps}` is ignored because a custom")
@@ -149,7 +162,7 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         self._last_episode_starts = dones
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng", "_forward"]
+        return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng", "_forward", "_saved_buffer"]
 
     def distill(self, student_class: type, gradient_steps: int = 100_000, **kwargs: Any) -> Any:
         """
@@ -173,10 +186,36 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         tb_log_name: str = "run",
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
+        self._reattach_saved_buffer()
         self._restore_loaded_rng()
         self._sync_env_timestep(0 if reset_num_timesteps else self.num_timesteps)
         self._sample_on_model_device()
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def _pending_saved_buffer(self) -> Optional[reattach.SavedBuffer]:
+        """The buffer directory the loaded zip names, while the model still has the buffer ``load`` gave it."""
+        saved = self.__dict__.get("_saved_buffer")
+        if saved is not None and self.replay_buffer is not saved.placeholder:
+            del self.__dict__["_saved_buffer"]  # replaced since (load_replay_buffer, set_offline_data, ...): not ours
+            return None
+        return saved
+
+    def _reattach_saved_buffer(self) -> None:
+        """
+        Online training resumes: a model loaded with its zip's ``replay_buffer_kwargs`` reopens the buffer directory it
+        was saved with for writing (``mode="append"``), once it is checked to be that buffer, holding at least the
+        transitions the checkpoint committed (see :mod:`sb3_lifelong.common.reattach`); otherwise this raises and
+        nothing is written.
+        """
+        saved = self._pending_saved_buffer()
+        if saved is None or saved.read_only:
+            return
+        buffer = reattach.open_for_writing(self, saved)
+        placeholder = saved.placeholder
+        self.replay_buffer = buffer
+        del self.__dict__["_saved_buffer"]
+        if isinstance(placeholder, LifelongReplayBuffer):
+            placeholder.close()
 
     def _sample_on_model_device(self) -> None:
         """
@@ -203,13 +242,15 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         Commit the replay buffer for a checkpoint, when it can (a ``LifelongReplayBuffer`` directory: its pending
         transitions are flushed), and say what the checkpoint records of it.
 
-        :return: ``{"path", "transitions"}`` (the transitions the buffer has committed), or None
+        :return: ``{"path", "transitions", "buffer_id"}`` (the transitions the buffer has committed, its identity), or
+            None. A model loaded and not trained since records what its zip recorded, as it was
         """
+        if self.replay_buffer is None or self._pending_saved_buffer() is not None:
+            # loaded without its buffer, or not trained since load: what the loaded checkpoint recorded, as it was
+            return self.__dict__.get("_buffer_checkpoint")
         checkpoint = getattr(self.replay_buffer, "checkpoint", None)
         if callable(checkpoint):
             return checkpoint()
-        if self.replay_buffer is None:  # loaded without its buffer: what the loaded checkpoint recorded, as it was
-            return self.__dict__.get("_buffer_checkpoint")
         return None
 
     def _check_buffer_checkpoint(self, checkpoint: str = "the checkpoint") -> None:
@@ -228,7 +269,11 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         :param path: The pickled buffer
         :param truncate_last_traj: As for SB3 (HER buffers)
         """
+        saved = self._pending_saved_buffer()
         super().load_replay_buffer(path, truncate_last_traj)
+        if saved is not None and isinstance(saved.placeholder, LifelongReplayBuffer):
+            saved.placeholder.close()  # the buffer load attached (read-only, or in memory) is replaced
+        self._pending_saved_buffer()
         self._check_buffer_checkpoint()
 
     def save(
@@ -279,9 +324,17 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         """
         SB3's ``load``, plus exact resumption (random streams, episode starts) and clear errors: a zip saved by another
         of this package's algorithms is refused with a ``ValueError`` naming both classes, and a ``LifelongReplayBuffer``
-        directory (reopened from ``replay_buffer_kwargs``) that holds fewer transitions than the checkpoint recorded
-        as committed gives a warning. The buffer is rebuilt from the saved ``replay_buffer_kwargs`` unless others are
-        given; a saved ``mode="overwrite"`` reopens it as ``mode="new"`` (loading never deletes a buffer).
+        directory that holds fewer transitions than the checkpoint recorded as committed gives a warning.
+
+        **Loading never writes to a buffer because of what the zip says.** When no ``replay_buffer_kwargs`` are given
+        (here or in ``custom_objects``), a ``LifelongReplayBuffer`` directory named by the zip is opened read-only, and
+        only if it is the buffer the model was saved with (same :attr:`~LifelongReplayBuffer.buffer_id`); else the model
+        gets an empty buffer in memory, with a warning. The zip's ``capacity``, ``evict`` and ``mode`` are never
+        applied. The first ``learn`` reattaches that buffer for writing (``mode="append"``: it continues after the
+        transitions it holds, none evicted) once it is checked to hold at least the transitions the checkpoint
+        committed, or raises saying what to pass instead (see :mod:`sb3_lifelong.common.reattach`). So
+        ``load(zip, env=env)`` + ``learn(..., reset_num_timesteps=False)`` resumes a run as in SB3, with no extra
+        argument. ``replay_buffer_kwargs`` given to ``load`` are used as they are.
 
         By default, loading unpickles the Python objects of the zip's ``data`` (spaces, schedules, classes) with
         cloudpickle, as SB3 does: **a tampered zip runs code**. Load only files you trust, or pass ``safe=True``.
@@ -301,12 +354,14 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         """
         data = saved_data(path)
         _check_saved_algorithm(cls, path, data)
+        given = "replay_buffer_kwargs" in kwargs or "replay_buffer_kwargs" in (custom_objects or {})
         if safe:
             if data is None:
                 raise ValueError(f"{_describe(path)}: safe=True needs a zip whose 'data' can be read as JSON")
             custom_objects = safe_custom_objects(data, custom_objects or {}, _describe(path))
-        # the saved replay_buffer_kwargs never overwrite a buffer; those given here are used as they are
-        reopening = _LOADING_SAVED_BUFFER_KWARGS.set("replay_buffer_kwargs" not in kwargs)
+        # the saved replay_buffer_kwargs never write to a buffer (see sb3_lifelong.common.reattach); those given here,
+        # or in custom_objects, are the caller's and are used as they are
+        reopening = _LOADING_SAVED_BUFFER_KWARGS.set(None if given else _describe(path))
         try:
             model = super().load(
                 path,

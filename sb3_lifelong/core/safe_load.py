@@ -14,6 +14,9 @@ called: policy classes and replay-buffer classes of SB3 and of this package, and
 optimizer classes, e.g. in ``policy_kwargs``. A schedule saved as a Python function (``learning_rate=lambda p: ...``)
 is code: refused; give it again with ``custom_objects={"learning_rate": ..., "lr_schedule": ...}``.
 
+Whatever ``safe`` says, the plain-JSON ``replay_buffer_kwargs`` of a zip never make ``load`` write to a buffer
+directory (create, evict, cut or delete its files): see :mod:`sb3_lifelong.common.reattach`.
+
 What a zip says can also be read without unpickling anything: its ``data`` as JSON (:func:`saved_data`) and the
 policy class it records (:func:`saved_policy_class`), with which ``load`` refuses a zip of another algorithm.
 """

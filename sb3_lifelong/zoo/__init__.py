@@ -12,10 +12,19 @@ A hyperparameter file may name this package's classes, as the zoo's files name S
 ``callback: sb3_lifelong.zoo.StageEvalCallback``); ``-optimize`` searches MPO's and CRR's spaces
 (:mod:`sb3_lifelong.zoo.optimize`).
 
+Each run gets its own lifetime buffer: the ``path`` of a ``LifelongReplayBuffer``'s ``replay_buffer_kwargs`` may hold
+``{seed}``, ``{run}`` (the run's folder name, e.g. ``Hopper-v5_2``), ``{env}`` and ``{algo}``, and a relative path
+is a folder of the run's log folder (``logs/mpo/Hopper-v5_2/lifetime``): see :func:`run_buffer_path`. Continuing
+a run (``-i logs/.../Hopper-v5.zip``) reattaches the buffer the model was saved with; each ``-optimize`` trial gets
+a folder of its own under the path (``trial_<number>``).
+
 Needs ``pip install "sb3_lifelong[extra]"`` (or ``pip install rl_zoo3``).
 """
 
+import functools
+import os
 import pathlib
+import string
 from collections.abc import Mapping, Sequence
 from typing import Any, Optional
 
@@ -29,7 +38,7 @@ from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
 from sb3_lifelong.mpo import MPO
 from sb3_lifelong.zoo.optimize import CONVERTERS, SAMPLERS
 
-__all__ = ["ALGORITHMS", "HYPERPARAMS", "StageEvalCallback", "hyperparams_file", "register"]
+__all__ = ["ALGORITHMS", "HYPERPARAMS", "StageEvalCallback", "hyperparams_file", "register", "run_buffer_path"]
 
 #: the zoo's names of this package's algorithms (online use: CRR learns online too, from its own replay buffer)
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"mpo": MPO, "crr": CRR}
@@ -46,13 +55,94 @@ def hyperparams_file(algo: str) -> pathlib.Path:
     return HYPERPARAMS / f"{algo}.yml"
 
 
+#: the names a hyperparameter file's buffer ``path`` may use (:func:`run_buffer_path`)
+PATH_FIELDS = ("seed", "run", "env", "algo")
+
+
+def run_buffer_path(path: Any, save_path: str, seed: Any, algo: str, env: str) -> str:
+    """
+    The directory of a run's lifetime buffer, from the ``path`` of a hyperparameter file's ``replay_buffer_kwargs``:
+    ``{seed}``, ``{run}`` (the name of the run's folder, e.g. ``Hopper-v5_2``), ``{env}`` and ``{algo}`` are filled
+    in, and a relative path is taken in the run's folder, so that two runs of one file never share a buffer (the second
+    would refuse to add to the first's). An absolute path without ``{seed}`` or ``{run}`` is the same for every run.
+
+    :param path: The ``path`` in the file
+    :param save_path: The run's folder (``logs/mpo/Hopper-v5_2``)
+    :param seed: The run's ``--seed``
+    :param algo: The run's ``--algo``
+    :param env: The run's ``--env``
+    :return: The directory
+    :raises ValueError: for a ``{name}`` that is not one of :data:`PATH_FIELDS`
+    """
+    text = os.fspath(path)
+    values = {"seed": seed, "run": os.path.basename(os.path.normpath(save_path)), "env": env, "algo": algo}
+    for _, name, _, _ in string.Formatter().parse(text):
+        if name is not None and name not in PATH_FIELDS:
+            allowed = ", ".join(f"{{{field}}}" for field in PATH_FIELDS)
+            raise ValueError(f"replay_buffer_kwargs path {text!r} names {{{name}}}: a buffer path may use {allowed}")
+    text = text.format(**values)
+    return text if os.path.isabs(text) else os.path.join(save_path, text)
+
+
+def _buffer_kwargs(hyperparams: Mapping[str, Any]) -> Optional[dict[str, Any]]:
+    """The ``replay_buffer_kwargs`` of a ``LifelongReplayBuffer`` directory in processed hyperparameters, or None."""
+    buffer_class, kwargs = hyperparams.get("replay_buffer_class"), hyperparams.get("replay_buffer_kwargs")
+    if isinstance(buffer_class, type) and issubclass(buffer_class, LifelongReplayBuffer) and isinstance(kwargs, dict):
+        if kwargs.get("path") is not None:
+            return kwargs
+    return None
+
+
+def _preprocess_hyperparams(original: Any, manager: Any, hyperparams: dict[str, Any]) -> Any:
+    """rl-zoo3's ``ExperimentManager._preprocess_hyperparams``, then the run's own buffer path (or, for ``-i``, the
+    saved model's buffer: its kwargs are left to the zip, so that learn() reattaches it)."""
+    processed = original(manager, hyperparams)
+    kwargs = _buffer_kwargs(processed[0])
+    if kwargs is not None:
+        if manager.continue_training:
+            del processed[0]["replay_buffer_kwargs"]
+        else:
+            name = manager.env_name.gym_id
+            kwargs["path"] = run_buffer_path(kwargs["path"], manager.save_path, manager.seed, manager.algo, name)
+    return processed
+
+
+def _objective(original: Any, manager: Any, trial: Any) -> Any:
+    """rl-zoo3's ``ExperimentManager.objective``, each trial with a buffer folder of its own (``trial_<number>``)."""
+    kwargs = _buffer_kwargs(manager._hyperparams)
+    if kwargs is None:
+        return original(manager, trial)
+    hyperparams = manager._hyperparams
+    own = dict(kwargs, path=os.path.join(kwargs["path"], f"trial_{trial.number}"))
+    manager._hyperparams = {**hyperparams, "replay_buffer_kwargs": own}
+    try:
+        return original(manager, trial)
+    finally:
+        manager._hyperparams = hyperparams
+
+
+def _patch(cls: type, name: str, wrapper: Any) -> None:
+    """Wrap a method of rl-zoo3's ``ExperimentManager`` once (register() may be called again)."""
+    original = getattr(cls, name)
+    if getattr(original, "_sb3_lifelong", False):
+        return
+
+    @functools.wraps(original)
+    def patched(self: Any, *args: Any) -> Any:
+        return wrapper(original, self, *args)
+
+    patched._sb3_lifelong = True  # type: ignore[attr-defined]
+    setattr(cls, name, patched)
+
+
 def register() -> None:
     """
     Make rl-zoo3 accept this package: MPO and CRR in its algorithm table (``rl_zoo3.ALGOS``), their samplers for
     ``-optimize`` (``HYPERPARAMS_SAMPLER`` and ``HYPERPARAMS_CONVERTER``), and the names of :data:`ZOO_NAMES` in the
     namespace where the zoo evaluates a hyperparameter file's strings, so that
-    ``replay_buffer_class: sb3_lifelong.LifelongReplayBuffer`` works as ``replay_buffer_class: HerReplayBuffer`` does.
-    Safe to call again.
+    ``replay_buffer_class: sb3_lifelong.LifelongReplayBuffer`` works as ``replay_buffer_class: HerReplayBuffer`` does;
+    and each run its own lifetime buffer (:func:`run_buffer_path`; ``-i`` reattaches the saved model's buffer, and each
+    ``-optimize`` trial gets a folder of its own). Safe to call again.
     """
     try:
         from rl_zoo3 import ALGOS, exp_manager, hyperparams_opt
@@ -63,6 +153,8 @@ def register() -> None:
     hyperparams_opt.HYPERPARAMS_CONVERTER.update(CONVERTERS)
     for name, value in ZOO_NAMES.items():
         vars(exp_manager).setdefault(name, value)
+    _patch(exp_manager.ExperimentManager, "_preprocess_hyperparams", _preprocess_hyperparams)
+    _patch(exp_manager.ExperimentManager, "objective", _objective)
 
 
 class StageEvalCallback(MultiEnvEvalCallback):

@@ -44,7 +44,9 @@ def test_save_commits_the_buffer_and_records_it(tmp_path):
     model.save(tmp_path / "model.zip")
     assert committed(tmp_path / "buffer") == model.num_timesteps == 152  # the checkpoint committed them
     data = json.loads(zipfile.ZipFile(tmp_path / "model.zip").read("data"))
-    assert data["_buffer_checkpoint"] == {"path": str(tmp_path / "buffer"), "transitions": 152}
+    buffer_id = model.replay_buffer.buffer_id
+    assert isinstance(buffer_id, str) and len(buffer_id) == 32  # the buffer's identity, checked when it is reattached
+    assert data["_buffer_checkpoint"] == {"path": str(tmp_path / "buffer"), "transitions": 152, "buffer_id": buffer_id}
     model.replay_buffer.close()
 
 
@@ -97,13 +99,10 @@ def test_crash_right_after_a_save_resumes_bit_identical(tmp_path):
     uninterrupted.learn(200, reset_num_timesteps=False)
 
     with warnings_as_errors():  # the buffer does not lag the checkpoint: no warning
-        resumed = MPO.load(
-            tmp_path / "model.zip",
-            env=gym.make("Pendulum-v1"),
-            replay_buffer_kwargs=dict(path=tmp_path / "resumed", chunk_size=1000, mode="append"),
-        )
+        resumed = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"))  # no buffer argument: as in SB3
     assert resumed.replay_buffer.size() == resumed.num_timesteps == 200
-    resumed.learn(200, reset_num_timesteps=False)
+    resumed.learn(200, reset_num_timesteps=False)  # reattaches the directory the model was saved with
+    assert resumed.replay_buffer.path == str(tmp_path / "resumed")
     for name in FIELDS:
         expected = np.array(uninterrupted.replay_buffer.store.read_range(name, 0, 400))
         np.testing.assert_array_equal(np.array(resumed.replay_buffer.store.read_range(name, 0, 400)), expected, name)
@@ -160,8 +159,9 @@ def test_loading_another_algorithms_zip_names_both_classes(tmp_path, other):
 
 
 def test_loading_a_model_created_with_overwrite_keeps_its_buffer(tmp_path):
-    """The saved replay_buffer_kwargs rebuild the buffer at load: mode="overwrite" must not delete the very buffer the
-    model was saved with (it is reopened as mode="new"; replay_buffer_kwargs given to load are used as they are)."""
+    """The saved replay_buffer_kwargs never write at load: mode="overwrite" must not delete the very buffer the model
+    was saved with (it is opened read-only, then learn() continues it; replay_buffer_kwargs given to load are used as
+    they are)."""
     model = MPO(
         "MlpPolicy",
         "Pendulum-v1",
@@ -175,9 +175,10 @@ def test_loading_a_model_created_with_overwrite_keeps_its_buffer(tmp_path):
     model.replay_buffer.close()
     loaded = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"))
     assert loaded.replay_buffer.size() == 120 and committed(tmp_path / "buffer") == 120
-    with pytest.raises(FileExistsError, match="mode='append'"):  # mode "new": a re-run does not mix into it silently
-        loaded.learn(8, reset_num_timesteps=False)
+    loaded.learn(8, reset_num_timesteps=False)  # the buffer it was saved with, continued (not deleted, not refused)
+    assert loaded.replay_buffer.size() == 128 and loaded.replay_buffer.path == str(tmp_path / "buffer")
     loaded.replay_buffer.close()
+    assert committed(tmp_path / "buffer") == 128
     with pytest.warns(UserWarning, match="lags the model by 120 transitions"):  # asked for explicitly, and told
         fresh = MPO.load(tmp_path / "model.zip", replay_buffer_kwargs=dict(path=str(tmp_path / "buffer"), mode="overwrite"))
     assert fresh.replay_buffer.size() == 0

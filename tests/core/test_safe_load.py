@@ -164,3 +164,90 @@ def test_a_schedule_saved_as_a_function_is_code(tmp_path):
         MPO.load(tmp_path / "model.zip", safe=True)
     given = MPO.load(tmp_path / "model.zip", safe=True, custom_objects={"learning_rate": 1e-3, "lr_schedule": lambda _: 1e-3})
     assert given.lr_schedule(0.3) == 1e-3
+
+
+# ---------------------------------------------------------------------------------------- loading never writes
+PENDULUM_OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+PENDULUM_ACT = gym.spaces.Box(-2, 2, (1,), np.float32)
+
+
+@pytest.fixture(scope="module")
+def memory_buffer_zip(tmp_path_factory):
+    """A model whose replay buffer is a LifelongReplayBuffer in memory: its zip names no directory."""
+    root = tmp_path_factory.mktemp("memory")
+    model = MPO("MlpPolicy", "Pendulum-v1", num_samples=2, replay_buffer_class=LifelongReplayBuffer, **SMALL)
+    model.learn(12)
+    model.save(root / "mpo.zip")
+    return root / "mpo.zip"
+
+
+def craft(source, target, replay_buffer_kwargs: dict) -> None:
+    """What anyone can do to a zip: its replay_buffer_kwargs are plain JSON."""
+    with zipfile.ZipFile(source) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(entries["data"])
+    data["replay_buffer_kwargs"] = replay_buffer_kwargs
+    entries["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(target, "w") as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+
+
+def files_of(directory) -> dict:
+    import os
+
+    found = {}
+    for root, _, names in os.walk(directory):
+        for name in names:
+            with open(os.path.join(root, name), "rb") as file:
+                found[os.path.relpath(os.path.join(root, name), directory)] = file.read()
+    return found
+
+
+def victim_buffer(path, rows: int) -> None:
+    """Someone's lifetime buffer (capacity 500), ``rows`` transitions."""
+    with LifelongReplayBuffer(0, PENDULUM_OBS, PENDULUM_ACT, path=path, capacity=500, chunk_size=50) as buffer:
+        for k in range(rows):
+            obs = np.full((1, 3), k, np.float32)
+            buffer.add(obs, obs, np.zeros((1, 1), np.float32), np.array([k], np.float32), np.array([False]), [{}])
+
+
+@pytest.mark.parametrize("safe", [True, False])
+def test_a_crafted_zip_cannot_evict_another_buffer(memory_buffer_zip, tmp_path, safe):
+    """Before: loading the zip only to evaluate its policy evicted 499 of the victim's 500 transitions."""
+    victim_buffer(tmp_path / "victim", 500)
+    before = files_of(tmp_path / "victim")
+    crafted = dict(path=str(tmp_path / "victim"), capacity=1, evict=True, mode="overwrite", chunk_size=1)
+    craft(memory_buffer_zip, tmp_path / "crafted.zip", crafted)
+    model = MPO.load(tmp_path / "crafted.zip", safe=safe)
+    model.predict(np.zeros(3, np.float32), deterministic=True)  # evaluated
+    del model
+    assert files_of(tmp_path / "victim") == before  # byte-identical: nothing evicted, cut, locked or rewritten
+    with LifelongReplayBuffer.open(tmp_path / "victim", read_only=True) as kept:
+        assert kept.size() == 500 and kept.capacity == 500
+
+
+def test_learning_after_loading_a_crafted_zip_never_applies_its_capacity(memory_buffer_zip, tmp_path):
+    """learn() continues the directory (it appends), never with the zip's capacity, evict or mode."""
+    victim_buffer(tmp_path / "victim", 100)
+    first = files_of(tmp_path / "victim")["chunk.000000000000.bin"]
+    craft(memory_buffer_zip, tmp_path / "crafted.zip", dict(path=str(tmp_path / "victim"), capacity=1, evict=True))
+    model = MPO.load(tmp_path / "crafted.zip", env=gym.make("Pendulum-v1"), safe=True)
+    model.learn(20, reset_num_timesteps=False)
+    assert model.replay_buffer.size() == 120 and model.replay_buffer.capacity == 500
+    model.replay_buffer.close()
+    assert files_of(tmp_path / "victim")["chunk.000000000000.bin"] == first  # its first rows, untouched
+
+
+@pytest.mark.parametrize("relative", [False, True])
+def test_a_bare_path_in_a_zip_creates_nothing(memory_buffer_zip, tmp_path, monkeypatch, relative):
+    """Before: loading created a buffer directory where the zip said."""
+    monkeypatch.chdir(tmp_path)
+    where = "elsewhere/buffer" if relative else str(tmp_path / "elsewhere" / "buffer")
+    craft(memory_buffer_zip, tmp_path / "crafted.zip", dict(path=where))
+    with pytest.warns(UserWarning, match=r"not attached: there is no buffer at .*elsewhere/buffer.*Nothing was written"):
+        model = MPO.load(tmp_path / "crafted.zip", env=gym.make("Pendulum-v1"), safe=True)
+    assert model.replay_buffer.path is None and not (tmp_path / "elsewhere").exists()
+    with pytest.raises(FileNotFoundError, match=r"cannot resume .*there is no buffer at .*replay_buffer_kwargs"):
+        model.learn(5)
+    assert not (tmp_path / "elsewhere").exists()
