@@ -91,6 +91,31 @@ def test_other_examples(tmp_path, script, extra, envs):
         assert timing["workers"] == 2 and len(timing["collector_seconds"]) == 2
 
 
+def test_two_stage_example_reads_top_to_bottom_and_writes_its_results(tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    out = tmp_path / "two_stage"
+    args = ["--steps-a", "150", "--steps-b", "150", "--updates", "40", "--episodes", "1", "--output", str(out)]
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "two_stage.py"), *args], capture_output=True, text=True, env=env, timeout=600
+    )
+    assert result.returncode == 0, result.stderr
+    with open(out / "returns.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert {(row["agent"], row["env"]) for row in rows} == {
+        (agent, env) for agent in ("mpo_switch", "mpo_end", "student") for env in ("Env-A", "Env-B")
+    }
+    assert all(float(row["mean_return"]) == float(row["mean_return"]) for row in rows)  # finite numbers, no NaN
+    for name in ("curves.csv", "two_stage.png", "mpo_switch.zip", "mpo_end.zip", "student.zip"):
+        assert (out / name).is_file(), name
+    assert "Env-A, MPO end / at switch" in result.stdout
+    # an output that holds results is refused, and nothing in it is touched
+    before = (out / "returns.csv").read_bytes()
+    again = subprocess.run(
+        [sys.executable, str(EXAMPLES / "two_stage.py"), *args], capture_output=True, text=True, timeout=120
+    )
+    assert again.returncode == 2 and "not empty" in again.stderr and (out / "returns.csv").read_bytes() == before
+
+
 def test_seeds_of_separate_runs_are_summarised_together(tmp_path):
     from sb3_lifelong.experiments.sequential import finish
 
