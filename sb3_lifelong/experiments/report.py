@@ -20,6 +20,7 @@ from typing import Any, Optional, Union
 import numpy as np
 import pandas as pd
 
+from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.experiments.claims import Claim, evaluate_claims, load_claims, mean_over_envs, ratio, series_mean
 from sb3_lifelong.experiments.figures import plot_study
 from sb3_lifelong.experiments.scores import (
@@ -31,6 +32,12 @@ from sb3_lifelong.experiments.scores import (
     load_study,
 )
 from sb3_lifelong.experiments.statistics import describe
+
+
+def write_csv_atomic(frame: pd.DataFrame, path: pathlib.Path) -> None:
+    """Write a table to ``path`` atomically (:mod:`sb3_lifelong.core.atomic`): a failed write leaves the old file."""
+    with atomic_write(path, "w", newline="") as handle:
+        frame.to_csv(handle, index=False)
 
 
 # ------------------------------------------------------------------------------------------------- tables
@@ -187,10 +194,10 @@ def write_report(
         raise FileNotFoundError(f"no finished seed in {output} (a seed counts once its collect job is done)")
     suffix = "" if seeds is None else "_seeds_" + "_".join(str(seed) for seed in study.seeds)
     plots = plots and seeds is None
-    study.finals.to_csv(output / f"scores{suffix}.csv", index=False)
-    study.extras.to_csv(output / f"extras{suffix}.csv", index=False)
+    write_csv_atomic(study.finals, output / f"scores{suffix}.csv")
+    write_csv_atomic(study.extras, output / f"extras{suffix}.csv")
     verdicts = evaluate_claims(study, study_claims(output, claims))
-    pd.DataFrame(verdicts).to_csv(output / f"claims{suffix}.csv", index=False)
+    write_csv_atomic(pd.DataFrame(verdicts), output / f"claims{suffix}.csv")
     partial = incomplete_repeats(study)
     text = (
         f"# {len(study.preset['env_names'])}-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
@@ -233,7 +240,7 @@ def write_report(
     if plots:
         paths = plot_study(study)
         text += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in paths) + "\n"
-    (output / f"report{suffix}.md").write_text(text)
+    write_text_atomic(output / f"report{suffix}.md", text)
     return text
 
 
