@@ -15,7 +15,7 @@ import os
 import pathlib
 import shutil
 from collections.abc import Mapping, Sequence
-from typing import Any, Optional, Union
+from typing import Any, Literal, Optional, Union
 
 import numpy as np
 import pandas as pd
@@ -177,9 +177,13 @@ def write_report(
     plots: bool = True,
     seeds: Optional[Sequence[int]] = None,
     claims: Optional[Union[str, os.PathLike, Sequence[Claim]]] = None,
+    malformed: Literal["refuse", "drop"] = "refuse",
 ) -> str:
     """
-    Write ``scores.csv``, ``claims.csv``, ``report.md`` and the figures into ``output``.
+    Write ``scores.csv``, ``claims.csv``, ``report.md`` and the figures into ``output`` (each atomically: a failed
+    write leaves the previous file). Every row of the logs read is checked first (:func:`~.scores.read_log`): a
+    malformed one (a file cut in the middle of a row, text where a number is expected, a missing column) is never
+    used.
 
     :param output: the study's directory
     :param claims: the study's pre-registered claims, or the path of its claims file (:func:`study_claims`; None: the
@@ -187,9 +191,12 @@ def write_report(
     :param plots: draw the figures
     :param seeds: report these seeds only, into ``report_seeds_<k>_<l>.md`` (and the CSV files of the same suffix;
         no figures), beside the report of every seed
+    :param malformed: ``"refuse"``: a malformed row raises, and nothing is written; ``"drop"``: malformed rows are left
+        out, each named in a warning and in the report's section "Rows left out"
     :return: the markdown report
+    :raises MalformedResultsError: (``malformed="refuse"``) the study's logs hold malformed rows, named by file and line
     """
-    study = load_study(output, seeds)
+    study = load_study(output, seeds, malformed)
     if not study.seeds:
         raise FileNotFoundError(f"no finished seed in {output} (a seed counts once its collect job is done)")
     suffix = "" if seeds is None else "_seeds_" + "_".join(str(seed) for seed in study.seeds)
@@ -229,6 +236,16 @@ def write_report(
             else ""
         )
         + (f"\n\n## The students' weights\n\n{weights}" if (weights := weights_table(study)) else "")
+        + (
+            f"\n\n## Rows left out\n\n{len(study.dropped)} malformed row(s) of the result files were left out:\n\n"
+            + "\n".join(
+                f"- `{row.path.relative_to(output) if row.path.is_relative_to(output) else row.path}`, "
+                f"line {row.line}: {row.problem}"
+                for row in study.dropped
+            )
+            if study.dropped
+            else ""
+        )
         + "\n\n## Claims\n\n"
         + (
             claims_table(verdicts)

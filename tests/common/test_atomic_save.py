@@ -43,7 +43,7 @@ def test_a_disk_full_in_the_middle_of_a_save_keeps_the_old_zip(saved, monkeypatc
     monkeypatch.undo()
     assert caught.value.errno == errno.ENOSPC and str(path) in str(caught.value)
     check_untouched(path, before)
-    with pytest.raises(AtomicWriteError, match="model.zip"):  # without the suffix too
+    with pytest.raises(AtomicWriteError, match=r"model\.zip"):  # without the suffix too
         with monkeypatch.context() as patch:
             patch.setattr(th, "save", disk_full)
             model.save(path.with_suffix(""))
@@ -79,7 +79,7 @@ def test_the_replay_buffer_pickle_is_saved_atomically(tmp_path, monkeypatch):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr("stable_baselines3.common.save_util.pickle.dump", disk_full)
-    with pytest.raises(AtomicWriteError, match="buffer.pkl"):
+    with pytest.raises(AtomicWriteError, match=r"buffer\.pkl"):
         model.save_replay_buffer(path)
     assert path.read_bytes() == before and os.listdir(tmp_path) == ["buffer.pkl"]
 
@@ -87,7 +87,7 @@ def test_the_replay_buffer_pickle_is_saved_atomically(tmp_path, monkeypatch):
 def test_a_directory_in_the_way_is_refused(tmp_path):
     model = MPO("MlpPolicy", "Pendulum-v1", **KWARGS)
     (tmp_path / "model.zip").mkdir()
-    with pytest.raises(IsADirectoryError, match="model.zip"):
+    with pytest.raises(IsADirectoryError, match=r"model\.zip"):
         model.save(tmp_path / "model.zip")
     model.save(tmp_path / "new" / "deeper" / "model.zip")  # missing directories are created, as SB3 does
     MPO.load(tmp_path / "new" / "deeper" / "model.zip", device="cpu")

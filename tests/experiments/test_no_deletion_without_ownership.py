@@ -1,16 +1,15 @@
 """Markers never decide deletions: a run deletes only what an unfinished attempt of its own wrote, and refuses the rest."""
 
-import dataclasses
 import json
 import os
 import pathlib
 import shutil
 
 import pytest
-from testkit import ACT, OBS, fill
+from testkit import ACT, OBS, fill, small_preset
 
 from sb3_lifelong import LifelongReplayBuffer
-from sb3_lifelong.experiments import PRESETS, run_seed
+from sb3_lifelong.experiments import run_seed
 from sb3_lifelong.experiments.collection import (
     COLLECTED_BUFFERS,
     REWIND_MARKER,
@@ -21,9 +20,7 @@ from sb3_lifelong.experiments.collection import (
 from sb3_lifelong.experiments.ownership import OWNED_MARKER, NotOwnedError, claim_directory, remove_unfinished
 from sb3_lifelong.experiments.protocol import adopt_collection, distill_student, online
 
-SMALL = dataclasses.replace(
-    PRESETS["tiny"], stage_steps=(60, 60), learning_starts=30, eval_freq=60, distill_steps=20, distill_eval_freq=10
-)
+SMALL = small_preset()
 
 
 def snapshot(root: pathlib.Path) -> dict[str, bytes]:
@@ -38,19 +35,10 @@ def snapshot(root: pathlib.Path) -> dict[str, bytes]:
     return files
 
 
-@pytest.fixture(scope="module")
-def finished(tmp_path_factory) -> pathlib.Path:
-    """A study whose seed 0 has finished its (small) collection."""
-    output = tmp_path_factory.mktemp("finished")
-    assert run_seed(SMALL, 0, output, jobs=["collect"], log=lambda m: None) == ["collect"]
-    assert not (output / "seed_0" / "collect" / OWNED_MARKER).exists()  # released once done.json is written
-    return output
-
-
 @pytest.fixture
-def study(finished, tmp_path) -> pathlib.Path:
-    """A copy of :func:`finished` to change."""
-    shutil.copytree(finished, tmp_path / "study", symlinks=True)
+def study(small_collection, tmp_path) -> pathlib.Path:
+    """A copy of the ``small_collection`` study, to change."""
+    shutil.copytree(small_collection, tmp_path / "study", symlinks=True)
     return tmp_path / "study"
 
 
@@ -128,7 +116,7 @@ def test_a_job_directory_is_deleted_only_when_an_unfinished_attempt_of_its_own_w
 def test_the_jobs_refuse_a_directory_they_did_not_write(study):
     """online and distill_student start anew in their directory: only after an unfinished attempt of their own."""
     run_dir = study / "seed_0"
-    for name, job in (("CRR_indicator", "online_CRR_indicator"), ("BC", "distill_BC")):
+    for job in ("online_CRR_indicator", "distill_BC"):
         (run_dir / job).mkdir()
         (run_dir / job / "eval.csv").write_text("timesteps,env,mean_reward\n100,Env-A,5.0\n")
     before = snapshot(study)
@@ -139,13 +127,13 @@ def test_the_jobs_refuse_a_directory_they_did_not_write(study):
     assert snapshot(study) == before
 
 
-def test_reusing_a_collection_never_deletes_a_finished_own_one(finished, study):
+def test_reusing_a_collection_never_deletes_a_finished_own_one(small_collection, study):
     """--collection-from replaced the seed's own collection when its done.json was missing, finished or not."""
     run_dir = study / "seed_0"
     (run_dir / "collect" / "done.json").unlink()
     before = snapshot(study)
     with pytest.raises(NotOwnedError, match="a finished collection is there"):
-        adopt_collection(SMALL, 0, finished, study, log=lambda m: None)
+        adopt_collection(SMALL, 0, small_collection, study, log=lambda m: None)
     assert snapshot(study) == before
 
 
