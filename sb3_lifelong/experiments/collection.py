@@ -211,8 +211,8 @@ def _drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
     kept = [rows[0], *(row for row in rows[1:] if before_pause(row))]
     if len(kept) < len(rows):
         shutil.copy2(path, _aside_name(path, timesteps))  # the whole log first: a stop in between leaves it twice
-        with atomic_write(path, "w", newline="") as handle:
-            csv.writer(handle).writerows(kept)
+        with atomic_write(path, "w", newline="") as rewritten:
+            csv.writer(rewritten).writerows(kept)
 
 
 #: the directories of a seed that its collection creates beside ``collect`` (the lifetime and the Stage-1 buffers)

@@ -25,7 +25,6 @@ A seed's scores:
 import csv
 import io
 import json
-import math
 import pathlib
 import warnings
 from collections.abc import Sequence
@@ -157,15 +156,10 @@ def read_log(path: pathlib.Path, problems: Optional[list[MalformedRow]] = None) 
                 kept.append(row)
             else:
                 found.append(MalformedRow(path, line, problem))
-        frame = pd.DataFrame(kept, columns=header).replace("", math.nan)
-        for name in header:
-            if name in numeric:
-                frame[name] = pd.to_numeric(frame[name])
-            else:
-                try:  # as pandas' read_csv would: numbers where every cell is one
-                    frame[name] = pd.to_numeric(frame[name])
-                except (TypeError, ValueError):
-                    pass
+        clean = io.StringIO()
+        csv.writer(clean).writerows([header, *kept])
+        clean.seek(0)
+        frame = pd.read_csv(clean)  # the well-formed rows, parsed as pandas parses the file (dtypes, NaN)
     if found and problems is None:
         raise MalformedResultsError(found)
     if problems is not None:
