@@ -30,3 +30,13 @@ def study(tmp_path_factory):
         ran = run_seed(PRESETS["tiny"], seed, output, jobs=JOBS, log=messages.append)
         assert ran == JOBS
     return output, messages
+
+
+@pytest.fixture(scope="session")
+def small_collection(tmp_path_factory):
+    """A study whose seed 0 has finished a small collection (``testkit.small_preset()``; shared: copy it to change it)."""
+    from testkit import small_preset
+
+    output = tmp_path_factory.mktemp("small_collection")
+    assert run_seed(small_preset(), 0, output, jobs=["collect"], log=lambda m: None) == ["collect"]
+    return output

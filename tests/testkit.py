@@ -36,6 +36,17 @@ JOBS = [
 ]
 
 
+def small_preset():
+    """The tiny preset shortened to 60 + 60 steps: a whole collection in seconds (the ``small_collection`` fixture)."""
+    import dataclasses
+
+    from sb3_lifelong.experiments import PRESETS
+
+    return dataclasses.replace(
+        PRESETS["tiny"], stage_steps=(60, 60), learning_starts=30, eval_freq=60, distill_steps=20, distill_eval_freq=10
+    )
+
+
 def benchmark_module(name: str) -> types.ModuleType:
     """:return: the benchmark or study script ``<name>.py`` found under ``benchmarks/``, imported"""
     found = sorted((ROOT / "benchmarks").rglob(f"{name}.py"))

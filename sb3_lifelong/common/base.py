@@ -9,7 +9,7 @@ import io
 import pathlib
 import warnings
 from collections.abc import Iterable
-from typing import Any, Optional, TypeVar, Union
+from typing import Any, Optional, TypeVar, Union, cast
 
 import gymnasium as gym
 import numpy as np
@@ -26,6 +26,7 @@ from sb3_lifelong.common import reattach
 from sb3_lifelong.common.distillation import distill
 from sb3_lifelong.common.resume import EpisodeRngRecorder, ExactResume, capture_rng_state, restore_rng_state
 from sb3_lifelong.common.updates import UpdateMechanics
+from sb3_lifelong.core.atomic import atomic_write
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.core.safe_load import safe_custom_objects, saved_data, saved_policy_class
 
@@ -42,6 +43,12 @@ _LOADING_SAVED_BUFFER_KWARGS: contextvars.ContextVar[Optional[str]] = contextvar
 def _describe(path: Union[str, pathlib.Path, io.BufferedIOBase]) -> str:
     """A saved model's path for messages (``the checkpoint`` for a file object)."""
     return str(path) if isinstance(path, (str, pathlib.Path)) else "the checkpoint"
+
+
+def _with_suffix(path: Union[str, pathlib.Path], suffix: str) -> pathlib.Path:
+    """The file SB3's ``save`` writes for ``path``: ``<path>.<suffix>`` when ``path`` has no suffix."""
+    path = pathlib.Path(path)
+    return pathlib.Path(f"{path}.{suffix}") if path.suffix == "" else path
 
 
 def _algorithms(base: type) -> list[type]:
@@ -276,6 +283,21 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         self._pending_saved_buffer()
         self._check_buffer_checkpoint()
 
+    def save_replay_buffer(self, path: Union[str, pathlib.Path, io.BufferedIOBase]) -> None:
+        """
+        SB3's ``save_replay_buffer`` (a pickle), written atomically: a save that fails leaves the previous file as it
+        was and raises :class:`~sb3_lifelong.core.atomic.AtomicWriteError` naming it.
+
+        :param path: The file (``.pkl`` added if missing; missing parent directories are created) or a file object
+        """
+        if isinstance(path, (str, pathlib.Path)):
+            target = _with_suffix(path, "pkl")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_write(target) as handle:
+                super().save_replay_buffer(cast(io.BufferedIOBase, handle))
+        else:
+            super().save_replay_buffer(path)
+
     def save(
         self,
         path: Union[str, pathlib.Path, io.BufferedIOBase],
@@ -288,7 +310,13 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         through and no file is written), and the number of transitions it has committed is recorded in the zip, so
         that ``load`` can warn when the buffer on disk lags the checkpoint.
 
-        :param path: The file (``.zip`` added if missing) or a file object
+        The zip is written atomically (:mod:`sb3_lifelong.core.atomic`): into a temporary file beside ``path``,
+        synced, then renamed over it. A save that fails (e.g. a full disk) raises
+        :class:`~sb3_lifelong.core.atomic.AtomicWriteError` naming the file and leaves the previous checkpoint
+        there as it was, loadable; a ``path`` that is a directory raises ``IsADirectoryError`` (SB3 would write
+        ``<path>_2`` instead).
+
+        :param path: The file (``.zip`` added if missing; missing parent directories are created) or a file object
         :param exclude: As for SB3
         :param include: As for SB3
         """
@@ -301,7 +329,13 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         if records is not None:
             self._env_rng = records
         try:
-            super().save(path, exclude=exclude, include=include)
+            if isinstance(path, (str, pathlib.Path)):
+                target = _with_suffix(path, "zip")
+                target.parent.mkdir(parents=True, exist_ok=True)
+                with atomic_write(target) as handle:  # the zip replaces the previous file only once it is complete
+                    super().save(cast(io.BufferedIOBase, handle), exclude=exclude, include=include)
+            else:
+                super().save(path, exclude=exclude, include=include)
         finally:
             del self._rng_state
             if pending is None:

@@ -16,6 +16,7 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize, unwrap_vec_normalize
 
+from sb3_lifelong.core.atomic import atomic_write
 from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
 
 CSV_FIELDS = ["timesteps", "env", "mean_reward", "std_reward", "n_episodes"]
@@ -346,12 +347,10 @@ def _widen_csv(path: pathlib.Path, fields: list[str]) -> None:
     values; the file is replaced atomically."""
     with open(path, newline="") as handle:
         rows = list(csv.reader(handle))[1:]
-    staging = path.with_name(path.name + ".tmp")
-    with open(staging, "w", newline="") as handle:
-        writer = csv.writer(handle)
+    with atomic_write(path, "w", newline="") as widened:  # a failed write leaves the log as it was
+        writer = csv.writer(widened)
         writer.writerow(fields)
         writer.writerows(row + [""] * (len(fields) - len(row)) for row in rows)
-    os.replace(staging, path)
 
 
 class SourceQCallback(BaseCallback):

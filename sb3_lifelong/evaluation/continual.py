@@ -30,6 +30,8 @@ from typing import Any, Optional, Union
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_lifelong.core.atomic import write_text_atomic
+
 #: how the scores are normalised, written beside the metrics
 NORMALISATION = "s[i][j] = (R[i][j] - random[j]) / (reference[j] - random[j]); 0: a uniformly random policy, 1: the reference"
 
@@ -226,6 +228,4 @@ class ContinualMetricsCallback(BaseCallback):
             if "forgetting" in self.metrics:
                 record["forgetting"] = {names[j]: v for j, v in self.metrics["forgetting"].items()}
             self.log_path.parent.mkdir(parents=True, exist_ok=True)
-            staging = self.log_path.with_name(self.log_path.name + ".tmp")
-            staging.write_text(json.dumps(record, indent=1, allow_nan=True))
-            os.replace(staging, self.log_path)
+            write_text_atomic(self.log_path, json.dumps(record, indent=1, allow_nan=True))

@@ -25,7 +25,7 @@ import dataclasses
 import pathlib
 import sys
 import time
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import torch as th
 
@@ -33,6 +33,7 @@ from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, Pre
 from sb3_lifelong.experiments.protocol import record_settings, run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
+from sb3_lifelong.experiments.scores import MalformedResultsError
 
 DEVICE_HELP = (
     "where every model runs: cpu (the presets' default: small networks run fastest as one process per core), cuda, "
@@ -123,6 +124,11 @@ def _parser() -> argparse.ArgumentParser:
         help="the study's claims file (a claims.py defining CLAIMS; default: the claims.py in the study's directory)",
     )
     report.add_argument(
+        "--drop-malformed",
+        action="store_true",
+        help="leave out malformed rows of the result files (each named in a warning and in the report) instead of refusing",
+    )
+    report.add_argument(
         "--export", default=None, help="also copy the small result files (CSV, JSON, MD, PNG; no buffers) into this directory"
     )
 
@@ -191,6 +197,28 @@ def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) 
             )
 
 
+def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """The ``report`` command: the study's tables, claims and figures (exit status 1 on a refusal, with its message)."""
+    malformed: Literal["refuse", "drop"] = "drop" if args.drop_malformed else "refuse"
+    try:
+        text = write_report(
+            pathlib.Path(args.output), plots=not args.no_plots, seeds=args.seeds, claims=args.claims, malformed=malformed
+        )
+    except FileNotFoundError as error:  # e.g. no seed has finished its collect job yet
+        parser.exit(1, f"{parser.prog} report: error: {error}\n")
+    except MalformedResultsError as error:  # a result file cut in the middle of a row, say: nothing is written
+        parser.exit(1, f"{parser.prog} report: error: {error}\n")
+    print(text)
+    if args.seeds is None:
+        print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
+    else:
+        print(f"wrote {args.output}/report_seeds_*.md, scores_seeds_*.csv, claims_seeds_*.csv (seeds {args.seeds})")
+    if args.export:
+        copied = export_results(pathlib.Path(args.output), pathlib.Path(args.export))
+        print(f"copied {len(copied)} result files into {args.export}")
+    return 0
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -212,19 +240,7 @@ def main(argv: Optional[list[str]] = None) -> int:
             print(preset.note)
         return 0
     if args.command == "report":
-        try:
-            text = write_report(pathlib.Path(args.output), plots=not args.no_plots, seeds=args.seeds, claims=args.claims)
-        except FileNotFoundError as error:  # e.g. no seed has finished its collect job yet
-            parser.exit(1, f"{parser.prog} report: error: {error}\n")
-        print(text)
-        if args.seeds is None:
-            print(f"wrote {args.output}/report.md, scores.csv, claims.csv and the figures")
-        else:
-            print(f"wrote {args.output}/report_seeds_*.md, scores_seeds_*.csv, claims_seeds_*.csv (seeds {args.seeds})")
-        if args.export:
-            copied = export_results(pathlib.Path(args.output), pathlib.Path(args.export))
-            print(f"copied {len(copied)} result files into {args.export}")
-        return 0
+        return _report(parser, args)
 
     if args.command == "study":
         preset = args.settings
@@ -245,7 +261,11 @@ def main(argv: Optional[list[str]] = None) -> int:
             f"({minutes:.1f} min){': ' + ', '.join(failed) if failed else ''}"
         )
         if not args.no_report and any(result["ran"] or not result["error"] for result in results.values()):
-            write_report(pathlib.Path(args.output))
+            try:
+                write_report(pathlib.Path(args.output))
+            except MalformedResultsError as error:
+                print(f"No report: {error}", file=sys.stderr)
+                return 1
             print(f"Report: {args.output}/report.md")
         return 1 if failed else 0
 

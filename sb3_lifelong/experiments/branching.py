@@ -7,7 +7,6 @@ change follows, so a screen of changes collects Env-A once per seed and continue
 """
 
 import csv
-import json
 import pathlib
 import shutil
 from typing import Any
@@ -16,11 +15,12 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.buffers.files import write_json_atomic
+from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.envs import stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
 from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
-from sb3_lifelong.experiments.collection import PAUSED_MODEL, PAUSED_RECORD
+from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, PAUSED_MODEL, PAUSED_RECORD
+from sb3_lifelong.experiments.ownership import claim_directory
 from sb3_lifelong.experiments.presets import Preset, describe_stage
 from sb3_lifelong.mpo import MPO
 
@@ -47,7 +47,7 @@ def adopt_stage1(preset: Preset, source: pathlib.Path, run_dir: pathlib.Path) ->
         if stage1.size() != switch or set(stage1.source_counts()) != {0}:
             raise ValueError(f"{source / 'buffer_stage1'} holds {stage1.source_counts()}, not {switch:,} Env-A steps")
         directory = run_dir / "collect"
-        directory.mkdir(parents=True)
+        claim_directory(directory, "collect", beside=COLLECTED_BUFFERS)  # an unfinished collection's, until it is done
         merge_buffers([stage1], path=run_dir / "buffer_stage1").close()
         buffer = merge_buffers([stage1], path=run_dir / "buffer")
     for index in reversed(range(len(preset.env_names))):
@@ -61,12 +61,12 @@ def adopt_stage1(preset: Preset, source: pathlib.Path, run_dir: pathlib.Path) ->
     for name, keep in (("eval.csv", "env"), ("q_sources.csv", "name")):  # Env-A's rows: the other Env-B was not this one
         with open(source / "collect" / name, newline="") as handle:
             rows = list(csv.DictReader(handle))
-        with open(directory / name, "w", newline="") as handle:
+        with atomic_write(directory / name, "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(r for r in rows if int(r["timesteps"]) <= switch and r[keep] == preset.env_names[0])
     write_json_atomic(str(directory / PAUSED_RECORD), dict(timesteps=switch, transitions=switch))
-    (run_dir / "adopted.json").write_text(json.dumps(dict(stage1_from=str(source)), indent=1))
+    write_json_atomic(run_dir / "adopted.json", dict(stage1_from=str(source)))
 
 
 def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Preset, seed: int, episodes: int) -> dict[str, Any]:

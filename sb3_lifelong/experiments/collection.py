@@ -17,8 +17,9 @@ if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skip
 
 
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.buffers.files import write_json_atomic
+from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.experiments.jobs import _common, job_callbacks, make_env, tensorboard_dir
+from sb3_lifelong.experiments.ownership import OWNED_MARKER, NotOwnedError, claim_directory, remove_unfinished
 from sb3_lifelong.experiments.presets import (
     Preset,
     describe_stage,
@@ -57,7 +58,7 @@ def collect(
     if (directory / PAUSED_MODEL).exists():
         model = _resume_collection(preset, run_dir, log)
     else:
-        model = _new_collection(preset, seed, run_dir)
+        model = _new_collection(preset, seed, run_dir, log)
     buffer: Any = model.replay_buffer
     callbacks = job_callbacks(preset, directory, preset.eval_freq, seed)
     ends = stage_ends(preset.stage_steps)
@@ -125,6 +126,8 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
 
 
 REWIND_STAGING = "buffer.rewinding"
+#: beside the copy of a rewind (:data:`REWIND_STAGING`) while it is made: a copy without it is not deleted
+REWIND_MARKER = ".buffer.rewinding.owned.json"
 
 
 def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callable) -> None:
@@ -134,9 +137,14 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
     are copied into a new directory, which then takes the buffer's place; the old directory, with all ``held``, is
     kept beside it as ``buffer.after_pause_<paused>``. A stop in between is finished by :func:`_finish_rewind`.
     """
-    buffer, staging = run_dir / "buffer", run_dir / REWIND_STAGING
-    if staging.exists():  # a copy of an earlier attempt that stopped while copying: only ever a partial copy
-        shutil.rmtree(staging)
+    buffer, staging, marker = run_dir / "buffer", run_dir / REWIND_STAGING, run_dir / REWIND_MARKER
+    if staging.exists() or staging.is_symlink():  # a copy of an earlier attempt that stopped while copying
+        if not marker.is_file():
+            raise NotOwnedError(
+                f"{staging} exists, but no rewind of this collection made it (no {marker}): nothing was deleted. Move it "
+                "away and run again"
+            )
+        shutil.rmtree(staging)  # only ever a partial copy: the rewind that made it did not get to its renames
     # opened as its writer: a process still writing to it holds the lock, and the open refuses
     with LifelongReplayBuffer.open(buffer) as whole:
         if whole.capacity is not None:  # its indices are not the transitions collected: a pause's count is not one
@@ -144,9 +152,11 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
                 f"{buffer} holds {held:,} transitions, more than the {paused:,} its pause recorded, and it evicts "
                 f"(capacity {whole.capacity:,}): it cannot be cut back to the pause. Nothing was deleted"
             )
+        write_json_atomic(marker, dict(staging=REWIND_STAGING, paused=paused, held=held))  # the copy is ours to delete
         merge_buffers([whole], path=staging, stops=[paused]).close()
     aside = _set_aside(buffer, paused)
     os.replace(staging, buffer)
+    marker.unlink(missing_ok=True)
     log(
         f"  the buffer held {held:,} transitions, {held - paused:,} past the pause (a part that stopped without "
         f"pausing): continuing from the pause with its first {paused:,}; all {held:,} are kept in {aside}"
@@ -175,10 +185,15 @@ def _finish_rewind(run_dir: pathlib.Path) -> None:
     buffer, staging = run_dir / "buffer", run_dir / REWIND_STAGING
     if not buffer.exists() and staging.exists():
         os.replace(staging, buffer)
+        (run_dir / REWIND_MARKER).unlink(missing_ok=True)
 
 
 def _drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
-    """Keep the rows of a job's CSV log (a ``timesteps`` column) up to ``timesteps``; the file is replaced atomically."""
+    """
+    Keep the rows of a job's CSV log (a ``timesteps`` column) up to ``timesteps``; the file is replaced atomically,
+    and the whole log is kept beside it first (``<stem>.after_pause_<timesteps>[.k].csv``). A row cut short (a stop
+    in the middle of writing it: too few fields, or a ``timesteps`` that is not a number) is past the pause.
+    """
     if not path.is_file():
         return
     with open(path, newline="") as handle:
@@ -186,23 +201,86 @@ def _drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
     if not rows or "timesteps" not in rows[0]:
         return
     column = rows[0].index("timesteps")
-    kept = [rows[0], *(row for row in rows[1:] if int(float(row[column])) <= timesteps)]
+
+    def before_pause(row: list[str]) -> bool:
+        try:
+            return len(row) == len(rows[0]) and int(float(row[column])) <= timesteps
+        except ValueError:
+            return False
+
+    kept = [rows[0], *(row for row in rows[1:] if before_pause(row))]
     if len(kept) < len(rows):
-        staging = path.with_name(path.name + ".tmp")
-        with open(staging, "w", newline="") as handle:
-            csv.writer(handle).writerows(kept)
-        os.replace(staging, path)
+        shutil.copy2(path, _aside_name(path, timesteps))  # the whole log first: a stop in between leaves it twice
+        with atomic_write(path, "w", newline="") as rewritten:
+            csv.writer(rewritten).writerows(kept)
 
 
-def _new_collection(preset: Preset, seed: int, run_dir: pathlib.Path) -> MPO:
+#: the directories of a seed that its collection creates beside ``collect`` (the lifetime and the Stage-1 buffers)
+COLLECTED_BUFFERS = ("buffer", "buffer_stage1")
+
+
+def finished_collection(preset: Preset, run_dir: pathlib.Path) -> list[str]:
+    """
+    What says that the collection in ``run_dir`` has finished, whatever its ``done.json`` says: the collector's final
+    checkpoint, or a lifetime buffer (not a link) whose manifest holds every step of the collection.
+
+    :param preset: the collection's settings
+    :param run_dir: the seed's directory
+    :return: one description per piece of evidence (empty: none)
+    """
+    found = []
+    final = run_dir / "collect" / "final.zip"
+    if final.is_file():
+        found.append(f"{final} (the collector's final checkpoint, saved after the last step)")
+    buffer, total = run_dir / "buffer", sum(preset.stage_steps)
+    if not buffer.is_symlink() and (buffer / "manifest.json").is_file():
+        try:
+            with LifelongReplayBuffer.open(buffer, read_only=True) as held:
+                transitions = held.size()
+        except Exception:  # a buffer that cannot be opened is not a verified one
+            transitions = -1
+        if transitions >= total:
+            found.append(f"{buffer}, whose manifest holds {transitions:,} transitions (every one of the {total:,} steps)")
+    return found
+
+
+def remove_unfinished_collection(preset: Preset, run_dir: pathlib.Path, log: Callable = print) -> None:
+    """
+    Delete what an unfinished collection attempt of ``run_dir`` wrote (``collect`` and the buffers beside it, which
+    its marker names, :mod:`~sb3_lifelong.experiments.ownership`), so that a new attempt starts from nothing. Links
+    to another study's buffers (an unfinished :func:`~sb3_lifelong.experiments.protocol.adopt_collection`) are
+    unlinked, never followed.
+
+    :raises NotOwnedError: the collection has finished (:func:`finished_collection`) although its ``done.json`` is
+        missing, or ``run_dir`` holds a ``collect`` directory or buffers that no unfinished attempt wrote. Nothing is
+        deleted then
+    """
+    directory = run_dir / "collect"
+    found = finished_collection(preset, run_dir)
+    if found:
+        raise NotOwnedError(
+            f"{run_dir}: the collect job has no {directory / 'done.json'}, but a finished collection is there: "
+            f"{'; '.join(found)}. Nothing was deleted. If it is this study's collection, its done.json was lost: restore "
+            f'it (from a backup, or write {{"job": "collect"}} into it) and run again; to collect this seed again '
+            f"instead, move {directory}, {run_dir / 'buffer'} and {run_dir / 'buffer_stage1'} away first"
+        )
+    remove_unfinished(directory, "collect", log)
+    for name in COLLECTED_BUFFERS:
+        path = run_dir / name
+        if path.is_symlink():  # a link to another study's buffer: unlinked, what it points to is not touched
+            path.unlink()
+        elif path.exists():
+            raise NotOwnedError(
+                f"{path} exists but no unfinished collection of {run_dir} wrote it (no {directory / OWNED_MARKER} naming "
+                f"it): nothing was deleted. Move it away to collect this seed again"
+            )
+
+
+def _new_collection(preset: Preset, seed: int, run_dir: pathlib.Path, log: Callable = print) -> MPO:
     """A fresh collector and its lifetime buffer (an unfinished attempt's directories are removed first)."""
     directory = run_dir / "collect"
-    for stale in (directory, run_dir / "buffer", run_dir / "buffer_stage1"):  # an unfinished attempt: start again
-        if stale.is_symlink():  # a link to another study's buffer (an unfinished adopt_collection): not ours to delete
-            stale.unlink()
-        else:
-            shutil.rmtree(stale, ignore_errors=True)
-    directory.mkdir(parents=True)
+    remove_unfinished_collection(preset, run_dir, log)
+    claim_directory(directory, "collect", beside=COLLECTED_BUFFERS)  # before the buffer is created
     model = MPO(
         "MlpPolicy",
         make_env(preset, switch_at=switch_points(preset)),

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from sb3_lifelong.experiments.presets import STUDENTS, Job, preset_name, stage_ends
-from sb3_lifelong.experiments.scores import Study
+from sb3_lifelong.experiments.scores import Study, read_log
 from sb3_lifelong.experiments.style import (
     band,
     method_color,
@@ -32,7 +32,7 @@ def _curves(study: Study, job: str) -> pd.DataFrame:
     for seed in study.seeds:
         path = study.output / f"seed_{seed}" / job / "eval.csv"
         if (study.output / f"seed_{seed}" / job / "done.json").exists() and path.exists():
-            frames.append(pd.read_csv(path).assign(seed=seed))
+            frames.append(read_log(path, []).assign(seed=seed))  # (malformed rows: refused or named by load_study)
     return pd.concat(frames) if frames else pd.DataFrame()
 
 
@@ -170,7 +170,7 @@ def _q_frame(study: Study, method: str) -> pd.DataFrame:
         for path in sorted(run_dir.glob(f"distill_{method}*/q_sources.csv")):  # with the student's repeats
             finished = (path.parent / "done.json").exists()  # a repeat still running: not yet
             if finished and Job.parse(path.parent.name).name == method:
-                frames.append(pd.read_csv(path).assign(seed=seed))
+                frames.append(read_log(path, []).assign(seed=seed))  # (malformed rows: as in load_study)
     if not frames:
         return pd.DataFrame(columns=["seed", "timesteps", "env", "q_mean"])
     frame = pd.concat(frames).rename(columns={"name": "env"})

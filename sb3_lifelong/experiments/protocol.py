@@ -37,8 +37,8 @@ import csv
 import dataclasses
 import json
 import math
-import os
 import pathlib
+import re
 import shutil
 import sys
 import time
@@ -52,10 +52,10 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.buffers.files import write_json_atomic
+from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
-from sb3_lifelong.experiments.collection import _aside_name, collect
+from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, _aside_name, collect, remove_unfinished_collection
 from sb3_lifelong.experiments.jobs import (
     _common,
     job_callbacks,
@@ -63,6 +63,7 @@ from sb3_lifelong.experiments.jobs import (
     tensorboard_dir,
     value_support,
 )
+from sb3_lifelong.experiments.ownership import OWNED_MARKER, claim_directory, release_directory, remove_unfinished
 from sb3_lifelong.experiments.presets import (
     LATER_SETTINGS,
     NOT_IDENTITY,
@@ -81,11 +82,17 @@ from sb3_lifelong.experiments.presets import (
 from sb3_lifelong.mpo import MPO
 
 
-def online(name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False) -> None:
-    """A conservative online baseline continuing from the Stage-1 agent (its weights and its buffer) through Stage 2."""
+def online(
+    name: str, preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False, log: Callable[[str], None] = print
+) -> None:
+    """
+    A conservative online baseline continuing from the Stage-1 agent (its weights and its buffer) through Stage 2.
+    An unfinished attempt's directory is deleted first (:func:`~sb3_lifelong.experiments.ownership.remove_unfinished`:
+    only one this job wrote; anything else is refused).
+    """
     directory = run_dir / f"online_{name}"
-    shutil.rmtree(directory, ignore_errors=True)
-    directory.mkdir(parents=True)
+    remove_unfinished(directory, directory.name, log)
+    claim_directory(directory, directory.name)
     # the agent only: its saved buffer settings point at the lifetime buffer, which other jobs may be reading
     stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device=preset.device, custom_objects={"replay_buffer_kwargs": {}})
     start = int(stage1.num_timesteps)
@@ -148,14 +155,12 @@ def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None
         kept = [row for row in rows if _timesteps(row) <= updates]
         if len(kept) == len(rows):
             continue
-        staging = path.with_name(path.name + ".staging")
-        with open(staging, "w", newline="") as handle:
+        aside = _aside_name(path, updates)
+        shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
+        with atomic_write(path, "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(kept)
-        aside = _aside_name(path, updates)
-        shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
-        os.replace(staging, path)
         log(f"  {path.name}: {len(rows) - len(kept)} rows past the pause at {updates:,} updates (all kept in {aside.name})")
 
 
@@ -191,6 +196,11 @@ def _paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Opt
             f"checkpoint {record['model']} is missing: move the directory away to train this student anew"
         )
     return record
+
+
+def _pause_checkpoints(directory: pathlib.Path) -> list[pathlib.Path]:
+    """:return: the checkpoints that pauses of a student wrote in ``directory`` (``paused_<updates>.zip``)"""
+    return [path for path in directory.glob("paused_*.zip") if re.fullmatch(r"paused_\d+\.zip", path.name)]
 
 
 class _StudentPauses(BaseCallback):
@@ -231,7 +241,7 @@ class _StudentPauses(BaseCallback):
         forward = getattr(self.model, "_forward", None)
         compiled = forward is not None and forward.compiled is not None  # continued compiled too, as if never stopped
         record = dict(updates=updates, model=checkpoint, settings=self.settings, seconds=seconds, compiled=compiled)
-        write_json_atomic(str(self.directory / PAUSED_STUDENT_RECORD), record)
+        write_json_atomic(self.directory / PAUSED_STUDENT_RECORD, record)
         return seconds
 
     def _on_step(self) -> bool:
@@ -241,7 +251,7 @@ class _StudentPauses(BaseCallback):
         checkpoint = f"paused_{updates}.zip"
         self.model.save(self.directory / checkpoint)
         seconds = self.record(updates, checkpoint)
-        for older in self.directory.glob("paused_*.zip"):
+        for older in _pause_checkpoints(self.directory):
             if older.name != checkpoint:
                 older.unlink()
         self.log(f"  {self.directory.name}: paused at {updates:,} of {self.total:,} updates ({seconds / 60:.1f} min)")
@@ -287,9 +297,9 @@ def distill_student(
     directory = run_dir / f"distill_{name}"
     settings = dict(student=dataclasses.asdict(student), seed=seed, updates=preset.distill_steps, preset=preset.describe())
     paused = _paused_student(directory, settings)
-    if paused is None:
-        shutil.rmtree(directory, ignore_errors=True)
-        directory.mkdir(parents=True)
+    if paused is None:  # a new student: an unfinished attempt's directory goes (only one it wrote: others are refused)
+        remove_unfinished(directory, directory.name, log)
+        claim_directory(directory, directory.name)
     else:
         _rows_up_to(directory, paused["updates"], log)
         log(f"  continuing the student paused at {paused['updates']:,} of {preset.distill_steps:,} updates")
@@ -347,7 +357,7 @@ def distill_student(
     model.save(directory / "student.zip")
     # the finished student's record: a stop before the caller writes done.json continues with nothing left to train
     seconds = pauses.record(preset.distill_steps, "student.zip")
-    for pause in directory.glob("paused_*.zip"):
+    for pause in _pause_checkpoints(directory):
         pause.unlink()
     data.close()
     everything.close()
@@ -408,7 +418,8 @@ def distill_on_study(
         done: dict[str, Any] = dict(seconds=seconds, buffer_seed=seed)
         done.update(student_seed=seed if student_seed is None else student_seed, settings=dataclasses.asdict(student))
         done.update(about or {})
-        write_json_atomic(str(run_dir / f"distill_{name}" / "done.json"), done)
+        write_json_atomic(run_dir / f"distill_{name}" / "done.json", done)
+        release_directory(run_dir / f"distill_{name}")
         log(f"buffer {seed}: {name} done in {seconds / 60:.1f} min")
         trained.append(name)
     return trained
@@ -442,11 +453,7 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
                 "cannot be mixed with these. Choose another --output, or delete that directory to start again."
             )
     output.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(str(settings), described)
-
-
-#: the directories of a seed that a study reusing its collection links to (the lifetime and the Stage-1 buffers)
-COLLECTED_BUFFERS = ("buffer", "buffer_stage1")
+    write_json_atomic(settings, described)
 
 
 def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pathlib.Path, log: Callable = print) -> bool:
@@ -498,20 +505,19 @@ def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pa
         missing = [str(origin / name) for name, target in targets.items() if not (target / "manifest.json").exists()]
         if missing:
             raise ValueError(f"seed {seed} of {source} is not a whole collection: no buffer at {', '.join(missing)}")
-        for name, target in targets.items():
-            link = run_dir / name
-            if link.is_symlink():
-                link.unlink()
-            elif link.exists():
-                shutil.rmtree(link)  # an unfinished collection of this study's own
-            link.symlink_to(target, target_is_directory=True)
+        # an unfinished collection of this study's own goes first: only what it wrote (a finished one is refused)
+        remove_unfinished_collection(preset, run_dir, log)
         staging = run_dir / ".collect.adopting"
-        shutil.rmtree(staging, ignore_errors=True)
-        shutil.copytree(origin / "collect", staging, ignore=shutil.ignore_patterns("done.json"))
+        remove_unfinished(staging, "collect (reused)", log)  # an adoption that stopped before its rename
+        claim_directory(staging, "collect (reused)")
+        ignored = shutil.ignore_patterns("done.json", OWNED_MARKER)
+        shutil.copytree(origin / "collect", staging, ignore=ignored, dirs_exist_ok=True)
         done = {**json.loads((origin / "collect" / "done.json").read_text()), "adopted_from": str(origin)}
-        write_json_atomic(str(staging / "done.json"), done)
-        shutil.rmtree(run_dir / "collect", ignore_errors=True)
+        write_json_atomic(staging / "done.json", done)
+        for name, target in targets.items():
+            (run_dir / name).symlink_to(target, target_is_directory=True)
         staging.rename(run_dir / "collect")  # done.json appears with the whole directory
+        release_directory(run_dir / "collect")
     log(f"seed {seed}: collection reused from {origin} (buffers linked, not copied)")
     return True
 
@@ -621,7 +627,7 @@ def run_seed(
                     log(f"seed {seed}: collection paused at step {until:,}: run the command again to continue it")
                     return ran
             elif parsed.kind == "online":
-                online(parsed.name, preset, seed, run_dir, progress_bar)
+                online(parsed.name, preset, seed, run_dir, progress_bar, log)
             else:
                 name, repeat = parsed.name, parsed.repeat
                 student_seed = seed + repeat * REPEAT_SEED_STRIDE
@@ -640,7 +646,8 @@ def run_seed(
             done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
             if parsed.kind == "distill":
                 done.update(student=dataclasses.asdict(STUDENTS[name]), repeat=repeat, student_seed=student_seed)
-            write_json_atomic(str(run_dir / job / "done.json"), done)  # never a half-written "done"
+            write_json_atomic(run_dir / job / "done.json", done)  # never a half-written "done"
+            release_directory(run_dir / job)  # finished: no later attempt deletes it
             log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
             ran.append(job)
     return ran

@@ -15,11 +15,12 @@ import os
 import pathlib
 import shutil
 from collections.abc import Mapping, Sequence
-from typing import Any, Optional, Union
+from typing import Any, Literal, Optional, Union
 
 import numpy as np
 import pandas as pd
 
+from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.experiments.claims import Claim, evaluate_claims, load_claims, mean_over_envs, ratio, series_mean
 from sb3_lifelong.experiments.figures import plot_study
 from sb3_lifelong.experiments.scores import (
@@ -31,6 +32,12 @@ from sb3_lifelong.experiments.scores import (
     load_study,
 )
 from sb3_lifelong.experiments.statistics import describe
+
+
+def write_csv_atomic(frame: pd.DataFrame, path: pathlib.Path) -> None:
+    """Write a table to ``path`` atomically (:mod:`sb3_lifelong.core.atomic`): a failed write leaves the old file."""
+    with atomic_write(path, "w", newline="") as handle:
+        frame.to_csv(handle, index=False)
 
 
 # ------------------------------------------------------------------------------------------------- tables
@@ -170,9 +177,13 @@ def write_report(
     plots: bool = True,
     seeds: Optional[Sequence[int]] = None,
     claims: Optional[Union[str, os.PathLike, Sequence[Claim]]] = None,
+    malformed: Literal["refuse", "drop"] = "refuse",
 ) -> str:
     """
-    Write ``scores.csv``, ``claims.csv``, ``report.md`` and the figures into ``output``.
+    Write ``scores.csv``, ``claims.csv``, ``report.md`` and the figures into ``output`` (each atomically: a failed
+    write leaves the previous file). Every row of the logs read is checked first (:func:`~.scores.read_log`): a
+    malformed one (a file cut in the middle of a row, text where a number is expected, a missing column) is never
+    used.
 
     :param output: the study's directory
     :param claims: the study's pre-registered claims, or the path of its claims file (:func:`study_claims`; None: the
@@ -180,17 +191,20 @@ def write_report(
     :param plots: draw the figures
     :param seeds: report these seeds only, into ``report_seeds_<k>_<l>.md`` (and the CSV files of the same suffix;
         no figures), beside the report of every seed
+    :param malformed: ``"refuse"``: a malformed row raises, and nothing is written; ``"drop"``: malformed rows are left
+        out, each named in a warning and in the report's section "Rows left out"
     :return: the markdown report
+    :raises MalformedResultsError: (``malformed="refuse"``) the study's logs hold malformed rows, named by file and line
     """
-    study = load_study(output, seeds)
+    study = load_study(output, seeds, malformed)
     if not study.seeds:
         raise FileNotFoundError(f"no finished seed in {output} (a seed counts once its collect job is done)")
     suffix = "" if seeds is None else "_seeds_" + "_".join(str(seed) for seed in study.seeds)
     plots = plots and seeds is None
-    study.finals.to_csv(output / f"scores{suffix}.csv", index=False)
-    study.extras.to_csv(output / f"extras{suffix}.csv", index=False)
+    write_csv_atomic(study.finals, output / f"scores{suffix}.csv")
+    write_csv_atomic(study.extras, output / f"extras{suffix}.csv")
     verdicts = evaluate_claims(study, study_claims(output, claims))
-    pd.DataFrame(verdicts).to_csv(output / f"claims{suffix}.csv", index=False)
+    write_csv_atomic(pd.DataFrame(verdicts), output / f"claims{suffix}.csv")
     partial = incomplete_repeats(study)
     text = (
         f"# {len(study.preset['env_names'])}-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
@@ -222,6 +236,16 @@ def write_report(
             else ""
         )
         + (f"\n\n## The students' weights\n\n{weights}" if (weights := weights_table(study)) else "")
+        + (
+            f"\n\n## Rows left out\n\n{len(study.dropped)} malformed row(s) of the result files were left out:\n\n"
+            + "\n".join(
+                f"- `{row.path.relative_to(output) if row.path.is_relative_to(output) else row.path}`, "
+                f"line {row.line}: {row.problem}"
+                for row in study.dropped
+            )
+            if study.dropped
+            else ""
+        )
         + "\n\n## Claims\n\n"
         + (
             claims_table(verdicts)
@@ -233,7 +257,7 @@ def write_report(
     if plots:
         paths = plot_study(study)
         text += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.name})" for p in paths) + "\n"
-    (output / f"report{suffix}.md").write_text(text)
+    write_text_atomic(output / f"report{suffix}.md", text)
     return text
 
 

@@ -22,11 +22,14 @@ A seed's scores:
   its last ``STUDENT_TRAIN_LAST`` logged values (``<student>|weight_ess``, ``<student>|weight_clip_frac``).
 """
 
+import csv
+import io
 import json
 import pathlib
+import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any, Optional
+from dataclasses import dataclass, field
+from typing import Any, Literal, NamedTuple, Optional
 
 import pandas as pd
 
@@ -41,17 +44,153 @@ SWITCH_SPREAD_EVALS = 3
 STUDENT_TRAIN_LAST = 5
 
 
+# ------------------------------------------------------------------------------------------------- reading the logs
+class LogColumns(NamedTuple):
+    """What a job's log must hold for the report to read it."""
+
+    #: columns that must be there, with a value in every row
+    required: tuple[str, ...]
+    #: columns that hold numbers (an empty cell is NaN, unless the column is required); None: every column
+    numeric: Optional[tuple[str, ...]]
+
+
+#: the logs the report reads, by file name (:func:`read_log`); another file is only checked for its field counts
+LOG_COLUMNS = {
+    "eval.csv": LogColumns(("timesteps", "env", "mean_reward"), ("timesteps", "mean_reward", "std_reward", "n_episodes")),
+    "q_sources.csv": LogColumns(
+        ("timesteps", "name", "q_mean"),
+        ("timesteps", "source", "q_mean", "n", "q_probe", "mc_return", "overestimation", "n_mc"),
+    ),
+    "train.csv": LogColumns(("timesteps",), None),
+}
+
+
+@dataclass(frozen=True)
+class MalformedRow:
+    """A row of a result file that the report does not use: where it is, and what is wrong with it."""
+
+    path: pathlib.Path
+    #: the line of the file (1: the header)
+    line: int
+    problem: str
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line}: {self.problem}"
+
+
+class MalformedResultsError(ValueError):
+    """
+    Result files of a study hold malformed rows (a file cut in the middle of a row, a row that is not numbers where
+    numbers are expected, a missing column): the report refuses to use them. ``rows`` names each one.
+    """
+
+    def __init__(self, rows: Sequence[MalformedRow]) -> None:
+        self.rows = list(rows)
+        shown = "\n".join(f"  {row}" for row in self.rows[:20])
+        more = f"\n  ... and {len(self.rows) - 20} more" if len(self.rows) > 20 else ""
+        super().__init__(
+            f"{len(self.rows)} malformed row(s) in the study's result files (a write cut short, or a file not written by "
+            f"this package):\n{shown}{more}\nNo report was written from them. Repair or move those files, or leave the "
+            "rows out (report --drop-malformed; load_study(..., malformed='drop')), each named in a warning"
+        )
+
+
+class MalformedRowWarning(UserWarning):
+    """A malformed row of a result file was left out of the report (``malformed="drop"``)."""
+
+
+def read_log(path: pathlib.Path, problems: Optional[list[MalformedRow]] = None) -> pd.DataFrame:
+    """
+    Read a job's CSV log, checking every row: as many fields as the header, a number in each numeric column, a value
+    in each required one (:data:`LOG_COLUMNS`), and a line end after the last row (a file that ends in the middle of
+    a row was cut short while writing it). A file without a required column is unusable as a whole.
+
+    :param path: the log
+    :param problems: where the malformed rows are recorded; they are left out of the table. None: raise
+    :return: the log's well-formed rows (the numeric columns as numbers, empty cells as NaN)
+    :raises MalformedResultsError: (``problems`` is None) the file holds malformed rows, each named
+    """
+    found: list[MalformedRow] = []
+    columns = LOG_COLUMNS.get(path.name, LogColumns((), ()))
+    with open(path, newline="") as handle:
+        text = handle.read()
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = next(reader, None)
+    rows: list[tuple[int, list[str]]] = []
+    if header is not None:
+        rows = [(reader.line_num, row) for row in reader if row]  # (blank lines are skipped, as pandas does)
+    cut = bool(text) and not text.endswith(("\n", "\r"))  # the last line has no line end: a write cut short
+    missing = [] if header is None else [name for name in columns.required if name not in header]
+    if header is None or missing or (cut and not rows):
+        problem = (
+            "an empty file (no header)"
+            if header is None
+            else (
+                f"no column {', '.join(map(repr, missing))} (its columns: {', '.join(header)})"
+                if missing
+                else "the file ends in the middle of its header (no line end): a write cut short"
+            )
+        )
+        found.append(MalformedRow(path, 1, problem + ": none of its rows is used"))
+        frame = pd.DataFrame(columns=list(columns.required))
+    else:
+        numeric = [name for name in header if columns.numeric is None or name in columns.numeric]
+        positions = {name: header.index(name) for name in header}
+        kept = []
+        for number, (line, row) in enumerate(rows):
+            problem = None
+            if cut and number == len(rows) - 1:
+                problem = "the file ends in the middle of this row (no line end): a write cut short"
+            elif len(row) != len(header):
+                problem = f"{len(row)} fields where the header has {len(header)} (a row cut short, or two run together)"
+            else:
+                for name in columns.required:
+                    if row[positions[name]] == "":
+                        problem = f"no {name}"
+                        break
+                for name in numeric:
+                    value = row[positions[name]]
+                    if problem is None and value != "" and not _is_number(value):
+                        problem = f"{name} is {value!r}, not a number"
+            if problem is None:
+                kept.append(row)
+            else:
+                found.append(MalformedRow(path, line, problem))
+        clean = io.StringIO()
+        csv.writer(clean).writerows([header, *kept])
+        clean.seek(0)
+        frame = pd.read_csv(clean)  # the well-formed rows, parsed as pandas parses the file (dtypes, NaN)
+    if found and problems is None:
+        raise MalformedResultsError(found)
+    if problems is not None:
+        problems.extend(found)
+    return frame
+
+
+def _is_number(value: str) -> bool:
+    try:
+        float(value)
+    except ValueError:
+        return False
+    return True
+
+
 def seeds_of(output: pathlib.Path) -> list[int]:
     """:return: the seeds of the study in ``output`` whose collection has finished, in order"""
     return sorted(int(path.name.split("_")[1]) for path in output.glob("seed_*") if (path / "collect" / "done.json").exists())
 
 
-def read_eval(output: pathlib.Path, seed: int, job: str) -> Optional[pd.DataFrame]:
-    """:return: a finished job's evaluations (its ``eval.csv``), or None when the job has not finished"""
+def read_eval(
+    output: pathlib.Path, seed: int, job: str, problems: Optional[list[MalformedRow]] = None
+) -> Optional[pd.DataFrame]:
+    """
+    :param problems: where malformed rows are recorded and left out (None: raise, :func:`read_log`)
+    :return: a finished job's evaluations (its ``eval.csv``), or None when the job has not finished
+    """
     path = output / f"seed_{seed}" / job / "eval.csv"
     if not (output / f"seed_{seed}" / job / "done.json").exists() or not path.exists():
         return None
-    return pd.read_csv(path)
+    return read_log(path, problems)
 
 
 def last_returns(
@@ -102,11 +241,14 @@ def switch_spread(frame: pd.DataFrame, env: str, start: int, end: int) -> float:
     return relative_spread(returns)
 
 
-def data_values(seed: int, q_log: pathlib.Path) -> list[dict[str, Any]]:
-    """:return: the extras ``data|mc_return|<env>`` of the collector's last Monte-Carlo measurement (none without one)"""
+def data_values(seed: int, q_log: pathlib.Path, problems: Optional[list[MalformedRow]] = None) -> list[dict[str, Any]]:
+    """
+    :param problems: where malformed rows are recorded and left out (None: raise, :func:`read_log`)
+    :return: the extras ``data|mc_return|<env>`` of the collector's last Monte-Carlo measurement (none without one)
+    """
     if not q_log.exists():
         return []
-    q = pd.read_csv(q_log)
+    q = read_log(q_log, problems)
     if "mc_return" not in q.columns or not q["mc_return"].notna().any():
         return []
     measured = q[q["mc_return"].notna()]
@@ -114,7 +256,13 @@ def data_values(seed: int, q_log: pathlib.Path) -> list[dict[str, Any]]:
     return [dict(seed=seed, metric=f"data|mc_return|{row.name}", value=float(row.mc_return)) for row in last.itertuples()]
 
 
-def collector_overestimation(seed: int, q_log: pathlib.Path, envs: Sequence[str], ends: Sequence[int]) -> list[dict[str, Any]]:
+def collector_overestimation(
+    seed: int,
+    q_log: pathlib.Path,
+    envs: Sequence[str],
+    ends: Sequence[int],
+    problems: Optional[list[MalformedRow]] = None,
+) -> list[dict[str, Any]]:
     """
     The forgetting-risk signal beside the forgetting claims: how far the collector's critic overestimates each left
     environment's data (mean Q minus the discounted return that followed), when it left it and at the end.
@@ -123,13 +271,14 @@ def collector_overestimation(seed: int, q_log: pathlib.Path, envs: Sequence[str]
     :param q_log: the collector's ``q_sources.csv``
     :param envs: the environments, in stage order
     :param ends: the last timestep of each stage
+    :param problems: where malformed rows are recorded and left out (None: raise, :func:`read_log`)
     :return: the extras ``MPO|overestimation_switch|<env>`` (the last measurement up to the end of the environment's
         stage) and ``MPO|overestimation_end|<env>`` (the last one), for each environment MPO left; none without
         Monte-Carlo columns
     """
     if not q_log.exists():
         return []
-    q = pd.read_csv(q_log)
+    q = read_log(q_log, problems)
     if "overestimation" not in q.columns:
         return []
     q = q[q["overestimation"].notna()].sort_values("timesteps")
@@ -143,11 +292,16 @@ def collector_overestimation(seed: int, q_log: pathlib.Path, envs: Sequence[str]
     return extras
 
 
-def student_weights(seed: int, method: str, train_log: pathlib.Path) -> list[dict[str, Any]]:
-    """:return: the extras ``<method>|weight_ess`` and ``<method>|weight_clip_frac`` of a student's ``train.csv``"""
+def student_weights(
+    seed: int, method: str, train_log: pathlib.Path, problems: Optional[list[MalformedRow]] = None
+) -> list[dict[str, Any]]:
+    """
+    :param problems: where malformed rows are recorded and left out (None: raise, :func:`read_log`)
+    :return: the extras ``<method>|weight_ess`` and ``<method>|weight_clip_frac`` of a student's ``train.csv``
+    """
     if not train_log.exists():
         return []
-    train = pd.read_csv(train_log)
+    train = read_log(train_log, problems)
     return [
         dict(seed=seed, metric=f"{method}|{column}", value=float(train[column].dropna().tail(STUDENT_TRAIN_LAST).mean()))
         for column in ("weight_ess", "weight_clip_frac")
@@ -164,6 +318,8 @@ class Study:
     seeds: list[int]
     finals: pd.DataFrame  # seed, method, kind (online / student), env, score
     extras: pd.DataFrame  # seed, metric, value (switch scores, Stage-2 areas, Q per source)
+    #: the malformed rows of its result files that were left out (``load_study(..., malformed="drop")``)
+    dropped: list[MalformedRow] = field(default_factory=list)
 
     def score(self, method: str, env: str) -> dict[int, float]:
         rows = self.finals[(self.finals["method"] == method) & (self.finals["env"] == env)]
@@ -174,15 +330,23 @@ class Study:
         return {int(r.seed): float(r.value) for r in rows.itertuples()}
 
 
-def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> Study:
+def load_study(
+    output: pathlib.Path, seeds: Optional[Sequence[int]] = None, malformed: Literal["refuse", "drop"] = "refuse"
+) -> Study:
     """
-    Read every finished job of every seed of ``output``.
+    Read every finished job of every seed of ``output``. Every row of the logs read is checked (:func:`read_log`).
 
     :param output: the study's directory
     :param seeds: only these seeds (default: every seed whose collection has finished)
+    :param malformed: what to do with malformed rows: ``"refuse"`` (raise, naming each) or ``"drop"`` (leave them
+        out, with a :class:`MalformedRowWarning` naming each; they are in ``Study.dropped``)
     :return: the scores; a student's score on a seed is the mean over its finished repeats, and ``finals`` counts
         them in its column ``repeats``
+    :raises MalformedResultsError: (``malformed="refuse"``) a log holds malformed rows, each named by file and line
     """
+    if malformed not in ("refuse", "drop"):
+        raise ValueError(f"malformed must be 'refuse' or 'drop', got {malformed!r}")
+    problems: list[MalformedRow] = []
     preset = json.loads((output / "preset.json").read_text())
     envs = preset["env_names"]
     ends = stage_ends(preset["stage_steps"])
@@ -198,7 +362,7 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
         run_dir = output / f"seed_{seed}"
         for job_dir in sorted(p for p in run_dir.iterdir() if (p / "done.json").exists()):
             job = job_dir.name
-            frame = read_eval(output, seed, job)
+            frame = read_eval(output, seed, job, problems)
             if frame is None:
                 continue
             parsed = Job.parse(job)
@@ -216,8 +380,8 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                         extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
                         spread = switch_spread(frame, env, start, end)
                         extras.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=spread))
-                    extras += data_values(seed, job_dir / "q_sources.csv")
-                    extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs, ends)
+                    extras += data_values(seed, job_dir / "q_sources.csv", [])  # (its problems: counted once, below)
+                    extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs, ends, problems)
             else:
                 method = parsed.name  # a student's repeats score as their mean
                 for env in envs:
@@ -225,16 +389,20 @@ def load_study(output: pathlib.Path, seeds: Optional[Sequence[int]] = None) -> S
                     finals.append(dict(seed=seed, method=method, kind="student", env=env, score=score))
                 q_path = job_dir / "q_sources.csv"
                 if q_path.exists():
-                    q = pd.read_csv(q_path)
+                    q = read_log(q_path, problems)
                     if len(q):
                         last = q[q["timesteps"] == q["timesteps"].max()]
                         for row in last.itertuples():
                             extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
-                extras += student_weights(seed, method, job_dir / "train.csv")
+                extras += student_weights(seed, method, job_dir / "train.csv", problems)
     finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
     if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
         groups = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"]
         finals_frame = groups.agg(score="mean", repeats="size")  # finished jobs, a NaN score (no evaluation) included
     if len(extras_frame):
         extras_frame = extras_frame.groupby(["seed", "metric"], as_index=False, sort=False)["value"].mean()
-    return Study(output, preset, seeds, finals_frame, extras_frame)
+    if problems and malformed == "refuse":
+        raise MalformedResultsError(problems)
+    for problem in problems:
+        warnings.warn(f"left out of the report, a malformed row: {problem}", MalformedRowWarning, stacklevel=2)
+    return Study(output, preset, seeds, finals_frame, extras_frame, problems)

@@ -40,6 +40,7 @@ import torch as th
 
 import sb3_lifelong.envs  # noqa: F401  (registers the OP3 task)
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
+from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 
@@ -183,7 +184,7 @@ def prepare_output(output: pathlib.Path, config: dict[str, Any], overwrite: bool
             "choose another --output, or pass --overwrite to delete the directory and start again."
         )
     output.mkdir(parents=True, exist_ok=True)
-    recorded.write_text(json.dumps(settings, indent=1))
+    write_text_atomic(recorded, json.dumps(settings, indent=1))
 
 
 def distill_eval_freq(distill_steps: int) -> int:
@@ -230,7 +231,7 @@ def write_layout(
         layout["stages"] = [stage if isinstance(stage, str) else dict(stage) for stage in stages]
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / LAYOUT_FILE
-    path.write_text(json.dumps(layout))
+    write_text_atomic(path, json.dumps(layout))
     return path
 
 
@@ -364,7 +365,7 @@ def final_returns(callback: MultiEnvEvalCallback) -> dict[str, float]:
 
 def write_summary(output: pathlib.Path, rows: list[dict[str, Any]], config: dict[str, Any], elapsed: float) -> str:
     """Write ``summary.csv`` / ``summary.md`` (mean +- std over seeds) and return the markdown table."""
-    with open(output / "summary.csv", "w", newline="") as handle:
+    with atomic_write(output / "summary.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=["seed", "method", "env", "final_return"])
         writer.writeheader()
         writer.writerows(rows)
@@ -385,10 +386,11 @@ def write_summary(output: pathlib.Path, rows: list[dict[str, Any]], config: dict
         lines.append(f"| {method} | " + " | ".join(cells) + f" | {np.mean(overall):.0f} +- {np.std(overall):.0f} |")
     table = "\n".join(lines)
     seeds = sorted({row["seed"] for row in rows})
-    (output / "summary.md").write_text(
+    write_text_atomic(
+        output / "summary.md",
         f"# {output.name}\n\nFinal evaluation return (mean +- std over seeds {seeds}; deterministic policy, "
         f"{config['eval_episodes']} episodes per env).\n\n{table}\n\nConfig: `{json.dumps(config)}`\n\n"
-        f"Wall clock (of the last invocation): {elapsed:.0f} s\n"
+        f"Wall clock (of the last invocation): {elapsed:.0f} s\n",
     )
     return table
 

@@ -26,6 +26,7 @@ import torch as th
 
 from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
 from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
+from sb3_lifelong.core.atomic import write_text_atomic
 from sb3_lifelong.distill import distill
 from sb3_lifelong.envs import stage_envs
 from sb3_lifelong.experiments.runner import map_parallel
@@ -155,7 +156,7 @@ def run_sharing(
         log(f"seed {seed}: both collectors done in {seconds / 60:.1f} min ({2 * second / seconds:.0f} env steps/s)")
         timing = dict(workers=workers, backend=backend, steps_per_collector=second, seconds=seconds)
         timing.update(env_steps_per_second=2 * second / seconds, collector_seconds=[r["seconds"] for r in results])
-        (run_dir / "collectors.json").write_text(json.dumps(timing, indent=1))
+        write_text_atomic(run_dir / "collectors.json", json.dumps(timing, indent=1))
         for name, result in zip(("MPO_agent1", "MPO_agent2"), results):
             rows += [dict(seed=seed, method=name, env=env, final_return=value) for env, value in result["final"].items()]
         opened = [LifelongReplayBuffer.open(path, read_only=True) for path in buffers]

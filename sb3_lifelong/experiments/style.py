@@ -18,6 +18,8 @@ from typing import Any, Optional
 import numpy as np
 import pandas as pd
 
+from sb3_lifelong.core.atomic import atomic_write
+
 
 @dataclass(frozen=True)
 class MethodStyle:
@@ -130,7 +132,8 @@ def save(
     :return: ``path``
     """
     fig.tight_layout(rect=rect)
-    fig.savefig(path, dpi=dpi)
+    with atomic_write(path) as handle:  # a failed write leaves the previous figure
+        fig.savefig(handle, dpi=dpi, format=pathlib.Path(path).suffix.lstrip(".") or "png")
     plt.close(fig)
     return path
 

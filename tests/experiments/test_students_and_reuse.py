@@ -13,6 +13,7 @@ from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import PRESETS, job_names, load_claims, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
 from sb3_lifelong.experiments.claims import evaluate_claims
+from sb3_lifelong.experiments.ownership import NotOwnedError
 from sb3_lifelong.experiments.presets import load_presets
 
 
@@ -238,8 +239,13 @@ def test_a_reused_collection_never_touches_its_source(study, tmp_path):
     with pytest.raises(FileNotFoundError, match="which is gone"):
         run_seed(preset, 0, output, log=lambda line: None)
     (tmp_path / "moved").rename(copy)
-    # collecting again in the reusing study replaces the links by buffers of its own; the source's stay as they were
+    # a reused collection whose done.json is lost is refused (it holds the collector's final checkpoint), nothing deleted
     (output / "seed_0" / "collect" / "done.json").unlink()
+    with pytest.raises(NotOwnedError, match="a finished collection is there"):
+        run_seed(preset, 0, output, jobs=["collect"], log=lambda line: None)
+    assert (output / "seed_0" / "collect" / "final.zip").exists() and (output / "seed_0" / "buffer").is_symlink()
+    # collecting again once it is moved away replaces the links by buffers of its own; the source's stay as they were
+    (output / "seed_0" / "collect").rename(tmp_path / "reused_collect")
     run_seed(preset, 0, output, jobs=["collect"], log=lambda line: None)
     assert not (output / "seed_0" / "buffer").is_symlink() and (output / "seed_0" / "buffer" / "manifest.json").exists()
     assert {name: _tree_digest(copy / "seed_0" / name) for name in before} == before

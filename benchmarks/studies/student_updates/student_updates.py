@@ -22,7 +22,7 @@ import time
 import pandas as pd
 import torch as th
 
-from sb3_lifelong.buffers.files import write_json_atomic
+from sb3_lifelong.core.atomic import write_json_atomic
 from sb3_lifelong.experiments.presets import PRESETS
 from sb3_lifelong.experiments.protocol import distill_student
 
