@@ -381,6 +381,7 @@ class LifelongReplayBuffer(LifelongSampler):
         :param done: Episode ends (terminations and time-limit truncations)
         :param infos: One info dict per env (``"TimeLimit.truncated"``, ``"stage"``, ``"dynamics_params"``)
         """
+        self.store.check_owner("add")
         self._refuse_mixing()
         rows = self._checks.rows(obs, next_obs, action, reward, done, infos)
         # checked: nothing of this call was stored (or changed) before
@@ -437,6 +438,7 @@ class LifelongReplayBuffer(LifelongSampler):
 
         :param rows: every stored field (``buffer.store.fields``) -> array of shape (n, *row_shape)
         """
+        self.store.check_owner("append_rows")
         self._refuse_mixing()
         end = self.store.end
         try:

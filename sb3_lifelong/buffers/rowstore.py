@@ -38,6 +38,38 @@ from sb3_lifelong.buffers.readers import Reader, check_read_mode, make_reader
 _WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictionary()
 
 
+class ForkedWriterError(RuntimeError):
+    """
+    A directory buffer opened for writing in one process was used to write (``add``, ``flush``, ``close``, a commit)
+    in another one: a child made by ``os.fork()`` (or a ``multiprocessing`` "fork" worker) holds a copy of the
+    writer, whose pending rows and committed state the parent goes on changing. The child's writes would be
+    overwritten by the parent's next commit, and its exit would commit the parent's pending rows: they are refused.
+    Reading and sampling in the child work as before.
+    """
+
+
+def _forget_writers_in_child() -> None:
+    """
+    ``os.fork()``, in the child: the child's copies of this process's writers do not own their directories. Their
+    lock files are closed without unlocking (``flock`` locks belong to the open file, which the parent keeps locked:
+    the lock is the parent's until the parent releases it, however long the child lives), and they are forgotten as
+    writers of this process.
+    """
+    for store in list(_WRITERS.values()):
+        lock_file = store._state.lock_file
+        store._state.lock_file = None
+        if lock_file is not None:
+            try:
+                lock_file.close()  # close(2) of the child's descriptor only: the parent's lock stays
+            except OSError:  # pragma: no cover
+                pass
+    _WRITERS.clear()
+
+
+if hasattr(os, "register_at_fork"):  # POSIX
+    os.register_at_fork(after_in_child=_forget_writers_in_child)
+
+
 class RowStore(ManifestRecords):
     """
     Append-only table of fixed-size rows (one array per field), in memory or in a buffer directory, optionally
@@ -134,6 +166,9 @@ class RowStore(ManifestRecords):
         self._undeleted: list[str] = []
         self.read_mode = read_mode
         self.max_resident_bytes = max_resident_bytes
+        #: the process that opened this writer: only it may write, commit or release the directory (see
+        #: :class:`ForkedWriterError`); None for stores that never write a directory (in memory, read-only)
+        self._owner_pid: Optional[int] = None if self.path is None or read_only else os.getpid()
         if not read_only:
             # the writer lock first, then everything else: a manifest read before taking it could be replaced by a
             # writer that commits and closes in between, and this writer would then cut that writer's rows off
@@ -282,6 +317,27 @@ class RowStore(ManifestRecords):
         self.committed_first = manifest.get("first_row", 0)
         self._load_records(manifest)
 
+    def forked(self) -> bool:
+        """Whether this is a writer's copy in a process other than the one that opened it (a child of ``os.fork()``):
+        such a copy may read, never write (:class:`ForkedWriterError`)."""
+        owner = getattr(self, "_owner_pid", None)
+        return owner is not None and owner != os.getpid()
+
+    def check_owner(self, action: str) -> None:
+        """
+        :param action: What is about to be done (``"add"``, ``"flush"``, ``"close"``, ``"commit"``...), for the message
+        :raises ForkedWriterError: this writer was opened by another process (this one is a child of ``os.fork()``)
+        """
+        if self._owner_pid is not None and self._owner_pid != os.getpid():
+            raise ForkedWriterError(
+                f"{self.path}: {action}() refused in process {os.getpid()}: this buffer was opened for writing by "
+                f"process {self._owner_pid}, and this process is a fork of it, holding a copy of its writer. Writes of a "
+                "copy would be overwritten by the parent's next commit, and would commit the parent's pending rows: "
+                "only the parent writes (and closes) this directory. Reading and sampling here work; to write from a "
+                "child, let the parent close the buffer first and open it again in the child, or use another directory. "
+                "Nothing was written"
+            )
+
     def _take_lock(self, create: bool = False) -> bool:
         """Take the directory's writer lock (see ``Layout.lock``). :return: whether this call took it"""
         locked = self._layout.lock(create)
@@ -291,6 +347,8 @@ class RowStore(ManifestRecords):
         return True
 
     def _release_lock(self) -> None:
+        if self.forked():
+            return  # a writer's lock is released only by the process that took it
         unlocked = self._layout.unlock()
         if unlocked is not None and _WRITERS.get(unlocked) is self:
             del _WRITERS[unlocked]
@@ -332,6 +390,7 @@ class RowStore(ManifestRecords):
         """
         if self.read_only:
             raise RuntimeError("buffer is open read-only")
+        self.check_owner("append")
         if self._closed:
             raise RuntimeError("buffer is closed (or was handed over to a buffer unpickled from it)")
         count = len(rows["rewards"])
@@ -425,7 +484,10 @@ class RowStore(ManifestRecords):
         the directory after the manifest's rename fails, it raises :class:`CommitNotDurableError` with the rows
         committed (the manifest is in place); calling ``flush()`` again writes and syncs the manifest again.
         """
-        if self.read_only or self._closed or not self._layout.persistent:
+        if self.read_only or not self._layout.persistent:
+            return
+        self.check_owner("flush")
+        if self._closed:
             return
         if self.num_tail == 0:
             self._write_manifest()  # source names may have changed; a commit whose directory sync failed is synced
@@ -468,6 +530,7 @@ class RowStore(ManifestRecords):
         :param extra: Rows to write after the pending ones (field name -> array), or None
         :param extra_rows: How many rows of ``extra`` to write
         """
+        self.check_owner("commit")
         base, total = self.num_committed, self.num_tail + extra_rows
         bounds = [*range(0, total, self.chunk_size), total]
         chunks: list[dict[str, Any]] = [
@@ -557,6 +620,7 @@ class RowStore(ManifestRecords):
         committed_first: Optional[int] = None,
     ) -> None:
         """Atomically replace the manifest: the committed state of this object, or the one given."""
+        self.check_owner("commit")
         manifest = make_manifest(
             self._fields,
             self.layout,
@@ -593,7 +657,7 @@ class RowStore(ManifestRecords):
             self.__dict__.update(state)
             return
         previous = _WRITERS.get(state["path"])
-        if previous is not None and not state["read_only"]:
+        if previous is not None and not state["read_only"] and not previous.forked():
             # e.g. SB3's load() built a buffer on this directory before load_replay_buffer(): hand it over
             previous.close()
         try:
@@ -614,21 +678,33 @@ class RowStore(ManifestRecords):
         )
 
     def __del__(self) -> None:
+        if getattr(self, "_owner_pid", None) not in (None, os.getpid()):
+            return  # a fork's copy of a writer: its exit (garbage collection, interpreter shutdown) writes nothing
         try:
             self.close()
         except Exception:  # pragma: no cover (interpreter shutdown)
             pass
 
     def close(self) -> None:
-        """Flush, release the writer lock and close the read file descriptors (``read_mode="pread"``). Reading the
-        committed rows keeps working (with ``"pread"`` it opens the files again, until the next ``close()``)."""
-        if not getattr(self, "_closed", True):
+        """
+        Flush, release the writer lock and close the read file descriptors (``read_mode="pread"``). Reading the
+        committed rows keeps working (with ``"pread"`` it opens the files again, until the next ``close()``).
+
+        In a child of ``os.fork()`` holding a copy of a writer, this flushes nothing and leaves the lock to the parent:
+        the copy is marked closed and :class:`ForkedWriterError` is raised (once).
+        """
+        refuse = False
+        if self.forked():
+            refuse, self._closed = not self._closed, True  # nothing flushed, the lock left to the parent
+        elif not getattr(self, "_closed", True):
             self.flush()
             self._closed = True
             self._release_lock()
         reader = getattr(self, "_reader", None)
         if reader is not None:
             reader.close()
+        if refuse:
+            self.check_owner("close")
 
     def gather(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, np.ndarray]:
         """
