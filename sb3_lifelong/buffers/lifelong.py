@@ -173,8 +173,15 @@ class LifelongReplayBuffer(LifelongSampler):
             )
         if observation_space is None or action_space is None:
             act_dtype, act_shape = self.store.fields["actions"]
-            observation_space = observation_space_of(self.store)
-            action_space = space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
+            try:
+                observation_space = observation_space_of(self.store)
+                action_space = space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
+            except (ValueError, TypeError, OverflowError, KeyError, AttributeError) as error:
+                self.store.abandon()
+                raise BufferFormatError(
+                    f"{os.path.join(str(path_str), MANIFEST_NAME)}: its 'spaces' do not describe the observation and "
+                    f"action spaces of its fields ({type(error).__name__}: {error})"
+                ) from None
         self._obs_keys = obs_keys_of(self.store.fields)
         self._checks = AddChecks(observation_space, action_space, self.store.fields)
         self.observation_space = observation_space

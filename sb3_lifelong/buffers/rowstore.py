@@ -34,6 +34,9 @@ from sb3_lifelong.buffers.manifest import (
 )
 from sb3_lifelong.buffers.readers import Reader, check_read_mode, make_reader
 
+#: the most bytes a directory writer allocates for its pending rows when it opens (they grow up to a chunk as needed)
+TAIL_PREALLOCATION = 64 * 1024 * 1024
+
 # writer stores of this process by directory, so that unpickling can take a directory over from a stale object
 _WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictionary()
 
@@ -181,7 +184,7 @@ class RowStore(ManifestRecords):
             self._release_lock()
             raise
         self._tail_start = self.num_committed
-        rows = self._layout.tail_rows
+        rows = self._first_tail_rows()
         self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
         self.num_tail = 0
         self._reader_stale = False  # True while the maps (or read files) may not cover every committed row
@@ -196,6 +199,19 @@ class RowStore(ManifestRecords):
                 f"{self.path}: recovered {self.recovered} transitions; discarded {self.discarded_bytes} bytes of "
                 f"unflushed rows left by a writer that did not close the buffer{removed}"
             )
+
+    def _first_tail_rows(self) -> int:
+        """
+        How many pending rows the store's arrays hold at first: none for a reader (it never appends), a whole chunk for
+        a directory writer when that takes at most :data:`TAIL_PREALLOCATION` bytes (else fewer: they grow up to a
+        chunk as rows come, so that opening a directory never allocates more than that), the layout's default in memory.
+        """
+        if self.read_only:
+            return 0
+        rows = self._layout.tail_rows
+        if self._layout.persistent:
+            rows = min(rows, max(1, TAIL_PREALLOCATION // max(1, sum(self.row_bytes.values()))))
+        return rows
 
     def _open_or_create(
         self,
@@ -428,6 +444,8 @@ class RowStore(ManifestRecords):
 
     def _keep_pending(self, rows: dict[str, np.ndarray], count: int, keep: int) -> None:
         """After a commit, the last ``keep`` of the ``count`` rows of an append become the pending rows."""
+        if keep > len(self._tail["rewards"]):
+            self._grow(min(max(keep, 2 * len(self._tail["rewards"])), self.chunk_size))
         for name in self._fields:
             self._tail[name][:keep] = rows[name][count - keep : count]
         self.num_tail = keep
@@ -446,15 +464,19 @@ class RowStore(ManifestRecords):
 
     def _make_room(self, need: int) -> None:
         """The arrays of pending rows are full: drop the evicted rows at their front (if that frees enough), else grow."""
+        persistent = self._layout.persistent
         evicted = self.first - self._tail_start
-        if evicted > 0 and evicted >= len(self._tail["rewards"]) // 4:
+        # in memory only: the pending rows of a directory start at the committed end, evicted or not, until the commit
+        if not persistent and evicted > 0 and evicted >= len(self._tail["rewards"]) // 4:
             for name in self._fields:
                 self._tail[name][: self.num_tail - evicted] = self._tail[name][evicted : self.num_tail]
             self._tail_start += evicted
             self.num_tail -= evicted
             return
         target = max(2 * self.num_tail, self.num_tail + need)
-        if self.capacity is not None:  # twice the capacity is enough to compact rarely
+        if persistent:  # the pending rows of a directory never reach a chunk (the add that completes one writes it)
+            target = max(min(target, self.chunk_size), self.num_tail + need)
+        elif self.capacity is not None:  # twice the capacity is enough to compact rarely
             target = max(min(target, 2 * self.capacity), self.num_tail + min(need, self.capacity), self.num_tail + 1)
         self._grow(target)
 
@@ -705,6 +727,17 @@ class RowStore(ManifestRecords):
             reader.close()
         if refuse:
             self.check_owner("close")
+
+    def abandon(self) -> None:
+        """Close without writing anything (not even the manifest) and release the writer lock: what a constructor does
+        when it refuses the directory it opened (pending rows, if any, are dropped)."""
+        if not getattr(self, "_closed", True) and not self.forked():
+            self._closed = True
+            self._release_lock()
+        self._closed = True
+        reader = getattr(self, "_reader", None)
+        if reader is not None:
+            reader.close()
 
     def gather(self, names: tuple[str, ...], indices: np.ndarray) -> dict[str, np.ndarray]:
         """
