@@ -41,6 +41,12 @@ if sys.platform == "win32":  # pragma: no cover: the writer lock is advisory (PO
 else:
     import fcntl
 
+#: what an error about a damaged chunk adds
+SALVAGE_HINT = (
+    "`python -m sb3_lifelong.buffers verify {path}` lists every damaged chunk, and `python -m sb3_lifelong.buffers "
+    "salvage {path} NEW_DIRECTORY` copies the intact ones into a new buffer (neither writes to this directory)"
+)
+
 #: what the store gives a layout's ``write``: the bytes of a field's rows ``lo:hi``, counted from the first pending row
 BlockSource = Callable[[str, int, int], memoryview]
 
@@ -378,7 +384,7 @@ class SingleFileLayout(_DirectoryLayout):
             if have < need:
                 raise BufferFormatError(
                     f"{file_name}: {have} bytes but the manifest commits {num_committed} rows ({need} bytes); "
-                    "the file was truncated or replaced"
+                    f"the file was truncated or replaced. {SALVAGE_HINT.format(path=self.path)}"
                 )
             if have > need and not state.read_only:
                 # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
@@ -392,7 +398,7 @@ class SingleFileLayout(_DirectoryLayout):
         for chunk in checked_chunks(chunks, verify):
             damage = self.chunk_damage(chunk)
             if damage is not None:
-                raise BufferFormatError(f"{damage} (corrupted data)")
+                raise BufferFormatError(f"{damage} (corrupted data). {SALVAGE_HINT.format(path=self.path)}")
         return discarded, []
 
     def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:
@@ -472,18 +478,20 @@ class ChunkFileLayout(_DirectoryLayout):
         for chunk in chunks:
             file_name = self.chunk_file(chunk)
             if not os.path.isfile(file_name) or os.path.islink(file_name):
-                raise BufferFormatError(f"{file_name}: chunk file is missing or not a regular file")
+                raise BufferFormatError(
+                    f"{file_name}: chunk file is missing or not a regular file. {SALVAGE_HINT.format(path=self.path)}"
+                )
             need = self.state.field_offsets(chunk["rows"])[""]
             have = os.path.getsize(file_name)
             if have != need:
                 raise BufferFormatError(
                     f"{file_name}: {have} bytes but the manifest's chunk of {chunk['rows']} rows needs {need} bytes; "
-                    "the file was truncated or replaced"
+                    f"the file was truncated or replaced. {SALVAGE_HINT.format(path=self.path)}"
                 )
         for chunk in checked_chunks(chunks, verify):
             damage = self.chunk_damage(chunk)
             if damage is not None:
-                raise BufferFormatError(f"{damage} (corrupted data)")
+                raise BufferFormatError(f"{damage} (corrupted data). {SALVAGE_HINT.format(path=self.path)}")
         return (0, []) if self.state.read_only else self.remove_orphans(chunks)
 
     def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:

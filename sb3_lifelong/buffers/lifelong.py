@@ -33,6 +33,7 @@ from sb3_lifelong.buffers.manifest import (
     obs_keys_of,
 )
 from sb3_lifelong.buffers.rowstore import RowStore
+from sb3_lifelong.buffers.salvage import BufferCheck, check_buffer, salvage_buffer
 from sb3_lifelong.buffers.sampling import LifelongSampler, RunIndex
 from sb3_lifelong.buffers.schema import buffer_fields, observation_space_of, space_from_json, space_to_json
 from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
@@ -225,6 +226,37 @@ class LifelongReplayBuffer(LifelongSampler):
             raise FileNotFoundError(f"no buffer directory at {os.fspath(path)!r}")
         kwargs.setdefault("mode", "append")
         return cls(path=path, read_only=read_only, device=device, read_mode=read_mode, **kwargs)
+
+    @staticmethod
+    def check_directory(path: Union[str, os.PathLike]) -> BufferCheck:
+        """
+        Check every chunk of a buffer directory (files, sizes and checksums: reads the whole buffer once), without
+        opening it and without writing anything there. What ``verify="all"`` checks, reported chunk by chunk instead of
+        raising at the first damaged one. From a shell: ``python -m sb3_lifelong.buffers verify PATH``.
+
+        :param path: The buffer directory
+        :return: The report: ``report.damaged`` lists the damaged chunks (empty: intact), ``report.summary()`` says it
+        :raises BufferFormatError: its manifest is not valid (then no chunk can be located)
+        """
+        return check_buffer(os.fspath(path))
+
+    @classmethod
+    def salvage(
+        cls, path: Union[str, os.PathLike], destination: Union[str, os.PathLike], chunk_size: int = 10_000, **kwargs: Any
+    ) -> tuple[LifelongReplayBuffer, BufferCheck]:
+        """
+        Copy the intact chunks of a damaged buffer directory into a new directory and open the copy (``path`` is only
+        read: the damaged original stays as it is). The rows of damaged chunks are left out; n-step returns never chain
+        across them. From a shell: ``python -m sb3_lifelong.buffers salvage PATH NEW``.
+
+        :param path: The damaged buffer directory
+        :param destination: A new (or empty) directory
+        :param chunk_size: Transitions per chunk of the copy
+        :param kwargs: Arguments of :meth:`open` for the copy (``read_only``, ``device``, ``n_steps``, ...)
+        :return: The copy, opened, and the report (``report.damaged``: the chunks left out; ``report.copied``)
+        """
+        report = salvage_buffer(os.fspath(path), os.fspath(destination), chunk_size=chunk_size)
+        return cls.open(destination, **kwargs), report
 
     @classmethod
     def from_d4rl(
