@@ -74,7 +74,8 @@ class BufferCheck:
     def summary(self) -> str:
         """:return: a report for people: one line per damaged chunk, then the counts"""
         lines = [
-            f"chunk of rows {c.start:,} to {c.start + c.rows - 1:,} ({c.retained:,} retained): {c.damage}" for c in self.damaged
+            f"chunk of rows {c.start:,} to {c.start + c.rows - 1:,} ({c.retained:,} retained): {c.damage}"
+            for c in self.damaged
         ]
         lines.append(
             f"{self.path}: {len(self.chunks)} chunks ({self.layout} layout), {len(self.damaged)} damaged; "
@@ -181,7 +182,8 @@ def salvage_buffer(path: str, destination: str, chunk_size: int = 10_000) -> Buf
             copy.set_source(int(source_id), entry["name"], entry["metadata"])
         copy.describe_spaces(manifest["spaces"])
         copy.reserve_streams(manifest["next_stream_id"])  # every original id stays taken: new ones come after
-        first_row, renumber, gap = manifest.get("first_row", 0), None, False
+        first_row, gap = manifest.get("first_row", 0), False
+        renumber: Optional[dict[int, int]] = None  # old stream id -> new, from the first gap on
         for check, chunk in zip(report.chunks, manifest["chunks"]):
             rows, damage = _read_chunk(layout, state, chunk)
             if rows is None:

@@ -296,8 +296,12 @@ def test_add_refuses_what_is_not_a_real_number(buffer, field, kind):
     before, width = stored(buffer), buffer._width
     bad = args(3, seed=4)
     bad[field] = NOT_REAL[kind](np.asarray(bad[field]))
-    name = {"obs": "observations", "next_obs": "next_observations", "action": "actions", "reward": "rewards"}.get(field, "dones")
-    with pytest.raises(ValueError, match=rf"add\(\): {name} have dtype {re.escape(str(bad[field].dtype))} .*only real numbers"):
+    name = {"obs": "observations", "next_obs": "next_observations", "action": "actions", "reward": "rewards"}.get(
+        field, "dones"
+    )
+    with pytest.raises(
+        ValueError, match=rf"add\(\): {name} have dtype {re.escape(str(bad[field].dtype))} .*only real numbers"
+    ):
         buffer.add(**bad)
     assert_unchanged(buffer, before)
     assert buffer._width == width

@@ -45,14 +45,18 @@ HOSTILE = {
     # before: RecursionError for writers (read-only opening caught it)
     "arrays nested 100k deep": lambda m: b"[" * 100_000 + b"]" * 100_000,
     "objects nested 100k deep": lambda m: b'{"a":' * 100_000 + b"1" + b"}" * 100_000,
-    "nested inside a valid manifest": lambda m: json.dumps(m).replace('"spaces": {', '"spaces": {"x": ' + "[" * 5000 + "]" * 5000 + ", ").encode(),
+    "nested inside a valid manifest": lambda m: json.dumps(m)
+    .replace('"spaces": {', '"spaces": {"x": ' + "[" * 5000 + "]" * 5000 + ", ")
+    .encode(),
     # before: ValueError (int digits limit) or, where there is none, a parse of quadratic time
     "a 5000-digit int": lambda m: number(m, "next_stream_id", "1" + "0" * 4999),
     "a 400-digit num_transitions": lambda m: number(m, "num_transitions", "9" * 400),
     # before: accepted (read-only), then a ValueError when the writer wrote its manifest back
     "a float out of range": lambda m: json.dumps(m).replace('"high": [', '"high": [1e400, ').encode(),
     # before: OverflowError while building the Discrete space
-    "a Discrete of 10**30": lambda m: json.dumps({**m, "spaces": {**m["spaces"], "action": {"type": "Discrete", "n": 10**30}}}).encode(),
+    "a Discrete of 10**30": lambda m: json.dumps(
+        {**m, "spaces": {**m["spaces"], "action": {"type": "Discrete", "n": 10**30}}}
+    ).encode(),
 }
 
 
