@@ -71,8 +71,8 @@ class LifelongReplayBuffer(LifelongSampler):
     (``read_mode``).
 
     Drop-in ``replay_buffer_class`` for SB3 off-policy algorithms: ``buffer_size`` is recorded but never
-    evicts anything (``capacity`` does), and ``add()`` accepts any number of envs (each env of each ``add`` width
-    is its own stream).
+    evicts anything (``capacity`` does), and ``add()`` accepts any number of envs up to 65,535 (each env of each
+    ``add`` width is its own stream).
 
     :param buffer_size: SB3's buffer size: informational only, nothing is evicted because of it (see ``capacity``)
     :param observation_space: Observation space (Box, Discrete, or Dict of those; optional when opening a ``path``)
@@ -91,7 +91,8 @@ class LifelongReplayBuffer(LifelongSampler):
         committed chunk, so opening is fast whatever the size, but a corrupted byte in an earlier chunk (e.g. a bit
         flipped on disk) is NOT detected and is served as it is by sampling and reads; "all": every chunk (reads the
         whole buffer once when opening; raises ``BufferFormatError`` on a mismatch); "none": no checksum (file sizes
-        are always checked)
+        are always checked). A damaged chunk makes opening raise in every mode: :meth:`check_directory` lists the
+        damaged chunks and :meth:`salvage` copies the intact ones into a new directory
     :param source: Initial source id of transitions whose ``info`` has no ``"stage"``
     :param max_resident_bytes: With a path and ``read_mode="mmap"``: remap the files after random reads may have
         made about this many bytes of them resident, to bound the RSS of sampling a buffer larger than RAM (None: never)
@@ -394,8 +395,8 @@ class LifelongReplayBuffer(LifelongSampler):
         infos: list[dict[str, Any]],
     ) -> None:
         """
-        Append one transition per env (SB3 semantics). Any number of envs is accepted: ``n_envs`` is the length of
-        ``reward``.
+        Append one transition per env (SB3 semantics). Any number of envs up to 65,535 is accepted: ``n_envs`` is the
+        length of ``reward``.
 
         Every argument is checked before anything is stored, and a ``ValueError`` naming the field, the expected and
         the received shape is raised for a shape SB3's ``ReplayBuffer.add`` would not accept for ``n_envs`` envs
@@ -404,7 +405,12 @@ class LifelongReplayBuffer(LifelongSampler):
         rewards and dones: ``(n_envs,)``; ``len(infos) == n_envs``). Shapes are never reshaped across envs (a
         transposed array is refused, not scrambled). A NaN or infinite observation, next observation, action or
         reward (after conversion to the stored dtype) raises a ``ValueError`` naming the field and the env; nothing of
-        that call is stored.
+        that call is stored. Only real numbers are stored (bool, integer and float arrays): complex, datetime,
+        timedelta, string, bytes and object arrays raise a ``ValueError`` naming the field and the dtype, as does a
+        call with more than 65,535 envs (``MAX_ENVS_PER_ADD``).
+
+        A directory writer writes only in the process that opened it: in a child of ``os.fork()``, ``add`` (and
+        ``flush``, ``close``, ``checkpoint``) raise :class:`~sb3_lifelong.buffers.ForkedWriterError`.
 
         In a directory, the add() that completes a chunk writes and commits it. If that fails (``OSError``, e.g. disk
         full), the error names the directory, none of the call's transitions is stored (in this object or on disk)
