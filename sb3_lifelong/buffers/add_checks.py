@@ -21,6 +21,8 @@ __all__ = ["MAX_ENVS_PER_ADD", "AddChecks", "raise_if_not_finite"]
 
 _vdot = np.vdot
 _isfinite = math.isfinite
+_FLOAT32 = np.dtype(np.float32)
+_BOOL = np.dtype(bool)
 
 #: the most envs one ``add()`` takes: each row stores the number of envs of its call (the stride between an env's
 #: successive rows) in the ``widths`` field, a uint16 of the directory format
@@ -153,9 +155,9 @@ class AddChecks:
         :raises ValueError: naming the field, for a shape SB3 would not accept, a wrong number of infos, or a NaN or
             infinite value
         """
-        reward = numeric("rewards", reward)
-        if reward.dtype != np.float32:
-            reward = reward.astype(np.float32)
+        reward = np.asarray(reward)
+        if reward.dtype is not _FLOAT32:  # the stored dtypes are real numbers: only another one needs the test
+            reward = numeric("rewards", reward).astype(np.float32)
         if reward.ndim != 1:
             reward = _env_vector("rewards", reward)
         width = len(reward)
@@ -174,10 +176,15 @@ class AddChecks:
         if width != self.width:
             self._set_shapes(width)
         # a copy: stored as the flags (bit 0: done), timeouts set in place by add()
-        flags = np.array(numeric("dones", done), dtype=bool)
+        done = np.asarray(done)
+        if done.dtype is not _BOOL:
+            numeric("dones", done)
+        flags = np.array(done, dtype=bool)
         if flags.shape != self._done:
             flags = np.array(_conform("dones", flags, self._done))
-        actions = numeric("actions", action)
+        actions = np.asarray(action)
+        if actions.dtype is not self.dtypes["actions"]:
+            numeric("actions", actions)
         if actions.shape != self._actions:
             actions = self._conform_actions(actions, width)
         if actions.dtype != self._action_dtype and self._action_dtype.kind == "f":
@@ -194,10 +201,14 @@ class AddChecks:
         """add(): the observation rows, shaped (or a ValueError), and a ValueError if a float value is not finite."""
         if self.obs_keys is None:
             target, dtype = self._obs, self._obs_dtype
-            observations = numeric("observations", obs)
+            observations = np.asarray(obs)
+            if observations.dtype is not dtype:
+                numeric("observations", observations)
             if observations.shape != target:
                 observations = self._conform_obs("observations", observations, target)
-            next_observations = numeric("next_observations", next_obs)
+            next_observations = np.asarray(next_obs)
+            if next_observations.dtype is not dtype:
+                numeric("next_observations", next_observations)
             if next_observations.shape != target:
                 next_observations = self._conform_obs("next_observations", next_observations, target)
             if observations.dtype != dtype and dtype.kind == "f":
@@ -277,7 +288,9 @@ class AddChecks:
         rows = {}
         for key in self.obs_keys or ():
             name, target = f"{base}.{key}", self._key_obs[key]
-            value = numeric(f"{base}[{key!r}]", obs[key])
+            value = np.asarray(obs[key])
+            if value.dtype is not self.dtypes[name]:
+                numeric(f"{base}[{key!r}]", value)
             if value.shape != target:
                 value = self._conform_obs(f"{base}[{key!r}]", value, target, self._key_spaces[key])
             dtype = self.dtypes[name]
