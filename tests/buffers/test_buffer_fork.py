@@ -8,6 +8,7 @@ import gc
 import json
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 import warnings
@@ -48,6 +49,7 @@ def in_child(body, buffer: LifelongReplayBuffer) -> int:
     """
     pid = os.fork()
     if pid == 0:  # pragma: no cover (the child)
+        signal.alarm(60)  # a child that hangs is killed: the test fails instead of hanging
         code = 99
         try:
             code = body()
@@ -158,6 +160,7 @@ def test_the_lock_stays_the_parents_and_leaves_with_it(tmp_path):
     done_r, done_w = os.pipe()
     pid = os.fork()
     if pid == 0:  # pragma: no cover (the child)
+        signal.alarm(60)  # a child that hangs (e.g. the parent failed before releasing it) is killed
         code = 1
         try:
             try:
