@@ -30,6 +30,9 @@ Cases, for each layout:
 - ``planted symlinks``: links to a file outside the directory planted at ``manifest.json.tmp``, at the next chunk file
   (layout "chunked") or instead of a field file (layout "single"), and at ``writer.lock``: nothing may be written
   through them.
+- ``forked writer``, ``add of non-real dtypes``, ``damaged chunk: salvage``, ``hostile manifest``: a writer's forked
+  child writing and exiting; complex, datetime, string and object observations; a bit flip in one chunk, then
+  ``check_directory`` and ``salvage``; hostile manifests (a huge row, deep nesting, a huge number). See ``NOTES``.
 
 *Foreign bytes written or deleted* counts the bytes of files that are not the buffer's (outside its directory, or
 in a directory that is not a buffer) that were written, changed, deleted or created.
@@ -50,10 +53,13 @@ Usage (Linux: ``/proc/self/fd`` and ``RLIMIT_FSIZE``; one thread)::
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import datetime
 import errno
 import functools
+import gc
+import json
 import os
 import platform
 import shutil
@@ -130,6 +136,23 @@ SIGKILL loop, 100,000 elsewhere):
   of the checkpoints, still in memory at the kill; the 140 of the symlinked directory per layout, unreadable after),
   served 342 wrong rows, wrote or deleted 88,739 bytes of other files, and left 12 of these faults unreported (the
   overwrites it accepted, the writes it made through links).
+
+- *forked writer*, *add of non-real dtypes*, *damaged chunk: salvage*, *hostile manifest* (issue 50): a writer with
+  100 committed and 20 pending transitions forks; its child calls `add()`, `flush()` and `close()` (each must raise)
+  and then runs what a normal exit runs (the store's finalizer, garbage collection, `atexit`): 4 faults, not reported
+  when a call returned or the manifest changed; the parent then adds 20 more and closes. `add()` of complex,
+  `datetime64`, numeric-string and object observations (each must raise a `ValueError`, nothing stored). A bit
+  flipped in the second of three chunks of 50: `verify="all"` must refuse the directory, `check_directory` must name
+  that chunk, and `salvage` must copy the other two chunks bit-identical (*transitions committed* counts those 100:
+  the flipped chunk's rows were destroyed by the disk, not lost by the buffer; the default `verify="last"` serves
+  the flipped row, as documented). A `manifest.json` with a row of 2**24 float64 elements, JSON nested 100,000
+  levels or a number of 5,000 digits, opened read-only and as a writer: each must raise `BufferFormatError` naming
+  the file and write nothing (a `MemoryError` or `RecursionError`, what the store did before, counts as not
+  reported). These four cases came with their fixes (issue 50). The store before them (commit e0bb76f, these cases
+  only) left 26 of their 30 faults unreported: the forked child's `add()`, `flush()` and `close()` returned (its row
+  was committed, then overwritten by the parent's next commit) and its exit committed the parent's pending rows; the
+  four `add()`s stored their rows (19 rows per layout, 78 wrong rows served in all); 5 of the 6 hostile manifests per
+  layout raised something else than `BufferFormatError` (`RecursionError`, `ValueError`); and it had no salvage.
 
 What the columns count:
 
@@ -884,6 +907,149 @@ def planted_symlinks_case(root: str, layout: str, tally: Tally) -> None:
     reopen_and_check(path, 140, tally)
 
 
+# ------------------------------------------------------------------------------------------ safety cases (issue 50)
+def forked_writer_case(root: str, layout: str, tally: Tally) -> None:
+    """A writer forks: in the child, add(), flush() and close() must raise and its exit (its finalizers, atexit) must
+    commit nothing; the parent then goes on. A fault is not reported when a call of the child returned normally or
+    when the child's exit changed the manifest."""
+    path = os.path.join(root, f"fork-{layout}")
+    tally.runs += 1
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)  # 100 committed, 20 pending
+    manifest = os.path.join(path, "manifest.json")
+    before = open(manifest, "rb").read()
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: report how many of its calls returned normally, then exit as a normal exit would
+        returned = 0
+        try:
+            for call in (lambda: buffer.add(*transition(10_000)), buffer.flush, buffer.close):
+                try:
+                    call()
+                    returned += 1
+                except RuntimeError:
+                    pass
+            buffer.store.__del__()
+            gc.collect()
+            atexit._run_exitfuncs()
+        finally:
+            os.write(write_end, bytes([returned]))
+            os._exit(0)
+    os.close(write_end)
+    returned = os.read(read_end, 1)[0]
+    os.close(read_end)
+    os.waitpid(pid, 0)
+    tally.faults += 4
+    tally.unreported += returned + (open(manifest, "rb").read() != before)
+    add_rows(buffer, 120, 140)
+    tally.wrong += served_wrong(buffer, 140)
+    buffer.close()
+    reopen_and_check(path, 140, tally)
+
+
+def wrong_dtype_case(root: str, layout: str, tally: Tally) -> None:
+    """add() of observations that are not real numbers (complex, datetime, numeric strings, objects): each must raise
+    before anything is stored (a fault is not reported when the add returned)."""
+    path = os.path.join(root, f"dtype-{layout}")
+    tally.runs += 1
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)
+    obs, next_obs, actions, rewards, dones, infos = transition(120)
+    for bad in (obs + 1j, np.full(obs.shape, "2024-05-01", "datetime64[D]"), obs.astype(str), obs.astype(object)):
+        tally.faults += 1
+        try:
+            buffer.add(bad, next_obs, actions, rewards, dones, infos)
+            tally.unreported += 1
+        except ValueError:
+            pass
+    tally.wrong += served_wrong(buffer, 120)
+    add_rows(buffer, 120, 140)
+    buffer.close()
+    reopen_and_check(path, 140, tally)
+
+
+def damaged_chunk_case(root: str, layout: str, tally: Tally) -> None:
+    """A bit flipped in the second of three committed chunks: opening with verify="all" must refuse the directory,
+    check_directory must name that chunk, and salvage must copy the other two bit-identical. *Transitions committed*
+    counts the rows of the intact chunks (the disk destroyed the flipped chunk's rows)."""
+    path = os.path.join(root, f"damaged-{layout}")
+    tally.runs += 1
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 150)
+    buffer.close()
+    if layout == "single":
+        data_file, offset = os.path.join(path, "rewards.bin"), (CHUNK + 7) * 4
+    else:
+        data_file, offset = os.path.join(path, f"chunk.{CHUNK:012d}.bin"), CHUNK * (12 + 12 + 8) + 7 * 4
+    with open(data_file, "r+b") as file:
+        file.seek(offset)
+        byte = file.read(1)[0]
+        file.seek(offset)
+        file.write(bytes([byte ^ 0x10]))
+    tally.faults += 1
+    try:
+        LifelongReplayBuffer.open(path, read_only=True, verify="all").close()
+        tally.unreported += 1
+    except BufferFormatError:
+        pass
+    report = LifelongReplayBuffer.check_directory(path)
+    if [c.start for c in report.damaged] != [CHUNK]:
+        tally.unreported += 1
+    copy, _ = LifelongReplayBuffer.salvage(path, os.path.join(root, f"salvaged-{layout}"), read_only=True, verify="all")
+    tally.committed += 2 * CHUNK
+    kept = np.r_[0:CHUNK, 2 * CHUNK : 3 * CHUNK]
+    want = expected(0, 3 * CHUNK)
+    same = np.ones(len(kept), dtype=bool)
+    for name in CHECKED:
+        got = np.asarray(copy.read_range(name, 0, copy.size()))
+        if got.shape[0] != len(kept):
+            same[:] = False
+            break
+        same &= (got == want[name][kept]).reshape(len(kept), -1).all(axis=1)
+    tally.recovered += int(same.sum())
+    tally.wrong += int((~same).sum())
+    copy.close()
+
+
+def hostile_manifest_case(root: str, layout: str, tally: Tally) -> None:
+    """manifest.json replaced by a hostile one (a row of 2**24 float64 elements, JSON nested 100,000 levels, a number
+    of 5,000 digits), opened by a reader and by a writer: each must raise BufferFormatError naming the file (any other
+    outcome, MemoryError or RecursionError included, counts as not reported) and write nothing; then the real
+    manifest is put back."""
+    path = os.path.join(root, f"hostile-{layout}")
+    tally.runs += 1
+    buffer = make_buffer(path, layout)
+    add_rows(buffer, 0, 120)
+    buffer.close()
+    name = os.path.join(path, "manifest.json")
+    saved = open(name, "rb").read()
+    manifest = json.loads(saved)
+    big = json.loads(saved)
+    for field in ("observations", "next_observations"):
+        big["fields"][field] = {"dtype": "<f8", "shape": [1 << 24]}
+    hostile = [
+        json.dumps(big).encode(),
+        b"[" * 100_000 + b"]" * 100_000,
+        json.dumps(manifest).replace('"next_stream_id": ', '"next_stream_id": 1' + "0" * 5000 + ', "x": ').encode(),
+    ]
+    for raw in hostile:
+        for read_only in (True, False):
+            with open(name, "wb") as file:
+                file.write(raw)
+            tally.faults += 1
+            try:
+                LifelongReplayBuffer.open(path, read_only=read_only).close()
+                tally.unreported += 1
+            except BufferFormatError as error:
+                tally.unreported += name not in str(error) or open(name, "rb").read() != raw
+            except Exception as error:  # what this case looks for: MemoryError, RecursionError, ...
+                print(f"  hostile manifest {layout}: {type(error).__name__}", file=sys.stderr)
+                tally.unreported += 1
+    with open(name, "wb") as file:
+        file.write(saved)
+    reopen_and_check(path, 120, tally)
+
+
 # ------------------------------------------------------------------------------------------------------------ SIGKILL
 KILL_CHILD = r"""
 import sys, types
@@ -1031,6 +1197,16 @@ def run(kills: int, seed: int) -> list[Tally]:
             tally = Tally("planted symlinks", layout)
             planted_symlinks_case(root, layout, tally)
             tallies.append(tally)
+
+            for case, function in (
+                ("forked writer", forked_writer_case),
+                ("add of non-real dtypes", wrong_dtype_case),
+                ("damaged chunk: salvage", damaged_chunk_case),
+                ("hostile manifest", hostile_manifest_case),
+            ):
+                tally = Tally(case, layout)
+                function(root, layout, tally)
+                tallies.append(tally)
     finally:
         shutil.rmtree(root, ignore_errors=True)
     return tallies

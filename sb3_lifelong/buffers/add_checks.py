@@ -1,7 +1,8 @@
 """
-What :meth:`~sb3_lifelong.buffers.LifelongReplayBuffer.add` accepts: the shapes SB3's ``ReplayBuffer.add`` accepts for
-``n_envs`` envs, converted to the stored dtypes, with finite values; anything else is refused with a ``ValueError``
-naming the field, before anything of the call is stored.
+What :meth:`~sb3_lifelong.buffers.LifelongReplayBuffer.add` accepts: real numbers (bool, integer or float arrays) in the
+shapes SB3's ``ReplayBuffer.add`` accepts for ``n_envs`` envs (at most :data:`MAX_ENVS_PER_ADD`), converted to the
+stored dtypes, with finite values; anything else is refused with a ``ValueError`` naming the field, before anything of
+the call is stored.
 """
 
 from __future__ import annotations
@@ -16,10 +17,46 @@ from stable_baselines3.common.preprocessing import get_action_dim
 
 from sb3_lifelong.buffers.manifest import obs_keys_of
 
-__all__ = ["AddChecks", "raise_if_not_finite"]
+__all__ = ["MAX_ENVS_PER_ADD", "AddChecks", "raise_if_not_finite"]
 
 _vdot = np.vdot
 _isfinite = math.isfinite
+_FLOAT32 = np.dtype(np.float32)
+_BOOL = np.dtype(bool)
+
+#: the most envs one ``add()`` takes: each row stores the number of envs of its call (the stride between an env's
+#: successive rows) in the ``widths`` field, a uint16 of the directory format
+MAX_ENVS_PER_ADD = int(np.iinfo(np.uint16).max)
+#: dtype kinds ``add()`` stores: bool, signed and unsigned integers, floats (real numbers only)
+NUMERIC_KINDS = frozenset("biuf")
+_KIND_NAMES = {
+    "c": "complex numbers (their imaginary part would be lost)",
+    "M": "datetimes (they would be stored as integers)",
+    "m": "time deltas (they would be stored as integers)",
+    "U": "strings",
+    "S": "bytes",
+    "O": "Python objects",
+    "V": "raw or structured records",
+}
+
+
+def numeric(label: str, value: Any) -> np.ndarray:
+    """
+    :param label: The field, for the message (e.g. ``"observations"``, ``"observations['image']"``)
+    :param value: What ``add()`` was given for it
+    :return: ``value`` as an array of real numbers (bool, integer or float), not converted
+    :raises ValueError: naming the field and the dtype, for any other dtype (complex, datetime, timedelta, strings,
+        bytes, objects, records): numpy would convert them silently (drop an imaginary part, store a date as an
+        integer, parse a numeric string)
+    """
+    array = np.asarray(value)
+    kind = array.dtype.kind
+    if kind not in NUMERIC_KINDS:
+        raise ValueError(
+            f"add(): {label} have dtype {array.dtype} ({_KIND_NAMES.get(kind, 'not real numbers')}): only real numbers "
+            "(bool, integer or float arrays) are stored; nothing of this add() was stored"
+        )
+    return array
 
 
 def _conform(label: str, value: np.ndarray, target: tuple[int, ...], what: str = "") -> np.ndarray:
@@ -118,7 +155,9 @@ class AddChecks:
         :raises ValueError: naming the field, for a shape SB3 would not accept, a wrong number of infos, or a NaN or
             infinite value
         """
-        reward = np.asarray(reward, dtype=np.float32)
+        reward = np.asarray(reward)
+        if reward.dtype is not _FLOAT32:  # the stored dtypes are real numbers: only another one needs the test
+            reward = numeric("rewards", reward).astype(np.float32)
         if reward.ndim != 1:
             reward = _env_vector("rewards", reward)
         width = len(reward)
@@ -127,12 +166,25 @@ class AddChecks:
                 f"add(): infos has {len(infos)} entries for {width} envs (the length of rewards): expected one info dict "
                 "per env"
             )
+        if width > MAX_ENVS_PER_ADD:
+            raise ValueError(
+                f"add(): {width:,} envs in one call, at most {MAX_ENVS_PER_ADD:,} are accepted (each row stores the number "
+                "of envs of its call, the stride between an env's successive transitions, as a uint16). Split the envs "
+                "over several buffers (one per group of envs; LifelongBufferView reads them as one); nothing of this "
+                "add() was stored"
+            )
         if width != self.width:
             self._set_shapes(width)
-        flags = np.array(done, dtype=bool)  # a copy: stored as the flags (bit 0: done), timeouts set in place by add()
+        # a copy: stored as the flags (bit 0: done), timeouts set in place by add()
+        done = np.asarray(done)
+        if done.dtype is not _BOOL:
+            numeric("dones", done)
+        flags = np.array(done, dtype=bool)
         if flags.shape != self._done:
             flags = np.array(_conform("dones", flags, self._done))
         actions = np.asarray(action)
+        if actions.dtype is not self.dtypes["actions"]:
+            numeric("actions", actions)
         if actions.shape != self._actions:
             actions = self._conform_actions(actions, width)
         if actions.dtype != self._action_dtype and self._action_dtype.kind == "f":
@@ -150,9 +202,13 @@ class AddChecks:
         if self.obs_keys is None:
             target, dtype = self._obs, self._obs_dtype
             observations = np.asarray(obs)
+            if observations.dtype is not dtype:
+                numeric("observations", observations)
             if observations.shape != target:
                 observations = self._conform_obs("observations", observations, target)
             next_observations = np.asarray(next_obs)
+            if next_observations.dtype is not dtype:
+                numeric("next_observations", next_observations)
             if next_observations.shape != target:
                 next_observations = self._conform_obs("next_observations", next_observations, target)
             if observations.dtype != dtype and dtype.kind == "f":
@@ -233,6 +289,8 @@ class AddChecks:
         for key in self.obs_keys or ():
             name, target = f"{base}.{key}", self._key_obs[key]
             value = np.asarray(obs[key])
+            if value.dtype is not self.dtypes[name]:
+                numeric(f"{base}[{key!r}]", value)
             if value.shape != target:
                 value = self._conform_obs(f"{base}[{key!r}]", value, target, self._key_spaces[key])
             dtype = self.dtypes[name]

@@ -41,6 +41,12 @@ if sys.platform == "win32":  # pragma: no cover: the writer lock is advisory (PO
 else:
     import fcntl
 
+#: what an error about a damaged chunk adds
+SALVAGE_HINT = (
+    "`python -m sb3_lifelong.buffers verify {path}` lists every damaged chunk, and `python -m sb3_lifelong.buffers "
+    "salvage {path} NEW_DIRECTORY` copies the intact ones into a new buffer (neither writes to this directory)"
+)
+
 #: what the store gives a layout's ``write``: the bytes of a field's rows ``lo:hi``, counted from the first pending row
 BlockSource = Callable[[str, int, int], memoryview]
 
@@ -119,6 +125,10 @@ class Layout(Protocol):
         """Check the data files against the manifest just read (sizes, checksums); a writer cleans up after a crash.
         :return: the bytes of unflushed rows discarded, the unreferenced chunk files removed"""
 
+    def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:
+        """:return: None when the rows of a committed chunk are all in their files with their checksums (read in blocks),
+        else what is wrong (a missing, short or unreadable file, a checksum mismatch), naming the file"""
+
     def segments(self, chunks: list[dict[str, Any]], num_committed: int) -> list[Segment]:
         """:return: the committed rows as segments (where each field's rows are)"""
 
@@ -186,6 +196,9 @@ class MemoryLayout:
 
     def open_existing(self, chunks: list[dict[str, Any]], num_committed: int, verify: str) -> tuple[int, list[str]]:
         return 0, []
+
+    def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:
+        return None
 
     def segments(self, chunks: list[dict[str, Any]], num_committed: int) -> list[Segment]:
         return []
@@ -371,7 +384,7 @@ class SingleFileLayout(_DirectoryLayout):
             if have < need:
                 raise BufferFormatError(
                     f"{file_name}: {have} bytes but the manifest commits {num_committed} rows ({need} bytes); "
-                    "the file was truncated or replaced"
+                    f"the file was truncated or replaced. {SALVAGE_HINT.format(path=self.path)}"
                 )
             if have > need and not state.read_only:
                 # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
@@ -383,16 +396,30 @@ class SingleFileLayout(_DirectoryLayout):
                     os.close(fd)
                 discarded += have - need
         for chunk in checked_chunks(chunks, verify):
-            for name in state.fields:
-                with open(self.field_file(name), "rb") as file:
-                    file.seek(chunk["start"] * state.row_bytes[name])
-                    data = file.read(chunk["rows"] * state.row_bytes[name])
-                if zlib.crc32(data) != chunk["crc32"][name]:
-                    raise BufferFormatError(
-                        f"{self.field_file(name)}: checksum mismatch in chunk starting at row {chunk['start']} "
-                        "(corrupted data)"
-                    )
+            damage = self.chunk_damage(chunk)
+            if damage is not None:
+                raise BufferFormatError(f"{damage} (corrupted data). {SALVAGE_HINT.format(path=self.path)}")
         return discarded, []
+
+    def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:
+        """
+        :param chunk: A chunk of the manifest
+        :return: None when every field's rows of the chunk are in its file with their checksum, else what is wrong
+        """
+        for name in self.state.fields:
+            file_name, size = self.field_file(name), chunk["rows"] * self.state.row_bytes[name]
+            offset = chunk["start"] * self.state.row_bytes[name]
+            try:
+                if os.path.islink(file_name) or not os.path.isfile(file_name):
+                    return f"{file_name}: field file is missing or not a regular file"
+                crc = file_crc32(file_name, offset, size)
+            except OSError as error:
+                return f"{file_name}: cannot be read ({error.strerror or error})"
+            if crc is None:
+                return f"{file_name}: the file ends before the rows of the chunk starting at row {chunk['start']} (truncated)"
+            if crc != chunk["crc32"][name]:
+                return f"{file_name}: checksum mismatch in chunk starting at row {chunk['start']}"
+        return None
 
     def segments(self, chunks: list[dict[str, Any]], num_committed: int) -> list[Segment]:
         if num_committed == 0:
@@ -451,24 +478,44 @@ class ChunkFileLayout(_DirectoryLayout):
         for chunk in chunks:
             file_name = self.chunk_file(chunk)
             if not os.path.isfile(file_name) or os.path.islink(file_name):
-                raise BufferFormatError(f"{file_name}: chunk file is missing or not a regular file")
+                raise BufferFormatError(
+                    f"{file_name}: chunk file is missing or not a regular file. {SALVAGE_HINT.format(path=self.path)}"
+                )
             need = self.state.field_offsets(chunk["rows"])[""]
             have = os.path.getsize(file_name)
             if have != need:
                 raise BufferFormatError(
                     f"{file_name}: {have} bytes but the manifest's chunk of {chunk['rows']} rows needs {need} bytes; "
-                    "the file was truncated or replaced"
+                    f"the file was truncated or replaced. {SALVAGE_HINT.format(path=self.path)}"
                 )
-        names = list(self.state.fields)
         for chunk in checked_chunks(chunks, verify):
-            offsets = self.state.field_offsets(chunk["rows"])
-            with open(self.chunk_file(chunk), "rb") as file:
-                data = file.read()
+            damage = self.chunk_damage(chunk)
+            if damage is not None:
+                raise BufferFormatError(f"{damage} (corrupted data). {SALVAGE_HINT.format(path=self.path)}")
+        return (0, []) if self.state.read_only else self.remove_orphans(chunks)
+
+    def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:
+        """
+        :param chunk: A chunk of the manifest
+        :return: None when its file holds every field's rows with their checksum (and nothing more), else what is wrong
+        """
+        file_name, offsets = self.chunk_file(chunk), self.state.field_offsets(chunk["rows"])
+        try:
+            if os.path.islink(file_name) or not os.path.isfile(file_name):
+                return f"{file_name}: chunk file is missing or not a regular file"
+            if os.path.getsize(file_name) != offsets[""]:
+                return (
+                    f"{file_name}: {os.path.getsize(file_name)} bytes but the manifest's chunk of {chunk['rows']} rows "
+                    f"needs {offsets['']} bytes (truncated or replaced)"
+                )
+            names = list(self.state.fields)
             for k, name in enumerate(names):
                 stop = offsets[names[k + 1]] if k + 1 < len(names) else offsets[""]
-                if zlib.crc32(data[offsets[name] : stop]) != chunk["crc32"][name]:
-                    raise BufferFormatError(f"{self.chunk_file(chunk)}: checksum mismatch in field {name!r} (corrupted data)")
-        return (0, []) if self.state.read_only else self.remove_orphans(chunks)
+                if file_crc32(file_name, offsets[name], stop - offsets[name]) != chunk["crc32"][name]:
+                    return f"{file_name}: checksum mismatch in field {name!r}"
+        except OSError as error:
+            return f"{file_name}: cannot be read ({error.strerror or error})"
+        return None
 
     def remove_orphans(self, chunks: list[dict[str, Any]]) -> tuple[int, list[str]]:
         """Delete the chunk files the manifest does not list: evicted ones left by a crash after a commit, or the
@@ -541,6 +588,27 @@ def _write_field(fd: int, chunk: dict[str, Any], name: str, data: memoryview) ->
     """Write the bytes of field ``name`` of ``chunk`` at the file offset of ``fd`` and record their CRC."""
     chunk["crc32"][name] = zlib.crc32(data)
     files.write_all(fd, data)
+
+
+def file_crc32(file_name: str, offset: int, size: int, block: int = 1 << 22) -> Optional[int]:
+    """
+    :param file_name: A data file
+    :param offset: The first byte
+    :param size: How many bytes
+    :param block: Bytes read at a time (the memory used, whatever ``size``)
+    :return: The CRC-32 of the bytes ``offset:offset + size`` of the file, or None if it ends before
+    """
+    crc = 0
+    with open(file_name, "rb") as file:
+        file.seek(offset)
+        left = size
+        while left > 0:
+            data = file.read(min(block, left))
+            if not data:
+                return None
+            crc = zlib.crc32(data, crc)
+            left -= len(data)
+    return crc
 
 
 def checked_chunks(chunks: list[dict[str, Any]], verify: str) -> list[dict[str, Any]]:

@@ -33,6 +33,7 @@ from sb3_lifelong.buffers.manifest import (
     obs_keys_of,
 )
 from sb3_lifelong.buffers.rowstore import RowStore
+from sb3_lifelong.buffers.salvage import BufferCheck, check_buffer, salvage_buffer
 from sb3_lifelong.buffers.sampling import LifelongSampler, RunIndex
 from sb3_lifelong.buffers.schema import buffer_fields, observation_space_of, space_from_json, space_to_json
 from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
@@ -70,8 +71,8 @@ class LifelongReplayBuffer(LifelongSampler):
     (``read_mode``).
 
     Drop-in ``replay_buffer_class`` for SB3 off-policy algorithms: ``buffer_size`` is recorded but never
-    evicts anything (``capacity`` does), and ``add()`` accepts any number of envs (each env of each ``add`` width
-    is its own stream).
+    evicts anything (``capacity`` does), and ``add()`` accepts any number of envs up to 65,535 (each env of each
+    ``add`` width is its own stream).
 
     :param buffer_size: SB3's buffer size: informational only, nothing is evicted because of it (see ``capacity``)
     :param observation_space: Observation space (Box, Discrete, or Dict of those; optional when opening a ``path``)
@@ -90,7 +91,8 @@ class LifelongReplayBuffer(LifelongSampler):
         committed chunk, so opening is fast whatever the size, but a corrupted byte in an earlier chunk (e.g. a bit
         flipped on disk) is NOT detected and is served as it is by sampling and reads; "all": every chunk (reads the
         whole buffer once when opening; raises ``BufferFormatError`` on a mismatch); "none": no checksum (file sizes
-        are always checked)
+        are always checked). A damaged chunk makes opening raise in every mode: :meth:`check_directory` lists the
+        damaged chunks and :meth:`salvage` copies the intact ones into a new directory
     :param source: Initial source id of transitions whose ``info`` has no ``"stage"``
     :param max_resident_bytes: With a path and ``read_mode="mmap"``: remap the files after random reads may have
         made about this many bytes of them resident, to bound the RSS of sampling a buffer larger than RAM (None: never)
@@ -173,8 +175,15 @@ class LifelongReplayBuffer(LifelongSampler):
             )
         if observation_space is None or action_space is None:
             act_dtype, act_shape = self.store.fields["actions"]
-            observation_space = observation_space_of(self.store)
-            action_space = space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
+            try:
+                observation_space = observation_space_of(self.store)
+                action_space = space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
+            except (ValueError, TypeError, OverflowError, KeyError, AttributeError) as error:
+                self.store.abandon()
+                raise BufferFormatError(
+                    f"{os.path.join(str(path_str), MANIFEST_NAME)}: its 'spaces' do not describe the observation and "
+                    f"action spaces of its fields ({type(error).__name__}: {error})"
+                ) from None
         self._obs_keys = obs_keys_of(self.store.fields)
         self._checks = AddChecks(observation_space, action_space, self.store.fields)
         self.observation_space = observation_space
@@ -218,6 +227,37 @@ class LifelongReplayBuffer(LifelongSampler):
             raise FileNotFoundError(f"no buffer directory at {os.fspath(path)!r}")
         kwargs.setdefault("mode", "append")
         return cls(path=path, read_only=read_only, device=device, read_mode=read_mode, **kwargs)
+
+    @staticmethod
+    def check_directory(path: Union[str, os.PathLike]) -> BufferCheck:
+        """
+        Check every chunk of a buffer directory (files, sizes and checksums: reads the whole buffer once), without
+        opening it and without writing anything there. What ``verify="all"`` checks, reported chunk by chunk instead of
+        raising at the first damaged one. From a shell: ``python -m sb3_lifelong.buffers verify PATH``.
+
+        :param path: The buffer directory
+        :return: The report: ``report.damaged`` lists the damaged chunks (empty: intact), ``report.summary()`` says it
+        :raises BufferFormatError: its manifest is not valid (then no chunk can be located)
+        """
+        return check_buffer(os.fspath(path))
+
+    @classmethod
+    def salvage(
+        cls, path: Union[str, os.PathLike], destination: Union[str, os.PathLike], chunk_size: int = 10_000, **kwargs: Any
+    ) -> tuple[LifelongReplayBuffer, BufferCheck]:
+        """
+        Copy the intact chunks of a damaged buffer directory into a new directory and open the copy (``path`` is only
+        read: the damaged original stays as it is). The rows of damaged chunks are left out; n-step returns never chain
+        across them. From a shell: ``python -m sb3_lifelong.buffers salvage PATH NEW``.
+
+        :param path: The damaged buffer directory
+        :param destination: A new (or empty) directory
+        :param chunk_size: Transitions per chunk of the copy
+        :param kwargs: Arguments of :meth:`open` for the copy (``read_only``, ``device``, ``n_steps``, ...)
+        :return: The copy, opened, and the report (``report.damaged``: the chunks left out; ``report.copied``)
+        """
+        report = salvage_buffer(os.fspath(path), os.fspath(destination), chunk_size=chunk_size)
+        return cls.open(destination, **kwargs), report
 
     @classmethod
     def from_d4rl(
@@ -355,8 +395,8 @@ class LifelongReplayBuffer(LifelongSampler):
         infos: list[dict[str, Any]],
     ) -> None:
         """
-        Append one transition per env (SB3 semantics). Any number of envs is accepted: ``n_envs`` is the length of
-        ``reward``.
+        Append one transition per env (SB3 semantics). Any number of envs up to 65,535 is accepted: ``n_envs`` is the
+        length of ``reward``.
 
         Every argument is checked before anything is stored, and a ``ValueError`` naming the field, the expected and
         the received shape is raised for a shape SB3's ``ReplayBuffer.add`` would not accept for ``n_envs`` envs
@@ -365,7 +405,12 @@ class LifelongReplayBuffer(LifelongSampler):
         rewards and dones: ``(n_envs,)``; ``len(infos) == n_envs``). Shapes are never reshaped across envs (a
         transposed array is refused, not scrambled). A NaN or infinite observation, next observation, action or
         reward (after conversion to the stored dtype) raises a ``ValueError`` naming the field and the env; nothing of
-        that call is stored.
+        that call is stored. Only real numbers are stored (bool, integer and float arrays): complex, datetime,
+        timedelta, string, bytes and object arrays raise a ``ValueError`` naming the field and the dtype, as does a
+        call with more than 65,535 envs (``MAX_ENVS_PER_ADD``).
+
+        A directory writer writes only in the process that opened it: in a child of ``os.fork()``, ``add`` (and
+        ``flush``, ``close``, ``checkpoint``) raise :class:`~sb3_lifelong.buffers.ForkedWriterError`.
 
         In a directory, the add() that completes a chunk writes and commits it. If that fails (``OSError``, e.g. disk
         full), the error names the directory, none of the call's transitions is stored (in this object or on disk)
@@ -381,6 +426,7 @@ class LifelongReplayBuffer(LifelongSampler):
         :param done: Episode ends (terminations and time-limit truncations)
         :param infos: One info dict per env (``"TimeLimit.truncated"``, ``"stage"``, ``"dynamics_params"``)
         """
+        self.store.check_owner("add")
         self._refuse_mixing()
         rows = self._checks.rows(obs, next_obs, action, reward, done, infos)
         # checked: nothing of this call was stored (or changed) before
@@ -439,6 +485,7 @@ class LifelongReplayBuffer(LifelongSampler):
 
         :param rows: every stored field (``buffer.store.fields``) -> array of shape (n, *row_shape)
         """
+        self.store.check_owner("append_rows")
         self._refuse_mixing()
         end = self.store.end
         try:

@@ -53,8 +53,12 @@ MANIFEST_NAME = "manifest.json"
 ID_KEY = "buffer_id"
 ID_PATTERN = re.compile(r"[0-9a-f]{32}")
 LOCK_NAME = "writer.lock"
+# bounds of what a manifest may make this code read or allocate (a manifest may be hostile: see read_manifest)
 MAX_MANIFEST_BYTES = 256 * 1024 * 1024
 MAX_ROW_ELEMENTS = 1 << 24
+MAX_ROW_BYTES = 1 << 26  # one field of one row: 64 MiB (e.g. 2**24 float32 elements)
+MAX_JSON_DEPTH = 32  # a valid manifest nests at most about 14 levels (metadata: 8 levels below its source)
+MAX_NUMBER_CHARS = 100  # the longest number a manifest may hold (written ones have at most 20 digits or 25 characters)
 MAX_SOURCE_ID = 65534
 # dtypes a manifest may name (numpy ``dtype.str``), nothing else is accepted
 ALLOWED_DTYPES = frozenset(["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"])
@@ -177,6 +181,11 @@ def validate_fields(fields: Any) -> dict[str, tuple[str, tuple[int, ...]]]:
             raise BufferFormatError(f"manifest field {name!r}: shape must be a list of at most 8 positive ints, got {shape!r}")
         if math.prod(shape) > MAX_ROW_ELEMENTS:
             raise BufferFormatError(f"manifest field {name!r}: row of {math.prod(shape)} elements is too large")
+        if math.prod(shape) * int(dtype[2:]) > MAX_ROW_BYTES:  # the item size is the digits of the dtype string
+            raise BufferFormatError(
+                f"manifest field {name!r}: a row of {math.prod(shape):,} elements of {dtype} takes "
+                f"{math.prod(shape) * int(dtype[2:]):,} bytes, more than the {MAX_ROW_BYTES:,} a field's row may hold"
+            )
         if name in FIXED_FIELDS and (dtype, tuple(shape)) != FIXED_FIELDS[name]:
             raise BufferFormatError(f"manifest field {name!r} must have dtype/shape {FIXED_FIELDS[name]}, got {dtype, shape}")
         result[name] = (dtype, tuple(shape))
@@ -309,12 +318,86 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     return manifest
 
 
+# every digit as "0", for a quick search of long runs of digits
+_DIGITS_AS_ZERO = bytes(0x30 if 0x30 <= b <= 0x39 else b for b in range(256))
+# every byte but the quotes and brackets of a JSON document, for bytes.translate to delete
+_NOT_STRUCTURE = bytes(b for b in range(256) if b not in b'"[]{}')
+
+
+def _json_depth(raw: bytes) -> int:
+    """:return: how deeply the arrays and objects of a JSON document nest (strings ignored), without parsing it"""
+    # escaped backslashes, then escaped quotes, go (pairing from the left, as JSON does): every quote left delimits a
+    # string; then only quotes and brackets are kept (C-speed byte operations; a few bytes per chunk remain)
+    kept = raw.replace(b"\\\\", b"").replace(b'\\"', b"").translate(None, _NOT_STRUCTURE)
+    data = np.frombuffer(kept, dtype=np.uint8)
+    quotes = data == 0x22
+    outside = (np.cumsum(quotes, dtype=np.int64) % 2 == 0) & ~quotes  # after an even number of quotes
+    folded = data[outside] | 0x20  # "[" -> "{", "]" -> "}"
+    if folded.size == 0:
+        return 0
+    levels = np.cumsum((folded == 0x7B).astype(np.int64) - (folded == 0x7D))
+    return int(levels.max())
+
+
+def parse_manifest(raw: bytes, file_name: str) -> Any:
+    """
+    Decode a manifest's bytes, bounded: nothing in a hostile document can make this recurse deeply, parse a huge
+    number or hold an infinite or NaN value (``json.dumps`` of this package writes none).
+
+    :param raw: The bytes (at most :data:`MAX_MANIFEST_BYTES`: the caller checks the file's size before reading it)
+    :param file_name: The file, for messages
+    :return: The decoded document (not validated: see :func:`validate_manifest`)
+    :raises BufferFormatError: naming the file, for anything but a JSON document within the bounds
+    """
+    if len(raw) > MAX_MANIFEST_BYTES:
+        raise BufferFormatError(f"{file_name}: manifest of {len(raw)} bytes is larger than the {MAX_MANIFEST_BYTES} allowed")
+    depth = _json_depth(raw)
+    if depth > MAX_JSON_DEPTH:
+        raise BufferFormatError(
+            f"{file_name}: not a manifest: its JSON nests {depth} levels deep, more than the {MAX_JSON_DEPTH} allowed"
+        )
+
+    def _no_constants(name: str) -> Any:
+        raise BufferFormatError(f"{file_name}: non-standard JSON constant {name}")
+
+    def _number(text: str) -> None:
+        if len(text) > MAX_NUMBER_CHARS:
+            raise BufferFormatError(
+                f"{file_name}: not a manifest: a number of {len(text)} characters (more than {MAX_NUMBER_CHARS}): "
+                f"{text[:20]}..."
+            )
+
+    def _int(text: str) -> int:
+        _number(text)
+        return int(text)
+
+    def _float(text: str) -> float:
+        _number(text)
+        value = float(text)
+        if not math.isfinite(value):
+            raise BufferFormatError(f"{file_name}: not a manifest: the number {text} is out of the range of a float")
+        return value
+
+    # ints are parsed by json itself unless a run of more than MAX_NUMBER_CHARS digits is somewhere (in a string,
+    # perhaps): only then is each int checked as it is parsed (a Python call per int)
+    ints = _int if b"0" * (MAX_NUMBER_CHARS + 1) in raw.translate(_DIGITS_AS_ZERO) else int
+    try:
+        return json.loads(raw.decode("utf-8"), parse_constant=_no_constants, parse_int=ints, parse_float=_float)
+    except (UnicodeDecodeError, ValueError, RecursionError, MemoryError) as error:
+        if isinstance(error, BufferFormatError):
+            raise
+        raise BufferFormatError(f"{file_name}: not valid JSON ({type(error).__name__}: {error})") from None
+
+
 def read_manifest(path: str) -> dict[str, Any]:
     """
-    Read and validate ``<path>/manifest.json``.
+    Read and validate ``<path>/manifest.json``, bounded (see :func:`parse_manifest`): its size is checked before it
+    is read, its nesting before it is parsed, its numbers as they are parsed, and its fields' row sizes before
+    anything is allocated for them.
 
     :param path: Buffer directory
     :return: The validated manifest
+    :raises BufferFormatError: naming the file, for anything that is not a valid manifest within the bounds
     """
     file_name = os.path.join(path, MANIFEST_NAME)
     if not os.path.isfile(file_name):
@@ -323,19 +406,14 @@ def read_manifest(path: str) -> dict[str, Any]:
     if size > MAX_MANIFEST_BYTES:
         raise BufferFormatError(f"{file_name}: manifest of {size} bytes is larger than the {MAX_MANIFEST_BYTES} allowed")
     with open(file_name, "rb") as file:
-        raw = file.read()
-
-    def _no_constants(name: str) -> Any:
-        raise BufferFormatError(f"{file_name}: non-standard JSON constant {name}")
-
-    try:
-        manifest = json.loads(raw.decode("utf-8"), parse_constant=_no_constants)
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
-        raise BufferFormatError(f"{file_name}: not valid JSON ({error})") from error
+        raw = file.read(MAX_MANIFEST_BYTES + 1)
+    manifest = parse_manifest(raw, file_name)
     try:
         return validate_manifest(manifest)
     except BufferFormatError as error:
         raise BufferFormatError(f"{file_name}: {error}") from None
+    except RecursionError:  # pragma: no cover (the depth is bounded before parsing)
+        raise BufferFormatError(f"{file_name}: not a manifest: nested too deeply") from None
 
 
 def make_manifest(
@@ -402,10 +480,13 @@ def committed_transitions(path: str) -> Optional[int]:
     :param path: Buffer directory
     :return: The manifest's ``num_transitions``, or None when there is no manifest or it cannot be read
     """
+    file_name = os.path.join(path, MANIFEST_NAME)
     try:
-        with open(os.path.join(path, MANIFEST_NAME), "rb") as file:
-            return int(json.loads(file.read())["num_transitions"])
-    except (OSError, ValueError, KeyError, TypeError):
+        with open(file_name, "rb") as file:
+            raw = file.read(MAX_MANIFEST_BYTES + 1)
+        value = parse_manifest(raw, file_name)["num_transitions"]
+        return value if _is_int(value) else None
+    except (OSError, ValueError, KeyError, TypeError):  # BufferFormatError is a ValueError
         return None
 
 

@@ -36,8 +36,43 @@ from sb3_lifelong.buffers.manifest import (
 )
 from sb3_lifelong.buffers.readers import Reader, check_read_mode, make_reader
 
+#: the most bytes a directory writer allocates for its pending rows when it opens (they grow up to a chunk as needed)
+TAIL_PREALLOCATION = 64 * 1024 * 1024
+
 # writer stores of this process by directory, so that unpickling can take a directory over from a stale object
 _WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictionary()
+
+
+class ForkedWriterError(RuntimeError):
+    """
+    A directory buffer opened for writing in one process was used to write (``add``, ``flush``, ``close``, a commit)
+    in another one: a child made by ``os.fork()`` (or a ``multiprocessing`` "fork" worker) holds a copy of the
+    writer, whose pending rows and committed state the parent goes on changing. The child's writes would be
+    overwritten by the parent's next commit, and its exit would commit the parent's pending rows: they are refused.
+    Reading and sampling in the child work as before.
+    """
+
+
+def _forget_writers_in_child() -> None:
+    """
+    ``os.fork()``, in the child: the child's copies of this process's writers do not own their directories. Their
+    lock files are closed without unlocking (``flock`` locks belong to the open file, which the parent keeps locked:
+    the lock is the parent's until the parent releases it, however long the child lives), and they are forgotten as
+    writers of this process.
+    """
+    for store in list(_WRITERS.values()):
+        lock_file = store._state.lock_file
+        store._state.lock_file = None
+        if lock_file is not None:
+            try:
+                lock_file.close()  # close(2) of the child's descriptor only: the parent's lock stays
+            except OSError:  # pragma: no cover
+                pass
+    _WRITERS.clear()
+
+
+if hasattr(os, "register_at_fork"):  # POSIX
+    os.register_at_fork(after_in_child=_forget_writers_in_child)
 
 
 class RowStore(ManifestRecords):
@@ -136,6 +171,9 @@ class RowStore(ManifestRecords):
         self._undeleted: list[str] = []
         self.read_mode = read_mode
         self.max_resident_bytes = max_resident_bytes
+        #: the process that opened this writer: only it may write, commit or release the directory (see
+        #: :class:`ForkedWriterError`); None for stores that never write a directory (in memory, read-only)
+        self._owner_pid: Optional[int] = None if self.path is None or read_only else os.getpid()
         if not read_only:
             # the writer lock first, then everything else: a manifest read before taking it could be replaced by a
             # writer that commits and closes in between, and this writer would then cut that writer's rows off
@@ -148,7 +186,7 @@ class RowStore(ManifestRecords):
             self._release_lock()
             raise
         self._tail_start = self.num_committed
-        rows = self._layout.tail_rows
+        rows = self._first_tail_rows()
         self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
         self.num_tail = 0
         self._reader_stale = False  # True while the maps (or read files) may not cover every committed row
@@ -163,6 +201,19 @@ class RowStore(ManifestRecords):
                 f"{self.path}: recovered {self.recovered} transitions; discarded {self.discarded_bytes} bytes of "
                 f"unflushed rows left by a writer that did not close the buffer{removed}"
             )
+
+    def _first_tail_rows(self) -> int:
+        """
+        How many pending rows the store's arrays hold at first: none for a reader (it never appends), a whole chunk for
+        a directory writer when that takes at most :data:`TAIL_PREALLOCATION` bytes (else fewer: they grow up to a
+        chunk as rows come, so that opening a directory never allocates more than that), the layout's default in memory.
+        """
+        if self.read_only:
+            return 0
+        rows = self._layout.tail_rows
+        if self._layout.persistent:
+            rows = min(rows, max(1, TAIL_PREALLOCATION // max(1, sum(self.row_bytes.values()))))
+        return rows
 
     def _open_or_create(
         self,
@@ -286,6 +337,27 @@ class RowStore(ManifestRecords):
         self.committed_first = manifest.get("first_row", 0)
         self._load_records(manifest)
 
+    def forked(self) -> bool:
+        """Whether this is a writer's copy in a process other than the one that opened it (a child of ``os.fork()``):
+        such a copy may read, never write (:class:`ForkedWriterError`)."""
+        owner = getattr(self, "_owner_pid", None)
+        return owner is not None and owner != os.getpid()
+
+    def check_owner(self, action: str) -> None:
+        """
+        :param action: What is about to be done (``"add"``, ``"flush"``, ``"close"``, ``"commit"``...), for the message
+        :raises ForkedWriterError: this writer was opened by another process (this one is a child of ``os.fork()``)
+        """
+        if self._owner_pid is not None and self._owner_pid != os.getpid():
+            raise ForkedWriterError(
+                f"{self.path}: {action}() refused in process {os.getpid()}: this buffer was opened for writing by "
+                f"process {self._owner_pid}, and this process is a fork of it, holding a copy of its writer. Writes of a "
+                "copy would be overwritten by the parent's next commit, and would commit the parent's pending rows: "
+                "only the parent writes (and closes) this directory. Reading and sampling here work; to write from a "
+                "child, let the parent close the buffer first and open it again in the child, or use another directory. "
+                "Nothing was written"
+            )
+
     def _take_lock(self, create: bool = False) -> bool:
         """Take the directory's writer lock (see ``Layout.lock``). :return: whether this call took it"""
         locked = self._layout.lock(create)
@@ -295,6 +367,8 @@ class RowStore(ManifestRecords):
         return True
 
     def _release_lock(self) -> None:
+        if self.forked():
+            return  # a writer's lock is released only by the process that took it
         unlocked = self._layout.unlock()
         if unlocked is not None and _WRITERS.get(unlocked) is self:
             del _WRITERS[unlocked]
@@ -349,6 +423,7 @@ class RowStore(ManifestRecords):
         """
         if self.read_only:
             raise RuntimeError("buffer is open read-only")
+        self.check_owner("append")
         if self._closed:
             raise RuntimeError("buffer is closed (or was handed over to a buffer unpickled from it)")
         count = len(rows["rewards"])
@@ -386,6 +461,8 @@ class RowStore(ManifestRecords):
 
     def _keep_pending(self, rows: dict[str, np.ndarray], count: int, keep: int) -> None:
         """After a commit, the last ``keep`` of the ``count`` rows of an append become the pending rows."""
+        if keep > len(self._tail["rewards"]):
+            self._grow(min(max(keep, 2 * len(self._tail["rewards"])), self.chunk_size))
         for name in self._fields:
             self._tail[name][:keep] = rows[name][count - keep : count]
         self.num_tail = keep
@@ -404,15 +481,19 @@ class RowStore(ManifestRecords):
 
     def _make_room(self, need: int) -> None:
         """The arrays of pending rows are full: drop the evicted rows at their front (if that frees enough), else grow."""
+        persistent = self._layout.persistent
         evicted = self.first - self._tail_start
-        if evicted > 0 and evicted >= len(self._tail["rewards"]) // 4:
+        # in memory only: the pending rows of a directory start at the committed end, evicted or not, until the commit
+        if not persistent and evicted > 0 and evicted >= len(self._tail["rewards"]) // 4:
             for name in self._fields:
                 self._tail[name][: self.num_tail - evicted] = self._tail[name][evicted : self.num_tail]
             self._tail_start += evicted
             self.num_tail -= evicted
             return
         target = max(2 * self.num_tail, self.num_tail + need)
-        if self.capacity is not None:  # twice the capacity is enough to compact rarely
+        if persistent:  # the pending rows of a directory never reach a chunk (the add that completes one writes it)
+            target = max(min(target, self.chunk_size), self.num_tail + need)
+        elif self.capacity is not None:  # twice the capacity is enough to compact rarely
             target = max(min(target, 2 * self.capacity), self.num_tail + min(need, self.capacity), self.num_tail + 1)
         self._grow(target)
 
@@ -442,7 +523,10 @@ class RowStore(ManifestRecords):
         the directory after the manifest's rename fails, it raises :class:`CommitNotDurableError` with the rows
         committed (the manifest is in place); calling ``flush()`` again writes and syncs the manifest again.
         """
-        if self.read_only or self._closed or not self._layout.persistent:
+        if self.read_only or not self._layout.persistent:
+            return
+        self.check_owner("flush")
+        if self._closed:
             return
         if self.num_tail == 0:
             self._write_manifest()  # source names may have changed; a commit whose directory sync failed is synced
@@ -485,6 +569,7 @@ class RowStore(ManifestRecords):
         :param extra: Rows to write after the pending ones (field name -> array), or None
         :param extra_rows: How many rows of ``extra`` to write
         """
+        self.check_owner("commit")
         base, total = self.num_committed, self.num_tail + extra_rows
         bounds = [*range(0, total, self.chunk_size), total]
         chunks: list[dict[str, Any]] = [
@@ -574,6 +659,7 @@ class RowStore(ManifestRecords):
         committed_first: Optional[int] = None,
     ) -> None:
         """Atomically replace the manifest: the committed state of this object, or the one given."""
+        self.check_owner("commit")
         manifest = make_manifest(
             self._fields,
             self.layout,
@@ -611,7 +697,7 @@ class RowStore(ManifestRecords):
             self.__dict__.update(state)
             return
         previous = _WRITERS.get(state["path"])
-        if previous is not None and not state["read_only"]:
+        if previous is not None and not state["read_only"] and not previous.forked():
             # e.g. SB3's load() built a buffer on this directory before load_replay_buffer(): hand it over
             previous.close()
         try:
@@ -632,18 +718,41 @@ class RowStore(ManifestRecords):
         )
 
     def __del__(self) -> None:
+        if getattr(self, "_owner_pid", None) not in (None, os.getpid()):
+            return  # a fork's copy of a writer: its exit (garbage collection, interpreter shutdown) writes nothing
         try:
             self.close()
         except Exception:  # pragma: no cover (interpreter shutdown)
             pass
 
     def close(self) -> None:
-        """Flush, release the writer lock and close the read file descriptors (``read_mode="pread"``). Reading the
-        committed rows keeps working (with ``"pread"`` it opens the files again, until the next ``close()``)."""
-        if not getattr(self, "_closed", True):
+        """
+        Flush, release the writer lock and close the read file descriptors (``read_mode="pread"``). Reading the
+        committed rows keeps working (with ``"pread"`` it opens the files again, until the next ``close()``).
+
+        In a child of ``os.fork()`` holding a copy of a writer, this flushes nothing and leaves the lock to the parent:
+        the copy is marked closed and :class:`ForkedWriterError` is raised (once).
+        """
+        refuse = False
+        if self.forked():
+            refuse, self._closed = not self._closed, True  # nothing flushed, the lock left to the parent
+        elif not getattr(self, "_closed", True):
             self.flush()
             self._closed = True
             self._release_lock()
+        reader = getattr(self, "_reader", None)
+        if reader is not None:
+            reader.close()
+        if refuse:
+            self.check_owner("close")
+
+    def abandon(self) -> None:
+        """Close without writing anything (not even the manifest) and release the writer lock: what a constructor does
+        when it refuses the directory it opened (pending rows, if any, are dropped)."""
+        if not getattr(self, "_closed", True) and not self.forked():
+            self._closed = True
+            self._release_lock()
+        self._closed = True
         reader = getattr(self, "_reader", None)
         if reader is not None:
             reader.close()

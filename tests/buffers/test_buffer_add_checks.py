@@ -1,5 +1,6 @@
 """LifelongReplayBuffer refuses data it would store wrongly: non-finite values, shapes that do not fit the spaces."""
 
+import re
 import types
 
 import numpy as np
@@ -274,3 +275,62 @@ def test_add_still_accepts_lists_and_python_scalars():
     rows = stored(buffer)
     np.testing.assert_array_equal(rows["rewards"], [1.5, 2.5])
     np.testing.assert_array_equal(rows["flags"], [3, 0])
+
+
+# ---------------------------------------------------------------------------------------------- only real numbers
+NOT_REAL = {
+    "complex": lambda a: a.astype(np.complex64) + 1j,
+    "datetime64": lambda a: np.full(a.shape, "2024-05-01", dtype="datetime64[D]"),
+    "timedelta64": lambda a: np.ones(a.shape, dtype="timedelta64[s]"),
+    "str": lambda a: a.astype(str),
+    "bytes": lambda a: a.astype(str).astype(np.bytes_),
+    "object": lambda a: a.astype(object),
+}
+
+
+@pytest.mark.parametrize("field", ["obs", "next_obs", "action", "reward", "done"])
+@pytest.mark.parametrize("kind", NOT_REAL)
+def test_add_refuses_what_is_not_a_real_number(buffer, field, kind):
+    """Before: complex values lost their imaginary part (a warning), datetimes were stored as integers and numeric
+    strings were parsed (a done of "False" was True)."""
+    before, width = stored(buffer), buffer._width
+    bad = args(3, seed=4)
+    bad[field] = NOT_REAL[kind](np.asarray(bad[field]))
+    name = {"obs": "observations", "next_obs": "next_observations", "action": "actions", "reward": "rewards"}.get(
+        field, "dones"
+    )
+    with pytest.raises(
+        ValueError, match=rf"add\(\): {name} have dtype {re.escape(str(bad[field].dtype))} .*only real numbers"
+    ):
+        buffer.add(**bad)
+    assert_unchanged(buffer, before)
+    assert buffer._width == width
+
+
+def test_add_refuses_a_dict_observation_that_is_not_a_real_number():
+    space = spaces.Dict({"pos": spaces.Box(-1, 1, (2,), np.float32), "image": spaces.Box(0, 255, (4,), np.uint8)})
+    buffer = LifelongReplayBuffer(0, space, ACT, device="cpu")
+    obs = {"pos": np.zeros((1, 2), np.float32), "image": np.zeros((1, 4), np.uint8)}
+    good = dict(action=np.zeros((1, 2), np.float32), reward=np.zeros(1), done=np.zeros(1), infos=[{}])
+    buffer.add(obs, obs, **good)
+    with pytest.raises(ValueError, match=r"next_observations\['image'\] have dtype <U3"):
+        buffer.add(obs, {**obs, "image": np.full((1, 4), "255")}, **good)
+    assert buffer.size() == 1
+
+
+@pytest.mark.parametrize("where", ["memory", "directory"])
+def test_add_of_more_envs_than_the_widths_hold_is_refused(tmp_path, where):
+    """Before: an OverflowError from the uint16 env count, after the call had changed the buffer's streams (the next
+    add of as many envs then stored a wrong stride for every row)."""
+    buffer = LifelongReplayBuffer(0, OBS, ACT, device="cpu", path=None if where == "memory" else tmp_path / "b")
+    buffer.add(**args(1))
+    streams = buffer.store.next_stream_id
+    n_envs = 1 << 16
+    huge = {**args(1), "infos": [{}] * n_envs}
+    huge = {k: (np.repeat(v, n_envs, axis=0) if k != "infos" else v) for k, v in huge.items()}
+    for _ in range(2):
+        with pytest.raises(ValueError, match=r"65,536 envs in one call, at most 65,535"):
+            buffer.add(**huge)
+    assert buffer.size() == 1 and buffer.store.next_stream_id == streams
+    buffer.add(**args(1))  # the buffer goes on
+    np.testing.assert_array_equal(buffer.read_range("widths", 0, 2), [1, 1])
