@@ -127,7 +127,8 @@ def ess_temperature(
     if not 0.0 < target_ess < 1.0:
         raise ValueError(f"target_ess must be in (0, 1), got {target_ess}")
     values = advantages.detach().flatten().float()
-    spread = float(values.std()) if values.numel() > 1 else 0.0
+    # equal advantages have a float32 std of ~1e-11 rather than 0 (8 x 0.932944): compare them, not their std
+    spread = float(values.std()) if values.numel() > 1 and bool(values.max() > values.min()) else 0.0
     if not spread > 0:
         return advantages.new_tensor(math.inf)
     log_max = math.log(max_weight)

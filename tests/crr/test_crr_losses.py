@@ -335,3 +335,10 @@ def test_crr_picks_the_good_action_where_bc_averages(transform):
     crr_actions, bc_actions = crr.predict(obs, deterministic=True)[0], bc.predict(obs, deterministic=True)[0]
     assert np.abs(bc_actions).mean() < 0.3, bc_actions.mean()  # the Gaussian's mean between the two modes
     assert crr_actions.min() > 0.45, crr_actions.min()  # every state: the good mode
+
+
+def test_ess_temperature_of_equal_advantages_is_infinite_whatever_their_value():
+    """Equal advantages give equal weights at every temperature: ``inf``, also where their float32 std is not 0."""
+    assert th.full((8,), -3.3).std().item() > 0  # the float32 mean of equal values is not always the value
+    for value in (0.932944, 0.01, -3.3, 1e6):
+        assert ess_temperature(th.full((8,), value, dtype=th.float64), 0.5).item() == math.inf
