@@ -101,7 +101,9 @@ def directory_digest(path) -> dict:
     import hashlib
 
     return {
-        str(file.relative_to(path)): hashlib.sha256(file.read_bytes()).hexdigest() for file in sorted(path.rglob("*")) if file.is_file()
+        str(file.relative_to(path)): hashlib.sha256(file.read_bytes()).hexdigest()
+        for file in sorted(path.rglob("*"))
+        if file.is_file()
     }
 
 
@@ -117,9 +119,13 @@ def test_distill_leaves_a_two_source_buffer_byte_identical_and_learns_both(tmp_p
     buffer.close()
     before = directory_digest(path)
     assert len(before) > 1
-    student = distill(str(path), gradient_steps=300, policy_kwargs=dict(net_arch=[16]), learning_rate=3e-3, **{
-        k: v for k, v in student_kwargs().items() if k != "policy_kwargs"
-    })
+    student = distill(
+        str(path),
+        gradient_steps=300,
+        policy_kwargs=dict(net_arch=[16]),
+        learning_rate=3e-3,
+        **{k: v for k, v in student_kwargs().items() if k != "policy_kwargs"}
+    )
     student.replay_buffer.close()
     assert directory_digest(path) == before  # not a byte of the lifetime buffer changed, no file added or removed
     for source, action in ((0, 0.6), (1, -0.6)):

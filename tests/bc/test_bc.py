@@ -132,7 +132,9 @@ def test_one_update_on_a_fixed_batch_against_numpy(loss):
     )
     rng = np.random.default_rng(0)
     obs, actions = rng.uniform(-1, 1, size=(16, 2)), rng.uniform(-1, 1, size=(16, 2))
-    batch = ReplayBufferSamples(*(th.tensor(x, dtype=th.float32) for x in (obs, actions, obs, np.zeros((16, 1)), np.zeros((16, 1)))))
+    batch = ReplayBufferSamples(
+        *(th.tensor(x, dtype=th.float32) for x in (obs, actions, obs, np.zeros((16, 1)), np.zeros((16, 1))))
+    )
     model.replay_buffer.sample = lambda *args, **kwargs: batch  # type: ignore[method-assign]
 
     def losses() -> tuple[float, float]:

@@ -35,7 +35,11 @@ def test_gaussian_kl_is_non_negative_and_zero_only_at_equality(mean_p, std_p, me
 
 
 @FAST
-@given(x=arrays(np.float64, (3,), elements=means), mean=arrays(np.float64, (3,), elements=means), std=arrays(np.float64, (3,), elements=stds))
+@given(
+    x=arrays(np.float64, (3,), elements=means),
+    mean=arrays(np.float64, (3,), elements=means),
+    std=arrays(np.float64, (3,), elements=stds),
+)
 def test_gaussian_log_prob_is_torch_distributions(x, mean, std):
     got = gaussian_log_prob(th.tensor(x), th.tensor(mean), th.tensor(std)).item()
     want = th.distributions.Normal(th.tensor(mean), th.tensor(std)).log_prob(th.tensor(x)).sum().item()

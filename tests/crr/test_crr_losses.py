@@ -53,7 +53,7 @@ def np_projection(probs: np.ndarray, rewards: np.ndarray, discounts: np.ndarray,
         for j in range(n):
             moved = min(max(rewards[row] + discounts[row] * support[j], v_min), v_max)
             b = (moved - v_min) / delta
-            low, high = int(math.floor(b)), int(math.ceil(b))
+            low, high = math.floor(b), math.ceil(b)
             if low == high:
                 out[row, low] += probs[row, j]
             else:
@@ -139,7 +139,9 @@ def test_ess_temperature_reaches_its_target_and_the_next_grid_point_does_not(tar
     advantages = np.random.default_rng(4).standard_t(3, size=300)
     beta = ess_temperature(t64(advantages), target, max_weight=20.0).item()
     assert np_ess(np_exp_weights(advantages, beta, 20.0)) == pytest.approx(target, abs=1e-4)
-    assert np_ess(np_exp_weights(advantages, 0.99 * beta, 20.0)) < target < np_ess(np_exp_weights(advantages, 1.01 * beta, 20.0))
+    assert (
+        np_ess(np_exp_weights(advantages, 0.99 * beta, 20.0)) < target < np_ess(np_exp_weights(advantages, 1.01 * beta, 20.0))
+    )
     assert all(np_ess(np_exp_weights(advantages, b, 20.0)) > target for b in beta * np.geomspace(1.01, 1e3, 50))
     assert np_ess(np_exp_weights(advantages, 1e-3 * beta, 20.0)) > 0.4  # the cold end is above 0.3 again
 
@@ -257,7 +259,9 @@ def test_crr_update_golden_numbers(critic_target, transform):
     def f32(x):
         return th.tensor(x, dtype=th.float32)
 
-    replay = OfflineSamples(f32(obs), f32(actions), f32(next_obs), f32(dones), f32(rewards), None, f32(next_actions), f32(mask))
+    replay = OfflineSamples(
+        f32(obs), f32(actions), f32(next_obs), f32(dones), f32(rewards), None, f32(next_actions), f32(mask)
+    )
     fit, mean, std, sampled_q = model._forward_pass(replay, None, f32(target_noise), f32(sample_noise))
     advantage = model._advantage(fit.q_values, sampled_q)
     loss = actor_loss(replay.actions, mean, std, advantage.weights)
@@ -268,7 +272,10 @@ def test_crr_update_golden_numbers(critic_target, transform):
     if critic_target == "sarsa":
         next_a = np.where(mask[None].astype(bool), next_actions[None], next_a)
     td = rewards[:, 0] + 0.9 * (1 - dones[:, 0]) * np_q(model.critic_target, next_obs, next_a).mean(axis=0)
-    online_q = [np_linear(np.maximum(np_linear(np.concatenate([obs, actions], 1), net[0]), 0), net[2])[:, 0] for net in model.critic.q_networks]
+    online_q = [
+        np_linear(np.maximum(np_linear(np.concatenate([obs, actions], 1), net[0]), 0), net[2])[:, 0]
+        for net in model.critic.q_networks
+    ]
     critic = 0.5 * sum(np.mean((q - td) ** 2) for q in online_q)
     assert fit.loss.item() == pytest.approx(critic, rel=1e-5)
     np.testing.assert_allclose(fit.q_values.numpy(), np.min(online_q, axis=0), rtol=1e-5)
@@ -297,7 +304,9 @@ def test_target_actions_use_the_datas_next_action_only_where_the_mask_says():
     policy = target_actions(model.actor_target, replay, None, 2, data_next_actions=False, noise=noise)
     assert th.equal(policy, th.ones(2, 3, 2))
     sarsa = target_actions(model.actor_target, replay, None, 2, data_next_actions=True, noise=noise)
-    assert th.equal(sarsa[:, 0], replay.next_actions[0].expand(2, 2)) and th.equal(sarsa[:, 2], replay.next_actions[2].expand(2, 2))
+    assert th.equal(sarsa[:, 0], replay.next_actions[0].expand(2, 2)) and th.equal(
+        sarsa[:, 2], replay.next_actions[2].expand(2, 2)
+    )
     assert th.equal(sarsa[:, 1], th.ones(2, 2))
     with pytest.raises(ValueError, match="next actions"):
         target_actions(model.actor_target, replay._replace(next_actions=None), None, 2, data_next_actions=True)

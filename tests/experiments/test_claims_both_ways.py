@@ -124,11 +124,26 @@ PAPER_CASES = [
     ("C5c BC beats the indicator in Env-A", {("BC", A): 100.1}, {}, "reproduced"),
     ("C5c BC beats the indicator in Env-A", {}, {}, "not reproduced"),
     ("C5c BC beats the indicator in Env-A", {("CRR_indicator", A): 100.1}, {}, "not reproduced"),
-    ("C5d sampling ratio hurts the indicator", {("CRR_indicator_ratio_1to1", A): 100.2, ("CRR_indicator_ratio_1to10", A): 99.9}, {}, "reproduced"),
+    (
+        "C5d sampling ratio hurts the indicator",
+        {("CRR_indicator_ratio_1to1", A): 100.2, ("CRR_indicator_ratio_1to10", A): 99.9},
+        {},
+        "reproduced",
+    ),
     ("C5d sampling ratio hurts the indicator", {("CRR_indicator_ratio_1to1", A): 100.2}, {}, "not reproduced"),  # 1:5 == 1:10
     ("C5d sampling ratio hurts the indicator", {("CRR_indicator_ratio_1to10", A): 99.9}, {}, "not reproduced"),  # 1:1 == 1:5
-    ("C5d sampling ratio hurts the indicator", {("CRR_indicator_ratio_1to1", A): 99.0, ("CRR_indicator_ratio_1to10", A): 99.5}, {}, "not reproduced"),
-    ("C5d sampling ratio hurts the indicator", {("CRR_indicator_ratio_1to1", A): 100.2, ("CRR_indicator_ratio_1to10", A): 100.1}, {}, "not reproduced"),
+    (
+        "C5d sampling ratio hurts the indicator",
+        {("CRR_indicator_ratio_1to1", A): 99.0, ("CRR_indicator_ratio_1to10", A): 99.5},
+        {},
+        "not reproduced",
+    ),
+    (
+        "C5d sampling ratio hurts the indicator",
+        {("CRR_indicator_ratio_1to1", A): 100.2, ("CRR_indicator_ratio_1to10", A): 100.1},
+        {},
+        "not reproduced",
+    ),
     ("C5e beta=1 is robust to the ratio", {("CRR_exp_beta1_ratio_1to10", A): 90.01}, {}, "reproduced"),
     ("C5e beta=1 is robust to the ratio", {("CRR_exp_beta1_ratio_1to10", A): 89.9}, {}, "not reproduced"),
     ("C6 overestimation on Env-A data", {}, {"CRR_indicator|q|Env-A": 100.1}, "reproduced"),
@@ -154,7 +169,7 @@ THREE_STAGE_CASES = [
 ]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def claims_of(claims_file: pathlib.Path) -> dict[str, Claim]:
     return {claim.name: claim for claim in load_claims(claims_file)}
 
@@ -198,7 +213,10 @@ def test_c3_fails_when_any_lifelong_method_beats_the_student():
 # each precondition, the measurement that fails it on every seed and the one at its threshold (which holds)
 FAILS = {
     "env_a_learnt": ({"MPO|switch|Env-A": 49.9}, {"MPO|switch|Env-A": 50.0}),
-    "value_gap": ({"data|mc_return|Env-B": 14.9, "data|mc_return|Env-C": 14.9}, {"data|mc_return|Env-B": 15.0, "data|mc_return|Env-C": 15.0}),
+    "value_gap": (
+        {"data|mc_return|Env-B": 14.9, "data|mc_return|Env-C": 14.9},
+        {"data|mc_return|Env-B": 15.0, "data|mc_return|Env-C": 15.0},
+    ),
     "conservative": ({"CRR_exp_beta1|weight_ess": 0.49}, {"CRR_exp_beta1|weight_ess": 0.5}),
     "steady": ({"MPO|switch_spread|Env-A": 0.11}, {"MPO|switch_spread|Env-A": 0.1}),
     "steady_b": ({"MPO|switch_spread|Env-B": 0.11}, {"MPO|switch_spread|Env-B": 0.1}),
@@ -235,8 +253,13 @@ def test_a_claim_is_tested_on_the_seeds_its_preconditions_hold_on():
     study = synthetic_study(TWO, {("MPO", A): [10.0, 90.0, 90.0]}, {"MPO|switch|Env-A": [40.0, 100.0, 100.0]})
     rows = {row["claim"]: row for row in evaluate_claims(study, [claims_of(PAPER_CLAIMS)["C1 forgetting"]])}
     assert rows["C1 forgetting"]["verdict"] == "not reproduced"
-    assert "s0: n/a" in rows["C1 forgetting"]["values"] and "held on 2 of 3 measured seeds" in rows["C1 forgetting"]["precondition"]
-    unchecked = synthetic_study(TWO, {("MPO", A): [10.0, 90.0, 90.0]}, {"MPO|switch|Env-A": [40.0, 100.0, 100.0]}, env_a_learnt=None)
+    assert (
+        "s0: n/a" in rows["C1 forgetting"]["values"]
+        and "held on 2 of 3 measured seeds" in rows["C1 forgetting"]["precondition"]
+    )
+    unchecked = synthetic_study(
+        TWO, {("MPO", A): [10.0, 90.0, 90.0]}, {"MPO|switch|Env-A": [40.0, 100.0, 100.0]}, env_a_learnt=None
+    )
     # without the check seed 0's ratio of 0.25 counts: mean (0.25 + 0.9 + 0.9) / 3 = 0.68
     assert verdict(PAPER_CLAIMS, unchecked, "C1 forgetting") == "reproduced"
 

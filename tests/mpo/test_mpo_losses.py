@@ -63,7 +63,7 @@ def np_temperature(q: np.ndarray, eta: float, epsilon: float) -> tuple[float, np
 
 
 def np_gaussian_kl(mean_p, std_p, mean_q, std_q) -> np.ndarray:
-    """KL(N(mean_p, std_p^2) || N(mean_q, std_q^2)) per dimension: log(s_q / s_p) + (s_p^2 + (m_p - m_q)^2) / (2 s_q^2) - 1/2"""
+    """KL(N(m_p, s_p^2) || N(m_q, s_q^2)) per dimension: log(s_q / s_p) + (s_p^2 + (m_p - m_q)^2) / (2 s_q^2) - 1/2"""
     return np.log(std_q / std_p) + (std_p**2 + (mean_p - mean_q) ** 2) / (2 * std_q**2) - 0.5
 
 
@@ -75,7 +75,9 @@ def np_log_normal(x, mean, std) -> np.ndarray:
 def np_m_step(actions, weights, online_mean, online_std, target_mean, target_std) -> float:
     """-mean_B sum_N w (log N(a; mu, sigma_target) + log N(a; mu_target, sigma)), straight from the samples"""
     total = sum(weights)
-    fit = np_log_normal(actions, online_mean[None], target_std[None]) + np_log_normal(actions, target_mean[None], online_std[None])
+    fit = np_log_normal(actions, online_mean[None], target_std[None]) + np_log_normal(
+        actions, target_mean[None], online_std[None]
+    )
     return float(-(total * fit).sum(axis=0).mean())
 
 
@@ -178,10 +180,12 @@ def test_m_step_against_numpy_and_its_gradients(objectives):
     rng = np.random.default_rng(4)
     target_mean, target_std, online_mean, online_std = fixed_policies()
     actions = target_mean[None] + target_std[None] * rng.normal(size=(7, 4, 2))
-    weights = [np.exp(l) / np.exp(l).sum(axis=0) for l in rng.normal(size=(objectives, 7, 4))]
+    weights = [np.exp(logits) / np.exp(logits).sum(axis=0) for logits in rng.normal(size=(objectives, 7, 4))]
     mean, std = t64(online_mean).requires_grad_(), t64(online_std).requires_grad_()
     loss = m_step_loss(t64(actions), [t64(w) for w in weights], mean, std, t64(target_mean), t64(target_std))
-    assert loss.item() == pytest.approx(np_m_step(actions, weights, online_mean, online_std, target_mean, target_std), rel=1e-12)
+    assert loss.item() == pytest.approx(
+        np_m_step(actions, weights, online_mean, online_std, target_mean, target_std), rel=1e-12
+    )
     loss.backward()
     w = sum(weights)[..., None]  # [N, B, 1]
     batch = actions.shape[1]
@@ -343,7 +347,9 @@ def test_policy_improvement_golden_numbers(action_penalty):
 
     a, q = actions.double().numpy(), q_values.double().numpy()
     mu_t, sd_t, mu, sd = (x.double().numpy() for x in (target_mean, target_std, online_mean, online_std))
-    raw_eta, raw_am, raw_as = (x.detach().double().numpy() for x in (model.log_temperature, model.log_alpha_mean, model.log_alpha_stddev))
+    raw_eta, raw_am, raw_as = (
+        x.detach().double().numpy() for x in (model.log_temperature, model.log_alpha_mean, model.log_alpha_stddev)
+    )
     eta, alpha_mean, alpha_std = (np_softplus(x) + 1e-8 for x in (raw_eta, raw_am, raw_as))
     eta_loss, weights, eta_grad = np_temperature(q, float(eta[0]), 0.1)
     all_weights, dual_loss = [weights], eta_loss
