@@ -297,3 +297,42 @@ REGISTERED_NEEDS = {
 def test_each_claim_keeps_its_registered_preconditions():
     found = {name: claim.needs for path in (PAPER_CLAIMS, THREE_STAGE_CLAIMS) for name, claim in claims_of(path).items()}
     assert found == REGISTERED_NEEDS
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The statistics the claims' rows report
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def test_t_interval_hand_computed():
+    from sb3_lifelong.experiments.statistics import t_interval
+
+    # 1, 2, 6: mean 3, std (ddof 1) sqrt(7), t(0.975, 2 dof) = 4.302652730
+    mean, std, low, high = t_interval([1.0, 2.0, 6.0])
+    half = 4.302652729749464 * np.sqrt(7.0) / np.sqrt(3.0)
+    assert (mean, std) == pytest.approx((3.0, np.sqrt(7.0)))
+    assert (low, high) == pytest.approx((3.0 - half, 3.0 + half), rel=1e-9)
+    narrow = t_interval([1.0, 2.0, 6.0], level=0.5)  # t(0.75, 2 dof) = 0.8164965809
+    assert narrow[3] - narrow[2] == pytest.approx(2 * 0.816496580927726 * np.sqrt(7.0 / 3.0), rel=1e-9)
+    single = t_interval([4.0])
+    assert single[0] == 4.0 and all(np.isnan(single[1:]))
+    assert np.isnan(t_interval([])[0])
+
+
+def test_paired_difference_hand_computed():
+    from sb3_lifelong.experiments.statistics import paired_difference
+
+    difference = paired_difference({0: 5.0, 1: 1.0, 2: 3.0, 3: np.nan}, {0: 2.0, 1: 4.0, 2: 3.0, 3: 0.0, 7: 1.0})
+    # seeds 0, 1, 2 (3 is not finite on one side, 7 on one side only): differences 3, -3, 0
+    assert difference["n"] == 3 and difference["mean"] == 0.0 and difference["wins"] == 1.5
+    assert difference["low"] < 0.0 < difference["high"]
+    none = paired_difference({0: 1.0}, {1: 1.0})
+    assert none["n"] == 0 and np.isnan(none["mean"]) and none["wins"] == 0.0
+
+
+def test_describe_formats_mean_std_and_interval():
+    from sb3_lifelong.experiments.statistics import bootstrap_ci, describe
+
+    low, high = bootstrap_ci([10.0, 20.0, 30.0])
+    assert describe([10.0, 20.0, 30.0]) == f"20 +- 8 [{low:.0f}, {high:.0f}]"  # np.std, ddof 0: 8.16
+    assert describe([]) == "-"
