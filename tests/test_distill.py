@@ -76,3 +76,72 @@ def test_model_distill_names_its_student():
     model.learn(20)
     with pytest.raises(TypeError, match="offline algorithm class"):
         model.distill("CRR", gradient_steps=1)
+
+
+def two_source_data(n: int = 256, seed: int = 0) -> dict:
+    """
+    One-step episodes of two sources: the observation's second entry says which (0 or 1); the teacher's action is
+    +0.6 in source 0 and -0.6 in source 1 (whatever the first entry), reward 1.
+    """
+    rng = np.random.default_rng(seed)
+    sources = np.repeat([0, 1], n // 2)
+    obs = np.stack([rng.uniform(-1, 1, n), sources], axis=1).astype(np.float32)
+    actions = (np.where(sources == 0, 0.6, -0.6) + 0.05 * rng.normal(size=n)).reshape(-1, 1).astype(np.float32)
+    return dict(
+        observations=obs,
+        actions=actions,
+        rewards=np.ones(n, np.float32),
+        next_observations=obs,
+        terminals=np.ones(n, bool),
+        sources=sources,
+    )
+
+
+def directory_digest(path) -> dict:
+    import hashlib
+
+    return {
+        str(file.relative_to(path)): hashlib.sha256(file.read_bytes()).hexdigest()
+        for file in sorted(path.rglob("*"))
+        if file.is_file()
+    }
+
+
+def test_distill_leaves_a_two_source_buffer_byte_identical_and_learns_both(tmp_path):
+    from gymnasium import spaces
+
+    path = tmp_path / "lifetime"
+    data = two_source_data()
+    buffer = LifelongReplayBuffer.from_d4rl(
+        data, spaces.Box(-1, 1, (2,)), spaces.Box(-1, 1, (1,)), normalized_actions=True, path=str(path), chunk_size=64
+    )
+    assert sorted(np.unique(np.array(buffer.store.read_range("sources", 0, buffer.size())))) == [0, 1]
+    buffer.close()
+    before = directory_digest(path)
+    assert len(before) > 1
+    student = distill(
+        str(path),
+        gradient_steps=300,
+        policy_kwargs=dict(net_arch=[16]),
+        learning_rate=3e-3,
+        **{k: v for k, v in student_kwargs().items() if k != "policy_kwargs"}
+    )
+    student.replay_buffer.close()
+    assert directory_digest(path) == before  # not a byte of the lifetime buffer changed, no file added or removed
+    for source, action in ((0, 0.6), (1, -0.6)):
+        obs = np.stack([np.linspace(-1, 1, 20), np.full(20, source)], axis=1).astype(np.float32)
+        predicted, _ = student.predict(obs, deterministic=True)
+        assert np.abs(predicted - action).max() < 0.2, (source, predicted.ravel())
+
+
+def test_distill_from_a_dict_leaves_it_alone():
+    """The data's arrays are read, never written: not when its actions are normalised, nor clipped to the bounds."""
+    from gymnasium import spaces
+
+    data = two_source_data(n=64)
+    data["actions"][0] = 1.2  # outside the bounds: clipped in the student's copy
+    copy = {key: value.copy() for key, value in data.items()}
+    with pytest.warns(UserWarning, match="1 of 64 actions lie outside"):
+        distill(data, BC, gradient_steps=20, action_space=spaces.Box(-1, 1, (1,)), **student_kwargs())
+    for key, value in copy.items():
+        np.testing.assert_array_equal(data[key], value, err_msg=key)

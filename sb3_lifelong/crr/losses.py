@@ -112,7 +112,10 @@ def ess_temperature(
     clipping, ``ESS = exp(-s^2 / beta^2)``, so ``beta = s / sqrt(-ln target_ess)``: the centre of the search.
 
     The size grows with the temperature, so the search is a grid of candidates (vectorised) refined around the
-    first one that reaches the target, then interpolated linearly between the two that bracket it.
+    first one that reaches the target, then interpolated linearly between the two that bracket it. With clipped
+    weights the size is not monotone: at the coldest temperatures every weight is clipped or about 0 and the size
+    rises again (to the fraction of clipped weights); the search then takes the warmest temperature at which the
+    size falls to the target (every warmer one is above it).
 
     :param advantages: ``[batch]``
     :param target_ess: the weights' effective sample size as a fraction of the batch, in ``(0, 1)``; larger is
@@ -124,7 +127,8 @@ def ess_temperature(
     if not 0.0 < target_ess < 1.0:
         raise ValueError(f"target_ess must be in (0, 1), got {target_ess}")
     values = advantages.detach().flatten().float()
-    spread = float(values.std()) if values.numel() > 1 else 0.0
+    # equal advantages have a float32 std of ~1e-11 rather than 0 (8 x 0.932944): compare them, not their std
+    spread = float(values.std()) if values.numel() > 1 and bool(values.max() > values.min()) else 0.0
     if not spread > 0:
         return advantages.new_tensor(math.inf)
     log_max = math.log(max_weight)
@@ -141,7 +145,10 @@ def ess_temperature(
         reached = ess >= target_ess
         if warm and not (bool(reached[-1]) and not bool(reached[0])):  # the target is outside the window
             return ess_temperature(advantages, target_ess, max_weight)
-        first = int(th.argmax(reached.to(th.int8))) if bool(reached.any()) else ESS_GRID_POINTS - 1
+        # the warmest crossing: the first candidate from which every warmer one reaches the target (clipped weights'
+        # size is not monotone in the temperature: the coldest ones, every weight clipped or ~0, can reach it again)
+        missed = (~reached).nonzero()
+        first = 0 if len(missed) == 0 else min(int(missed[-1]) + 1, ESS_GRID_POINTS - 1)
         low, high = float(log_betas[max(first - 1, 0)]), float(log_betas[first])
     below, above = float(ess[max(first - 1, 0)]), float(ess[first])
     share = (target_ess - below) / (above - below) if above > below else 1.0

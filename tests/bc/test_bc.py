@@ -109,3 +109,58 @@ def test_bad_hyperparameters():
         BC("MlpPolicy", "Pendulum-v1", loss="l1")
     with pytest.raises(ValueError, match="max_grad_norm"):
         BC("MlpPolicy", "Pendulum-v1", max_grad_norm=0.0)
+
+
+@pytest.mark.parametrize("loss", ["nll", "mse"])
+def test_one_update_on_a_fixed_batch_against_numpy(loss):
+    """BC's losses of one update, from the policy's mean and std in NumPy: the Gaussian's negative log-likelihood and
+    the mean's squared error (summed over the action's dimensions, averaged over the batch); the chosen one is the
+    one optimised: it falls on the same batch after the step, and Adam's first step moves every parameter by -lr *
+    sign(gradient) of that loss."""
+    import math
+
+    from stable_baselines3.common.type_aliases import ReplayBufferSamples
+
+    data = linear_data()
+    model = BC.from_offline_data(
+        {**data, "actions": np.repeat(data["actions"], 2, axis=1)},
+        action_space=spaces.Box(-2, 2, (2,)),
+        loss=loss,
+        learning_rate=1e-3,
+        seed=0,
+        **SMALL,
+    )
+    rng = np.random.default_rng(0)
+    obs, actions = rng.uniform(-1, 1, size=(16, 2)), rng.uniform(-1, 1, size=(16, 2))
+    batch = ReplayBufferSamples(
+        *(th.tensor(x, dtype=th.float32) for x in (obs, actions, obs, np.zeros((16, 1)), np.zeros((16, 1))))
+    )
+    model.replay_buffer.sample = lambda *args, **kwargs: batch  # type: ignore[method-assign]
+
+    def losses() -> tuple[float, float]:
+        with th.no_grad():
+            mean, std = (x.double().numpy() for x in model.actor.distribution_params(batch.observations))
+        nll = -(-0.5 * ((actions - mean) / std) ** 2 - np.log(std) - 0.5 * math.log(2 * math.pi)).sum(axis=1).mean()
+        return float(nll), float(((mean - actions) ** 2).sum(axis=1).mean())
+
+    before = losses()
+    params = [p.detach().clone() for p in model.actor.parameters()]
+    model.actor.optimizer.zero_grad()
+    mean, std = model.actor.distribution_params(batch.observations)
+    chosen = -th.distributions.Normal(mean, std).log_prob(batch.actions).sum(1).mean() if loss == "nll" else None
+    if chosen is None:
+        chosen = (mean - batch.actions).pow(2).sum(1).mean()
+    grads = th.autograd.grad(chosen, list(model.actor.parameters()), allow_unused=True)
+    model.learn_offline(1, log_interval=0)
+    logged = model.logger.name_to_value
+    assert logged["train/nll"] == pytest.approx(before[0], rel=1e-5)
+    assert logged["train/mse"] == pytest.approx(before[1], rel=1e-5)
+    assert logged["train/actor_loss"] == pytest.approx(before[0 if loss == "nll" else 1], rel=1e-5)
+    after = losses()
+    assert after[0 if loss == "nll" else 1] < before[0 if loss == "nll" else 1]
+    for old, new, grad in zip(params, model.actor.parameters(), grads):
+        if grad is None:  # the std's head, with the mse: no gradient, not moved
+            assert loss == "mse" and th.equal(old, new)
+            continue
+        large = grad.abs() > 1e-4  # Adam's first step is g / (|g| + 1e-8): the sign, where |g| >> 1e-8
+        th.testing.assert_close((new.detach() - old)[large], -1e-3 * th.sign(grad[large]), rtol=1e-3, atol=1e-7)

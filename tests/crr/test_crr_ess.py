@@ -63,12 +63,15 @@ def test_weights_do_not_depend_on_the_reward_scale(scale):
 
 
 def test_clipped_weights_reach_the_target_and_warm_start_agrees():
-    advantages = th.cat([th.randn(250), th.tensor([40.0] * 6)])  # a few outliers that clip at small temperatures
+    # a few outliers that clip at small temperatures (seeded: drawn from the global generator, the result depended on
+    # the tests run before; seed 0 is one of the draws whose warm start lands 1e-3 away)
+    advantages = th.cat([th.randn(250, generator=th.Generator().manual_seed(0)), th.tensor([40.0] * 6)])
     beta = ess_temperature(advantages, 0.7, max_weight=5.0)
     weights, _ = crr_weights(advantages, "exp", beta, 5.0)
     assert effective_sample_size(weights).item() == pytest.approx(0.7, abs=1e-4)
     for start in (beta.item() * 0.8, beta.item() * 1.3, beta.item() * 50):  # inside and outside the warm window
-        assert ess_temperature(advantages, 0.7, 5.0, start=start).item() == pytest.approx(beta.item(), rel=1e-4)
+        # a warm start searches one grid pass (64 points over e^-0.5 ... e^0.5): about 1e-3 of the temperature
+        assert ess_temperature(advantages, 0.7, 5.0, start=start).item() == pytest.approx(beta.item(), rel=2e-3)
 
 
 def test_degenerate_and_bad_input():

@@ -1,0 +1,516 @@
+"""
+Mutation testing as a measurement: how many plausible bugs planted in the losses, the policies' arithmetic and the
+claim engine the targeted tests catch.
+
+A small self-contained runner (no mutmut / cosmic-ray: their import hooks and caches do not fit an editable install
+and a package under ``PYTHONPATH``). For each module it lists every mutation site of its source (:class:`Sites`):
+
+- comparisons: ``<`` <-> ``<=``, ``>`` <-> ``>=``, ``==`` <-> ``!=``, ``is`` <-> ``is not``, ``in`` <-> ``not in``;
+- arithmetic: ``+`` <-> ``-``, ``*`` <-> ``/``, ``**`` -> ``*``, and a sum or difference reduced to one of its terms
+  (a term dropped);
+- unary: ``-x`` -> ``x``, ``not x`` -> ``x``; boolean ``and`` <-> ``or``; ``+=`` <-> ``-=``;
+- constants: ``0`` <-> ``1``, another number ``c`` -> ``c + 1``, ``True`` <-> ``False``;
+- calls: ``min`` <-> ``max`` (builtins, methods, ``clamp_min`` / ``clamp_max``, ``amin`` / ``amax``), ``x.detach()``
+  -> ``x`` (a gradient let through), ``mean`` <-> ``sum``.
+
+Each mutant is the module with one site changed (``ast.unparse``), written into a private copy of the repository's
+Python files (``sb3_lifelong/``, ``tests/``, ``benchmarks/**.py``, the configuration files); the module's targeted test
+files then run there with ``PYTHONPATH`` at the copy (``pytest -x -q -p no:cacheprovider``). A failing run kills the
+mutant, a passing one lets it survive, a run past ``--timeout`` counts as killed (a mutant that hangs is caught) and is
+reported as such. Mutants run in parallel (``--workers``), one thread each.
+
+Writes ``results/mutation.csv`` (one row per mutant: module, line, operator, original and mutated code, outcome,
+seconds), ``results/summary.csv`` (kill rate per module) and ``results/mutation.md`` (the table, and every survivor
+with its line: the bugs the tests do not catch yet). From the repository root::
+
+    OMP_NUM_THREADS=1 python benchmarks/mutation/run_mutation.py --workers 16
+    python benchmarks/mutation/run_mutation.py --modules sb3_lifelong/common/losses.py --workers 1 --limit 10
+    python benchmarks/mutation/run_mutation.py --list   # the mutants, without running them
+"""
+
+import argparse
+import ast
+import copy
+import csv
+import datetime
+import os
+import pathlib
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from typing import Callable, Optional
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
+#: the modules measured, each with the test files that target it (fast ones: a mutant's run takes seconds)
+MODULES: dict[str, list[str]] = {
+    "sb3_lifelong/mpo/losses.py": ["tests/mpo/test_mpo_losses.py", "tests/common/test_properties.py"],
+    "sb3_lifelong/crr/losses.py": [
+        "tests/crr/test_crr_losses.py",
+        "tests/crr/test_crr_ess.py",
+        "tests/common/test_properties.py",
+    ],
+    "sb3_lifelong/common/losses.py": [
+        "tests/mpo/test_mpo_losses.py",
+        "tests/crr/test_crr_losses.py",
+        "tests/mpo/test_mpo.py::test_td_target_hand_computed_with_episode_ends_and_n_step_discounts",
+    ],
+    "sb3_lifelong/common/policies.py": [
+        "tests/common/test_properties.py",
+        "tests/mpo/test_mpo_losses.py",
+        "tests/crr/test_crr_losses.py",
+        "tests/bc/test_bc.py",
+    ],
+    "sb3_lifelong/experiments/claims.py": [
+        "tests/experiments/test_claims_both_ways.py",
+        "tests/experiments/test_study.py::test_a_ratio_with_a_non_positive_denominator_is_left_out",
+        "tests/experiments/test_study.py::test_claims_pair_the_compared_series_by_seed",
+    ],
+    "sb3_lifelong/experiments/statistics.py": [
+        "tests/experiments/test_claims_both_ways.py",
+        "tests/experiments/test_study.py::test_bootstrap_interval",
+        "tests/experiments/test_study.py::test_claims_pair_the_compared_series_by_seed",
+    ],
+    "benchmarks/studies/paper_cpu/claims.py": ["tests/experiments/test_claims_both_ways.py"],
+}
+
+#: what the copy of the repository holds (``benchmarks``: its Python files only, not its results)
+COPIED = ("sb3_lifelong", "tests")
+COPIED_FILES = ("setup.cfg", "pyproject.toml", "setup.py", "conftest.py")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The mutation sites
+# ---------------------------------------------------------------------------------------------------------------------
+
+COMPARISONS: dict[type, type] = {
+    ast.Lt: ast.LtE,
+    ast.LtE: ast.Lt,
+    ast.Gt: ast.GtE,
+    ast.GtE: ast.Gt,
+    ast.Eq: ast.NotEq,
+    ast.NotEq: ast.Eq,
+    ast.Is: ast.IsNot,
+    ast.IsNot: ast.Is,
+    ast.In: ast.NotIn,
+    ast.NotIn: ast.In,
+}
+ARITHMETIC: dict[type, type] = {ast.Add: ast.Sub, ast.Sub: ast.Add, ast.Mult: ast.Div, ast.Div: ast.Mult, ast.Pow: ast.Mult}
+SWAPPED_NAMES = {
+    "min": "max",
+    "max": "min",
+    "amin": "amax",
+    "amax": "amin",
+    "clamp_min": "clamp_max",
+    "clamp_max": "clamp_min",
+    "minimum": "maximum",
+    "maximum": "minimum",
+    "mean": "sum",
+    "sum": "mean",
+}
+
+
+@dataclass(frozen=True)
+class Mutant:
+    """One mutation of a module: where, what, and the mutated source."""
+
+    module: str
+    index: int
+    line: int
+    operator: str
+    original: str
+    mutated: str
+    source: str
+
+
+Mutation = Callable[[ast.AST], Optional[ast.AST]]
+
+
+def _docstring_nodes(tree: ast.AST) -> set[int]:
+    """:return: the ids of the docstrings' nodes (never mutated)"""
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                found.update(id(sub) for sub in ast.walk(first))
+    return found
+
+
+def _annotation_nodes(tree: ast.AST) -> set[int]:
+    """:return: the ids of the nodes inside type annotations (never mutated: a mutant there changes nothing)"""
+    found = set()
+    for node in ast.walk(tree):
+        annotations = []
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            annotations.append(node.returns)
+            arguments = node.args
+            for arg in [*arguments.posonlyargs, *arguments.args, *arguments.kwonlyargs, arguments.vararg, arguments.kwarg]:
+                if arg is not None:
+                    annotations.append(arg.annotation)
+        elif isinstance(node, ast.AnnAssign):
+            annotations.append(node.annotation)
+        for annotation in annotations:
+            if annotation is not None:
+                found.update(id(sub) for sub in ast.walk(annotation))
+    return found
+
+
+def mutations_of(node: ast.AST) -> Iterator[tuple[str, Mutation]]:  # noqa: C901 (one branch per kind of node)
+    """:return: the mutations of one node, each a name and a function that rewrites (a copy of) the node"""
+    if isinstance(node, ast.Compare):
+        for position, op in enumerate(node.ops):
+            if type(op) in COMPARISONS:
+
+                def compare(n: ast.AST, position: int = position) -> ast.AST:
+                    assert isinstance(n, ast.Compare)
+                    n.ops[position] = COMPARISONS[type(n.ops[position])]()
+                    return n
+
+                yield f"compare {type(op).__name__} -> {COMPARISONS[type(op)].__name__}", compare
+    elif isinstance(node, ast.BinOp) and type(node.op) in ARITHMETIC:
+
+        def arithmetic(n: ast.AST) -> ast.AST:
+            assert isinstance(n, ast.BinOp)
+            n.op = ARITHMETIC[type(n.op)]()
+            return n
+
+        yield f"arithmetic {type(node.op).__name__} -> {ARITHMETIC[type(node.op)].__name__}", arithmetic
+        if isinstance(node.op, (ast.Add, ast.Sub)):
+            yield "drop the right term", lambda n: n.left  # type: ignore[attr-defined]
+            yield "drop the left term", lambda n: n.right if isinstance(n.op, ast.Add) else ast.UnaryOp(ast.USub(), n.right)  # type: ignore[attr-defined]
+    elif isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.Not)):
+        yield f"drop unary {type(node.op).__name__}", lambda n: n.operand  # type: ignore[attr-defined]
+    elif isinstance(node, ast.BoolOp):
+
+        def boolean(n: ast.AST) -> ast.AST:
+            assert isinstance(n, ast.BoolOp)
+            n.op = ast.Or() if isinstance(n.op, ast.And) else ast.And()
+            return n
+
+        yield f"boolean {type(node.op).__name__} swapped", boolean
+    elif isinstance(node, ast.AugAssign) and isinstance(node.op, (ast.Add, ast.Sub)):
+
+        def augmented(n: ast.AST) -> ast.AST:
+            assert isinstance(n, ast.AugAssign)
+            n.op = ast.Sub() if isinstance(n.op, ast.Add) else ast.Add()
+            return n
+
+        yield "augmented += <-> -=", augmented
+    elif isinstance(node, ast.Constant) and not isinstance(node.value, str):
+        value = node.value
+        if isinstance(value, bool):
+            yield f"constant {value} -> {not value}", lambda n: ast.Constant(not value)
+        elif isinstance(value, (int, float)) and not isinstance(value, complex):
+            replaced = 1 if value == 0 else 0 if value == 1 else value + 1
+            if isinstance(value, float):
+                replaced = float(replaced)
+            yield f"constant {value!r} -> {replaced!r}", lambda n: ast.Constant(replaced)
+    elif isinstance(node, ast.Call):
+        function = node.func
+        name = (
+            function.id if isinstance(function, ast.Name) else function.attr if isinstance(function, ast.Attribute) else None
+        )
+        if name in SWAPPED_NAMES:
+            swapped = SWAPPED_NAMES[name]
+
+            def swap(n: ast.AST, swapped: str = swapped) -> ast.AST:
+                assert isinstance(n, ast.Call)
+                if isinstance(n.func, ast.Name):
+                    n.func.id = swapped
+                elif isinstance(n.func, ast.Attribute):
+                    n.func.attr = swapped
+                return n
+
+            yield f"call {name} -> {swapped}", swap
+        if name == "detach" and isinstance(function, ast.Attribute) and not node.args:
+            yield "drop .detach()", lambda n: n.func.value  # type: ignore[attr-defined]
+
+
+def list_mutants(module: str, root: pathlib.Path = ROOT) -> list[Mutant]:
+    """:return: every mutant of ``module`` (a path relative to ``root``), in the order of the source's lines"""
+    source = (root / module).read_text()
+    tree = ast.parse(source)
+    skipped = _docstring_nodes(tree) | _annotation_nodes(tree)
+    original_nodes = list(ast.walk(tree))
+    mutants = []
+    for position, node in enumerate(original_nodes):
+        if id(node) in skipped or not hasattr(node, "lineno"):
+            continue
+        for name, mutate in mutations_of(node):
+            mutated_tree = copy.deepcopy(tree)
+            target = list(ast.walk(mutated_tree))[position]
+            replacement = mutate(copy.deepcopy(target))
+            if replacement is None:
+                continue
+            _replace(mutated_tree, target, replacement)
+            ast.fix_missing_locations(mutated_tree)
+            try:
+                mutated_source = ast.unparse(mutated_tree)
+                compile(mutated_source, module, "exec")
+            except (SyntaxError, ValueError):
+                continue
+            mutants.append(
+                Mutant(
+                    module=module,
+                    index=0,  # numbered below, in the order of the source's lines
+                    line=node.lineno,
+                    operator=name,
+                    original=ast.unparse(node),
+                    mutated=ast.unparse(replacement),
+                    source=mutated_source,
+                )
+            )
+    mutants.sort(key=lambda m: m.line)  # stable: the nodes of a line keep the tree's order
+    return [Mutant(**{**asdict(m), "index": index}) for index, m in enumerate(mutants)]
+
+
+def _replace(tree: ast.AST, target: ast.AST, replacement: ast.AST) -> None:
+    """Put ``replacement`` where ``target`` is in ``tree`` (in its parent's field or list)."""
+    for parent in ast.walk(tree):
+        for field, value in ast.iter_fields(parent):
+            if value is target:
+                setattr(parent, field, replacement)
+                return
+            if isinstance(value, list):
+                for position, item in enumerate(value):
+                    if item is target:
+                        value[position] = replacement
+                        return
+    raise AssertionError("mutation target not found in its tree")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Running a mutant
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def copy_repository(destination: pathlib.Path, root: pathlib.Path = ROOT) -> None:
+    """Copy what the tests import and read: the package, the tests, ``benchmarks``' Python files, the configuration."""
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", ".hypothesis")
+    for name in COPIED:
+        shutil.copytree(root / name, destination / name, ignore=ignore)
+    for name in COPIED_FILES:
+        if (root / name).exists():
+            shutil.copy2(root / name, destination / name)
+    for path in (root / "benchmarks").rglob("*.py"):
+        if "__pycache__" in path.parts:
+            continue
+        target = destination / path.relative_to(root)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(path, target)
+
+
+@dataclass
+class Outcome:
+    """What the targeted tests made of a mutant."""
+
+    module: str
+    index: int
+    line: int
+    operator: str
+    original: str
+    mutated: str
+    outcome: str  # killed, survived, timeout, error (the tests could not run: counted apart)
+    seconds: float
+    detail: str
+
+
+def run_tests(copy_root: pathlib.Path, tests: Sequence[str], timeout: float) -> tuple[str, float, str]:
+    """:return: the outcome of the tests in the copy (killed / survived / timeout / error), their seconds and a detail"""
+    env = dict(os.environ, PYTHONPATH=str(copy_root), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1")
+    env["CUDA_VISIBLE_DEVICES"] = ""  # the tests as CI runs them, on the CPU (and no GPU shared by the workers)
+    command = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-W", "ignore::DeprecationWarning"]
+    command += ["-o", "addopts=", *tests]
+    start = time.perf_counter()
+    try:
+        completed = subprocess.run(command, cwd=copy_root, env=env, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return "timeout", time.perf_counter() - start, f"over {timeout:g} s"
+    seconds = time.perf_counter() - start
+    lines = [line for line in completed.stdout.splitlines() if line.strip()]
+    last = lines[-1] if lines else completed.stderr.strip().splitlines()[-1:] or [""]
+    detail = last if isinstance(last, str) else last[0]
+    if completed.returncode == 0:
+        return "survived", seconds, detail
+    if completed.returncode == 1:  # tests ran and failed
+        failed = next((line for line in lines if line.startswith("FAILED")), detail)
+        return "killed", seconds, failed[:200]
+    # 2: interrupted (an error at collection, e.g. the mutant breaks an import), 3/4: pytest's own errors
+    return ("killed" if completed.returncode == 2 else "error"), seconds, detail[:200]
+
+
+def run_mutant(mutant: Mutant, tests: Sequence[str], timeout: float, scratch: pathlib.Path) -> Outcome:
+    """Write the mutant into a fresh copy of the repository, run its module's tests there, remove the copy."""
+    copy_root = pathlib.Path(tempfile.mkdtemp(prefix=f"mutant_{mutant.index}_", dir=scratch))
+    try:
+        copy_repository(copy_root)
+        (copy_root / mutant.module).write_text(mutant.source)
+        outcome, seconds, detail = run_tests(copy_root, tests, timeout)
+    finally:
+        shutil.rmtree(copy_root, ignore_errors=True)
+    fields = {k: v for k, v in asdict(mutant).items() if k != "source"}
+    return Outcome(**fields, outcome=outcome, seconds=round(seconds, 2), detail=detail)
+
+
+def baseline(tests: Sequence[str], timeout: float, scratch: pathlib.Path) -> tuple[str, float, str]:
+    """:return: the unmutated tests' outcome (they must pass, or no mutant's outcome means anything)"""
+    copy_root = pathlib.Path(tempfile.mkdtemp(prefix="baseline_", dir=scratch))
+    try:
+        copy_repository(copy_root)
+        return run_tests(copy_root, tests, timeout)
+    finally:
+        shutil.rmtree(copy_root, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Results
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def summarise(outcomes: Sequence[Outcome]) -> list[dict]:
+    """:return: per module: mutants, killed (timeouts included), survived, errors, kill rate over the decided ones"""
+    rows = []
+    for module in dict.fromkeys(o.module for o in outcomes):
+        mine = [o for o in outcomes if o.module == module]
+        killed = sum(o.outcome in ("killed", "timeout") for o in mine)
+        survived = sum(o.outcome == "survived" for o in mine)
+        errors = sum(o.outcome == "error" for o in mine)
+        decided = killed + survived
+        rows.append(
+            dict(
+                module=module,
+                mutants=len(mine),
+                killed=killed,
+                survived=survived,
+                errors=errors,
+                kill_rate=round(killed / decided, 3) if decided else float("nan"),
+                seconds=round(sum(o.seconds for o in mine), 1),
+            )
+        )
+    return rows
+
+
+def write_results(outcomes: Sequence[Outcome], output: pathlib.Path, command: str, total_mutants: dict[str, int]) -> None:
+    output.mkdir(parents=True, exist_ok=True)
+    ordered = sorted(outcomes, key=lambda o: (o.module, o.index))
+    with open(output / "mutation.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(asdict(ordered[0]))) if ordered else None
+        if writer is not None:
+            writer.writeheader()
+            writer.writerows(asdict(o) for o in ordered)
+    summary = summarise(ordered)
+    with open(output / "summary.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(
+            handle, fieldnames=["module", "mutants", "killed", "survived", "errors", "kill_rate", "seconds"]
+        )
+        writer.writeheader()
+        writer.writerows(summary)
+    lines = [
+        "# Mutation testing: the bugs the targeted tests catch",
+        "",
+        f"`{command}`, {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.node()}, "
+        f"Python {platform.python_version()}. A mutant is killed when its module's targeted tests fail (a timeout "
+        "counts as killed); the kill rate is over the killed and surviving ones (errors: the tests could not run).",
+        "",
+        "| module | mutants run (of all) | killed | survived | errors | kill rate |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in summary:
+        lines.append(
+            f"| `{row['module']}` | {row['mutants']} (of {total_mutants.get(row['module'], row['mutants'])}) | "
+            f"{row['killed']} | {row['survived']} | {row['errors']} | {row['kill_rate']:.0%} |"
+        )
+    survivors = [o for o in ordered if o.outcome == "survived"]
+    lines += ["", f"## Survivors ({len(survivors)})", ""]
+    if survivors:
+        lines += ["| module | line | operator | original | mutated |", "| --- | --- | --- | --- | --- |"]
+        for o in survivors:
+            lines.append(f"| `{o.module}` | {o.line} | {o.operator} | `{_cell(o.original)}` | `{_cell(o.mutated)}` |")
+    else:
+        lines.append("None.")
+    errors = [o for o in ordered if o.outcome == "error"]
+    if errors:
+        lines += ["", f"## Errors ({len(errors)})", ""]
+        lines += [f"- `{o.module}`:{o.line} {o.operator}: {o.detail}" for o in errors]
+    (output / "mutation.md").write_text("\n".join(lines) + "\n")
+
+
+def _cell(code: str) -> str:
+    code = " ".join(code.split()).replace("|", "\\|").replace("`", "'")
+    return code if len(code) <= 90 else code[:87] + "..."
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--modules", nargs="+", default=list(MODULES), help="modules to mutate (paths from the root)")
+    parser.add_argument("--workers", type=int, default=1, help="mutants run at once (one torch thread each)")
+    parser.add_argument("--limit", type=int, default=None, help="at most this many mutants per module (spread evenly)")
+    parser.add_argument("--timeout", type=float, default=300.0, help="seconds a mutant's tests may take (then: killed)")
+    parser.add_argument("--output", type=pathlib.Path, default=RESULTS, help="where the csv and markdown go")
+    parser.add_argument("--scratch", type=pathlib.Path, default=None, help="where the copies go (default: the temp dir)")
+    parser.add_argument("--list", action="store_true", help="list the mutants and stop")
+    args = parser.parse_args(argv)
+    unknown = [module for module in args.modules if module not in MODULES]
+    if unknown:
+        parser.error(f"no targeted tests known for {unknown}: one of {list(MODULES)}")
+    if args.workers < 1:
+        parser.error("--workers must be >= 1")
+
+    chosen: list[Mutant] = []
+    total: dict[str, int] = {}
+    for module in args.modules:
+        mutants = list_mutants(module)
+        total[module] = len(mutants)
+        if args.limit is not None and len(mutants) > args.limit:
+            step = len(mutants) / args.limit  # an even spread over the module, not its first lines only
+            mutants = [mutants[int(k * step)] for k in range(args.limit)]
+        chosen += mutants
+        print(f"{module}: {len(mutants)} mutants (of {total[module]})", flush=True)
+    if args.list:
+        for m in chosen:
+            print(f"{m.module}:{m.line} [{m.operator}] {_cell(m.original)}  ->  {_cell(m.mutated)}")
+        return 0
+
+    scratch = args.scratch or pathlib.Path(tempfile.gettempdir())
+    scratch.mkdir(parents=True, exist_ok=True)
+    outcomes: list[Outcome] = []
+    command = "python benchmarks/mutation/run_mutation.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    with ThreadPoolExecutor(max_workers=args.workers) as pool:
+        baselines = {module: pool.submit(baseline, MODULES[module], args.timeout, scratch) for module in args.modules}
+        for module, future in baselines.items():
+            outcome, seconds, detail = future.result()
+            print(f"baseline {module}: {outcome} in {seconds:.1f} s ({detail})", flush=True)
+            if outcome != "survived":
+                print(f"the unmutated tests of {module} do not pass: fix them first", file=sys.stderr)
+                return 1
+        futures = [pool.submit(run_mutant, m, MODULES[m.module], args.timeout, scratch) for m in chosen]
+        for done, future in enumerate(as_completed(futures), 1):
+            outcome = future.result()
+            outcomes.append(outcome)
+            print(
+                f"[{done}/{len(chosen)}] {outcome.outcome:8s} {outcome.module}:{outcome.line} {outcome.operator}: "
+                f"{_cell(outcome.original)} -> {_cell(outcome.mutated)} ({outcome.seconds:.1f} s)",
+                flush=True,
+            )
+            if done % 10 == 0 or done == len(chosen):  # partial results survive an interrupted run
+                write_results(outcomes, args.output, command.strip(), total)
+    for row in summarise(sorted(outcomes, key=lambda o: (o.module, o.index))):
+        print(
+            f"{row['module']}: {row['killed']} killed, {row['survived']} survived, {row['errors']} errors, "
+            f"kill rate {row['kill_rate']}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
