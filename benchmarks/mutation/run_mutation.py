@@ -325,7 +325,8 @@ class Outcome:
 
 def run_tests(copy_root: pathlib.Path, tests: Sequence[str], timeout: float) -> tuple[str, float, str]:
     """:return: the outcome of the tests in the copy (killed / survived / timeout / error), their seconds and a detail"""
-    env = dict(os.environ, PYTHONPATH=str(copy_root), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1")
+    path = os.pathsep.join(p for p in (str(copy_root), os.environ.get("PYTHONPATH", "")) if p)  # the copy first
+    env = dict(os.environ, PYTHONPATH=path, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1")
     env["CUDA_VISIBLE_DEVICES"] = ""  # the tests as CI runs them, on the CPU (and no GPU shared by the workers)
     command = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-W", "ignore::DeprecationWarning"]
     command += ["-o", "addopts=", *tests]
