@@ -435,7 +435,7 @@ class LifelongReplayBuffer(LifelongSampler):
         (:meth:`name_source`), stream ids reserved with ``store.reserve_streams`` and the ``widths``. In a directory,
         a failed write stores none of the call's rows (see :meth:`add`).
 
-        :param rows: every stored field (``buffer.store.fields``) -> array of shape (n, *row_shape)
+        :param rows: every stored field (``buffer.store.fields``) -> array of shape ``(n, *row_shape)``
         """
         self._refuse_mixing()
         end = self.store.end

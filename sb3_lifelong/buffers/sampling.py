@@ -115,7 +115,7 @@ class LifelongSampler(ReplayBuffer):
             observations), ``actions``, ``rewards``, ``flags``, ``sources``, ``streams`` or ``widths``
         :param start: First row
         :param stop: One past the last row
-        :return: Array of shape (stop - start, *row_shape)
+        :return: Array of shape ``(stop - start, *row_shape)``
         """
         raise NotImplementedError
 
