@@ -196,6 +196,8 @@ def setup(app):  # type: ignore[no-untyped-def]
     app.connect("autodoc-process-bases", _public_bases)
     app.connect("autodoc-process-docstring", _internals_summary)
     app.connect("autodoc-process-signature", _dataclass_defaults)
+
+
 try:
     import sphinx_rtd_theme  # noqa: F401
 

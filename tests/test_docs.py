@@ -32,9 +32,9 @@ def test_inventories_are_up_to_date():
     for name, (url, entries) in script.INVENTORIES.items():
         assert url.startswith("https://") and url.endswith("/"), url
         committed = inventory_lines((DOCS / "inventories" / f"{name}.inv").read_bytes())
-        assert committed == inventory_lines(script.inventory_bytes(name, entries)), (
-            f"docs/inventories/{name}.inv is out of date: python docs/inventories/make_inventories.py"
-        )
+        assert committed == inventory_lines(
+            script.inventory_bytes(name, entries)
+        ), f"docs/inventories/{name}.inv is out of date: python docs/inventories/make_inventories.py"
 
 
 def test_docs_build_without_warnings(tmp_path):
@@ -44,7 +44,7 @@ def test_docs_build_without_warnings(tmp_path):
     # the dummy builder reads every page and resolves every reference, as html does, without writing the pages
     command = [sys.executable, "-m", "sphinx", "-b", "dummy", "-n", "-W", "--keep-going", "-q", "-E"]
     result = subprocess.run(
-        command + ["-d", str(tmp_path / "doctrees"), str(DOCS), str(tmp_path / "out")],
+        [*command, "-d", str(tmp_path / "doctrees"), str(DOCS), str(tmp_path / "out")],
         capture_output=True,
         text=True,
         timeout=600,

@@ -116,7 +116,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 def inventory_bytes(project: str, entries: list[tuple[str, str, str]]) -> bytes:
     """:return: the ``objects.inv`` (Sphinx inventory version 2) listing ``entries`` of ``project``"""
-    header = f"# Sphinx inventory version 2\n# Project: {project}\n# Version: \n# The remainder of this file is compressed using zlib.\n"
+    header = (
+        f"# Sphinx inventory version 2\n# Project: {project}\n# Version: \n"
+        "# The remainder of this file is compressed using zlib.\n"
+    )
     lines = "".join(f"{name} py:{role} 1 {uri} -\n" for name, role, uri in sorted(entries))
     return header.encode() + zlib.compress(lines.encode(), 9)
 
