@@ -4,6 +4,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from stable_baselines3 import SAC
+from testkit import pendulum_data
 
 from sb3_lifelong import BC, CRR, MPO, LifelongReplayBuffer
 from sb3_lifelong.distill import distill
@@ -76,3 +77,37 @@ def test_model_distill_names_its_student():
     model.learn(20)
     with pytest.raises(TypeError, match="offline algorithm class"):
         model.distill("CRR", gradient_steps=1)
+
+
+def test_distill_shows_the_students_arguments():
+    """``help(model.distill)`` and an IDE show the student's main arguments: the three ways in take the same ones."""
+    import inspect
+
+    from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+    from sb3_lifelong.common.distillation import distill as pipeline
+
+    def parameters(function, skip):
+        return [(p.name, p.kind, p.default) for p in inspect.signature(function).parameters.values() if p.name not in skip]
+
+    expected = parameters(pipeline, {"source", "student_class"})
+    assert parameters(distill, {"source", "student_class"}) == expected
+    assert parameters(LifelongOffPolicyAlgorithm.distill, {"self", "student_class"}) == expected
+    for name in ("beta", "advantage_transform", "batch_size", "learning_rate", "seed", "eval_env", "loss"):
+        assert name in dict((p[0], p) for p in expected)
+    for function in (pipeline, distill, LifelongOffPolicyAlgorithm.distill):
+        for name, _, _ in expected:
+            assert f":param {name}:" in function.__doc__, f"{function.__qualname__} does not document {name}"
+
+
+def test_distill_forwards_the_named_arguments_and_refuses_foreign_ones():
+    data, spaces = pendulum_data(200), dict(action_space=gym.make("Pendulum-v1").action_space)
+    student = distill(
+        data, CRR, gradient_steps=2, beta=3.0, max_weight=5.0, batch_size=16, seed=0, policy_kwargs=net(), **spaces
+    )
+    assert (student.beta, student.max_weight, student.batch_size) == (3.0, 5.0, 16)
+    student = distill(data, BC, gradient_steps=2, loss="mse", batch_size=16, seed=0, policy_kwargs=net(), **spaces)
+    assert student.loss == "mse"
+    with pytest.raises(TypeError, match="BC takes no argument 'beta'"):
+        distill(data, BC, gradient_steps=2, beta=3.0)
+    with pytest.raises(TypeError, match="CRR takes no argument 'betta'"):
+        distill(data, CRR, gradient_steps=2, betta=3.0)
