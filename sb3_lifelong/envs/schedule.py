@@ -637,7 +637,8 @@ def stage_envs(
     :param env_kwargs: keyword arguments of ``gym.make``
     :param schedule_kwargs: the training env's other :class:`DynamicsSchedule` arguments that shape the observation
         (``append_params``, ``observed_params``); ``switch_at`` and ``schedules`` are refused: a copy stays in its stage
-    :return: name -> pinned env, in the order of the stages
+    :return: name -> pinned env, in the order of the stages (each a :class:`DynamicsSchedule` around SB3's
+        ``Monitor``, so that ``evaluate_policy`` uses whole episodes and does not warn)
     """
     moving = sorted({"switch_at", "schedules"} & set(schedule_kwargs))
     if moving:
@@ -649,9 +650,13 @@ def stage_envs(
     )
     if len(names) != len(stages) or len(set(names)) != len(names):
         raise ValueError(f"stage_envs needs one distinct name per stage: {len(stages)} stages, names {names}")
+    # SB3's Monitor inside (it records the robot's own episode returns): evaluate_policy(model, env) counts whole
+    # episodes and does not warn that the env is not monitored, and the copy is still the DynamicsSchedule
+    from stable_baselines3.common.monitor import Monitor
+
     envs: Dict[str, DynamicsSchedule] = {}
     for index, name in enumerate(names):
-        env = DynamicsSchedule(gym.make(env_id, **dict(env_kwargs or {})), stages=stages, **schedule_kwargs)
+        env = DynamicsSchedule(Monitor(gym.make(env_id, **dict(env_kwargs or {}))), stages=stages, **schedule_kwargs)
         env.set_stage(index, immediate=True)
         envs[name] = env
     return envs

@@ -11,6 +11,7 @@ from typing import Any, Optional, Union
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.type_aliases import GymEnv
@@ -77,7 +78,7 @@ def make_eval_envs(eval_env: EvalEnvs) -> dict[str, VecEnv]:
         if isinstance(env, str):
             env = gym.make(env)
         if not isinstance(env, VecEnv):
-            env = DummyVecEnv([lambda env=env: env if isinstance(env, Monitor) else Monitor(env)])  # type: ignore[misc]
+            env = DummyVecEnv([lambda env=env: env if is_wrapped(env, Monitor) else Monitor(env)])  # type: ignore[misc]
         result[unique] = env
     return result
 

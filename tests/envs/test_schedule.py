@@ -309,6 +309,19 @@ def test_stage_envs_pins_one_copy_per_stage():
             assert env.step(env.action_space.sample())[-1]["stage"] == index
     assert envs["Env-B"].dynamics_params["hip_deformation"] == pytest.approx(0.3)
     assert list(stage_envs("Hopper-v5", stages[:2], names=["old", "new"])) == ["old", "new"]
+    # monitored: SB3's evaluate_policy takes a copy as it is, quietly
+    import warnings
+
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    class Still:
+        def predict(self, obs, state=None, episode_start=None, deterministic=True):
+            return np.zeros((len(obs), 3), dtype=np.float32), None
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rewards, lengths = evaluate_policy(Still(), envs["Env-B"], n_eval_episodes=1, return_episode_rewards=True)
+    assert len(rewards) == len(lengths) == 1 and lengths[0] > 0
     with pytest.raises(ValueError, match="switch_at"):
         stage_envs("Hopper-v5", stages, switch_at=[10, 20])
     with pytest.raises(ValueError, match="one distinct name per stage"):
