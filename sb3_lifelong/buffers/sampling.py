@@ -430,7 +430,10 @@ class LifelongSampler(ReplayBuffer):
         :param description: Dataset description (default: says where it comes from)
         :param minari_kwargs: Further arguments of ``minari.create_dataset_from_buffers`` (``author``,
             ``author_email``, ``algorithm_name``, ``code_permalink``, ``env``, ``eval_env``, ``data_format``, ...).
-            Image observations are stored losslessly (``jpeg_encoding=False``) unless asked otherwise
+            The buffer does not know who collected the data, with which code or algorithm: give them to record them
+            (Minari's warnings that they are missing are not shown). Without ``env``, data imported from Minari keeps
+            its environment spec. Image observations are stored losslessly (``jpeg_encoding=False``) unless asked
+            otherwise
         :return: The ``minari.MinariDataset``
         """
         return interop.to_minari(self, dataset_id, normalized_actions, unfinished, description, **minari_kwargs)
