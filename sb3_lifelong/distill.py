@@ -89,8 +89,8 @@ def distill(
     :param policy_kwargs: the student's network settings (``net_arch``, ``layer_norm``, ...)
     :param seed: the student's seed
     :param device: the student's device (default: the model's when ``source`` is a model, else ``"auto"``)
-    :param verbose: 1 prints what is distilled and the training logs (default: the model's when ``source`` is a
-        model, else 0)
+    :param verbose: 1 prints what is distilled and one line per evaluation, 2 also SB3's tables of the training
+        values (default: the model's when ``source`` is a model, else 0)
     :param student_kwargs: any other argument of the student's constructor (``tensorboard_log``,
         ``target_update_interval``, ``tau``, ``advantage_baseline``, ``actor_per_source``, ...: see
         :class:`~sb3_lifelong.CRR` and :class:`~sb3_lifelong.BC`) or of ``from_offline_data``

@@ -17,6 +17,7 @@ import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import is_wrapped
+from stable_baselines3.common.logger import HumanOutputFormat
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.vec_env import VecEnv
@@ -221,8 +222,8 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         :param policy_kwargs: the student's network settings (``net_arch``, ``layer_norm``, ...)
         :param seed: the student's seed
         :param device: the student's device (default: the model's when ``source`` is a model, else ``"auto"``)
-        :param verbose: 1 prints what is distilled and the training logs (default: the model's when ``source`` is a
-            model, else 0)
+        :param verbose: 1 prints what is distilled and one line per evaluation, 2 also SB3's tables of the training
+            values (default: the model's when ``source`` is a model, else 0)
         :param student_kwargs: any other argument of the student's constructor (``tensorboard_log``,
             ``target_update_interval``, ``tau``, ``advantage_baseline``, ``actor_per_source``, ...: see
             :class:`~sb3_lifelong.CRR` and :class:`~sb3_lifelong.BC`) or of ``from_offline_data``
@@ -271,7 +272,23 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         self._restore_loaded_rng()
         self._sync_env_timestep(0 if reset_num_timesteps else self.num_timesteps)
         self._sample_on_model_device()
-        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        setup = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        self._quiet_stdout()
+        return setup
+
+    def _quiet_stdout(self) -> None:
+        """
+        ``verbose=1`` prints what happens (the device, the log folder, the evaluations: about one line each), not SB3's
+        table of every logged value at every dump (hundreds of lines in a short run): those tables are ``verbose=2``.
+        They still go to the other outputs (tensorboard, CSV); a logger given with ``set_logger`` is left as it is.
+        """
+        if self.verbose >= 2 or self._custom_logger or self._logger is None:
+            return
+        self._logger.output_formats = [
+            output
+            for output in self._logger.output_formats
+            if not (isinstance(output, HumanOutputFormat) and not getattr(output, "own_file", True))
+        ]
 
     def _sample_on_model_device(self) -> None:
         """

@@ -49,7 +49,7 @@ def _format_names(logger: Logger) -> set[str]:
 def _logger_beside(teacher: OffPolicyAlgorithm, tb_log_name: str, verbose: int) -> Optional[Logger]:
     """
     The student's logger in ``<the teacher's log folder>/<tb_log_name>``, with the teacher's output formats (CSV
-    too, and stdout when ``verbose >= 1``), when the teacher logs somewhere: to ``tensorboard_log``, or to a logger
+    too, and stdout when ``verbose >= 2``), when the teacher logs somewhere: to ``tensorboard_log``, or to a logger
     the user gave it with ``set_logger``. None when the teacher has no logger of its own to follow.
     """
     if teacher._logger is None or (teacher.tensorboard_log is None and not teacher._custom_logger):
@@ -57,7 +57,7 @@ def _logger_beside(teacher: OffPolicyAlgorithm, tb_log_name: str, verbose: int) 
     formats = _format_names(teacher.logger)
     if teacher.tensorboard_log is not None:
         formats |= {"csv", "tensorboard"}
-    if verbose >= 1:
+    if verbose >= 2:  # SB3's tables of the training values (verbose=1 prints the evaluations, one line each)
         formats.add("stdout")
     teacher_dir = teacher.logger.get_dir()
     if teacher_dir is None:  # a logger with no folder (stdout only): the student prints, as the teacher does
@@ -166,8 +166,8 @@ def distill(
     :param policy_kwargs: the student's network settings (``net_arch``, ``layer_norm``, ...)
     :param seed: the student's seed
     :param device: the student's device (default: the model's when ``source`` is a model, else ``"auto"``)
-    :param verbose: 1 prints what is distilled and the training logs (default: the model's when ``source`` is a
-        model, else 0)
+    :param verbose: 1 prints what is distilled and one line per evaluation, 2 also SB3's tables of the training
+        values (default: the model's when ``source`` is a model, else 0)
     :param student_kwargs: any other argument of the student's constructor (``tensorboard_log``,
         ``target_update_interval``, ``tau``, ``advantage_baseline``, ``actor_per_source``, ...: see
         :class:`~sb3_lifelong.CRR` and :class:`~sb3_lifelong.BC`) or of ``from_offline_data``
