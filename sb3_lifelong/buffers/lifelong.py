@@ -35,7 +35,7 @@ from sb3_lifelong.buffers.manifest import (
 from sb3_lifelong.buffers.rowstore import RowStore
 from sb3_lifelong.buffers.sampling import LifelongSampler, RunIndex
 from sb3_lifelong.buffers.schema import buffer_fields, observation_space_of, space_from_json, space_to_json
-from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
+from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY, stage_name
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongReplayBuffer"]
 
@@ -337,7 +337,7 @@ class LifelongReplayBuffer(LifelongSampler):
         source = check_source_id(source)
         params = info.get(DYNAMICS_PARAMS_KEY)
         metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
-        self.store.set_source(source, f"stage_{source}", metadata)
+        self.store.set_source(source, stage_name(source), metadata)  # Env-A, Env-B, ...: as stage_envs names them
         return source
 
     # ------------------------------------------------------------------ writing

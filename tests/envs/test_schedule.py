@@ -341,3 +341,22 @@ def test_stage_envs_pins_one_copy_per_stage():
 def test_a_schedule_refuses_values_of_the_wrong_type_or_sign(kwargs, message):
     with pytest.raises(ValueError, match=message):
         DynamicsSchedule(gym.make("Hopper-v5"), **kwargs)
+
+
+def test_one_name_per_environment():
+    """The data of stage i, in the buffer, has the name of stage i's evaluation copy: the same name in every log."""
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.envs import stage_envs
+
+    stages = [{}, {"hip_deformation": 0.3}]
+    env = DynamicsSchedule(gym.make("Hopper-v5"), stages=stages)
+    buffer = LifelongReplayBuffer(0, env.observation_space, env.action_space)
+    for stage in range(2):
+        env.set_stage(stage, immediate=True)
+        obs, _ = env.reset(seed=stage)
+        for _ in range(5):
+            action = env.action_space.sample()
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            buffer.add(obs[None], next_obs[None], action[None], np.array([reward]), np.array([terminated]), [info])
+            obs = next_obs
+    assert list(buffer.source_counts(by_name=True)) == list(stage_envs("Hopper-v5", stages)) == ["Env-A", "Env-B"]
