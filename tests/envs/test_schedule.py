@@ -356,7 +356,7 @@ def test_one_name_per_environment():
         obs, _ = env.reset(seed=stage)
         for _ in range(5):
             action = env.action_space.sample()
-            next_obs, reward, terminated, truncated, info = env.step(action)
+            next_obs, reward, terminated, _truncated, info = env.step(action)
             buffer.add(obs[None], next_obs[None], action[None], np.array([reward]), np.array([terminated]), [info])
             obs = next_obs
     assert list(buffer.source_counts(by_name=True)) == list(stage_envs("Hopper-v5", stages)) == ["Env-A", "Env-B"]
