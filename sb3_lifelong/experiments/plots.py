@@ -26,6 +26,7 @@ import argparse
 import functools
 import json
 import pathlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Optional, Union
 
@@ -97,7 +98,7 @@ class Experiment:
         return [float(value) for value in _last(rows, "mean_reward")]
 
 
-def source_labels(names: list[str]) -> dict[str, str]:
+def source_labels(names: Sequence[str]) -> dict[str, str]:
     """
     :param names: the environments' names, in stage order
     :return: the name a buffer gives stage ``i``'s source -> ``names[i]``: ``Env-A``, ``Env-B``, ... (and the
