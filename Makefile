@@ -14,7 +14,7 @@ DEMO_DIR ?= demo_output
 # torch first, pinned to the CPU wheel: a bare "torch" requirement would download a CUDA build
 install:
 	$(PYTHON) -m pip install -q torch==2.13.0
-	$(PYTHON) -m pip install -q -e ".[tests,extra,mujoco,cluster]"
+	$(PYTHON) -m pip install -q -e ".[tests,extra,mujoco,cluster,docs]"
 
 test: install
 	$(PYTHON) -m pytest -n 2 --timeout 900 -rs tests/
@@ -42,9 +42,12 @@ check-codestyle:
 type:
 	$(PYTHON) -m mypy sb3_lifelong/
 
+# nitpicky (-n) and warnings as errors (-W): every cross-reference must resolve. Offline: the links to SB3, Gymnasium,
+# NumPy, PyTorch, pandas and Python come from docs/inventories (python docs/inventories/make_inventories.py).
+# `make test` checks the same build (tests/test_docs.py).
 doc:
 	$(PYTHON) -m pip install -q -e ".[docs]"
-	cd docs && $(PYTHON) -m sphinx -b html . _build/html
+	cd docs && $(PYTHON) -m sphinx -b html -n -W --keep-going . _build/html
 
 clean:
 	rm -rf build dist *.egg-info .pytest_cache .mypy_cache .ruff_cache docs/_build $(DEMO_DIR)

@@ -4,6 +4,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from stable_baselines3 import SAC
+from testkit import pendulum_data
 
 from sb3_lifelong import BC, CRR, MPO, LifelongReplayBuffer
 from sb3_lifelong.distill import distill
@@ -124,7 +125,7 @@ def test_distill_leaves_a_two_source_buffer_byte_identical_and_learns_both(tmp_p
         gradient_steps=300,
         policy_kwargs=dict(net_arch=[16]),
         learning_rate=3e-3,
-        **{k: v for k, v in student_kwargs().items() if k != "policy_kwargs"}
+        **{k: v for k, v in student_kwargs().items() if k != "policy_kwargs"},
     )
     student.replay_buffer.close()
     assert directory_digest(path) == before  # not a byte of the lifetime buffer changed, no file added or removed
@@ -145,3 +146,37 @@ def test_distill_from_a_dict_leaves_it_alone():
         distill(data, BC, gradient_steps=20, action_space=spaces.Box(-1, 1, (1,)), **student_kwargs())
     for key, value in copy.items():
         np.testing.assert_array_equal(data[key], value, err_msg=key)
+
+
+def test_distill_shows_the_students_arguments():
+    """``help(model.distill)`` and an IDE show the student's main arguments: the three ways in take the same ones."""
+    import inspect
+
+    from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+    from sb3_lifelong.common.distillation import distill as pipeline
+
+    def parameters(function, skip):
+        return [(p.name, p.kind, p.default) for p in inspect.signature(function).parameters.values() if p.name not in skip]
+
+    expected = parameters(pipeline, {"source", "student_class"})
+    assert parameters(distill, {"source", "student_class"}) == expected
+    assert parameters(LifelongOffPolicyAlgorithm.distill, {"self", "student_class"}) == expected
+    for name in ("beta", "advantage_transform", "batch_size", "learning_rate", "seed", "eval_env", "loss"):
+        assert name in dict((p[0], p) for p in expected)
+    for function in (pipeline, distill, LifelongOffPolicyAlgorithm.distill):
+        for name, _, _ in expected:
+            assert f":param {name}:" in function.__doc__, f"{function.__qualname__} does not document {name}"
+
+
+def test_distill_forwards_the_named_arguments_and_refuses_foreign_ones():
+    data, spaces = pendulum_data(200), dict(action_space=gym.make("Pendulum-v1").action_space)
+    student = distill(
+        data, CRR, gradient_steps=2, beta=3.0, max_weight=5.0, batch_size=16, seed=0, policy_kwargs=net(), **spaces
+    )
+    assert (student.beta, student.max_weight, student.batch_size) == (3.0, 5.0, 16)
+    student = distill(data, BC, gradient_steps=2, loss="mse", batch_size=16, seed=0, policy_kwargs=net(), **spaces)
+    assert student.loss == "mse"
+    with pytest.raises(TypeError, match="BC takes no argument 'beta'"):
+        distill(data, BC, gradient_steps=2, beta=3.0)
+    with pytest.raises(TypeError, match="CRR takes no argument 'betta'"):
+        distill(data, CRR, gradient_steps=2, betta=3.0)

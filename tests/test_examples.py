@@ -44,7 +44,7 @@ def test_three_stage_with_baselines_and_plots(tmp_path):
     assert "| MPO |" in stdout
     # the collector's buffer holds every environment's data, tagged by stage
     with open(tmp_path / "seed_0" / "MPO" / "q_sources.csv") as handle:
-        assert {row["name"] for row in csv.DictReader(handle)} == {"stage_0", "stage_1", "stage_2"}
+        assert {row["name"] for row in csv.DictReader(handle)} == {"Env-A", "Env-B", "Env-C"}
 
 
 def test_examples_are_programs_with_documented_flags():

@@ -38,14 +38,15 @@ def test_users_day_snippet_runs(tmp_path, monkeypatch, capsys):
     assert namespace["model"].num_timesteps == 600
     assert namespace["action"].shape == namespace["env"].action_space.shape
     assert (tmp_path / "distilled.zip").exists() and (tmp_path / "runs" / "buffer" / "manifest.json").exists()
-    assert set(namespace["model"].replay_buffer.source_counts()) == {0, 1}  # both environments were lived in
+    assert set(namespace["model"].replay_buffer.source_counts(by_name=True)) == {"Env-A", "Env-B"}  # both lived in
 
     # it shows what happens: every evaluation printed, on every environment seen, online and while distilling
     out = capsys.readouterr().out
-    for step in (300, 600):  # at the end of each stage
-        assert f"Eval at {step}: Env-A mean reward" in out and f"Eval at {step}: Env-B mean reward" in out
-    assert "Distilling 600 transitions (stage_0: " in out and "into CRR: 200 gradient updates" in out
-    assert "Eval at 200: Env-B mean reward" in out  # the student's last evaluation
+    for step in (300, 600):  # at the end of each stage: one line per evaluation, both environments on it
+        assert re.search(rf"^Eval at {step}: mean reward Env-A .*, Env-B .*; mean over environments", out, re.M)
+    assert "Distilling 600 transitions (Env-A: " in out and "into CRR: 200 gradient updates" in out
+    assert re.search(r"^Eval at 200: mean reward Env-A .*, Env-B ", out, re.M)  # the student's last evaluation
+    assert len(out.splitlines()) < 20, f"verbose=1 prints about one line per evaluation, got:\n{out}"  # no SB3 tables
     with open(tmp_path / "runs" / "eval.csv") as handle:
         assert {row["env"] for row in csv.DictReader(handle)} == {"Env-A", "Env-B"}
 
@@ -56,4 +57,14 @@ def test_users_day_snippet_runs(tmp_path, monkeypatch, capsys):
     for tags in (online, student):
         for env in ("Env-A", "Env-B"):
             assert {f"eval/{env}/mean_reward", f"eval/{env}/std_reward", f"eval/{env}/mean_ep_length"} <= tags
-    assert {"diagnostics/q_mean/stage_0", "diagnostics/q_mean/stage_1"} <= online
+    assert {"diagnostics/q_mean/Env-A", "diagnostics/q_mean/Env-B"} <= online  # one name per environment
+
+
+def test_users_day_states_how_long_its_budget_takes():
+    """The time stated under the snippet is the time of the snippet's budget (change both together)."""
+    code, text = readme_snippet(), README.read_text()
+    steps = [int(n.replace("_", "")) for n in re.findall(r"model\.learn\(([\d_]+)", code)]
+    updates = int(re.search(r"gradient_steps=([\d_]+)", code).group(1).replace("_", ""))
+    stated = re.search(r"\*\*How long it takes\.\*\* This budget \(([\d,]+) environment steps, ([\d,]+) updates\)", text)
+    assert stated, "the README says how long the user's day takes, right after the snippet"
+    assert (int(stated.group(1).replace(",", "")), int(stated.group(2).replace(",", ""))) == (sum(steps), updates)

@@ -48,7 +48,9 @@ def test_usage_without_a_command(capsys):
 
 
 def test_help_exits_zero(tmp_path):
-    assert "record-video" in zoo("--help", cwd=tmp_path)
+    help_text = zoo("--help", cwd=tmp_path)
+    assert "record-video" in help_text
+    assert "``" not in help_text and ":class:" not in help_text  # plain text, not the docstring's reStructuredText
     assert "--algo" in zoo("record-video", "--help", cwd=tmp_path)  # the zoo's own arguments
     with pytest.raises(SystemExit, match="unknown command 'trian'"):
         from sb3_lifelong.zoo.__main__ import main

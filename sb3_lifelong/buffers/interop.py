@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import warnings
 from typing import Any, Callable, Optional, Protocol, TypeVar, Union
 
 import numpy as np
@@ -143,6 +144,10 @@ def save_npz(buffer: Exportable, file: Union[str, os.PathLike]) -> None:
     np.savez(file, **columns)
 
 
+#: the optional fields of a Minari dataset whose absence Minari warns about (given to ``to_minari`` as keywords)
+MINARI_OPTIONAL_FIELDS = ("author", "author_email", "algorithm_name", "code_permalink", "eval_env")
+
+
 def to_minari(
     buffer: Exportable,
     dataset_id: str,
@@ -198,7 +203,10 @@ def to_minari(
             )
         )
     if description is None:
-        description = f"Exported from an sb3_lifelong LifelongReplayBuffer ({len(episodes)} episodes)"
+        names = ", ".join(info["name"] for _, info in sorted(buffer.sources.items()))
+        description = f"Exported from an sb3_lifelong LifelongReplayBuffer ({len(episodes)} episodes" + (
+            f"; sources: {names})" if names else ")"
+        )
     if "jpeg_encoding" in inspect.signature(minari.create_dataset_from_buffers).parameters:
         minari_kwargs.setdefault("jpeg_encoding", False)
     if minari_kwargs.get("env") is None:  # the env spec of data imported from Minari, when every source agrees on it
@@ -207,14 +215,22 @@ def to_minari(
             from gymnasium.envs.registration import EnvSpec
 
             minari_kwargs["env"] = EnvSpec.from_json(next(iter(specs)))
-    dataset = minari.create_dataset_from_buffers(
-        dataset_id,
-        episodes,
-        observation_space=buffer.observation_space,
-        action_space=action_space,
-        description=description,
-        **minari_kwargs,
-    )
+    with warnings.catch_warnings():
+        # Minari reminds, one warning each, of every optional field left out (author, code_permalink, ...): the buffer
+        # does not know them, and the caller may give them; its other warnings still show
+        for field in MINARI_OPTIONAL_FIELDS:
+            if minari_kwargs.get(field) is None:
+                warnings.filterwarnings("ignore", message=f"`{field}` is set to None", category=UserWarning)
+        if minari_kwargs.get("env") is None:
+            warnings.filterwarnings("ignore", message="env_spec is None", category=UserWarning)
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id,
+            episodes,
+            observation_space=buffer.observation_space,
+            action_space=action_space,
+            description=description,
+            **minari_kwargs,
+        )
     dataset.storage.update_metadata({MINARI_SOURCES_METADATA: {str(k): v for k, v in sorted(buffer.sources.items())}})
     return dataset
 

@@ -36,7 +36,7 @@ from sb3_lifelong.buffers.rowstore import RowStore
 from sb3_lifelong.buffers.salvage import BufferCheck, check_buffer, salvage_buffer
 from sb3_lifelong.buffers.sampling import LifelongSampler, RunIndex
 from sb3_lifelong.buffers.schema import buffer_fields, observation_space_of, space_from_json, space_to_json
-from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
+from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY, stage_name
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongReplayBuffer"]
 
@@ -377,7 +377,7 @@ class LifelongReplayBuffer(LifelongSampler):
         source = check_source_id(source)
         params = info.get(DYNAMICS_PARAMS_KEY)
         metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
-        self.store.set_source(source, f"stage_{source}", metadata)
+        self.store.set_source(source, stage_name(source), metadata)  # Env-A, Env-B, ...: as stage_envs names them
         return source
 
     # ------------------------------------------------------------------ writing
@@ -483,7 +483,7 @@ class LifelongReplayBuffer(LifelongSampler):
         (:meth:`name_source`), stream ids reserved with ``store.reserve_streams`` and the ``widths``. In a directory,
         a failed write stores none of the call's rows (see :meth:`add`).
 
-        :param rows: every stored field (``buffer.store.fields``) -> array of shape (n, *row_shape)
+        :param rows: every stored field (``buffer.store.fields``) -> array of shape ``(n, *row_shape)``
         """
         self.store.check_owner("append_rows")
         self._refuse_mixing()

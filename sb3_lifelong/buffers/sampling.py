@@ -8,7 +8,7 @@ that per-source sampling reads.
 from __future__ import annotations
 
 import os
-from typing import Any, Optional, Union
+from typing import Any, Literal, Optional, Union, overload
 
 import numpy as np
 import torch as th
@@ -115,7 +115,7 @@ class LifelongSampler(ReplayBuffer):
             observations), ``actions``, ``rewards``, ``flags``, ``sources``, ``streams`` or ``widths``
         :param start: First row
         :param stop: One past the last row
-        :return: Array of shape (stop - start, *row_shape)
+        :return: Array of shape ``(stop - start, *row_shape)``
         """
         raise NotImplementedError
 
@@ -169,13 +169,32 @@ class LifelongSampler(ReplayBuffer):
             raise AttributeError("whether a lifelong buffer is full follows from its size and capacity and cannot be set")
 
     # ------------------------------------------------------------------ per-source options
-    def source_counts(self) -> dict[int, int]:
+    @overload
+    def source_counts(self, by_name: Literal[False] = False) -> dict[int, int]: ...
+
+    @overload
+    def source_counts(self, by_name: Literal[True]) -> dict[str, int]: ...
+
+    def source_counts(self, by_name: bool = False) -> Union[dict[int, int], dict[str, int]]:
         """
-        :return: Number of stored transitions per source id
+        :param by_name: key the counts by the sources' names (``Env-A``, ``Env-B``, ...: the names of the logs)
+            instead of their ids
+        :return: Number of stored transitions per source id (or name)
         """
         _, lengths, run_sources = self._source_runs()
         counts = np.bincount(run_sources, weights=lengths, minlength=1) if len(run_sources) else np.zeros(0)
-        return {int(s): int(c) for s, c in enumerate(counts) if c > 0}
+        by_id = {int(s): int(c) for s, c in enumerate(counts) if c > 0}
+        if not by_name:
+            return by_id
+        sources = self.sources
+        named: dict[str, int] = {}
+        ids: dict[str, int] = {}
+        for source, count in by_id.items():
+            name = sources.get(source, {}).get("name", f"source_{source}")
+            if name in named:
+                raise ValueError(f"sources {ids[name]} and {source} are both named {name!r}: use source_counts() (by id)")
+            named[name], ids[name] = count, source
+        return named
 
     def reward_range(self, block: int = 1 << 20) -> tuple[float, float]:
         """
@@ -430,7 +449,10 @@ class LifelongSampler(ReplayBuffer):
         :param description: Dataset description (default: says where it comes from)
         :param minari_kwargs: Further arguments of ``minari.create_dataset_from_buffers`` (``author``,
             ``author_email``, ``algorithm_name``, ``code_permalink``, ``env``, ``eval_env``, ``data_format``, ...).
-            Image observations are stored losslessly (``jpeg_encoding=False``) unless asked otherwise
+            The buffer does not know who collected the data, with which code or algorithm: give them to record them
+            (Minari's warnings that they are missing are not shown). Without ``env``, data imported from Minari keeps
+            its environment spec. Image observations are stored losslessly (``jpeg_encoding=False``) unless asked
+            otherwise
         :return: The ``minari.MinariDataset``
         """
         return interop.to_minari(self, dataset_id, normalized_actions, unfinished, description, **minari_kwargs)

@@ -213,6 +213,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
             self._logger = utils.configure_logger(
                 self.verbose, self.tensorboard_log, tb_log_name or type(self).__name__, reset_num_timesteps
             )
+            self._quiet_stdout()
 
         self._restore_loaded_rng()  # as learn() does: draws since a load do not change the run
         placeholder = self.env is None

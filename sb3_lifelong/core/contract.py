@@ -17,6 +17,10 @@ that has a method named :data:`SYNC_TIMESTEP_METHOD` is told the model's timeste
 :class:`~sb3_lifelong.common.base.LifelongOffPolicyAlgorithm` at the start of every ``learn`` (before the env is
 reset), as ``method(timestep=model.num_timesteps, n_envs=vec_env.num_envs)``; from there the env counts
 ``n_envs`` per step, as SB3 does during ``learn``. So the caller passes neither ``n_envs`` nor ``start_timestep``.
+
+**One name per environment.** Stage ``i`` is called :func:`stage_name` ``(i)`` (``Env-A``, ``Env-B``, ...) everywhere:
+the evaluation copies of :func:`~sb3_lifelong.envs.stage_envs`, the buffer's source of that stage (so its Q-value
+curves, CSV columns and ``source_counts(by_name=True)``), the reports.
 """
 
 #: ``info`` key of the stage index (the transition's source id in the buffer)
@@ -26,4 +30,15 @@ DYNAMICS_PARAMS_KEY = "dynamics_params"
 #: name of the env method through which the algorithm tells the env its timestep (``timestep=..., n_envs=...``)
 SYNC_TIMESTEP_METHOD = "sb3_lifelong_sync_timestep"
 
-__all__ = ["DYNAMICS_PARAMS_KEY", "STAGE_KEY", "SYNC_TIMESTEP_METHOD"]
+
+def stage_name(index: int) -> str:
+    """
+    :param index: a stage's index (its source id in the buffer)
+    :return: its name in the logs: ``Env-A`` for stage 0, ``Env-B``, ... ``Env-Z``, then ``Env-26``, ``Env-27``, ...
+    """
+    if index < 0:
+        raise ValueError(f"a stage index is >= 0, got {index}")
+    return f"Env-{chr(ord('A') + index)}" if index < 26 else f"Env-{index}"
+
+
+__all__ = ["DYNAMICS_PARAMS_KEY", "STAGE_KEY", "SYNC_TIMESTEP_METHOD", "stage_name"]

@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY
+from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY, stage_name
 from sb3_lifelong.envs.perturbations import LIMB_PERTURBATIONS, PERTURBATIONS, PhysicsEditor, find_mujoco, stable_seed
 from sb3_lifelong.envs.stages import NAMED_STAGES
 
@@ -633,25 +633,27 @@ def stage_envs(
 
     :param env_id: the robot's gym id (the training env's)
     :param stages: the training env's stages (settings or named stages)
-    :param names: the name of each stage in the logs (default ``Env-A``, ``Env-B``, ...)
+    :param names: the name of each stage in the logs (default ``Env-A``, ``Env-B``, ...: the names the
+        ``LifelongReplayBuffer`` gives the stages' data)
     :param env_kwargs: keyword arguments of ``gym.make``
     :param schedule_kwargs: the training env's other :class:`DynamicsSchedule` arguments that shape the observation
         (``append_params``, ``observed_params``); ``switch_at`` and ``schedules`` are refused: a copy stays in its stage
-    :return: name -> pinned env, in the order of the stages
+    :return: name -> pinned env, in the order of the stages (each a :class:`DynamicsSchedule` around SB3's
+        ``Monitor``, so that ``evaluate_policy`` uses whole episodes and does not warn)
     """
     moving = sorted({"switch_at", "schedules"} & set(schedule_kwargs))
     if moving:
         raise ValueError(f"stage_envs: {moving} would move the copies out of their stage; give only the stages")
-    names = (
-        list(names)
-        if names is not None
-        else [f"Env-{chr(ord('A') + i)}" if i < 26 else f"Env-{i}" for i in range(len(stages))]
-    )
+    names = list(names) if names is not None else [stage_name(i) for i in range(len(stages))]
     if len(names) != len(stages) or len(set(names)) != len(names):
         raise ValueError(f"stage_envs needs one distinct name per stage: {len(stages)} stages, names {names}")
+    # SB3's Monitor inside (it records the robot's own episode returns): evaluate_policy(model, env) counts whole
+    # episodes and does not warn that the env is not monitored, and the copy is still the DynamicsSchedule
+    from stable_baselines3.common.monitor import Monitor
+
     envs: Dict[str, DynamicsSchedule] = {}
     for index, name in enumerate(names):
-        env = DynamicsSchedule(gym.make(env_id, **dict(env_kwargs or {})), stages=stages, **schedule_kwargs)
+        env = DynamicsSchedule(Monitor(gym.make(env_id, **dict(env_kwargs or {}))), stages=stages, **schedule_kwargs)
         env.set_stage(index, immediate=True)
         envs[name] = env
     return envs

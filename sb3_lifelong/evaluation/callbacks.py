@@ -11,6 +11,7 @@ from typing import Any, Optional, Union
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.type_aliases import GymEnv
@@ -78,7 +79,7 @@ def make_eval_envs(eval_env: EvalEnvs) -> dict[str, VecEnv]:
         if isinstance(env, str):
             env = gym.make(env)
         if not isinstance(env, VecEnv):
-            env = DummyVecEnv([lambda env=env: env if isinstance(env, Monitor) else Monitor(env)])  # type: ignore[misc]
+            env = DummyVecEnv([lambda env=env: env if is_wrapped(env, Monitor) else Monitor(env)])  # type: ignore[misc]
         result[unique] = env
     return result
 
@@ -120,7 +121,7 @@ class MultiEnvEvalCallback(BaseCallback):
     :param same_episodes: with ``seed``, every evaluation plays the same episodes (the k-th environment is seeded with
         ``seed + k`` before each): differences between evaluations are then the policy's alone. Without it each
         evaluation plays new episodes (the mean over several evaluations then covers more starts)
-    :param verbose: 1 prints each evaluation
+    :param verbose: 1 prints one line per evaluation (every environment's mean reward and the mean over them)
     :param best_model_save_path: folder where the model is saved as ``best_model.zip`` whenever
         ``eval/mean_over_envs`` beats every earlier evaluation of this callback (None: not saved)
     :param evaluations_dir: folder where ``evaluations.npz`` is rewritten after every evaluation (SB3's
@@ -252,8 +253,6 @@ class MultiEnvEvalCallback(BaseCallback):
         continue_training = True
         self.last_mean_reward = score
         if score > self.best_mean_reward:
-            if self.verbose >= 1:
-                print(f"New best mean reward over the environments: {score:.2f}")
             self.best_mean_reward = score
             if self.best_model_save_path is not None:
                 self.model.save(self.best_model_save_path / "best_model")
@@ -315,8 +314,6 @@ class MultiEnvEvalCallback(BaseCallback):
                 timesteps=self.num_timesteps, env=name, mean_reward=mean, std_reward=std, n_episodes=self.n_eval_episodes
             )
             rows.append(row)
-            if self.verbose >= 1:
-                print(f"Eval at {self.num_timesteps}: {name} mean reward {mean:.2f} +/- {std:.2f}")
         if selected is not None:
             model.select_source(selected)
         score = float(np.mean(list(means.values())))
@@ -337,6 +334,10 @@ class MultiEnvEvalCallback(BaseCallback):
                 results=np.array(self.evaluations_results, dtype=np.float64),
                 ep_lengths=np.array(self.evaluations_length, dtype=np.int64),
             )
+        if self.verbose >= 1:  # one line per evaluation
+            shown = ", ".join(f"{row['env']} {row['mean_reward']:.2f} +/- {row['std_reward']:.2f}" for row in rows)
+            best = " (new best)" if score > self.best_mean_reward else ""
+            print(f"Eval at {self.num_timesteps}: mean reward {shown}; mean over environments {score:.2f}{best}")
         self.logger.dump(self.num_timesteps)
         self._record_best(score)
         return means

@@ -93,7 +93,8 @@ class ContinualMetricsCallback(BaseCallback):
 
     Logged (tensorboard, CSV, stdout, as the model's logger is set up): ``continual/average_performance``,
     ``continual/forgetting`` and ``continual/forgetting/<env>``, ``continual/backward_transfer``,
-    ``continual/forward_transfer``, and the raw ``continual/R/<stage>/<env>``. With ``log_path``, the matrix, the
+    ``continual/forward_transfer``, and the raw ``continual/R/after_<env i>/<env j>`` (``R[i][j]``, e.g.
+    ``continual/R/after_Env-B/Env-A``: Env-A's return at the end of the stage in Env-B). With ``log_path``, the matrix, the
     scores, the metrics and the normalisation are written there as JSON after every evaluation.
 
     :param stage_ends: the timestep at which each stage ends, one per environment but the last may be omitted (the last
@@ -205,9 +206,9 @@ class ContinualMetricsCallback(BaseCallback):
         for key in ("forgetting_mean", "backward_transfer", "forward_transfer"):
             if not math.isnan(self.metrics[key]):
                 self.logger.record(f"continual/{key.replace('_mean', '')}", self.metrics[key])
-        for i, row in enumerate(matrix):
+        for i, row in enumerate(matrix):  # row i: the end of the stage in environment i, named as that environment
             for name, value in zip(names, row):
-                self.logger.record(f"continual/R/{i}/{name}", value)
+                self.logger.record(f"continual/R/after_{names[i]}/{name}", value)
         self.logger.dump(parent.num_timesteps)  # the evaluation dumped its own values before this callback ran
         if self.verbose >= 1:
             shown = {k: self.metrics[k] for k in ("average_performance", "forgetting_mean", "forward_transfer")}

@@ -26,11 +26,13 @@ import argparse
 import functools
 import json
 import pathlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Optional, Union
 
 import pandas as pd
 
+from sb3_lifelong.core.contract import stage_name
 from sb3_lifelong.experiments.style import (
     SEQUENTIAL_METHODS,
     band,
@@ -96,6 +98,17 @@ class Experiment:
         return [float(value) for value in _last(rows, "mean_reward")]
 
 
+def source_labels(names: Sequence[str]) -> dict[str, str]:
+    """
+    :param names: the environments' names, in stage order
+    :return: the name a buffer gives stage ``i``'s source -> ``names[i]``: ``Env-A``, ``Env-B``, ... (and the
+        ``stage_<i>`` of buffers written before sources took the environments' names)
+    """
+    labels = {f"stage_{index}": name for index, name in enumerate(names)}
+    labels.update({stage_name(index): name for index, name in enumerate(names)})
+    return labels
+
+
 def _last(frame: pd.DataFrame, y: str) -> pd.Series:
     """:return: the value of ``y`` at each seed's last ``timesteps``"""
     return frame.sort_values("timesteps").groupby("seed")[y].last()
@@ -130,8 +143,8 @@ def load_experiment(directory: Union[str, pathlib.Path]) -> Experiment:
     eval_frame = pd.concat(evals)[columns] if evals else pd.DataFrame(columns=columns)
     names = list(layout.get("names", []))
     envs = names + sorted(set(eval_frame["env"]) - set(names))
-    # the buffers name their sources stage_<i>: the figures name them after the environments
-    labels = layout.get("sources", {f"stage_{index}": name for index, name in enumerate(names)})
+    # a buffer names stage i's source Env-A, Env-B, ... (older buffers: stage_<i>): the figures use the environments' names
+    labels = layout.get("sources", source_labels(names))
     q_frame = pd.concat(qs) if qs else pd.DataFrame(columns=["seed", "method", "name", "timesteps", "q_mean"])
     q_frame = q_frame.assign(source=[labels.get(name, name) for name in q_frame["name"]])
     methods = list(dict.fromkeys(eval_frame["method"]))

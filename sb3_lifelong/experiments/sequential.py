@@ -43,6 +43,7 @@ from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
 from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
+from sb3_lifelong.experiments.plots import source_labels
 
 Stage = Union[str, Mapping[str, float]]
 
@@ -225,7 +226,7 @@ def write_layout(
         switch_at=[int(t) for t in switch_at],
         switch_labels=labels[: len(switch_at)],
         distilled=list(distilled),
-        sources=dict(sources) if sources is not None else {f"stage_{i}": name for i, name in enumerate(names)},
+        sources=dict(sources) if sources is not None else source_labels(names),
     )
     if stages is not None:
         layout["stages"] = [stage if isinstance(stage, str) else dict(stage) for stage in stages]

@@ -65,6 +65,26 @@ COMMANDS: dict[str, Callable[[], None]] = {
     "all-plots": _all_plots,
 }
 USAGE = f"usage: python -m sb3_lifelong.zoo {{{','.join(COMMANDS)}}} --algo mpo --env Hopper-v5 ..."
+#: what ``--help`` prints: plain text for a terminal (the module's docstring is reStructuredText, for the docs)
+HELP = f"""{USAGE}
+
+rl-zoo3's commands, with this package's algorithms (--algo mpo, --algo crr) registered.
+
+commands:
+  train           train an agent
+  enjoy           run a trained agent
+  record-video    record a video of a trained agent (rl-zoo3's record_video)
+  plot-train      plot a training run
+  plot-from-file  plot results saved by all-plots
+  all-plots       plot the results of several runs
+
+Every argument after the command is rl-zoo3's own: python -m sb3_lifelong.zoo train --help lists them.
+Without --conf-file (-conf), train with MPO or CRR uses this package's hyperparameter file
+(sb3_lifelong/zoo/hyperparams). A hyperparameter file may name this package's classes
+(replay_buffer_class: sb3_lifelong.LifelongReplayBuffer), and -optimize searches MPO's and CRR's
+hyperparameter spaces.
+
+example: python -m sb3_lifelong.zoo train --algo mpo --env Hopper-v5 -n 100000"""
 
 
 def main(argv: Optional[list[str]] = None) -> None:
@@ -76,11 +96,10 @@ def main(argv: Optional[list[str]] = None) -> None:
     """
     args = list(sys.argv[1:] if argv is None else argv)
     if args and args[0] in ("-h", "--help"):
-        print(__doc__.strip())
-        print(USAGE)
+        print(HELP)
         return
     if not args or args[0] not in COMMANDS:
-        print(__doc__.strip())
+        print(HELP)
         given = f"unknown command {args[0]!r}; " if args else ""
         raise SystemExit(f"{given}{USAGE}")
     command, rest = args[0], args[1:]

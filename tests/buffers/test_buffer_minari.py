@@ -140,3 +140,20 @@ def test_minari_missing_package(monkeypatch):
         buffer.to_minari("any/dataset-v0")
     with pytest.raises(ImportError, match="pip install minari"):
         LifelongReplayBuffer.from_minari("any/dataset-v0")
+
+
+def test_minari_export_is_quiet_and_records_what_it_is_given():
+    """Minari's reminders of optional fields left out are not shown; what the caller gives is recorded."""
+    import warnings
+
+    buffer = LifelongReplayBuffer(0, OBS, ACT)
+    play(buffer, 40, 1, stage=lambda t: t // 20)
+    buffer.set_source(0, name="Env-A")
+    buffer.set_source(1, name="Env-B")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        dataset = buffer.to_minari("lifelong/quiet-v0")
+        assert "sources: Env-A, Env-B" in dataset.storage.metadata["description"]
+        given = buffer.to_minari("lifelong/given-v0", author="tests", code_permalink="https://example.org/code")
+    assert given.storage.metadata["author"] == {"tests"} or given.storage.metadata["author"] == "tests"
+    assert given.storage.metadata["code_permalink"] == "https://example.org/code"

@@ -102,8 +102,13 @@ def test_in_memory_pickle_and_sources():
     buffer.set_source(5, name="field test", metadata={"terrain": "gravel"})
     fill(buffer, 10, 1)
     assert buffer.source_counts() == {0: 30, 2: 20, 5: 10}
-    assert buffer.sources[2] == {"name": "stage_2", "metadata": {"mass": 3.0}}
+    # a stage's source is named as stage_envs names the stage's evaluation copy (stage 2: Env-C)
+    assert buffer.sources[2] == {"name": "Env-C", "metadata": {"mass": 3.0}}
     assert buffer.sources[5]["metadata"] == {"terrain": "gravel"}
+    assert buffer.source_counts(by_name=True) == {"source_0": 30, "Env-C": 20, "field test": 10}
+    buffer.name_source(5, "Env-C")
+    with pytest.raises(ValueError, match="sources 2 and 5 are both named 'Env-C'"):
+        buffer.source_counts(by_name=True)
     assert buffer.buffer_size == 60  # never a limit: nothing was overwritten
     clone = pickle.loads(pickle.dumps(buffer))
     for name, values in all_rows(buffer).items():
@@ -157,7 +162,7 @@ def test_round_trip_reopen_append(tmp_path):
     buffer.close()
     # the format is plain JSON + raw files
     manifest = json.loads((path / "manifest.json").read_text())
-    assert manifest["num_transitions"] == 120 and manifest["sources"]["0"]["name"] == "stage_0"
+    assert manifest["num_transitions"] == 120 and manifest["sources"]["0"]["name"] == "Env-A"
     assert os.path.getsize(path / "observations.bin") == 120 * 3 * 4
     reopened = LifelongReplayBuffer.open(path, n_steps=3)
     assert reopened.recovered == 120 and reopened.observation_space.shape == (3,)

@@ -171,4 +171,4 @@ def test_distill_follows_a_logger_given_with_set_logger(tmp_path, capsys):
         f"Distilling 100 transitions (source_0: 100) into CRR: 40 gradient updates, logging to {tmp_path / 'run' / 'distill'}"
         in out
     )
-    assert "Eval at 40: Env-A" in out
+    assert "Eval at 40: mean reward Env-A" in out

@@ -309,6 +309,19 @@ def test_stage_envs_pins_one_copy_per_stage():
             assert env.step(env.action_space.sample())[-1]["stage"] == index
     assert envs["Env-B"].dynamics_params["hip_deformation"] == pytest.approx(0.3)
     assert list(stage_envs("Hopper-v5", stages[:2], names=["old", "new"])) == ["old", "new"]
+    # monitored: SB3's evaluate_policy takes a copy as it is, quietly
+    import warnings
+
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    class Still:
+        def predict(self, obs, state=None, episode_start=None, deterministic=True):
+            return np.zeros((len(obs), 3), dtype=np.float32), None
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rewards, lengths = evaluate_policy(Still(), envs["Env-B"], n_eval_episodes=1, return_episode_rewards=True)
+    assert len(rewards) == len(lengths) == 1 and lengths[0] > 0
     with pytest.raises(ValueError, match="switch_at"):
         stage_envs("Hopper-v5", stages, switch_at=[10, 20])
     with pytest.raises(ValueError, match="one distinct name per stage"):
@@ -328,3 +341,22 @@ def test_stage_envs_pins_one_copy_per_stage():
 def test_a_schedule_refuses_values_of_the_wrong_type_or_sign(kwargs, message):
     with pytest.raises(ValueError, match=message):
         DynamicsSchedule(gym.make("Hopper-v5"), **kwargs)
+
+
+def test_one_name_per_environment():
+    """The data of stage i, in the buffer, has the name of stage i's evaluation copy: the same name in every log."""
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.envs import stage_envs
+
+    stages = [{}, {"hip_deformation": 0.3}]
+    env = DynamicsSchedule(gym.make("Hopper-v5"), stages=stages)
+    buffer = LifelongReplayBuffer(0, env.observation_space, env.action_space)
+    for stage in range(2):
+        env.set_stage(stage, immediate=True)
+        obs, _ = env.reset(seed=stage)
+        for _ in range(5):
+            action = env.action_space.sample()
+            next_obs, reward, terminated, _truncated, info = env.step(action)
+            buffer.add(obs[None], next_obs[None], action[None], np.array([reward]), np.array([terminated]), [info])
+            obs = next_obs
+    assert list(buffer.source_counts(by_name=True)) == list(stage_envs("Hopper-v5", stages)) == ["Env-A", "Env-B"]

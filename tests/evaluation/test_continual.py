@@ -77,6 +77,7 @@ def test_callback_keeps_the_matrix_and_logs(tmp_path):
         accumulator.Reload()
         tags |= set(accumulator.Tags()["scalars"])
     assert {"continual/average_performance", "continual/forgetting/Env-A", "continual/backward_transfer"} <= tags
+    assert {"continual/R/after_Env-A/Env-A", "continual/R/after_Env-B/Env-A"} <= tags  # rows named as the envs
     # a random policy's returns, seeded like the evaluations: the same twice
     metrics.random_episodes = 2
     first, second = metrics.measure_random(), metrics.measure_random()

@@ -1,0 +1,43 @@
+"""verbose=1 says what happens in a few lines (about one per evaluation); SB3's tables of every logged value are verbose=2."""
+
+import gymnasium as gym
+import pytest
+from stable_baselines3.common.logger import configure
+
+from sb3_lifelong import CRR, MPO
+from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
+
+SMALL = dict(policy_kwargs=dict(net_arch=[16]), batch_size=16, learning_starts=20, num_samples=4, seed=0)
+
+
+def short(**kwargs) -> gym.Env:
+    return gym.make("Pendulum-v1", max_episode_steps=20, **kwargs)
+
+
+def table_lines(out: str) -> list[str]:
+    return [line for line in out.splitlines() if line.startswith("|")]
+
+
+@pytest.mark.parametrize("verbose", [1, 2])
+def test_verbose_one_prints_evaluations_not_tables(verbose, capsys):
+    model = MPO("MlpPolicy", short(), verbose=verbose, **SMALL)
+    envs = {"Env-A": short(), "Env-B": short(g=5.0)}
+    callback = MultiEnvEvalCallback(envs, eval_freq=20, n_eval_episodes=1, verbose=1)
+    model.learn(80, log_interval=1, callback=callback)  # four 20-step episodes: four dumps of the training values
+    student = model.distill(CRR, gradient_steps=20, eval_env=envs, eval_freq=10, n_eval_episodes=1, log_interval=5)
+    out = capsys.readouterr().out
+    evaluations = [line for line in out.splitlines() if line.startswith("Eval at ")]
+    assert len(evaluations) == 4 + 2  # one line per evaluation: 4 online, 2 of the student
+    assert "Env-A" in evaluations[0] and "Env-B" in evaluations[0] and "mean over environments" in evaluations[0]
+    if verbose == 1:
+        assert table_lines(out) == [] and len(out.splitlines()) < 15, out
+    else:
+        assert any("train/" in line for line in table_lines(out))
+    assert student.num_timesteps == 20
+
+
+def test_a_logger_given_by_the_user_keeps_its_stdout(capsys):
+    model = MPO("MlpPolicy", short(), verbose=1, **SMALL)
+    model.set_logger(configure(None, ["stdout"]))
+    model.learn(40, log_interval=1)
+    assert table_lines(capsys.readouterr().out)
