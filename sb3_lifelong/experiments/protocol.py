@@ -40,14 +40,11 @@ import math
 import pathlib
 import re
 import shutil
-import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, Callable, Optional
 
-if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skipped elsewhere
-    import fcntl
-
+from filelock import FileLock, Timeout
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_lifelong.bc import BC
@@ -547,19 +544,18 @@ def job_lock(run_dir: pathlib.Path, job: str) -> Iterator[bool]:
     :param job: the job's name
     :return: (as a context manager) True if this process holds the job, False if another process does
     """
-    if sys.platform == "win32":  # pragma: no cover
-        yield True
+    # filelock: an OS lock (flock on POSIX, LockFileEx on Windows) on a file beside the job's directory, which a job
+    # deletes first; the OS releases it when the process ends, however it ends
+    lock = FileLock(run_dir / f".{job}.lock", timeout=0, thread_local=False)
+    try:
+        lock.acquire()
+    except Timeout:
+        yield False
         return
-    with open(run_dir / f".{job}.lock", "a") as file:  # beside the job's directory, which a job deletes first
-        try:
-            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            yield False
-            return
-        try:
-            yield True
-        finally:
-            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
+    try:
+        yield True
+    finally:
+        lock.release()
 
 
 def run_seed(

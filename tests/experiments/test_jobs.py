@@ -37,3 +37,23 @@ def test_a_student_names_a_known_algorithm():
     with pytest.raises(ValueError, match="one of \\('CRR', 'BC'\\), got 'SAC'"):
         Student("SAC")
     assert {student.algorithm for student in STUDENTS.values()} == {"CRR", "BC"}
+
+
+def test_a_job_lock_holds_against_another_process_and_is_freed_after(tmp_path):
+    import subprocess
+    import sys
+
+    from sb3_lifelong.experiments.protocol import job_lock
+
+    probe = (
+        "import pathlib\nfrom sb3_lifelong.experiments.protocol import job_lock\n"
+        f"with job_lock(pathlib.Path({str(tmp_path)!r}), 'collect') as held: print(held)"
+    )
+    with job_lock(tmp_path, "collect") as ours:
+        assert ours
+        other = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+        assert other.stdout.strip() == "False", other.stderr
+        with job_lock(tmp_path, "distill_BC") as another_job:  # one lock per job
+            assert another_job
+    other = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert other.stdout.strip() == "True", other.stderr
