@@ -23,6 +23,7 @@ from gymnasium import spaces
 
 from sb3_lifelong import MPO
 from sb3_lifelong.mpo.losses import (
+    DUAL_RAW_FLOOR,
     action_penalty_q,
     dual_value,
     e_step,
@@ -282,6 +283,29 @@ def test_dual_parametrisation_is_a_shifted_softplus():
         assert np_softplus(inverse_softplus(value)) == pytest.approx(value, rel=1e-9)
     with pytest.raises(ValueError, match="> 0"):
         inverse_softplus(-1.0)
+
+
+def test_dual_floor_keeps_a_dual_positive_at_its_documented_size():
+    # the floor of a raw dual (mpo.py clamps to it after each step): softplus(-18) ~ 1.5e-8, a dual that can still rise
+    assert np_softplus(np.array(DUAL_RAW_FLOOR)) == pytest.approx(1.523e-8, rel=0.01)
+    assert float(dual_value(t64(np.array(DUAL_RAW_FLOOR)))) == pytest.approx(2.523e-8, rel=0.01)
+
+
+def test_temperature_loss_sends_no_gradient_into_the_q_values():
+    q_values = th.randn(5, 4, dtype=th.float64, requires_grad=True)
+    temperature = th.tensor(0.7, dtype=th.float64, requires_grad=True)
+    loss, weights = temperature_loss_and_weights(q_values, temperature, 0.1)
+    loss.backward()
+    assert q_values.grad is None and temperature.grad is not None and not weights.requires_grad
+
+
+def test_the_action_penalty_bound_defaults_to_zero():
+    rng = np.random.default_rng(3)
+    q_values, actions = t64(rng.normal(size=(6, 4))), t64(rng.uniform(-1.5, 1.5, size=(6, 4, 2)))
+    eta, penalty = th.tensor(0.8, dtype=th.float64), th.tensor(0.3, dtype=th.float64)
+    default = e_step(q_values, actions, eta, 0.1, penalty_temperature=penalty)
+    explicit = e_step(q_values, actions, eta, 0.1, penalty_temperature=penalty, epsilon_penalty=0.0)
+    assert float(default.dual_loss) == float(explicit.dual_loss)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
