@@ -36,10 +36,30 @@ from sb3_lifelong.buffers.manifest import (
     validate_fields,
 )
 
-if sys.platform == "win32":  # pragma: no cover: the writer lock is advisory (POSIX) and simply skipped elsewhere
+if sys.platform == "win32":  # pragma: no cover: no flock; the writer lock goes through filelock (LockFileEx)
     fcntl = None
 else:
     import fcntl
+
+
+class _PortableLock:
+    """
+    The writer lock where ``fcntl`` does not exist (Windows): :mod:`filelock`'s OS lock on the same lock file, with the
+    ``close()`` of the file object the POSIX lock keeps (closing releases it, as closing a flock'ed file does).
+    """
+
+    def __init__(self, lock_name: str) -> None:
+        from filelock import FileLock, Timeout
+
+        self._lock = FileLock(lock_name, timeout=0, thread_local=False)
+        try:
+            self._lock.acquire()
+        except Timeout:
+            raise BlockingIOError(f"{lock_name} is held") from None
+
+    def close(self) -> None:
+        self._lock.release()
+
 
 #: what an error about a damaged chunk adds
 SALVAGE_HINT = (
@@ -255,13 +275,23 @@ class _DirectoryLayout:
         self.tail_rows = self.flush_at = state.chunk_size
 
     def lock(self, create: bool = False) -> Optional[str]:
-        if self.state.lock_file is not None or fcntl is None:
+        if self.state.lock_file is not None:
             return None
         if create:
             os.makedirs(self.path, exist_ok=True)
         elif not os.path.isdir(self.path):
             return None
         lock_name = os.path.join(self.path, LOCK_NAME)
+        if fcntl is None:
+            if os.path.islink(lock_name):
+                raise BufferFormatError(f"{lock_name} is a symbolic link, not this buffer's lock file: refusing to open it")
+            try:
+                self.state.lock_file = _PortableLock(lock_name)  # type: ignore[assignment]
+            except BlockingIOError:
+                raise RuntimeError(
+                    f"{self.path} is open for writing by another buffer (process or object); open it with read_only=True"
+                ) from None
+            return self.path
         try:  # never through a symbolic link planted at its name (O_NOFOLLOW)
             lock_file = open(lock_name, "a+", opener=lambda name, flags: os.open(name, flags | files.NOFOLLOW, 0o666))
         except OSError as error:

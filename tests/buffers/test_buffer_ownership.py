@@ -218,3 +218,26 @@ def test_reopening_with_a_smaller_capacity_evicts_only_when_asked(tmp_path):
         assert smaller.size() == 100 and smaller.capacity == 100
         newest = (np.arange(400, 500) * 0.01).astype(np.float32)
         np.testing.assert_array_equal(smaller.store.read_range("rewards", 0, 100), newest)
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_the_writer_lock_holds_where_there_is_no_fcntl(tmp_path, layout, monkeypatch):
+    """Where ``fcntl`` does not exist (Windows) the writer lock goes through filelock: a second writer is still refused,
+    and the lock is free again once the first closes (here simulated on POSIX, where filelock uses its own lock)."""
+    from sb3_lifelong.buffers import layouts
+
+    monkeypatch.setattr(layouts, "fcntl", None)
+    path = tmp_path / "buffer"
+    live = make(path, layout)
+    add_rows(live, 0, 120)
+    before = snapshot(path)
+    with pytest.raises(RuntimeError, match=r"is open for writing by another buffer"):
+        make(path, layout, mode="append")
+    assert snapshot(path) == before
+    live.close()
+    again = make(path, layout, mode="append")  # the lock left with the writer that held it
+    add_rows(again, 120, 140)
+    again.close()
+    reader = reopen(path)
+    assert_rows(reader, 140)
+    reader.close()
