@@ -37,7 +37,8 @@ from sb3_lifelong.experiments.scores import MalformedResultsError
 
 DEVICE_HELP = (
     "where every model runs: cpu (the presets' default: small networks run fastest as one process per core), cuda, "
-    "cuda:<k> (larger networks, e.g. the paper preset); a study runs on one device"
+    "cuda:<k> (larger networks, e.g. the paper preset), or auto (cuda if torch sees a GPU, else cpu; the study records "
+    "the one chosen); a study runs on one device"
 )
 REPEATS_HELP = "train each student this many times per seed (its own student seed each); the report scores the mean"
 REUSE_HELP = "reuse this study's collection of the seed (same collection settings): its buffers are linked, only students run"
@@ -174,6 +175,8 @@ def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) 
         if len(args.stage_steps) != stages:
             parser.error(f"--stage-steps needs one value per stage: preset {args.preset} has {stages}, got {args.stage_steps}")
     if args.command in ("run", "study"):
+        if args.device == "auto":  # this machine's GPU if torch sees one: the study records the device it chose
+            args.device = "cuda" if th.cuda.is_available() else "cpu"
         if args.device is not None:
             try:
                 args.settings = dataclasses.replace(args.settings, device=args.device)

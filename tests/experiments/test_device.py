@@ -61,3 +61,12 @@ def test_run_on_a_study_of_another_device_exits_with_the_reason(tmp_path, capsys
         main(["run", "--preset", "tiny", "--seed", "0", "--output", str(output), "--device", "cpu"])
     assert exited.value.code == 2 and "device differ" in capsys.readouterr().err
     assert (output / "preset.json").read_bytes() == before and sorted(p.name for p in output.iterdir()) == ["preset.json"]
+
+
+def test_auto_records_the_device_it_chose(tmp_path):
+    from sb3_lifelong.experiments.__main__ import _check_arguments, _parser
+
+    parser = _parser()
+    args = parser.parse_args(["run", "--preset", "tiny", "--seed", "0", "--output", str(tmp_path / "s"), "--device", "auto"])
+    _check_arguments(parser, args)
+    assert args.settings.device == ("cuda" if th.cuda.is_available() else "cpu")
