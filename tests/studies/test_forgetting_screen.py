@@ -109,3 +109,21 @@ def test_selection_prefers_forgetting_then_the_cheaper_robot_then_the_closest():
     assert screen.select(verdicts) == ("hopper_reversed", "closest (no candidate forgets)")
     verdicts["cheetah_hip"] = ("pending", 0.1)
     assert screen.select(verdicts)[0] is None
+
+
+def test_amended_candidates_are_read_on_four_seeds():
+    screen = load_screen()
+    seeds = screen.candidate_seeds("cheetah_back_reversed")
+    assert seeds == (0, 1, 2, 3) and screen.candidate_seeds("walker_soft_ground") == (0, 1)
+
+    def row(learnt: bool, ratio: float) -> dict:
+        return dict(env_a_learnt=learnt, forgetting_ratio=ratio, forgets=learnt and ratio <= 0.8)
+
+    two = [row(True, 0.75), row(False, 1.85)]
+    assert screen.candidate_verdict(two, seeds)[0] == "pending"  # seeds 2 and 3 not measured yet
+    assert screen.candidate_verdict(two)[0] == "not testable"  # as registered for two seeds
+    four = [*two, row(True, 0.7), row(False, 1.2)]
+    verdict, mean = screen.candidate_verdict(four, seeds)
+    assert verdict == "forgets" and mean == pytest.approx(0.725)  # learnt on two of four, both forget
+    assert screen.candidate_verdict([*two, row(True, 0.9), row(False, 1.2)], seeds)[0] == "mixed"
+    assert screen.candidate_verdict([*two, row(False, 0.5), row(False, 1.2)], seeds)[0] == "not testable"
