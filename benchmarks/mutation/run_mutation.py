@@ -33,14 +33,17 @@ import ast
 import copy
 import csv
 import datetime
+import importlib
 import os
 import pathlib
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
 import time
+import traceback
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
@@ -79,6 +82,29 @@ MODULES: dict[str, list[str]] = {
         "tests/experiments/test_study.py::test_claims_pair_the_compared_series_by_seed",
     ],
     "benchmarks/studies/paper_cpu/claims.py": ["tests/experiments/test_claims_both_ways.py"],
+    # the buffer's commit and recovery path (its scope below): rows written, committed, recovered after a crash
+    "sb3_lifelong/buffers/rowstore.py": [
+        "tests/buffers/test_buffer_crash_prefix.py",
+        "tests/buffers/test_buffer_faults.py",
+    ],
+}
+
+#: the modules measured in part: only the mutation sites inside these functions (``Class.method`` or ``function``)
+SCOPES: dict[str, tuple[str, ...]] = {
+    "sb3_lifelong/buffers/rowstore.py": (
+        "RowStore._first_tail_rows",
+        "RowStore._open_or_create",
+        "RowStore.refresh",
+        "RowStore.append",
+        "RowStore._keep_pending",
+        "RowStore._extend_tail",
+        "RowStore._make_room",
+        "RowStore.flush",
+        "RowStore._write_chunks",
+        "RowStore._commit",
+        "RowStore._adopt_commit",
+        "RowStore._delete_undeleted",
+    ),
 }
 
 #: what the copy of the repository holds (``benchmarks``: its Python files only, not its results)
@@ -135,7 +161,7 @@ Mutation = Callable[[ast.AST], Optional[ast.AST]]
 
 def _docstring_nodes(tree: ast.AST) -> set[int]:
     """:return: the ids of the docstrings' nodes (never mutated)"""
-    found = set()
+    found: set[int] = set()
     for node in ast.walk(tree):
         if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
             first = node.body[0]
@@ -146,7 +172,7 @@ def _docstring_nodes(tree: ast.AST) -> set[int]:
 
 def _annotation_nodes(tree: ast.AST) -> set[int]:
     """:return: the ids of the nodes inside type annotations (never mutated: a mutant there changes nothing)"""
-    found = set()
+    found: set[int] = set()
     for node in ast.walk(tree):
         annotations = []
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
@@ -234,15 +260,42 @@ def mutations_of(node: ast.AST) -> Iterator[tuple[str, Mutation]]:  # noqa: C901
             yield "drop .detach()", lambda n: n.func.value  # type: ignore[attr-defined]
 
 
-def list_mutants(module: str, root: pathlib.Path = ROOT) -> list[Mutant]:
-    """:return: every mutant of ``module`` (a path relative to ``root``), in the order of the source's lines"""
+def _scope_lines(tree: ast.AST, scope: Sequence[str]) -> list[tuple[int, int]]:
+    """:return: the line ranges of the functions named in ``scope`` (``Class.method`` or ``function``)"""
+    ranges: dict[str, tuple[int, int]] = {}
+
+    def visit(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                name = prefix + child.name
+                if not isinstance(child, ast.ClassDef):
+                    ranges[name] = (child.lineno, child.end_lineno or child.lineno)
+                visit(child, name + ".")
+
+    visit(tree, "")
+    missing = [name for name in scope if name not in ranges]
+    if missing:
+        raise ValueError(f"no function {missing} in the module: its scope is out of date")
+    return [ranges[name] for name in scope]
+
+
+def list_mutants(module: str, root: pathlib.Path = ROOT, scope: Optional[Sequence[str]] = None) -> list[Mutant]:
+    """
+    :param module: a path relative to ``root``
+    :param root: the repository's root
+    :param scope: only the sites inside these functions (``Class.method`` or ``function``); all when None
+    :return: every mutant of ``module``, in the order of the source's lines
+    """
     source = (root / module).read_text()
     tree = ast.parse(source)
     skipped = _docstring_nodes(tree) | _annotation_nodes(tree)
+    lines = _scope_lines(tree, scope) if scope is not None else None
     original_nodes = list(ast.walk(tree))
     mutants = []
     for position, node in enumerate(original_nodes):
         if id(node) in skipped or not hasattr(node, "lineno"):
+            continue
+        if lines is not None and not any(lo <= node.lineno <= hi for lo, hi in lines):
             continue
         for name, mutate in mutations_of(node):
             mutated_tree = copy.deepcopy(tree)
@@ -323,49 +376,189 @@ class Outcome:
     detail: str
 
 
+PYTEST_ARGS = ("-x", "-q", "-p", "no:cacheprovider", "-W", "ignore::DeprecationWarning", "-o", "addopts=")
+TEST_ENV = dict(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1", CUDA_VISIBLE_DEVICES="")
+
+#: what the forking runner imports once, before its first fork (never the package itself: each child imports its copy)
+PRELOADED = (
+    "numpy",
+    "scipy.stats",
+    "torch",
+    "torch._dynamo",
+    "gymnasium",
+    "stable_baselines3",
+    "pytest",
+    "hypothesis",
+    "filelock",
+)
+
+
+def _classify(returncode: int, output: str, seconds: float) -> tuple[str, float, str]:
+    """:return: a pytest exit code and its output read as an outcome (killed / survived / error), seconds, a detail"""
+    lines = [line for line in output.splitlines() if line.strip()]
+    detail = lines[-1] if lines else ""
+    if returncode == 0:
+        return "survived", seconds, detail
+    if returncode == 1:  # tests ran and failed
+        failed = next((line for line in lines if line.startswith("FAILED")), detail)
+        return "killed", seconds, failed[:200]
+    # 2: interrupted (an error at collection, e.g. the mutant breaks an import), 3/4: pytest's own errors
+    return ("killed" if returncode == 2 else "error"), seconds, detail[:200]
+
+
 def run_tests(copy_root: pathlib.Path, tests: Sequence[str], timeout: float) -> tuple[str, float, str]:
     """:return: the outcome of the tests in the copy (killed / survived / timeout / error), their seconds and a detail"""
     path = os.pathsep.join(p for p in (str(copy_root), os.environ.get("PYTHONPATH", "")) if p)  # the copy first
-    env = dict(os.environ, PYTHONPATH=path, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1")
-    env["CUDA_VISIBLE_DEVICES"] = ""  # the tests as CI runs them, on the CPU (and no GPU shared by the workers)
-    command = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-W", "ignore::DeprecationWarning"]
-    command += ["-o", "addopts=", *tests]
+    env = dict(os.environ, PYTHONPATH=path, **TEST_ENV)  # on the CPU, as CI runs them (no GPU shared by the workers)
+    command = [sys.executable, "-m", "pytest", *PYTEST_ARGS, *tests]
     start = time.perf_counter()
     try:
         completed = subprocess.run(command, cwd=copy_root, env=env, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return "timeout", time.perf_counter() - start, f"over {timeout:g} s"
-    seconds = time.perf_counter() - start
-    lines = [line for line in completed.stdout.splitlines() if line.strip()]
-    last = lines[-1] if lines else completed.stderr.strip().splitlines()[-1:] or [""]
-    detail = last if isinstance(last, str) else last[0]
-    if completed.returncode == 0:
-        return "survived", seconds, detail
-    if completed.returncode == 1:  # tests ran and failed
-        failed = next((line for line in lines if line.startswith("FAILED")), detail)
-        return "killed", seconds, failed[:200]
-    # 2: interrupted (an error at collection, e.g. the mutant breaks an import), 3/4: pytest's own errors
-    return ("killed" if completed.returncode == 2 else "error"), seconds, detail[:200]
+    return _classify(completed.returncode, completed.stdout + completed.stderr, time.perf_counter() - start)
+
+
+def preload() -> None:
+    """Import the heavy libraries once, in the process that forks the test runs (a child then starts in milliseconds)."""
+    for name, value in TEST_ENV.items():
+        os.environ[name] = value
+    for name in PRELOADED:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            pass
+    assert "sb3_lifelong" not in sys.modules, "the forking runner must not import the package it mutates"
+
+
+class ForkedTests:
+    """
+    A module's targeted tests, run by ``pytest.main`` in a forked child of this process, with the copy first on
+    ``sys.path`` (the libraries are imported already: see :func:`preload`). The child checks that it imports the
+    package from the copy and not from anywhere else; its output goes to ``pytest.log`` in the copy.
+    """
+
+    def __init__(self, copy_root: pathlib.Path, tests: Sequence[str], timeout: float):
+        self.copy_root = copy_root
+        self.tests = list(tests)
+        self.timeout = timeout
+        self.log = copy_root / "pytest.log"
+        self.started = time.perf_counter()
+        self.pid = os.fork()
+        if self.pid == 0:  # the child never returns
+            self._child()
+
+    def _child(self) -> None:
+        code = 4
+        try:
+            descriptor = os.open(self.log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            os.dup2(descriptor, 1)
+            os.dup2(descriptor, 2)
+            sys.stdout = open(1, "w", closefd=False)  # what the parent's sys.stdout was (a capture) is not ours
+            sys.stderr = open(2, "w", closefd=False)
+            os.chdir(self.copy_root)
+            sys.path.insert(0, str(self.copy_root))
+            try:
+                import sb3_lifelong  # noqa: F401 (the mutant may break its import: killed, as pytest would say)
+            except Exception:
+                traceback.print_exc()
+                code = 2
+            else:
+                where = pathlib.Path(sys.modules["sb3_lifelong"].__file__ or "").resolve()
+                if self.copy_root.resolve() not in where.parents:
+                    print(f"sb3_lifelong was imported from {where}, not from the copy")
+                    code = 3
+                else:
+                    import pytest
+
+                    code = int(pytest.main([*PYTEST_ARGS, *self.tests]))
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+
+    def poll(self) -> Optional[tuple[str, float, str]]:
+        """:return: the outcome once the child has ended (it is killed past its timeout), None while it runs"""
+        pid, status = os.waitpid(self.pid, os.WNOHANG)
+        seconds = time.perf_counter() - self.started
+        if pid == 0:
+            if seconds <= self.timeout:
+                return None
+            os.kill(self.pid, signal.SIGKILL)
+            os.waitpid(self.pid, 0)
+            return "timeout", seconds, f"over {self.timeout:g} s"
+        output = self.log.read_text(errors="replace") if self.log.exists() else ""
+        return _classify(os.waitstatus_to_exitcode(status), output, seconds)
+
+
+def _fresh_copy(scratch: pathlib.Path, prefix: str, mutant: Optional[Mutant] = None) -> pathlib.Path:
+    copy_root = pathlib.Path(tempfile.mkdtemp(prefix=prefix, dir=scratch))
+    copy_repository(copy_root)
+    if mutant is not None:
+        (copy_root / mutant.module).write_text(mutant.source)
+    return copy_root
+
+
+def run_forked(
+    jobs: Sequence[tuple[str, Optional[Mutant], Sequence[str]]],
+    workers: int,
+    timeout: float,
+    scratch: pathlib.Path,
+) -> Iterator[tuple[str, Optional[Mutant], tuple[str, float, str]]]:
+    """
+    Run the jobs (a name, the mutant or None for a baseline, the tests) in forked children, ``workers`` at once.
+
+    :return: each job with its outcome, as they end
+    """
+    waiting = list(jobs)
+    running: list[tuple[str, Optional[Mutant], pathlib.Path, ForkedTests]] = []
+    try:
+        while waiting or running:
+            while waiting and len(running) < workers:
+                name, mutant, tests = waiting.pop(0)
+                copy_root = _fresh_copy(scratch, f"{name}_", mutant)
+                running.append((name, mutant, copy_root, ForkedTests(copy_root, tests, timeout)))
+            time.sleep(0.02)
+            for entry in list(running):
+                name, mutant, copy_root, child = entry
+                result = child.poll()
+                if result is not None:
+                    running.remove(entry)
+                    shutil.rmtree(copy_root, ignore_errors=True)
+                    yield name, mutant, result
+    finally:  # interrupted: no child outlives the runner, no copy is left behind
+        for _, _, copy_root, child in running:
+            try:
+                os.kill(child.pid, signal.SIGKILL)
+                os.waitpid(child.pid, 0)
+            except (ProcessLookupError, ChildProcessError):
+                pass
+            shutil.rmtree(copy_root, ignore_errors=True)
 
 
 def run_mutant(mutant: Mutant, tests: Sequence[str], timeout: float, scratch: pathlib.Path) -> Outcome:
-    """Write the mutant into a fresh copy of the repository, run its module's tests there, remove the copy."""
-    copy_root = pathlib.Path(tempfile.mkdtemp(prefix=f"mutant_{mutant.index}_", dir=scratch))
+    """Write the mutant into a fresh copy of the repository, run its module's tests there (a subprocess), remove it."""
+    copy_root = _fresh_copy(scratch, f"mutant_{mutant.index}_", mutant)
     try:
-        copy_repository(copy_root)
-        (copy_root / mutant.module).write_text(mutant.source)
-        outcome, seconds, detail = run_tests(copy_root, tests, timeout)
+        result = run_tests(copy_root, tests, timeout)
     finally:
         shutil.rmtree(copy_root, ignore_errors=True)
+    return outcome_of(mutant, result)
+
+
+def outcome_of(mutant: Mutant, result: tuple[str, float, str]) -> Outcome:
+    """:return: the mutant's row of the results"""
+    outcome, seconds, detail = result
     fields = {k: v for k, v in asdict(mutant).items() if k != "source"}
     return Outcome(**fields, outcome=outcome, seconds=round(seconds, 2), detail=detail)
 
 
 def baseline(tests: Sequence[str], timeout: float, scratch: pathlib.Path) -> tuple[str, float, str]:
     """:return: the unmutated tests' outcome (they must pass, or no mutant's outcome means anything)"""
-    copy_root = pathlib.Path(tempfile.mkdtemp(prefix="baseline_", dir=scratch))
+    copy_root = _fresh_copy(scratch, "baseline_")
     try:
-        copy_repository(copy_root)
         return run_tests(copy_root, tests, timeout)
     finally:
         shutil.rmtree(copy_root, ignore_errors=True)
@@ -444,6 +637,29 @@ def write_results(outcomes: Sequence[Outcome], output: pathlib.Path, command: st
     (output / "mutation.md").write_text("\n".join(lines) + "\n")
 
 
+def read_outcomes(path: pathlib.Path, exclude: Sequence[str] = ()) -> list[Outcome]:
+    """:return: the rows of an earlier ``mutation.csv`` (none if it does not exist), less those of ``exclude``'s modules"""
+    if not path.exists():
+        return []
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    return [
+        Outcome(
+            module=row["module"],
+            index=int(row["index"]),
+            line=int(row["line"]),
+            operator=row["operator"],
+            original=row["original"],
+            mutated=row["mutated"],
+            outcome=row["outcome"],
+            seconds=float(row["seconds"]),
+            detail=row["detail"],
+        )
+        for row in rows
+        if row["module"] not in exclude
+    ]
+
+
 def _cell(code: str) -> str:
     code = " ".join(code.split()).replace("|", "\\|").replace("`", "'")
     return code if len(code) <= 90 else code[:87] + "..."
@@ -460,6 +676,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--output", type=pathlib.Path, default=RESULTS, help="where the csv and markdown go")
     parser.add_argument("--scratch", type=pathlib.Path, default=None, help="where the copies go (default: the temp dir)")
     parser.add_argument("--list", action="store_true", help="list the mutants and stop")
+    parser.add_argument(
+        "--runner",
+        choices=("fork", "spawn"),
+        default="fork" if hasattr(os, "fork") else "spawn",
+        help="fork: each run is a forked child of this process, the libraries imported once (the default where "
+        "os.fork exists); spawn: each run is a new Python process",
+    )
+    parser.add_argument(
+        "--keep-others",
+        action="store_true",
+        help="keep the rows of the modules not run now from the output's mutation.csv (a measurement in parts)",
+    )
     args = parser.parse_args(argv)
     unknown = [module for module in args.modules if module not in MODULES]
     if unknown:
@@ -470,7 +698,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     chosen: list[Mutant] = []
     total: dict[str, int] = {}
     for module in args.modules:
-        mutants = list_mutants(module)
+        mutants = list_mutants(module, scope=SCOPES.get(module))
         total[module] = len(mutants)
         if args.limit is not None and len(mutants) > args.limit:
             step = len(mutants) / args.limit  # an even spread over the module, not its first lines only
@@ -484,27 +712,49 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     scratch = args.scratch or pathlib.Path(tempfile.gettempdir())
     scratch.mkdir(parents=True, exist_ok=True)
-    outcomes: list[Outcome] = []
+    outcomes: list[Outcome] = read_outcomes(args.output / "mutation.csv", exclude=args.modules) if args.keep_others else []
+    for module in dict.fromkeys(o.module for o in outcomes):
+        total.setdefault(module, sum(o.module == module for o in outcomes))
+    kept = len(outcomes)
     command = "python benchmarks/mutation/run_mutation.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    with ThreadPoolExecutor(max_workers=args.workers) as pool:
-        baselines = {module: pool.submit(baseline, MODULES[module], args.timeout, scratch) for module in args.modules}
-        for module, future in baselines.items():
-            outcome, seconds, detail = future.result()
-            print(f"baseline {module}: {outcome} in {seconds:.1f} s ({detail})", flush=True)
-            if outcome != "survived":
-                print(f"the unmutated tests of {module} do not pass: fix them first", file=sys.stderr)
+
+    def report(done: int, outcome: Outcome) -> None:
+        outcomes.append(outcome)
+        print(
+            f"[{done}/{len(chosen)}] {outcome.outcome:8s} {outcome.module}:{outcome.line} {outcome.operator}: "
+            f"{_cell(outcome.original)} -> {_cell(outcome.mutated)} ({outcome.seconds:.1f} s)",
+            flush=True,
+        )
+        if done % 10 == 0 or done == len(chosen):  # partial results survive an interrupted run
+            write_results(outcomes, args.output, command.strip(), total)
+
+    def baseline_failed(module: str, result: tuple[str, float, str]) -> bool:
+        outcome, seconds, detail = result
+        print(f"baseline {module}: {outcome} in {seconds:.1f} s ({detail})", flush=True)
+        if outcome != "survived":
+            print(f"the unmutated tests of {module} do not pass: fix them first", file=sys.stderr)
+        return outcome != "survived"
+
+    if args.runner == "fork":
+        preload()
+        baselines = [(f"baseline_{k}", None, MODULES[module]) for k, module in enumerate(args.modules)]
+        for name, _, result in run_forked(baselines, args.workers, args.timeout, scratch):
+            if baseline_failed(args.modules[int(name.rsplit("_", 1)[1])], result):
                 return 1
-        futures = [pool.submit(run_mutant, m, MODULES[m.module], args.timeout, scratch) for m in chosen]
-        for done, future in enumerate(as_completed(futures), 1):
-            outcome = future.result()
-            outcomes.append(outcome)
-            print(
-                f"[{done}/{len(chosen)}] {outcome.outcome:8s} {outcome.module}:{outcome.line} {outcome.operator}: "
-                f"{_cell(outcome.original)} -> {_cell(outcome.mutated)} ({outcome.seconds:.1f} s)",
-                flush=True,
-            )
-            if done % 10 == 0 or done == len(chosen):  # partial results survive an interrupted run
-                write_results(outcomes, args.output, command.strip(), total)
+        jobs = [(f"mutant_{m.index}", m, MODULES[m.module]) for m in chosen]
+        for done, (_, mutant, result) in enumerate(run_forked(jobs, args.workers, args.timeout, scratch), 1):
+            assert mutant is not None
+            report(done, outcome_of(mutant, result))
+    else:
+        with ThreadPoolExecutor(max_workers=args.workers) as pool:
+            futures_of = {module: pool.submit(baseline, MODULES[module], args.timeout, scratch) for module in args.modules}
+            if any(baseline_failed(module, future.result()) for module, future in futures_of.items()):
+                return 1
+            futures = [pool.submit(run_mutant, m, MODULES[m.module], args.timeout, scratch) for m in chosen]
+            for done, future in enumerate(as_completed(futures), 1):
+                report(done, future.result())
+    if kept:
+        print(f"kept {kept} rows of other modules from {args.output / 'mutation.csv'}")
     for row in summarise(sorted(outcomes, key=lambda o: (o.module, o.index))):
         print(
             f"{row['module']}: {row['killed']} killed, {row['survived']} survived, {row['errors']} errors, "

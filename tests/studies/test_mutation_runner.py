@@ -1,7 +1,9 @@
-"""benchmarks/mutation/run_mutation.py: the mutants it lists, one change each, and its summary (no test run here)."""
+"""benchmarks/mutation/run_mutation.py: the mutants it lists, one change each, its scopes, outcomes and summary."""
 
+import os
 import pathlib
 
+import pytest
 from testkit import benchmark_module
 
 SOURCE = '''
@@ -65,3 +67,54 @@ def test_summary_counts_timeouts_as_killed_and_errors_apart():
     (row,) = runner.summarise(outcomes)
     assert (row["mutants"], row["killed"], row["survived"], row["errors"]) == (5, 3, 1, 1)
     assert row["kill_rate"] == 0.75
+
+
+def test_scope_keeps_the_sites_of_the_named_functions_only(tmp_path: pathlib.Path):
+    runner = benchmark_module("run_mutation")
+    (tmp_path / "module.py").write_text(
+        "class A:\n    def keep(self, x):\n        return x + 1\n\n    def other(self, x):\n        return x - 1\n\n\n"
+        "def free(x):\n    return x * 2\n"
+    )
+    lines = {m.line for m in runner.list_mutants("module.py", root=tmp_path, scope=("A.keep", "free"))}
+    assert lines == {3, 10}
+    everything = {m.line for m in runner.list_mutants("module.py", root=tmp_path)}
+    assert everything == {3, 6, 10}
+    with pytest.raises(ValueError, match=r"A\.gone"):
+        runner.list_mutants("module.py", root=tmp_path, scope=("A.gone",))
+    # every scope the runner uses names functions that exist
+    for module, scope in runner.SCOPES.items():
+        tree = runner.ast.parse((runner.ROOT / module).read_text())
+        assert len(runner._scope_lines(tree, scope)) == len(scope), module
+
+
+def test_exit_codes_read_as_outcomes_and_results_round_trip(tmp_path: pathlib.Path):
+    runner = benchmark_module("run_mutation")
+    assert runner._classify(0, "3 passed", 1.0)[0] == "survived"
+    assert runner._classify(1, "FAILED tests/x.py::t - boom\n1 failed", 1.0) == ("killed", 1.0, "FAILED tests/x.py::t - boom")
+    assert runner._classify(2, "ImportError", 1.0)[0] == "killed"  # the mutant breaks an import
+    assert runner._classify(3, "internal error", 1.0)[0] == "error"
+    outcomes = [
+        runner.Outcome("a.py", 0, 3, "op", "x + 1", "x - 1", "killed", 1.5, "FAILED"),
+        runner.Outcome("b.py", 1, 9, "op", "a < b", "a <= b", "survived", 2.0, "1 passed"),
+    ]
+    runner.write_results(outcomes, tmp_path, "cmd", {"a.py": 1, "b.py": 4})
+    assert runner.read_outcomes(tmp_path / "mutation.csv") == outcomes
+    assert runner.read_outcomes(tmp_path / "mutation.csv", exclude=["a.py"]) == outcomes[1:]
+    assert runner.read_outcomes(tmp_path / "absent.csv") == []
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="the forking runner needs os.fork")
+def test_forked_run_refuses_a_package_imported_from_elsewhere(tmp_path: pathlib.Path):
+    # this process has imported sb3_lifelong from the checkout: a child forked from it would test that, not the copy,
+    # so it must end as an error (never as a kill or a survivor)
+    import sb3_lifelong  # noqa: F401
+
+    runner = benchmark_module("run_mutation")
+    (tmp_path / "sb3_lifelong").mkdir()
+    (tmp_path / "sb3_lifelong" / "__init__.py").write_text("")
+    (tmp_path / "test_nothing.py").write_text("def test_nothing():\n    pass\n")
+    child = runner.ForkedTests(tmp_path, ["test_nothing.py"], timeout=60)
+    result = None
+    while result is None:
+        result = child.poll()
+    assert result[0] == "error" and "not from the copy" in (tmp_path / "pytest.log").read_text()
