@@ -90,6 +90,10 @@ ESS_GRID_PASSES = 2
 #: target is outside)
 ESS_SEARCH_SPAN = 7.0
 ESS_WARM_SPAN = 0.5
+#: the search window moves (by its width) while every candidate reaches the target, or none does: far-from-Gaussian
+#: advantages (two nearly tied best rows far above the rest) put the temperature outside the Gaussian guess's window;
+#: it stops at the guess / e^40 (below that, every weight but the best rows' is 0 in float32) or x e^40
+ESS_SHIFT_LIMIT = 40.0
 
 
 def _ess_of_temperatures(advantages: th.Tensor, log_betas: th.Tensor, log_max: float) -> th.Tensor:
@@ -139,6 +143,16 @@ def ess_temperature(
     else:
         centre = math.log(spread / math.sqrt(-math.log(target_ess)))
         low, high, passes = centre - ESS_SEARCH_SPAN, centre + ESS_SEARCH_SPAN, ESS_GRID_PASSES
+        width = high - low
+        while True:  # the crossing outside the window: move it (the passes below then refine inside it)
+            reached = _ess_of_temperatures(values, th.linspace(low, high, ESS_GRID_POINTS, device=values.device), log_max)
+            reached = reached >= target_ess
+            if bool(reached.all()) and low > centre - ESS_SHIFT_LIMIT:
+                low, high = low - width, low
+            elif not bool(reached.any()) and high < centre + ESS_SHIFT_LIMIT:
+                low, high = high, high + width
+            else:
+                break
     for _ in range(passes):
         log_betas = th.linspace(low, high, ESS_GRID_POINTS, device=values.device)
         ess = _ess_of_temperatures(values, log_betas, log_max)

@@ -117,3 +117,13 @@ def test_target_ess_needs_the_exp_transform():
     ):
         with pytest.raises(ValueError, match=match):
             CRR("MlpPolicy", "Pendulum-v1", **kwargs)
+
+
+def test_ess_temperature_found_outside_the_gaussian_guess_window():
+    # two nearly tied best rows far above a third: the size reaches 0.5 at a temperature about e^-7.6 below the
+    # Gaussian guess, outside its first window (the search returned the window's edge, at a size of 0.545)
+    advantages = th.tensor([1.953125e-03, -3.0, 0.0])
+    beta = ess_temperature(advantages, 0.5, max_weight=1e30).item()
+    weights, _ = crr_weights(advantages, "exp", beta, max_weight=1e30)
+    assert abs(effective_sample_size(weights).item() - 0.5) < 1e-3
+    assert 1e-3 < beta < 2e-3
