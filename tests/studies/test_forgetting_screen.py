@@ -78,18 +78,19 @@ def test_screen_shares_stage1_measures_and_reports(tiny_screen, tmp_path):
     assert "pending" in text and (results / "screen.png").exists()
 
 
-def _row(ratio, learnt=True):
-    return dict(forgetting_ratio=ratio, env_a_learnt=learnt, forgets=(ratio <= 0.8) if learnt else None)
+def _row(ratio, learnt=True, seed=None):
+    return dict(forgetting_ratio=ratio, env_a_learnt=learnt, forgets=(ratio <= 0.8) if learnt else None, seed=seed)
 
 
 @pytest.mark.parametrize(
     "rows, verdict",
     [
-        ([_row(0.79), _row(0.5)], "forgets"),
-        ([_row(0.81), _row(0.5)], "mixed"),
-        ([_row(0.81), _row(1.2)], "does not forget"),
-        ([_row(0.5), _row(0.5, learnt=False)], "not testable"),
-        ([_row(0.5)], "pending"),
+        ([_row(0.79, seed=0), _row(0.5, seed=1)], "forgets"),
+        ([_row(0.81, seed=0), _row(0.5, seed=1)], "mixed"),
+        ([_row(0.81, seed=0), _row(1.2, seed=1)], "does not forget"),
+        ([_row(0.5, seed=0), _row(0.5, learnt=False, seed=1)], "not testable"),
+        ([_row(0.5, seed=0)], "pending"),
+        ([_row(0.5, learnt=False, seed=0)], "not testable"),  # one seed left: two learnt seeds are out of reach
     ],
 )
 def test_candidate_verdict_in_both_directions(rows, verdict):
@@ -116,14 +117,30 @@ def test_amended_candidates_are_read_on_four_seeds():
     seeds = screen.candidate_seeds("cheetah_back_reversed")
     assert seeds == (0, 1, 2, 3) and screen.candidate_seeds("walker_soft_ground") == (0, 1)
 
-    def row(learnt: bool, ratio: float) -> dict:
-        return dict(env_a_learnt=learnt, forgetting_ratio=ratio, forgets=learnt and ratio <= 0.8)
+    def row(learnt: bool, ratio: float, seed: int) -> dict:
+        return dict(env_a_learnt=learnt, forgetting_ratio=ratio, forgets=learnt and ratio <= 0.8, seed=seed)
 
-    two = [row(True, 0.75), row(False, 1.85)]
+    two = [row(True, 0.75, 0), row(False, 1.85, 1)]
     assert screen.candidate_verdict(two, seeds)[0] == "pending"  # seeds 2 and 3 not measured yet
     assert screen.candidate_verdict(two)[0] == "not testable"  # as registered for two seeds
-    four = [*two, row(True, 0.7), row(False, 1.2)]
+    four = [*two, row(True, 0.7, 2), row(False, 1.2, 3)]
     verdict, mean = screen.candidate_verdict(four, seeds)
     assert verdict == "forgets" and mean == pytest.approx(0.725)  # learnt on two of four, both forget
-    assert screen.candidate_verdict([*two, row(True, 0.9), row(False, 1.2)], seeds)[0] == "mixed"
-    assert screen.candidate_verdict([*two, row(False, 0.5), row(False, 1.2)], seeds)[0] == "not testable"
+    assert screen.candidate_verdict([*two, row(True, 0.9, 2), row(False, 1.2, 3)], seeds)[0] == "mixed"
+    assert screen.candidate_verdict([*two, row(False, 0.5, 2), row(False, 1.2, 3)], seeds)[0] == "not testable"
+    # seed 3's Stage-1 did not learn Env-A: it cannot count, so the verdict does not wait for its Env-B
+    three = [*two, row(True, 0.7, 2)]
+    assert screen.candidate_verdict(three, seeds)[0] == "pending"
+    assert screen.candidate_verdict(three, seeds, {0: True, 1: False, 2: True, 3: False})[0] == "forgets"
+    assert screen.candidate_verdict(three, seeds, {3: True})[0] == "pending"
+    # unmeasured seeds whose Stage-1s did not learn Env-A: not testable before any Env-B run
+    assert screen.candidate_verdict([], (0, 1), {0: True, 1: False})[0] == "not testable"
+    assert screen.candidate_verdict([], (0, 1), {0: True})[0] == "pending"
+
+
+def test_stage1_records_are_read_by_robot_and_seed(tmp_path):
+    screen = load_screen()
+    for robot, seed, learnt in (("cheetah", 0, True), ("cheetah", 3, False), ("hopper", 1, False)):
+        (tmp_path / "stage1" / robot).mkdir(parents=True, exist_ok=True)
+        (tmp_path / "stage1" / robot / f"seed_{seed}.json").write_text(f'{{"seed": {seed}, "learnt": {str(learnt).lower()}}}')
+    assert screen.stage1_readings(tmp_path) == {"cheetah": {0: True, 3: False}, "hopper": {1: False}}

@@ -13,6 +13,7 @@ its last part (``PART`` steps)::
 
     OMP_NUM_THREADS=1 python benchmarks/studies/forgetting_screen/screen.py queue --seed 0 --runs /work/runs
     python benchmarks/studies/forgetting_screen/screen.py progress --runs /work/runs
+    python benchmarks/studies/forgetting_screen/screen.py stage1 --runs /work/runs   # results/stage1: learnt or not
     python benchmarks/studies/forgetting_screen/screen.py report      # screen.csv, results.md, screen.png
 
 Small results go to ``results/<candidate>/seed_<k>/`` beside this script; buffers and agents stay in ``--runs``.
@@ -261,27 +262,69 @@ def measured_rows(results: pathlib.Path) -> list[dict[str, Any]]:
     return rows
 
 
-def candidate_verdict(rows: list[dict[str, Any]], seeds: Sequence[int] = SEEDS) -> tuple[str, float]:
+def candidate_verdict(
+    rows: list[dict[str, Any]], seeds: Sequence[int] = SEEDS, stage1_learnt: Optional[dict[int, bool]] = None
+) -> tuple[str, float]:
     """
     The pre-registered reading of one candidate's seeds.
 
     :param rows: the candidate's measured seeds
-    :param seeds: the seeds it is read on (:func:`candidate_seeds`): pending until every one is measured
+    :param seeds: the seeds it is read on (:func:`candidate_seeds`)
+    :param stage1_learnt: seed -> whether Env-A was learnt at the switch, for the seeds whose Stage-1 has ended
+        (:func:`stage1_readings`). A seed not measured yet whose Stage-1 did not learn Env-A cannot count, whatever
+        its Env-B shows: the verdict does not wait for it. Without this, every seed must be measured.
 
     :return: the verdict (``forgets``, ``does not forget``, ``mixed``, ``not testable``, ``pending``) and the mean
         forgetting ratio over the seeds where Env-A was learnt (NaN when none)
     """
+    known = stage1_learnt or {}
     learnt = [row for row in rows if row["env_a_learnt"]]
     mean = float(np.mean([row["forgetting_ratio"] for row in learnt])) if learnt else math.nan
-    if len(rows) < len(seeds):
-        return "pending", mean
-    if len(learnt) < 2:
+    measured = {row["seed"] for row in rows}
+    waiting = [seed for seed in seeds if seed not in measured and known.get(seed) is not False]  # may still count
+    if len(learnt) + len(waiting) < 2:
         return "not testable", mean
+    if waiting:
+        return "pending", mean
     if all(row["forgets"] for row in learnt):
         return "forgets", mean
     if not any(row["forgets"] for row in learnt):
         return "does not forget", mean
     return "mixed", mean
+
+
+def stage1_readings(results: pathlib.Path) -> dict[str, dict[int, bool]]:
+    """:return: robot -> seed -> whether Env-A was learnt, from the Stage-1 records (``results/stage1``)"""
+    found: dict[str, dict[int, bool]] = {}
+    for path in sorted((results / "stage1").glob("*/seed_*.json")):
+        record = json.loads(path.read_text())
+        found.setdefault(path.parent.name, {})[int(record["seed"])] = bool(record["learnt"])
+    return found
+
+
+def record_stage1(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Read every finished Stage-1 in ``--runs`` by the registered rule and keep it in ``results/stage1`` (with its
+    evaluations), so that the report can tell a seed that cannot count from one that is still running."""
+    runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
+    records = []
+    for robot_name, robot in ROBOTS.items():
+        for seed in sorted({s for c, (r, _) in CANDIDATES.items() if r == robot_name for s in candidate_seeds(c)}):
+            run_dir = stage1_dir(runs, robot_name, seed)
+            if not (run_dir / "collect" / "stage1.zip").exists():
+                continue
+            evals = last_evaluations(run_dir / "collect" / "eval.csv", "Env-A", robot.env_a_steps)
+            mean = float(np.mean(evals))
+            spread = float(np.std(evals, ddof=1) / abs(mean)) if mean else math.inf
+            record = dict(robot=robot_name, seed=seed, evals=evals, mean=mean, spread=spread,
+                          learnt=bool(mean >= robot.threshold and spread <= MAX_SPREAD))  # fmt: skip
+            out = results / "stage1" / robot_name / f"seed_{seed}.json"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(record, indent=1) + "\n")
+            (out.parent / f"seed_{seed}_eval.csv").write_text((run_dir / "collect" / "eval.csv").read_text())
+            records.append(record)
+            print(f"{robot_name} seed {seed}: Env-A {'learnt' if record['learnt'] else 'not learnt'} "
+                  f"({mean:.0f}, spread {spread:.2f})")  # fmt: skip
+    return records
 
 
 def select(verdicts: dict[str, tuple[str, float]]) -> tuple[Optional[str], str]:
@@ -318,7 +361,11 @@ def report(args: argparse.Namespace) -> None:
         writer.writeheader()
         for row in rows:
             writer.writerow({**row, "change": json.dumps(row["change"])})
-    verdicts = {c: candidate_verdict([r for r in rows if r["candidate"] == c], candidate_seeds(c)) for c in CANDIDATES}
+    stage1 = stage1_readings(results)
+    verdicts = {
+        c: candidate_verdict([r for r in rows if r["candidate"] == c], candidate_seeds(c), stage1.get(CANDIDATES[c][0]))
+        for c in CANDIDATES
+    }
     chosen, why = select(verdicts)
     lines = [
         "# Forgetting screen: results",
@@ -398,7 +445,7 @@ def main() -> None:
         description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("queue", "progress", "report"):
+    for name in ("queue", "progress", "stage1", "report"):
         command = sub.add_parser(name)
         command.add_argument("--results", default=str(RESULTS), help="where the small results go")
         if name != "report":
@@ -407,7 +454,7 @@ def main() -> None:
             command.add_argument("--seed", type=int, required=True)
             command.add_argument("--candidates", nargs="*", choices=list(CANDIDATES), help="default: all, in order")
     args = parser.parse_args()
-    {"queue": queue, "progress": progress, "report": report}[args.command](args)
+    {"queue": queue, "progress": progress, "stage1": record_stage1, "report": report}[args.command](args)
 
 
 if __name__ == "__main__":

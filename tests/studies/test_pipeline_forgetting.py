@@ -1,0 +1,126 @@
+"""benchmarks/studies/pipeline_forgetting: its presets are the screen's collection, its claims read both ways and its
+three-way reading of an interval, and the Stage-1 rule (no run here)."""
+
+import csv
+import math
+import pathlib
+
+import pandas as pd
+import pytest
+from testkit import ROOT, benchmark_module
+
+from sb3_lifelong.experiments import load_claims
+from sb3_lifelong.experiments.claims import evaluate_claims
+from sb3_lifelong.experiments.presets import load_presets
+from sb3_lifelong.experiments.scores import Study
+
+STUDY = ROOT / "benchmarks" / "studies" / "pipeline_forgetting"
+#: what a collection is: every setting but the students', the online baselines' and the claims' thresholds
+NOT_COLLECTION = {"students", "online", "student_repeats", "note", "env_a_learnt", "max_switch_spread", "value_gap",
+                  "min_weight_ess", "student_critic", "student_batch_size", "student_learning_rate", "distill_steps",
+                  "distill_eval_freq"}  # fmt: skip
+
+
+def test_each_preset_collects_what_the_screen_collected():
+    screen = benchmark_module("screen")
+    pipeline = benchmark_module("pipeline")
+    presets = load_presets(STUDY / "presets.py")
+    assert sorted(presets) == ["pipeline_cheetah_back_knee_locked", "pipeline_cheetah_back_reversed"]
+    for name, preset in presets.items():
+        candidate = name.removeprefix("pipeline_")
+        mine, theirs = preset.describe(), screen.preset(candidate).describe()
+        assert {k: v for k, v in mine.items() if k not in NOT_COLLECTION} == {
+            k: v for k, v in theirs.items() if k not in NOT_COLLECTION
+        }, candidate
+        assert preset.student_repeats == 2 and set(pipeline.REST_JOBS) <= set(preset.jobs())
+    # Env-A is the same whichever candidate follows: one Stage-1 per seed serves both
+    a, b = presets.values()
+    assert a.stages[0] == b.stages[0] == {} and a.stage_steps == b.stage_steps
+    assert not set(pipeline.SEEDS) & {0, 1, 2, 3}  # fresh seeds: the screen chose on 0-3
+
+
+def study(scores: dict, extras: dict, seeds=(10, 11, 12)) -> Study:
+    finals = [
+        dict(seed=seed, method=method, kind="online", env=env, score=value)
+        for (method, env), values in scores.items()
+        for seed, value in zip(seeds, values)
+    ]
+    rows = [
+        dict(seed=seed, metric=metric, value=value) for metric, values in extras.items() for seed, value in zip(seeds, values)
+    ]
+    preset = dict(env_names=["Env-A", "Env-B"], env_a_learnt=1500.0, max_switch_spread=0.2)
+    return Study(pathlib.Path("synthetic"), preset, list(seeds), pd.DataFrame(finals), pd.DataFrame(rows))
+
+
+def verdicts(mpo_a, crr_a, student_a, mpo_b, student_b, switch=(3000.0,) * 3, spread=(0.05,) * 3):
+    scores = {
+        ("MPO", "Env-A"): mpo_a,
+        ("online CRR_exp_beta1", "Env-A"): crr_a,
+        ("CRR_exp_beta1", "Env-A"): student_a,
+        ("MPO", "Env-B"): mpo_b,
+        ("CRR_exp_beta1", "Env-B"): student_b,
+    }
+    extras = {"MPO|switch|Env-A": switch, "MPO|switch_spread|Env-A": spread}
+    rows = evaluate_claims(study(scores, extras), load_claims(STUDY / "claims.py"))
+    return {row["claim"]: row["verdict"] for row in rows}
+
+
+def test_claims_in_both_directions_and_not_testable():
+    holds = verdicts((2000, 2100, 2200), (2500, 2600, 2700), (2000, 2100, 2200), (4000, 4000, 4000), (3700, 3700, 3700))
+    assert set(holds.values()) == {"reproduced"}
+    fails = verdicts((2500, 2600, 2400), (2400, 2500, 2300), (1700, 1800, 1900), (4000, 4000, 4000), (3500, 3500, 3500))
+    assert set(fails.values()) == {"not reproduced"}
+    # just either side of C1's 0.8 and C3's 0.9
+    edge = verdicts((2399,) * 3, (2400,) * 3, (2399 * 0.9 + 1,) * 3, (4000,) * 3, (3599,) * 3)
+    assert edge["C1 MPO forgets Env-A"] == "reproduced" and edge["C3b the student is close to MPO's end agent in Env-B"] == (
+        "not reproduced"
+    )
+    assert edge["C3a the student is at least MPO's end agent in Env-A"] == "reproduced"
+    # Env-A not learnt, or not steady, on every seed: nothing is testable
+    for switch, spread in (((1400.0,) * 3, (0.05,) * 3), ((3000.0,) * 3, (0.3,) * 3)):
+        rows = verdicts((2000,) * 3, (2500,) * 3, (2000,) * 3, (4000,) * 3, (3700,) * 3, switch=switch, spread=spread)
+        assert set(rows.values()) == {"not testable"}
+
+
+def test_reading_of_an_interval_is_three_way():
+    claims = pipeline_claims()
+    c1, c2 = "C1 MPO forgets Env-A", "C2 online CRR remembers Env-A better than MPO"
+    assert claims.reading(c1, 0.5, 0.75) == "holds"
+    assert claims.reading(c1, 0.7, 0.9) == "inconclusive"
+    assert claims.reading(c1, 0.85, 1.1) == "fails"
+    assert claims.reading(c2, 10.0, 300.0) == "holds"
+    assert claims.reading(c2, -10.0, 300.0) == "inconclusive"
+    assert claims.reading(c2, -300.0, -10.0) == "fails"
+    assert claims.reading(c2, math.nan, 1.0) == "inconclusive"
+    assert claims.reading(c2, 10.0, 300.0, verdict="not testable") == "not testable"
+    assert set(claims.THRESHOLDS) == {claim.name for claim in claims.CLAIMS}
+
+
+def pipeline_claims():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("pipeline_claims", STUDY / "claims.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize(
+    "evals, learnt",
+    [
+        ([2400, 2900, 2850, 2750, 3150], True),
+        ([1400, 1450, 1500, 1480, 1460], False),  # steady, below 1500
+        ([1020, 657, 2484, 2548, 2368], False),  # above 1500 on average, spread 0.50 (the screen's seed 3)
+    ],
+)
+def test_stage1_reading_is_the_screen_rule(tmp_path, evals, learnt):
+    pipeline = benchmark_module("pipeline")
+    path = tmp_path / "eval.csv"
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["timesteps", "env", "mean_reward"])
+        for k, value in enumerate([100, 200, *evals]):
+            writer.writerow([5000 * (k + 1), "Env-A", value])
+        writer.writerow([40_000, "Env-B", 5000])
+    reading = pipeline.stage1_reading(path, 35_000)
+    assert reading["evals"] == [float(v) for v in evals] and reading["learnt"] is learnt
