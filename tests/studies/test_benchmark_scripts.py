@@ -227,3 +227,22 @@ def test_mpo_quality_paired_verdict(tmp_path, monkeypatch) -> None:
     assert (tmp_path / "paired_A_B.json").exists()
     with pytest.raises(ValueError, match="two different variants"):
         quality.report_pair(["Hopper-v5"], "A", "A")
+
+
+@pytest.mark.parametrize("preset", ["cpu", "paper"])
+def test_device_benchmark_shapes_are_the_presets_robots(preset) -> None:
+    # the device benchmark times random data shaped like each preset's robot: the shapes must stay the envs' own
+    from sb3_lifelong.envs import stage_envs
+    from sb3_lifelong.experiments.presets import PRESETS
+
+    bench = benchmark_module("bench_device_presets")
+    settings = PRESETS[preset]
+    try:
+        envs = stage_envs(settings.env_id, list(settings.stages), settings.env_names, settings.env_kwargs, append_params=True)
+    except (ImportError, RuntimeError) as error:  # the OP3 model comes from mujoco-menagerie
+        pytest.skip(f"{settings.env_id} not available (mujoco-menagerie, or MENAGERIE_ROOT set to a local copy): {error}")
+    env = next(iter(envs.values()))
+    assert (env.observation_space.shape[0], env.action_space.shape[0]) == bench.SHAPES[preset]
+    random_env = bench.RandomBoxEnv(*bench.SHAPES[preset], episode=3)
+    obs, _ = random_env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape and random_env.step(random_env.action_space.sample())[3] is False
