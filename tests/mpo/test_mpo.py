@@ -625,3 +625,39 @@ def test_td_target_hand_computed_with_episode_ends_and_n_step_discounts():
     # without the buffer's discounts: the one-step target, gamma on every transition that did not terminate
     one_step = batch._replace(discounts=None, dones=th.tensor([[0.0], [0.0], [1.0], [0.0]]))
     assert bootstrap_discount(one_step, gamma=0.9).flatten().tolist() == pytest.approx([0.9, 0.9, 0.0, 0.9])
+
+
+@pytest.mark.parametrize("broken", [False, True])
+def test_trust_region_keeps_the_kl_near_its_bound_and_a_broken_dual_does_not(monkeypatch, broken):
+    # the M-step's KL to the target policy, over 1500 updates on Pendulum: with its dual, it settles near epsilon_mean
+    # (the multiplier grows to hold it); with the dual's gradient reversed (a sign bug), the multiplier falls to its
+    # floor and the KL runs to several times its bound. (On Pendulum the unconstrained policy is not worse at 2.5k
+    # steps: the trust region buys a slow, safe policy change, not a faster one; what is tested is the constraint.)
+    import sb3_lifelong.mpo.mpo as mpo_module
+    from sb3_lifelong.mpo.losses import trust_region
+
+    kls, alphas = [], []
+
+    def recorded(*args, **kwargs):
+        region = trust_region(*args, **kwargs)
+        kls.append(region.kl_mean.detach().mean().item())
+        alphas.append(args[4].detach().mean().item())
+        return region._replace(dual_loss=-region.dual_loss) if broken else region
+
+    monkeypatch.setattr(mpo_module, "trust_region", recorded)
+    model = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        learning_starts=500,
+        batch_size=128,
+        learning_rate=1e-3,
+        policy_kwargs=dict(net_arch=[64, 64]),
+        seed=0,
+    )
+    model.learn(2000)
+    settled = float(np.mean(kls[len(kls) // 2 :]))
+    epsilon = model.epsilon_mean
+    if broken:
+        assert settled > 4 * epsilon and alphas[-1] < 0.1, (settled, alphas[-1])
+    else:
+        assert 0.3 * epsilon < settled < 2 * epsilon and alphas[-1] > 1.0, (settled, alphas[-1])
