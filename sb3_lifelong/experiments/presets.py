@@ -173,9 +173,8 @@ PRESETS: dict[str, Preset] = {
     # a hop that moves forward; `paper_cpu`'s MPO had about 690 and 400 at the switch), a value gap of 1.1 (P3), a
     # conservative student at an ESS of 0.8 (P4); a steady Env-A at the switch, its last 3 evaluations within a spread
     # of 0.2 (the switch score, the mean of the last two, then has a standard error of about 0.14 of itself, so that
-    # C1's "end / switch <= 0.7" is about two of them below an unchanged level). This was the `cpu` preset until the
-    # forgetting screen (benchmarks/studies/forgetting_screen) found where MPO forgets; `paper_cpu` ran it
-    "cpu_hopper_hip": Preset(
+    # C1's "end / switch <= 0.7" is about two of them below an unchanged level)
+    "cpu": Preset(
         env_id="Hopper-v5",
         env_a_learnt=1000.0,
         value_gap=1.1,
@@ -228,9 +227,6 @@ PRESETS: dict[str, Preset] = {
         max_episode_steps=50,
     ),
 }
-
-# the `cpu` preset: for now the Hopper protocol above (paper_cpu); it becomes the setting the forgetting screen selects
-PRESETS["cpu"] = PRESETS["cpu_hopper_hip"]
 
 # `make demo`: the cpu preset, shortened to minutes; too short to learn Env-A well, so it shows the pipeline, not the claims
 PRESETS["demo"] = dataclasses.replace(

@@ -90,7 +90,7 @@ def preset(candidate: str) -> Any:
     robot_name, change = CANDIDATES[candidate]
     robot = ROBOTS[robot_name]
     return dataclasses.replace(
-        PRESETS["cpu_hopper_hip"],
+        PRESETS["cpu"],
         env_id=robot.env_id,
         stages=({}, dict(change)),
         stage_steps=(robot.env_a_steps, ENV_B_FACTOR * robot.env_a_steps),

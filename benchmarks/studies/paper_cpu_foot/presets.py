@@ -18,7 +18,7 @@ PRESETS: dict[str, Preset] = {}
 # the cpu protocol with the one Env-B of the env-pair table that hurt in both directions, the foot twice as long
 # (benchmarks/studies/env_pairs/results); evaluated on 10 episodes, as the 5 of `cpu` left the students' scores noisy
 PRESETS["cpu_foot"] = dataclasses.replace(
-    PACKAGE_PRESETS["cpu_hopper_hip"],
+    PACKAGE_PRESETS["cpu"],
     stages=({}, {"foot_scale": 2.0}),
     eval_episodes=10,
     note=(

@@ -19,7 +19,7 @@ PRESETS: dict[str, Preset] = {}
 # of 250k steps; the order follows the env-pair table: each switch hurts the policy of the stage before, and the
 # Env-C (foot x2) policy is poor in both earlier environments (benchmarks/studies/env_pairs/results)
 PRESETS["cpu_three"] = dataclasses.replace(
-    PACKAGE_PRESETS["cpu_hopper_hip"],
+    PACKAGE_PRESETS["cpu"],
     stages=({}, {"friction": 0.2}, {"foot_scale": 2.0}),
     stage_steps=(50_000, 50_000, 250_000),
     env_names=("Env-A", "Env-B", "Env-C"),

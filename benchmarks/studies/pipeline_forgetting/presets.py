@@ -23,7 +23,7 @@ CHANGES = {
 
 PRESETS: dict[str, Preset] = {
     f"pipeline_{candidate}": dataclasses.replace(
-        PACKAGE_PRESETS["cpu_hopper_hip"],
+        PACKAGE_PRESETS["cpu"],
         env_id="HalfCheetah-v5",
         stages=({}, dict(change)),
         stage_steps=(60_000, 180_000),

@@ -28,7 +28,7 @@ from sb3_lifelong.experiments.protocol import distill_student
 
 
 def train(study: pathlib.Path, seed: int, students: list[str], updates: int, eval_freq: int, output: pathlib.Path) -> None:
-    preset = dataclasses.replace(PRESETS["cpu_hopper_hip"], distill_steps=updates, distill_eval_freq=eval_freq)
+    preset = dataclasses.replace(PRESETS["cpu"], distill_steps=updates, distill_eval_freq=eval_freq)
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     link = run_dir / "buffer"  # the study's buffer, read-only
