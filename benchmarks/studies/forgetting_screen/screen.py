@@ -85,12 +85,13 @@ PART = 20_000  # steps per part of a collection: a killed command loses at most 
 
 def preset(candidate: str) -> Any:
     """The collection of one candidate: the ``cpu`` preset's collector on the candidate's robot and change."""
-    from sb3_lifelong.experiments.presets import PRESETS
+    from sb3_lifelong.experiments.presets import load_presets
 
     robot_name, change = CANDIDATES[candidate]
     robot = ROBOTS[robot_name]
+    hopper_hip = load_presets(STUDY.parent / "paper_cpu" / "presets.py")["cpu_hopper_hip"]  # the collector it ran with
     return dataclasses.replace(
-        PRESETS["cpu"],
+        hopper_hip,
         env_id=robot.env_id,
         stages=({}, dict(change)),
         stage_steps=(robot.env_a_steps, ENV_B_FACTOR * robot.env_a_steps),

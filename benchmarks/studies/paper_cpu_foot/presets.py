@@ -8,9 +8,12 @@ The package itself keeps the presets users run (``demo``, ``tiny``, ``cpu``, ``p
 """
 
 import dataclasses
+import pathlib
 
-from sb3_lifelong.experiments.presets import PRESETS as PACKAGE_PRESETS
-from sb3_lifelong.experiments.presets import Preset
+from sb3_lifelong.experiments.presets import Preset, load_presets
+
+#: the paper_cpu study's Hopper protocol (the package's `cpu` preset until the forgetting screen), which this one varies
+HOPPER_HIP = load_presets(pathlib.Path(__file__).resolve().parents[1] / "paper_cpu" / "presets.py")["cpu_hopper_hip"]
 
 PRESETS: dict[str, Preset] = {}
 
@@ -18,7 +21,7 @@ PRESETS: dict[str, Preset] = {}
 # the cpu protocol with the one Env-B of the env-pair table that hurt in both directions, the foot twice as long
 # (benchmarks/studies/env_pairs/results); evaluated on 10 episodes, as the 5 of `cpu` left the students' scores noisy
 PRESETS["cpu_foot"] = dataclasses.replace(
-    PACKAGE_PRESETS["cpu"],
+    HOPPER_HIP,
     stages=({}, {"foot_scale": 2.0}),
     eval_episodes=10,
     note=(

@@ -8,9 +8,13 @@ The package itself keeps the presets users run (``demo``, ``tiny``, ``cpu``, ``p
 """
 
 import dataclasses
+import pathlib
 
 from sb3_lifelong.experiments.presets import PRESETS as PACKAGE_PRESETS
-from sb3_lifelong.experiments.presets import Preset
+from sb3_lifelong.experiments.presets import Preset, load_presets
+
+#: the paper_cpu study's Hopper protocol (the package's `cpu` preset until the forgetting screen), which this one varies
+HOPPER_HIP = load_presets(pathlib.Path(__file__).resolve().parents[1] / "paper_cpu" / "presets.py")["cpu_hopper_hip"]
 
 PRESETS: dict[str, Preset] = {}
 
@@ -19,7 +23,7 @@ PRESETS: dict[str, Preset] = {}
 # of 250k steps; the order follows the env-pair table: each switch hurts the policy of the stage before, and the
 # Env-C (foot x2) policy is poor in both earlier environments (benchmarks/studies/env_pairs/results)
 PRESETS["cpu_three"] = dataclasses.replace(
-    PACKAGE_PRESETS["cpu"],
+    HOPPER_HIP,
     stages=({}, {"friction": 0.2}, {"foot_scale": 2.0}),
     stage_steps=(50_000, 50_000, 250_000),
     env_names=("Env-A", "Env-B", "Env-C"),

@@ -11,9 +11,12 @@ candidate follows; the study adds the online CRR baselines and the students, eac
 """
 
 import dataclasses
+import pathlib
 
-from sb3_lifelong.experiments.presets import PRESETS as PACKAGE_PRESETS
-from sb3_lifelong.experiments.presets import Preset
+from sb3_lifelong.experiments.presets import Preset, load_presets
+
+#: the paper_cpu study's Hopper protocol (the package's `cpu` preset until the forgetting screen), which this one varies
+HOPPER_HIP = load_presets(pathlib.Path(__file__).resolve().parents[1] / "paper_cpu" / "presets.py")["cpu_hopper_hip"]
 
 #: the HalfCheetah candidates of the screen and their Env-B (Env-A is the nominal robot)
 CHANGES = {
@@ -23,7 +26,7 @@ CHANGES = {
 
 PRESETS: dict[str, Preset] = {
     f"pipeline_{candidate}": dataclasses.replace(
-        PACKAGE_PRESETS["cpu"],
+        HOPPER_HIP,
         env_id="HalfCheetah-v5",
         stages=({}, dict(change)),
         stage_steps=(60_000, 180_000),

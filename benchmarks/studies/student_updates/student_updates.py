@@ -23,12 +23,13 @@ import pandas as pd
 import torch as th
 
 from sb3_lifelong.core.atomic import write_json_atomic
-from sb3_lifelong.experiments.presets import PRESETS
+from sb3_lifelong.experiments.presets import load_presets
 from sb3_lifelong.experiments.protocol import distill_student
 
 
 def train(study: pathlib.Path, seed: int, students: list[str], updates: int, eval_freq: int, output: pathlib.Path) -> None:
-    preset = dataclasses.replace(PRESETS["cpu"], distill_steps=updates, distill_eval_freq=eval_freq)
+    hopper_hip = load_presets(pathlib.Path(__file__).resolve().parents[1] / "paper_cpu" / "presets.py")["cpu_hopper_hip"]
+    preset = dataclasses.replace(hopper_hip, distill_steps=updates, distill_eval_freq=eval_freq)
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     link = run_dir / "buffer"  # the study's buffer, read-only
