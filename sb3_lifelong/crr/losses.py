@@ -119,7 +119,10 @@ def ess_temperature(
     first one that reaches the target, then interpolated linearly between the two that bracket it. With clipped
     weights the size is not monotone: at the coldest temperatures every weight is clipped or about 0 and the size
     rises again (to the fraction of clipped weights); the search then takes the warmest temperature at which the
-    size falls to the target (every warmer one is above it).
+    size falls to the target (every warmer one is above it). The first window is centred on the Gaussian guess; while
+    every candidate in it reaches the target (or none does) the window moves down (up) by its width, to at most
+    ``e^40`` from the guess. So a target below every size the clipped weights reach (the share of clipped weights
+    keeps it up at the coldest temperatures) gives the coldest temperature of that range: the greediest weights.
 
     :param advantages: ``[batch]``
     :param target_ess: the weights' effective sample size as a fraction of the batch, in ``(0, 1)``; larger is

@@ -127,3 +127,31 @@ def test_ess_temperature_found_outside_the_gaussian_guess_window():
     weights, _ = crr_weights(advantages, "exp", beta, max_weight=1e30)
     assert abs(effective_sample_size(weights).item() - 0.5) < 1e-3
     assert 1e-3 < beta < 2e-3
+
+
+def test_documented_defaults_of_the_weights_and_the_search():
+    # crr_weights: exp at beta = 1 clipped at 20; ess_temperature: the clip at 20 too
+    advantages = th.tensor([-1.0, 0.0, 0.5, 4.0])
+    weights, clipped = crr_weights(advantages)
+    np.testing.assert_allclose(weights.numpy(), np.minimum(np.exp([-1.0, 0.0, 0.5, 4.0]), 20.0), rtol=1e-6)
+    assert clipped.tolist() == [False, False, False, True]
+    normal = th.tensor(np.random.default_rng(0).normal(size=64), dtype=th.float32)  # at 0.3 the clip matters
+    assert ess_temperature(normal, 0.3).item() == ess_temperature(normal, 0.3, max_weight=20.0).item()
+    assert ess_temperature(normal, 0.3).item() != ess_temperature(normal, 0.3, max_weight=21.0).item()
+
+
+def test_warm_start_is_one_grid_pass_and_a_useless_start_is_ignored(monkeypatch):
+    import sb3_lifelong.crr.losses as losses
+
+    advantages = th.tensor(np.random.default_rng(0).normal(size=256), dtype=th.float32)
+    cold = ess_temperature(advantages, 0.7).item()
+    calls = []
+    real = losses._ess_of_temperatures
+    monkeypatch.setattr(losses, "_ess_of_temperatures", lambda *a: calls.append(1) or real(*a))
+    warm = ess_temperature(advantages, 0.7, start=cold * 1.2).item()  # the target within the warm window
+    assert len(calls) == 1 and math.isclose(warm, cold, rel_tol=1e-3)
+    calls.clear()
+    far = ess_temperature(advantages, 0.7, start=cold * 100).item()  # outside it: the search starts again
+    assert len(calls) > 1 and math.isclose(far, cold, rel_tol=1e-3)
+    for useless in (0.0, -1.0, math.inf, math.nan):  # no warm start: the search from scratch
+        assert math.isclose(ess_temperature(advantages, 0.7, start=useless).item(), cold, rel_tol=1e-6)
