@@ -155,3 +155,22 @@ def test_warm_start_is_one_grid_pass_and_a_useless_start_is_ignored(monkeypatch)
     assert len(calls) > 1 and math.isclose(far, cold, rel_tol=1e-3)
     for useless in (0.0, -1.0, math.inf, math.nan):  # no warm start: the search from scratch
         assert math.isclose(ess_temperature(advantages, 0.7, start=useless).item(), cold, rel_tol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("target", [0.05, 0.3, 0.7, 0.95])
+@pytest.mark.parametrize("max_weight", [20.0, 1e30])
+def test_search_hits_its_target_to_the_documented_precision(seed, target, max_weight):
+    # two grid passes and a linear interpolation between the candidates that bracket the crossing: the size at the
+    # returned temperature is the target to about 1e-5 (a bracket one candidate off is worse than 1e-4)
+    generator = th.Generator().manual_seed(seed)
+    advantages = th.cat([th.randn(192, generator=generator), 3 * th.rand(64, generator=generator) - 4])  # skewed
+    beta = ess_temperature(advantages, target, max_weight=max_weight)
+    weights, _ = crr_weights(advantages, "exp", beta, max_weight)
+    size = effective_sample_size(weights).item()
+    reachable = effective_sample_size(crr_weights(advantages, "exp", 1e-9, max_weight)[0]).item() < target
+    if max_weight > 1e6 or reachable:
+        assert size == pytest.approx(target, abs=1e-4)
+        # warm-started from a temperature within its window: one pass, about 1e-3 of the temperature
+        warm = ess_temperature(advantages, target, max_weight=max_weight, start=beta.item() * 1.1)
+        assert warm.item() == pytest.approx(beta.item(), rel=2e-3)
