@@ -665,7 +665,8 @@ def _cell(code: str) -> str:
     return code if len(code) <= 90 else code[:87] + "..."
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, list[tuple[int, ...]]]:
+    """:return: the command line's arguments, and its ``--lines`` as ranges"""
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -676,6 +677,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--output", type=pathlib.Path, default=RESULTS, help="where the csv and markdown go")
     parser.add_argument("--scratch", type=pathlib.Path, default=None, help="where the copies go (default: the temp dir)")
     parser.add_argument("--list", action="store_true", help="list the mutants and stop")
+    parser.add_argument(
+        "--lines",
+        nargs="+",
+        default=None,
+        metavar="FIRST-LAST",
+        help="only the mutants on these source lines (e.g. a function's, to measure the tests added for its survivors)",
+    )
     parser.add_argument(
         "--runner",
         choices=("fork", "spawn"),
@@ -694,11 +702,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         parser.error(f"no targeted tests known for {unknown}: one of {list(MODULES)}")
     if args.workers < 1:
         parser.error("--workers must be >= 1")
+    try:
+        ranges = [tuple(int(x) for x in text.split("-", 1)) for text in args.lines or []]
+    except ValueError:
+        parser.error(f"--lines takes FIRST-LAST ranges, got {args.lines}")
+    return args, ranges
 
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args, ranges = parse_arguments(argv)
     chosen: list[Mutant] = []
     total: dict[str, int] = {}
     for module in args.modules:
         mutants = list_mutants(module, scope=SCOPES.get(module))
+        if args.lines is not None:
+            mutants = [m for m in mutants if any(lo <= m.line <= hi for lo, hi in ranges)]
         total[module] = len(mutants)
         if args.limit is not None and len(mutants) > args.limit:
             step = len(mutants) / args.limit  # an even spread over the module, not its first lines only
