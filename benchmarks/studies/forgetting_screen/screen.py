@@ -413,19 +413,23 @@ def figure(rows: list[dict[str, Any]], path: pathlib.Path) -> None:
         return
     columns = min(3, len(names))
     grid_rows = math.ceil(len(names) / columns)
-    fig, axes = plt.subplots(grid_rows, columns, figsize=(4.6 * columns, 3.4 * grid_rows + 0.6), squeeze=False)
+    fig, axes = plt.subplots(grid_rows, columns, figsize=(5.4 * columns, 3.6 * grid_rows + 0.6), squeeze=False)
     colours = {"Env-A": "tab:blue", "Env-B": "tab:orange"}
     for ax, candidate in zip(axes.flat, names):
         for row in (r for r in rows if r["candidate"] == candidate):
             curve = path.parent / candidate / f"seed_{row['seed']}" / "eval.csv"
             with open(curve, newline="") as handle:
                 evals = list(csv.DictReader(handle))
+            styles = ("-", "--", "-.", (0, (1, 1)))
+            learnt = row["env_a_learnt"]
             for env, colour in colours.items():
                 points = sorted((int(e["timesteps"]), float(e["mean_reward"])) for e in evals if e["env"] == env)
                 if points:
-                    style = "-" if row["seed"] == SEEDS[0] else "--"
-                    ax.plot(*zip(*points), style, color=colour, lw=1.2, label=f"{env}, seed {row['seed']}")
-            ax.hlines(row["stage1_env_a"], row["switch"], row["end"], colors="grey", linestyles=":", lw=1)
+                    label = f"{env}, seed {row['seed']}" + ("" if learnt else " (not learnt)")
+                    ax.plot(*zip(*points), linestyle=styles[row["seed"] % len(styles)], color=colour,
+                            lw=1.2 if learnt else 0.9, alpha=1.0 if learnt else 0.4, label=label)  # fmt: skip
+            if learnt:
+                ax.hlines(row["stage1_env_a"], row["switch"], row["end"], colors="grey", linestyles=":", lw=1)
             ax.axvline(row["switch"], color="k", lw=0.8)
         ax.set_title(f"{candidate}  {json.dumps(CANDIDATES[candidate][1])}", fontsize=9)
         ax.set_xlabel("environment steps")
@@ -434,7 +438,9 @@ def figure(rows: list[dict[str, Any]], path: pathlib.Path) -> None:
     for ax in list(axes.flat)[len(names) :]:
         ax.axis("off")
     fig.suptitle(
-        "MPO through Env-A then Env-B\n(vertical line: the switch; dotted: the Stage-1 agent's Env-A level)", fontsize=10
+        "MPO through Env-A then Env-B\n(vertical line: the switch; grey dotted: a learnt Stage-1 agent's Env-A level; faint: "
+        "Env-A not learnt)",
+        fontsize=10,
     )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
