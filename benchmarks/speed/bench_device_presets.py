@@ -30,8 +30,8 @@ from gymnasium import spaces
 
 RESULTS = pathlib.Path(__file__).resolve().parents[1] / "results" / "speed" / "device_presets"
 #: the robots' observation (with the appended parameter) and action sizes, by preset (measured from the envs:
-#: Hopper-v5 11 + 1 and 3; OP3 walking 68 + 1 and 20), so that the benchmark needs no MuJoCo model
-SHAPES = {"cpu": (12, 3), "paper": (69, 20)}
+#: HalfCheetah-v5 17 + 1 and 6; OP3 walking 68 + 1 and 20), so that the benchmark needs no MuJoCo model
+SHAPES = {"cpu": (18, 6), "paper": (69, 20)}
 
 
 class RandomBoxEnv(gym.Env):

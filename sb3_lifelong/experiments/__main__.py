@@ -4,16 +4,16 @@ benchmarks/studies/paper_cpu_three/presets.py --preset cpu_three``).
 
 Run one seed (every job of it that has not finished yet)::
 
-    python -m sb3_lifelong.experiments run --preset cpu --seed 0 --output runs/paper_cpu
+    python -m sb3_lifelong.experiments run --preset cpu --seed 0 --output runs/cpu
 
 Several seeds at once, as a graph of jobs (Ray when installed, on this machine or a cluster; else a process pool)::
 
-    python -m sb3_lifelong.experiments study --preset cpu --seeds 0 1 2 --workers 2 --output runs/paper_cpu
-    python -m sb3_lifelong.experiments study --preset cpu --seeds 0 1 2 --address HOST:6379 --output /shared/paper_cpu
+    python -m sb3_lifelong.experiments study --preset cpu --seeds 0 1 2 --workers 2 --output runs/cpu
+    python -m sb3_lifelong.experiments study --preset cpu --seeds 0 1 2 --address HOST:6379 --output /shared/cpu
 
 Gather the finished seeds into the tables, the pre-registered claims and the figures::
 
-    python -m sb3_lifelong.experiments report runs/paper_cpu --claims benchmarks/studies/paper_cpu/claims.py
+    python -m sb3_lifelong.experiments report runs/cpu --claims benchmarks/studies/paper_cpu/claims.py
 
 List the jobs of a preset and what a seed costs::
 
