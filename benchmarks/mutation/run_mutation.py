@@ -66,6 +66,7 @@ MODULES: dict[str, list[str]] = {
         "tests/mpo/test_mpo.py::test_td_target_hand_computed_with_episode_ends_and_n_step_discounts",
     ],
     "sb3_lifelong/common/policies.py": [
+        "tests/common/test_policies.py",
         "tests/common/test_properties.py",
         "tests/mpo/test_mpo_losses.py",
         "tests/crr/test_crr_losses.py",
