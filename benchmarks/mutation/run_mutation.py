@@ -47,7 +47,7 @@ import traceback
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
@@ -638,6 +638,30 @@ def write_results(outcomes: Sequence[Outcome], output: pathlib.Path, command: st
     (output / "mutation.md").write_text("\n".join(lines) + "\n")
 
 
+def same_mutants(mutants: Sequence[Mutant], earlier: Sequence[Outcome], outcome: str = "survived") -> list[Mutant]:
+    """
+    :param mutants: a module's mutants now
+    :param earlier: all its mutants in an earlier run (a ``mutation.csv``'s rows of the module)
+    :param outcome: which of them to pick
+    :return: the mutants now that had ``outcome`` then. A mutant is known by its operator, original and mutated code
+        and which occurrence of those it is, in the order of the source (lines move when the code above them changes;
+        a change that adds or removes such a mutant above it is not followed)
+    """
+
+    def keyed(items: Sequence[Any]) -> list[tuple[tuple[str, str, str], int]]:
+        seen: dict[tuple[str, str, str], int] = {}
+        keys = []
+        for item in items:
+            key = (item.operator, item.original, item.mutated)
+            keys.append((key, seen.get(key, 0)))
+            seen[key] = seen.get(key, 0) + 1
+        return keys
+
+    then = sorted(earlier, key=lambda o: o.index)
+    wanted = {k for k, o in zip(keyed(then), then) if o.outcome == outcome}
+    return [m for k, m in zip(keyed(mutants), mutants) if k in wanted]
+
+
 def read_outcomes(path: pathlib.Path, exclude: Sequence[str] = ()) -> list[Outcome]:
     """:return: the rows of an earlier ``mutation.csv`` (none if it does not exist), less those of ``exclude``'s modules"""
     if not path.exists():
@@ -679,6 +703,14 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
     parser.add_argument("--scratch", type=pathlib.Path, default=None, help="where the copies go (default: the temp dir)")
     parser.add_argument("--list", action="store_true", help="list the mutants and stop")
     parser.add_argument(
+        "--survivors-of",
+        type=pathlib.Path,
+        default=None,
+        metavar="CSV",
+        help="only the mutants that survived in an earlier mutation.csv (matched by operator and code, not by line: "
+        "the lines may have moved), to measure the tests added for them",
+    )
+    parser.add_argument(
         "--lines",
         nargs="+",
         default=None,
@@ -718,6 +750,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         mutants = list_mutants(module, scope=SCOPES.get(module))
         if args.lines is not None:
             mutants = [m for m in mutants if any(lo <= m.line <= hi for lo, hi in ranges)]
+        if args.survivors_of is not None:
+            mutants = same_mutants(mutants, [o for o in read_outcomes(args.survivors_of) if o.module == module])
         total[module] = len(mutants)
         if args.limit is not None and len(mutants) > args.limit:
             step = len(mutants) / args.limit  # an even spread over the module, not its first lines only

@@ -118,3 +118,27 @@ def test_forked_run_refuses_a_package_imported_from_elsewhere(tmp_path: pathlib.
     while result is None:
         result = child.poll()
     assert result[0] == "error" and "not from the copy" in (tmp_path / "pytest.log").read_text()
+
+
+def test_survivors_of_an_earlier_run_are_found_after_their_lines_moved(tmp_path: pathlib.Path):
+    runner = benchmark_module("run_mutation")
+    (tmp_path / "module.py").write_text("def f(x):\n    a = x + 0\n    return a + 0\n")
+    before = runner.list_mutants("module.py", root=tmp_path)
+    survived = {1}  # the second mutant only
+    earlier = [
+        runner.Outcome(
+            "module.py", m.index, m.line, m.operator, m.original, m.mutated, "survived" if k in survived else "killed", 1.0, ""
+        )
+        for k, m in enumerate(before)
+    ]
+    (tmp_path / "module.py").write_text(
+        'def f(x):\n    """A docstring moves every line down."""\n    a = x + 0\n    return a + 0\n'
+    )
+    after = runner.list_mutants("module.py", root=tmp_path)
+    (chosen,) = runner.same_mutants(after, earlier)
+    assert (chosen.operator, chosen.original, chosen.mutated) == (before[1].operator, before[1].original, before[1].mutated)
+    assert chosen.line == before[1].line + 1
+    # the same code twice: the occurrence decides (the "+ 0" of line 3 is not the one of line 2)
+    assert [m.line for m in runner.same_mutants(after, earlier, outcome="killed")] == [
+        m.line + 1 for m in before if m.index != 1
+    ]
