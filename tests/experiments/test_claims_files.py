@@ -55,3 +55,21 @@ def test_study_presets_files_are_read_or_refused_clearly(tmp_path):
     assert (
         main(["list", "--presets", str(ROOT / "benchmarks/studies/paper_cpu_three/presets.py"), "--preset", "cpu_three"]) == 0
     )
+
+
+def test_claims_that_are_not_a_list_of_claims_are_refused(tmp_path):
+    # a tuple of claims, and a list holding something else: each refused on its own (mutation survivors: an `and`
+    # for the `or` of the check let both through)
+    (tmp_path / "tuple.py").write_text(f"import runpy\nCLAIMS = tuple(runpy.run_path({str(PAPER_CLAIMS)!r})['CLAIMS'])\n")
+    (tmp_path / "mixed.py").write_text("CLAIMS = ['C1 forgetting']\n")
+    for name in ("tuple.py", "mixed.py"):
+        with pytest.raises(ValueError, match="must define CLAIMS"):
+            load_claims(tmp_path / name)
+
+
+def test_ratios_keep_positive_denominators_below_one():
+    from sb3_lifelong.experiments.claims import ratio, undefined_ratios
+
+    numerator, denominator = {0: 0.3, 1: 2.0, 2: 1.0}, {0: 0.5, 1: 0.0, 2: -1.0}
+    assert ratio(numerator, denominator) == {0: 0.3 / 0.5}
+    assert undefined_ratios(numerator, denominator) == {1: 0.0, 2: -1.0}
