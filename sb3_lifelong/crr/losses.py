@@ -139,26 +139,33 @@ def ess_temperature(
     if not spread > 0:
         return advantages.new_tensor(math.inf)
     log_max = math.log(max_weight)
+
+    def grid(lo: float, hi: float) -> tuple[th.Tensor, th.Tensor]:
+        log_betas = th.linspace(lo, hi, ESS_GRID_POINTS, device=values.device)
+        return log_betas, _ess_of_temperatures(values, log_betas, log_max)
+
     warm = start is not None and math.isfinite(start) and start > 0
     if warm:
         assert start is not None
         low, high, passes = math.log(start) - ESS_WARM_SPAN, math.log(start) + ESS_WARM_SPAN, 1
+        log_betas, ess = grid(low, high)
     else:
         centre = math.log(spread / math.sqrt(-math.log(target_ess)))
         low, high, passes = centre - ESS_SEARCH_SPAN, centre + ESS_SEARCH_SPAN, ESS_GRID_PASSES
+        log_betas, ess = grid(low, high)
         width = high - low
         while True:  # the crossing outside the window: move it (the passes below then refine inside it)
-            reached = _ess_of_temperatures(values, th.linspace(low, high, ESS_GRID_POINTS, device=values.device), log_max)
-            reached = reached >= target_ess
+            reached = ess >= target_ess
             if bool(reached.all()) and low > centre - ESS_SHIFT_LIMIT:
                 low, high = low - width, low
             elif not bool(reached.any()) and high < centre + ESS_SHIFT_LIMIT:
                 low, high = high, high + width
             else:
                 break
-    for _ in range(passes):
-        log_betas = th.linspace(low, high, ESS_GRID_POINTS, device=values.device)
-        ess = _ess_of_temperatures(values, log_betas, log_max)
+            log_betas, ess = grid(low, high)
+    for done in range(passes):
+        if done > 0:  # the first pass's grid is the window's, evaluated above
+            log_betas, ess = grid(low, high)
         reached = ess >= target_ess
         if warm and not (bool(reached[-1]) and not bool(reached[0])):  # the target is outside the window
             return ess_temperature(advantages, target_ess, max_weight)
