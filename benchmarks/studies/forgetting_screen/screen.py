@@ -176,6 +176,18 @@ def last_evaluations(eval_csv: pathlib.Path, env: str, upto: Optional[int], coun
     return [float(row["mean_reward"]) for row in rows[-count:]]
 
 
+def stage1_level(evals: Sequence[float], threshold: float) -> tuple[float, float, bool]:
+    """
+    :param evals: the Stage-1 agent's last Env-A evaluations
+    :param threshold: the robot's return at which Env-A counts as learnt
+    :return: their mean, their spread (sd / mean), and whether Env-A was learnt (README: at least the threshold, a
+        spread of at most ``MAX_SPREAD``)
+    """
+    mean = float(np.mean(evals))
+    spread = float(np.std(evals, ddof=1) / abs(mean)) if mean else math.inf
+    return mean, spread, bool(mean >= threshold and spread <= MAX_SPREAD)
+
+
 def overestimation_at(q_csv: pathlib.Path, name: str, timesteps: int) -> float:
     """:return: the critic's overestimation of source ``name`` logged at ``timesteps`` (NaN when not logged)"""
     with open(q_csv, newline="") as handle:
@@ -198,9 +210,8 @@ def measure(candidate: str, seed: int, run_dir: pathlib.Path) -> dict[str, Any]:
     stage1 = last_evaluations(eval_csv, "Env-A", switch)
     end_a = last_evaluations(eval_csv, "Env-A", None)
     end_b = last_evaluations(eval_csv, "Env-B", None)
-    stage1_mean, end_mean = float(np.mean(stage1)), float(np.mean(end_a))
-    spread = float(np.std(stage1, ddof=1) / abs(stage1_mean)) if stage1_mean else math.inf
-    learnt = bool(stage1_mean >= robot.threshold and spread <= MAX_SPREAD)
+    stage1_mean, spread, learnt = stage1_level(stage1, robot.threshold)
+    end_mean = float(np.mean(end_a))
     out: dict[str, Any] = dict(
         candidate=candidate, robot=robot_name, change=change, seed=seed, switch=switch, end=end,
         stage1_evals_env_a=stage1, end_evals_env_a=end_a, end_evals_env_b=end_b,
@@ -314,10 +325,8 @@ def record_stage1(args: argparse.Namespace) -> list[dict[str, Any]]:
             if not (run_dir / "collect" / "stage1.zip").exists():
                 continue
             evals = last_evaluations(run_dir / "collect" / "eval.csv", "Env-A", robot.env_a_steps)
-            mean = float(np.mean(evals))
-            spread = float(np.std(evals, ddof=1) / abs(mean)) if mean else math.inf
-            record = dict(robot=robot_name, seed=seed, evals=evals, mean=mean, spread=spread,
-                          learnt=bool(mean >= robot.threshold and spread <= MAX_SPREAD))  # fmt: skip
+            mean, spread, learnt = stage1_level(evals, robot.threshold)
+            record = dict(robot=robot_name, seed=seed, evals=evals, mean=mean, spread=spread, learnt=learnt)
             out = results / "stage1" / robot_name / f"seed_{seed}.json"
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(json.dumps(record, indent=1) + "\n")

@@ -20,15 +20,13 @@ and agents stay in ``--runs``.
 """
 
 import argparse
+import functools
 import importlib.util
 import json
-import math
 import pathlib
 import subprocess
 import sys
 from typing import Any
-
-import numpy as np
 
 STUDY = pathlib.Path(__file__).resolve().parent
 RESULTS = STUDY / "results"
@@ -57,11 +55,13 @@ def _load(path: pathlib.Path, name: str) -> Any:
     return module
 
 
+@functools.cache
 def screen() -> Any:
     """The forgetting screen's script (its collector, parts and Stage-1 rule are this study's)."""
     return _load(SCREEN_FILE, "forgetting_screen_script")
 
 
+@functools.cache
 def presets() -> dict[str, Any]:
     from sb3_lifelong.experiments.presets import load_presets
 
@@ -91,16 +91,15 @@ def stage1_reading(eval_csv: pathlib.Path, switch: int) -> dict[str, Any]:
     """
     rules = screen()
     evals = rules.last_evaluations(eval_csv, "Env-A", switch)
-    mean = float(np.mean(evals))
-    spread = float(np.std(evals, ddof=1) / abs(mean)) if mean else math.inf
     threshold = rules.ROBOTS["cheetah"].threshold
+    mean, spread, learnt = rules.stage1_level(evals, threshold)
     return dict(
         evals=evals,
         mean=mean,
         spread=spread,
         threshold=threshold,
         max_spread=rules.MAX_SPREAD,
-        learnt=bool(len(evals) == rules.LAST and mean >= threshold and spread <= rules.MAX_SPREAD),
+        learnt=learnt and len(evals) == rules.LAST,
     )
 
 
