@@ -240,6 +240,21 @@ def test_each_failing_precondition_makes_its_claim_not_testable(claims_file, env
     assert verdict(claims_file, unchecked, claim) != "not testable"
 
 
+def test_the_value_gap_reads_the_last_environment_of_three():
+    """Env-C's data decides the gap of a three-environment study, not Env-B's (the one in the middle)."""
+    claim = "T3a the imbalance drop"
+    last_fails = {"data|mc_return|Env-B": 20.0, "data|mc_return|Env-C": 14.9}
+    middle_fails = {"data|mc_return|Env-B": 14.9, "data|mc_return|Env-C": 20.0}
+    assert verdict(THREE_STAGE_CLAIMS, synthetic_study(THREE, extras=last_fails), claim) == "not testable"
+    assert verdict(THREE_STAGE_CLAIMS, synthetic_study(THREE, extras=middle_fails), claim) != "not testable"
+
+
+def test_c3_pairs_the_student_with_every_other_lifelong_method():
+    claim = claims_of(PAPER_CLAIMS)["C3 the pipeline is best"]
+    others = [name for name in claim.values(synthetic_study(TWO)) if name != "CRR_exp_beta1"]
+    assert sorted(claim.pairs) == sorted(("CRR_exp_beta1", other) for other in others)
+
+
 def test_claims_without_preconditions_ignore_them():
     everything_fails = {k: v for fails, _ in FAILS.values() for k, v in fails.items()}
     rows = verdicts(PAPER_CLAIMS, synthetic_study(TWO, extras=everything_fails))
@@ -314,6 +329,8 @@ def test_t_interval_hand_computed():
     assert (low, high) == pytest.approx((3.0 - half, 3.0 + half), rel=1e-9)
     narrow = t_interval([1.0, 2.0, 6.0], level=0.5)  # t(0.75, 2 dof) = 0.8164965809
     assert narrow[3] - narrow[2] == pytest.approx(2 * 0.816496580927726 * np.sqrt(7.0 / 3.0), rel=1e-9)
+    two = t_interval([1.0, 3.0])  # two values are enough: t(0.975, 1 dof) = 12.7062047
+    assert two[2:] == pytest.approx((2.0 - 12.706204736174707, 2.0 + 12.706204736174707), rel=1e-9)
     single = t_interval([4.0])
     assert single[0] == 4.0 and all(np.isnan(single[1:]))
     assert np.isnan(t_interval([])[0])
