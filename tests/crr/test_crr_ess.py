@@ -174,3 +174,92 @@ def test_search_hits_its_target_to_the_documented_precision(seed, target, max_we
         # warm-started from a temperature within its window: one pass, about 1e-3 of the temperature
         warm = ess_temperature(advantages, target, max_weight=max_weight, start=beta.item() * 1.1)
         assert warm.item() == pytest.approx(beta.item(), rel=2e-3)
+
+
+def reference_search(advantages: np.ndarray, target: float, max_weight: float, start=None, windows=None):
+    """
+    The search of ``ess_temperature``'s docstring, in float64 NumPy: a grid of 64 log-temperatures over the Gaussian
+    guess +- 7 (or a warm start +- 0.5, one pass), moved by its width while every candidate reaches the target (or
+    none does) up to +-40 from the guess, refined once around the warmest crossing, then interpolated linearly.
+
+    :return: the temperature; ``windows`` collects the (low, high) of every grid evaluated, in order
+    """
+    windows = [] if windows is None else windows
+    a = np.asarray(advantages, dtype=np.float64)
+    if a.max() == a.min():
+        return math.inf
+
+    def grid(lo, hi):
+        windows.append((lo, hi))
+        log_betas = np.linspace(lo, hi, 64)
+        log_w = np.minimum(a[None, :] / np.exp(log_betas)[:, None], math.log(max_weight))
+        w = np.exp(log_w - log_w.max(axis=1, keepdims=True))
+        return log_betas, w.sum(axis=1) ** 2 / (len(a) * (w * w).sum(axis=1))
+
+    warm = start is not None and math.isfinite(start) and start > 0
+    if warm:
+        low, high, passes = math.log(start) - 0.5, math.log(start) + 0.5, 1
+        log_betas, ess = grid(low, high)
+        if not (ess[-1] >= target and not ess[0] >= target):  # the target is outside the warm window
+            return reference_search(a, target, max_weight, None, windows)
+    else:
+        centre = math.log(a.std(ddof=1) / math.sqrt(-math.log(target)))
+        low, high, passes = centre - 7.0, centre + 7.0, 2
+        log_betas, ess = grid(low, high)
+        while True:
+            if (ess >= target).all() and low > centre - 40.0:
+                low, high = low - 14.0, low
+            elif not (ess >= target).any() and high < centre + 40.0:
+                low, high = high, high + 14.0
+            else:
+                break
+            log_betas, ess = grid(low, high)
+    for done in range(passes):
+        if done:
+            log_betas, ess = grid(low, high)
+        missed = np.flatnonzero(ess < target)
+        first = 0 if len(missed) == 0 else min(int(missed[-1]) + 1, 63)
+        low, high = log_betas[max(first - 1, 0)], log_betas[first]
+    below, above = ess[max(first - 1, 0)], ess[first]
+    share = (target - below) / (above - below) if above > below else 1.0
+    return math.exp(low + min(max(share, 0.0), 1.0) * (high - low))
+
+
+SEARCH_CASES = [
+    *[(seed, target, max_weight, None) for seed in (0, 1) for target in (0.05, 0.5, 0.9) for max_weight in (20.0, 1e30)],
+    (2, 0.7, 20.0, 1.2),  # warm, the target inside the window (the start is a factor of the cold answer)
+    (2, 0.7, 20.0, 100.0),  # warm, outside it: the search starts again from scratch
+    (3, 0.3, 1e30, 0.9),
+    ("tied", 0.5, 1e30, None),  # the window moves down past the Gaussian guess's (two nearly tied best rows)
+    ("clipped", 0.02, 20.0, None),  # below every size the clipped weights reach: the window moves to its limit
+]
+
+
+@pytest.mark.parametrize("case, target, max_weight, start", SEARCH_CASES)
+def test_search_follows_its_documented_algorithm_window_by_window(monkeypatch, case, target, max_weight, start):
+    """Every grid the search evaluates (its cost) and its answer, against the float64 reference above."""
+    import sb3_lifelong.crr.losses as losses
+
+    if case == "tied":
+        advantages = th.tensor([1.953125e-03, -3.0, 0.0])
+    elif case == "clipped":
+        advantages = th.cat([th.full((8,), 30.0), th.zeros(248)])  # 8 rows far above: clipped at every cold temperature
+    else:
+        generator = th.Generator().manual_seed(case)
+        advantages = th.cat([th.randn(192, generator=generator), 3 * th.rand(64, generator=generator) - 4])
+    if start is not None:
+        start = start * reference_search(advantages.numpy(), target, max_weight)
+    expected_windows: list = []
+    expected = reference_search(advantages.numpy(), target, max_weight, start, expected_windows)
+    windows = []
+    real = losses._ess_of_temperatures
+
+    def recording(values, log_betas, log_max):
+        windows.append((float(log_betas[0]), float(log_betas[-1])))
+        return real(values, log_betas, log_max)
+
+    monkeypatch.setattr(losses, "_ess_of_temperatures", recording)
+    found = ess_temperature(advantages, target, max_weight=max_weight, start=start).item()
+    assert len(windows) == len(expected_windows), (windows, expected_windows)
+    np.testing.assert_allclose(np.array(windows), np.array(expected_windows), rtol=0, atol=2e-5)
+    assert found == pytest.approx(expected, rel=2e-5)
