@@ -124,3 +124,39 @@ def test_stage1_reading_is_the_screen_rule(tmp_path, evals, learnt):
         writer.writerow([40_000, "Env-B", 5000])
     reading = pipeline.stage1_reading(path, 35_000)
     assert reading["evals"] == [float(v) for v in evals] and reading["learnt"] is learnt
+
+
+def test_env_b_marks_its_finished_collection_done_for_the_rest(tmp_path, monkeypatch, capsys):
+    """The parts run the collector directly; `env-b` then writes the runner's done.json, which `rest` needs."""
+    import argparse
+    import json
+    import types
+
+    pipeline = benchmark_module("pipeline")
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    (results / "stage1").mkdir(parents=True)
+    (results / "stage1" / "seed_10.json").write_text(json.dumps({"learnt": True}))
+    run_dir = pipeline.study_dir(runs, "cheetah_back_reversed") / "seed_10"
+    (run_dir / "collect").mkdir(parents=True)  # adopted already
+    parts = []
+
+    def collect_in_parts(settings, seed, directory, stop):
+        parts.append((seed, directory, stop))
+        if len(parts) > 1:  # the second call finishes: the collector's final checkpoint
+            (directory / "collect" / "final.zip").write_bytes(b"final")
+
+    monkeypatch.setattr(pipeline, "screen", lambda: types.SimpleNamespace(collect_in_parts=collect_in_parts))
+    args = argparse.Namespace(runs=str(runs), results=str(results), seed=10, candidate="cheetah_back_reversed")
+    with pytest.raises(SystemExit, match="has not finished"):  # a stop before the last step: no done.json
+        pipeline.run_env_b(args)
+    assert not (run_dir / "collect" / "done.json").exists()
+    with pytest.raises(SystemExit, match="the collection is not done"):
+        pipeline.run_rest(args)
+    pipeline.run_env_b(args)
+    done = json.loads((run_dir / "collect" / "done.json").read_text())
+    assert done["job"] == "collect" and done["seed"] == 10 and parts[-1] == (10, run_dir, 240_000)
+    assert done["preset"] == json.loads(json.dumps(pipeline.study_preset("cheetah_back_reversed").describe()))
+    pipeline.run_env_b(args)  # done: nothing runs again
+    assert len(parts) == 2 and "the collection is done" in capsys.readouterr().out
+    monkeypatch.setattr(pipeline.subprocess, "call", lambda command: parts.append(command) or 0)
+    assert pipeline.run_rest(args) == 0 and parts[-1][-len(pipeline.REST_JOBS) :] == list(pipeline.REST_JOBS)

@@ -26,6 +26,7 @@ import json
 import pathlib
 import subprocess
 import sys
+import time
 from typing import Any
 
 STUDY = pathlib.Path(__file__).resolve().parent
@@ -131,14 +132,43 @@ def learnt(results: pathlib.Path, seed: int) -> bool:
 def run_env_b(args: argparse.Namespace) -> None:
     """Env-B of a seed whose Stage-1 learnt Env-A: the Stage-1 adopted into the study, then collected in parts."""
     from sb3_lifelong.experiments.branching import adopt_stage1
+    from sb3_lifelong.experiments.collection import finished_collection
 
     if not learnt(pathlib.Path(args.results), args.seed):
         raise SystemExit(f"seed {args.seed}: Env-A was not learnt at the switch; by the README it does not continue")
     settings = study_preset(args.candidate)
     run_dir = study_dir(pathlib.Path(args.runs), args.candidate) / f"seed_{args.seed}"
+    if (run_dir / "collect" / "done.json").exists():
+        print(f"seed {args.seed}: the collection is done ({run_dir / 'collect' / 'done.json'})", flush=True)
+        return
     if not run_dir.exists():
         adopt_stage1(settings, stage1_dir(pathlib.Path(args.runs), args.seed), run_dir)
-    screen().collect_in_parts(settings, args.seed, run_dir, sum(settings.stage_steps))
+    start = time.perf_counter()
+    if not finished_collection(settings, run_dir):
+        screen().collect_in_parts(settings, args.seed, run_dir, sum(settings.stage_steps))
+    mark_collection_done(settings, args.seed, run_dir, time.perf_counter() - start)
+
+
+def mark_collection_done(settings: Any, seed: int, run_dir: pathlib.Path, seconds: float) -> None:
+    """
+    Write the finished collection's ``done.json`` as the experiments' runner writes it, so that the study's other
+    jobs (``rest``) start from it, and release its directory. The parts above run the collector directly, which
+    does not write it.
+
+    :param seconds: the seconds of the call that finished it (earlier parts are not counted)
+    :raises SystemExit: the collection has not finished (no final checkpoint, no buffer holding every step)
+    """
+    from sb3_lifelong.core.atomic import write_json_atomic
+    from sb3_lifelong.experiments.collection import finished_collection
+    from sb3_lifelong.experiments.ownership import release_directory
+
+    evidence = finished_collection(settings, run_dir)
+    if not evidence:
+        raise SystemExit(f"seed {seed}: the collection in {run_dir} has not finished: run `env-b --seed {seed}` again")
+    record = dict(job="collect", seed=seed, seconds=seconds, preset=settings.describe(), finished_by=evidence)
+    write_json_atomic(run_dir / "collect" / "done.json", record)
+    release_directory(run_dir / "collect")
+    print(f"seed {seed}: collection done -> {run_dir / 'collect' / 'done.json'}", flush=True)
 
 
 def run_rest(args: argparse.Namespace) -> int:
