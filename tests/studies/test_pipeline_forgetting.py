@@ -160,3 +160,4 @@ def test_env_b_marks_its_finished_collection_done_for_the_rest(tmp_path, monkeyp
     assert len(parts) == 2 and "the collection is done" in capsys.readouterr().out
     monkeypatch.setattr(pipeline.subprocess, "call", lambda command: parts.append(command) or 0)
     assert pipeline.run_rest(args) == 0 and parts[-1][-len(pipeline.REST_JOBS) :] == list(pipeline.REST_JOBS)
+    assert parts[-1][parts[-1].index("--backend") + 1] == "process"  # one worker: no Ray daemons beside it

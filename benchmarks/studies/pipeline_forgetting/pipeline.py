@@ -179,7 +179,7 @@ def run_rest(args: argparse.Namespace) -> int:
     command = [
         sys.executable, "-m", "sb3_lifelong.experiments", "study", "--presets", str(PRESETS_FILE),
         "--preset", f"pipeline_{args.candidate}", "--seeds", str(args.seed), "--output", str(output),
-        "--workers", "1", "--student-repeats", "2", "--no-report", "--jobs", "collect", *REST_JOBS,
+        "--workers", "1", "--backend", "process", "--student-repeats", "2", "--no-report", "--jobs", "collect", *REST_JOBS,
     ]  # fmt: skip
     print(" ".join(command), flush=True)
     return subprocess.call(command)
