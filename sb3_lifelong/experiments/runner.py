@@ -127,7 +127,8 @@ def run_study(
         where = f"the Ray cluster at {address}" if address else f"Ray on this machine, {workers} worker(s)"
         log(f"study: {len(graph)} jobs on {where}")
         return _run_ray(preset, graph, output, workers, address, log)
-    log(f"study: {len(graph)} jobs in a local process pool of {workers} worker(s) (Ray is not installed)")
+    reason = "chosen" if backend == "process" else "Ray is not installed"
+    log(f"study: {len(graph)} jobs in a local process pool of {workers} worker(s) ({reason})")
     return _run_pool(preset, graph, output, workers, log)
 
 

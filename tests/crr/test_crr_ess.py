@@ -232,6 +232,8 @@ SEARCH_CASES = [
     (3, 0.3, 1e30, 0.9),
     ("tied", 0.5, 1e30, None),  # the window moves down past the Gaussian guess's (two nearly tied best rows)
     ("clipped", 0.02, 20.0, None),  # below every size the clipped weights reach: the window moves to its limit
+    ("clipped_x1e6", 0.02, 20.0, None),  # the limit is relative to the guess: at another scale, another window
+    ("clipped_x1e-6", 0.02, 20.0, None),
 ]
 
 
@@ -242,8 +244,9 @@ def test_search_follows_its_documented_algorithm_window_by_window(monkeypatch, c
 
     if case == "tied":
         advantages = th.tensor([1.953125e-03, -3.0, 0.0])
-    elif case == "clipped":
-        advantages = th.cat([th.full((8,), 30.0), th.zeros(248)])  # 8 rows far above: clipped at every cold temperature
+    elif isinstance(case, str):  # "clipped", at a scale
+        scale = float(case.partition("_x")[2] or 1.0)
+        advantages = th.cat([th.full((8,), 30.0 * scale), th.zeros(248)])  # 8 rows far above: clipped when cold
     else:
         generator = th.Generator().manual_seed(case)
         advantages = th.cat([th.randn(192, generator=generator), 3 * th.rand(64, generator=generator) - 4])
