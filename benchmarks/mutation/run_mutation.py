@@ -725,6 +725,14 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
         "os.fork exists); spawn: each run is a new Python process",
     )
     parser.add_argument(
+        "--tests",
+        nargs="+",
+        default=None,
+        metavar="PATH",
+        help="run these test files or folders against every module's mutants instead of its targeted ones (e.g. a "
+        "module's survivors against a wider part of the suite)",
+    )
+    parser.add_argument(
         "--keep-others",
         action="store_true",
         help="keep the rows of the modules not run now from the output's mutation.csv (a measurement in parts)",
@@ -744,6 +752,7 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args, ranges = parse_arguments(argv)
+    targets = {module: list(args.tests) if args.tests else MODULES[module] for module in args.modules}
     chosen: list[Mutant] = []
     total: dict[str, int] = {}
     for module in args.modules:
@@ -790,20 +799,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     if args.runner == "fork":
         preload()
-        baselines = [(f"baseline_{k}", None, MODULES[module]) for k, module in enumerate(args.modules)]
+        baselines = [(f"baseline_{k}", None, targets[module]) for k, module in enumerate(args.modules)]
         for name, _, result in run_forked(baselines, args.workers, args.timeout, scratch):
             if baseline_failed(args.modules[int(name.rsplit("_", 1)[1])], result):
                 return 1
-        jobs = [(f"mutant_{m.index}", m, MODULES[m.module]) for m in chosen]
+        jobs = [(f"mutant_{m.index}", m, targets[m.module]) for m in chosen]
         for done, (_, mutant, result) in enumerate(run_forked(jobs, args.workers, args.timeout, scratch), 1):
             assert mutant is not None
             report(done, outcome_of(mutant, result))
     else:
         with ThreadPoolExecutor(max_workers=args.workers) as pool:
-            futures_of = {module: pool.submit(baseline, MODULES[module], args.timeout, scratch) for module in args.modules}
+            futures_of = {module: pool.submit(baseline, targets[module], args.timeout, scratch) for module in args.modules}
             if any(baseline_failed(module, future.result()) for module, future in futures_of.items()):
                 return 1
-            futures = [pool.submit(run_mutant, m, MODULES[m.module], args.timeout, scratch) for m in chosen]
+            futures = [pool.submit(run_mutant, m, targets[m.module], args.timeout, scratch) for m in chosen]
             for done, future in enumerate(as_completed(futures), 1):
                 report(done, future.result())
     if kept:

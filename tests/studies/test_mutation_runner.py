@@ -142,3 +142,22 @@ def test_survivors_of_an_earlier_run_are_found_after_their_lines_moved(tmp_path:
     assert [m.line for m in runner.same_mutants(after, earlier, outcome="killed")] == [
         m.line + 1 for m in before if m.index != 1
     ]
+
+
+@pytest.mark.parametrize("tests", [None, ["tests/buffers"]])
+def test_tests_option_replaces_the_targeted_files(monkeypatch, tmp_path: pathlib.Path, tests):
+    runner = benchmark_module("run_mutation")
+    module = "sb3_lifelong/common/losses.py"
+    seen = []
+
+    def run_forked(jobs, workers, timeout, scratch):
+        for name, mutant, files in jobs:
+            seen.append(files)
+            yield name, mutant, ("survived", 0.1, "1 passed")
+
+    monkeypatch.setattr(runner, "run_forked", run_forked)
+    monkeypatch.setattr(runner, "preload", lambda: None)
+    argv = ["--modules", module, "--limit", "1", "--runner", "fork", "--output", str(tmp_path)]
+    assert runner.main(argv + (["--tests", *tests] if tests else [])) == 0
+    assert seen == [tests or runner.MODULES[module]] * 2  # the baseline, then the one mutant
+    assert ("--tests tests/buffers" in (tmp_path / "mutation.md").read_text()) == bool(tests)  # the command is recorded
