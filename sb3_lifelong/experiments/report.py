@@ -118,6 +118,114 @@ def forgetting_table(study: Study) -> str:
     return "\n".join(lines)
 
 
+#: episodes of the uniformly random policy per environment, the zero of the field's normalised scores
+RANDOM_EPISODES = 10
+#: where a study keeps its random policy's returns (measured once, by the first report that needs them)
+RANDOM_RETURNS_FILE = "random_returns.json"
+
+
+def measure_random_returns(preset: Mapping[str, Any], episodes: int = RANDOM_EPISODES) -> dict[str, float]:
+    """
+    A uniformly random policy's mean return in each environment of a study: the zero of the continual-learning
+    field's normalised scores (:func:`~sb3_lifelong.evaluation.continual.continual_metrics`). The episodes are seeded,
+    so the measurement is the same every time.
+
+    :param preset: the study's settings (its ``preset.json``)
+    :param episodes: episodes per environment
+    :return: environment name -> mean return
+    """
+    from sb3_lifelong.envs import stage_envs
+    from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
+
+    steps = preset.get("max_episode_steps")
+    env_kwargs = {} if steps is None else dict(max_episode_steps=steps)
+    envs = stage_envs(preset["env_id"], list(preset["stages"]), preset["env_names"], env_kwargs, append_params=True)
+    returns = {}
+    for index, (name, env) in enumerate(envs.items()):
+        env.action_space.seed(EVAL_SEED_OFFSET + index)
+        totals = []
+        for episode in range(episodes):
+            env.reset(seed=EVAL_SEED_OFFSET + 1000 * index + episode)
+            total, ended = 0.0, False
+            while not ended:
+                _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+                total += float(reward)
+                ended = bool(terminated or truncated)
+            totals.append(total)
+        env.close()
+        returns[name] = float(np.mean(totals))
+    return returns
+
+
+def random_returns(output: pathlib.Path, preset: Mapping[str, Any]) -> dict[str, float]:
+    """
+    :return: the random policy's return per environment, read from the study's ``random_returns.json``, or measured
+        (:func:`measure_random_returns`) and written there when it is missing or was measured for other environments
+    """
+    path = output / RANDOM_RETURNS_FILE
+    if path.is_file():
+        record = json.loads(path.read_text())
+        if record.get("env_names") == list(preset["env_names"]) and record.get("stages") == list(preset["stages"]):
+            return {name: float(value) for name, value in record["returns"].items()}
+    returns = measure_random_returns(preset)
+    record = dict(
+        env_names=list(preset["env_names"]), stages=list(preset["stages"]), episodes=RANDOM_EPISODES,
+        policy="uniform over the action space, seeded", returns=returns,
+    )  # fmt: skip
+    write_text_atomic(path, json.dumps(record, indent=1) + "\n")
+    return returns
+
+
+def continual_table(study: Study, random: Mapping[str, float]) -> str:
+    """
+    :param random: the random policy's return per environment
+    :return: each online method's forgetting and transfer in the continual-learning field's terms, per seed and as a
+        mean +- std over seeds (:func:`~sb3_lifelong.evaluation.continual.continual_metrics`, the reference of each
+        environment being the best end-of-stage return of that seed and method there); "" without MPO's matrix
+    """
+    from sb3_lifelong.evaluation.continual import continual_metrics
+
+    envs = study.preset["env_names"]
+    stages = len(envs)
+    metrics = set(study.extras["metric"]) if len(study.extras) else set()
+    methods = [m for m in dict.fromkeys(metric.split("|R|")[0] for metric in metrics if "|R|" in metric)]
+    methods.sort(key=lambda m: (m != "MPO", m))
+    if "MPO" not in methods:
+        return ""
+    left = envs[:-1]
+    header = (
+        "| method | seed | average performance | "
+        + " | ".join(f"forgetting of {env}" for env in left)
+        + " | backward transfer | forward transfer |"
+    )
+    lines = [header, "|" + " --- |" * (len(left) + 5)]
+    for method in methods:
+        rows_of = {i: {env: study.extra(f"{'MPO' if i == 0 else method}|R|{i}|{env}") for env in envs} for i in range(stages)}
+        collected: dict[str, list[float]] = {}
+        for seed in study.seeds:
+            matrix = [[rows_of[i][env].get(seed, float("nan")) for env in envs] for i in range(stages)]
+            if not np.all(np.isfinite(matrix)):
+                continue
+            try:
+                found = continual_metrics(matrix, [random[env] for env in envs])
+            except ValueError:  # a seed that learnt nothing above the random policy somewhere: nothing to normalise by
+                lines.append(f"| {method} | {seed} | not defined: no return above the random policy's in an environment |")
+                continue
+            values = {
+                "average performance": found["average_performance"],
+                **{f"forgetting of {env}": found["forgetting"][j] for j, env in enumerate(left)},
+                "backward transfer": found["backward_transfer"],
+                "forward transfer": found["forward_transfer"],
+            }
+            for key, value in values.items():
+                collected.setdefault(key, []).append(value)
+            lines.append(f"| {method} | {seed} | " + " | ".join(f"{v:+.2f}" for v in values.values()) + " |")
+        if collected and len(next(iter(collected.values()))) > 1:
+            cells = [f"{np.mean(v):+.2f} +- {np.std(v, ddof=1):.2f}" for v in collected.values()]
+            lines.append(f"| {method} | mean +- std | " + " | ".join(cells) + " |")
+    return "\n".join(lines) if len(lines) > 2 else ""
+
+
 def claims_table(rows: list[dict[str, Any]]) -> str:
     """:return: the claims as a markdown table (with a precondition column when the rows have one)"""
     checked = any("precondition" in r for r in rows)
@@ -152,6 +260,37 @@ def incomplete_repeats(study: Study) -> list[str]:
             if name not in trained
         ]
     return lines
+
+
+def continual_section(output: pathlib.Path, study: Study) -> str:
+    """:return: the report's section of forgetting and transfer in the field's terms ("" without MPO's matrix)"""
+    from sb3_lifelong.evaluation.continual import NORMALISATION
+
+    metrics = set(study.extras["metric"]) if len(study.extras) else set()
+    if not any(metric.startswith("MPO|R|") for metric in metrics):
+        return ""
+    try:
+        random = random_returns(output, study.preset)
+    except Exception as error:  # the robot cannot be made here (e.g. no robot model): the rest of the report stands
+        return (
+            "\n\n## Forgetting and transfer in the field's terms\n\nNot computed: the random policy's returns could not "
+            + f"be measured ({type(error).__name__}: {error})."
+        )
+    table = continual_table(study, random)
+    if not table:
+        return ""
+    measured = ", ".join(f"{env} {value:.1f}" for env, value in random.items())
+    return (
+        "\n\n## Forgetting and transfer in the field's terms\n\n"
+        + "As Continual World, CORA and GEM report them, from the return matrix R[i][j] (the return in environment j at "
+        + f"the end of stage i: the mean of the last {ONLINE_LAST_STAGE1} evaluations of a stage, the last "
+        + f"{ONLINE_LAST} for the final stage). Normalised per environment: {NORMALISATION}. The random policy's "
+        + f"returns ({RANDOM_EPISODES} seeded episodes, `{RANDOM_RETURNS_FILE}`): {measured}; the reference is each "
+        + "seed's best end-of-stage return in that environment. Forgetting of an environment: its score at the end of "
+        + "its stage minus at the end (positive: forgotten); backward transfer: minus the mean forgetting; forward "
+        + "transfer: the mean score in each later environment before training in it. Online baselines share MPO's "
+        + f"Stage 1.\n\n{table}"
+    )
 
 
 #: the claims section of a study reported without claims
@@ -235,6 +374,7 @@ def write_report(
             if (forgetting := forgetting_table(study))
             else ""
         )
+        + continual_section(output, study)
         + (f"\n\n## The students' weights\n\n{weights}" if (weights := weights_table(study)) else "")
         + (
             f"\n\n## Rows left out\n\n{len(study.dropped)} malformed row(s) of the result files were left out:\n\n"

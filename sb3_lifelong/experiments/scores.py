@@ -11,6 +11,10 @@ A seed's scores:
   deviation over the mean) of its last ``SWITCH_SPREAD_EVALS`` evaluations in the second half of that stage
   (``MPO|switch_spread|<env>``, :func:`switch_spread`);
 * Stage-2 learning speed in Env-B: the mean of all Env-B evaluations after the switch (area under the curve);
+* the continual-learning field's return matrix of an online method (``<method>|R|<i>|<env>``): its return in each
+  environment at the end of stage ``i``, the mean of its last ``ONLINE_LAST_STAGE1`` evaluations up to that stage's
+  end (``ONLINE_LAST`` for the last stage: the final score). Online baselines share MPO's Stage 1, so their matrix
+  starts at stage 1 (:mod:`sb3_lifelong.evaluation.continual` computes the metrics);
 * a student's final return: the mean of its last ``STUDENT_LAST`` evaluations (of each repeat, then the mean over its
   repeats);
 * Q per source: the student's last average Q-value over each environment's data;
@@ -309,6 +313,27 @@ def student_weights(
     ]
 
 
+def return_matrix(
+    seed: int, method: str, frame: pd.DataFrame, envs: Sequence[str], ends: Sequence[int], first: int = 0
+) -> list[dict[str, Any]]:
+    """
+    The continual-learning field's return matrix ``R[i][j]`` of an online method: its return in environment ``j`` at
+    the end of stage ``i``, the mean of its last ``ONLINE_LAST_STAGE1`` evaluations up to that end (``ONLINE_LAST``
+    for the last stage, whose row is the final score).
+
+    :param first: the first stage of the method's own (an online baseline's Stage 1 is MPO's)
+    :return: the extras ``<method>|R|<i>|<env>``
+    """
+    rows = []
+    for stage, end in enumerate(ends):
+        if stage < first:
+            continue
+        count = ONLINE_LAST if stage == len(ends) - 1 else ONLINE_LAST_STAGE1
+        for env in envs:
+            rows.append(dict(seed=seed, metric=f"{method}|R|{stage}|{env}", value=last_mean(frame, env, count, until=end)))
+    return rows
+
+
 @dataclass
 class Study:
     """The scores of every seed of a study, as long tables."""
@@ -374,6 +399,8 @@ def load_study(
                     )
                     area = last_mean(frame, env, 10**9, after=switch, until=ends[1])  # Stage 2 only (of 2 or 3)
                     extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
+                # an online method's rows start after the Stage 1 it shares with MPO
+                extras += return_matrix(seed, method, frame, envs, ends, first=0 if job == "collect" else 1)
                 if job == "collect":  # each environment's return when MPO leaves it (the end of its stage)
                     for env, start, end in zip(envs[:-1], [0, *ends[:-2]], ends[:-1]):
                         value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)

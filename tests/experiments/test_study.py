@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import pathlib
 import re
 
 import numpy as np
@@ -457,3 +458,60 @@ def test_a_ratio_with_a_non_positive_denominator_is_left_out():
     numerator, denominator = {0: 180.0, 1: 630.0, 2: 360.0}, {0: 480.0, 1: 0.0, 2: -2.3}
     assert ratio(numerator, denominator) == {0: 0.375}  # not 360 / -2.3 = -157, which would swamp the mean
     assert undefined_ratios(numerator, denominator) == {1: 0.0, 2: -2.3}
+
+
+def continual_study(online_end_a=90.0):
+    """Two seeds; MPO forgets Env-A (100 -> 60) and learns Env-B (20 -> 120); online CRR keeps more of Env-A."""
+    from sb3_lifelong.experiments.scores import Study
+
+    values = {
+        "MPO|R|0|Env-A": 100.0, "MPO|R|0|Env-B": 20.0, "MPO|R|1|Env-A": 60.0, "MPO|R|1|Env-B": 120.0,
+        "online CRR_exp_beta1|R|1|Env-A": online_end_a, "online CRR_exp_beta1|R|1|Env-B": 100.0,
+    }  # fmt: skip
+    extras = pd.DataFrame([dict(seed=s, metric=m, value=v) for s in (0, 1) for m, v in values.items()])
+    preset = dict(env_names=["Env-A", "Env-B"], stage_steps=[10, 20])
+    return Study(pathlib.Path("synthetic"), preset, [0, 1], pd.DataFrame(), extras)
+
+
+def test_continual_metrics_of_the_report_hand_computed():
+    from sb3_lifelong.experiments.report import continual_table
+
+    table = continual_table(continual_study(), {"Env-A": 0.0, "Env-B": 20.0})
+    rows = {tuple(c.strip() for c in line.strip("|").split("|"))[:2]: line for line in table.splitlines()[2:]}
+    cells = lambda key: [c.strip() for c in rows[key].strip("|").split("|")][2:]  # noqa: E731
+    # MPO: reference (best end of stage) A 100, B 120; s0 = [1, 0], s1 = [0.6, 1]: A = 0.8, F_A = 0.4, BWT -0.4, FWT 0
+    assert cells(("MPO", "0")) == ["+0.80", "+0.40", "-0.40", "+0.00"]
+    # online CRR shares MPO's Stage 1: reference A 100, B 100; s1 = [0.9, 1.0]: A = 0.95, F_A = 0.1
+    assert cells(("online CRR_exp_beta1", "1")) == ["+0.95", "+0.10", "-0.10", "+0.00"]
+    assert cells(("MPO", "mean +- std")) == ["+0.80 +- 0.00", "+0.40 +- 0.00", "-0.40 +- 0.00", "+0.00 +- 0.00"]
+    assert "forgetting of Env-A" in table.splitlines()[0] and "forgetting of Env-B" not in table
+    # a seed that learnt nothing above the random policy in an environment has no normalised scores
+    flat = continual_table(continual_study(), {"Env-A": 0.0, "Env-B": 500.0})
+    assert "not defined: no return above the random policy's" in flat
+
+
+def test_the_report_gives_the_field_metrics_from_each_run_and_measures_the_random_policy_once(study, tmp_path, monkeypatch):
+    import shutil
+
+    from sb3_lifelong.experiments import report
+
+    output = tmp_path / "study"
+    shutil.copytree(study[0], output, ignore=shutil.ignore_patterns("buffer*", "random_returns.json"))  # (other reports')
+    data = load_study(output)
+    frame = pd.read_csv(output / "seed_0" / "collect" / "eval.csv")
+    end = data.preset["stage_steps"][0]
+    switch_rows = frame[(frame["env"] == "Env-B") & (frame["timesteps"] <= end)].sort_values("timesteps")
+    assert data.extra("MPO|R|0|Env-B")[0] == pytest.approx(switch_rows["mean_reward"].tail(2).mean())
+    assert data.extra("MPO|R|1|Env-A")[0] == pytest.approx(data.score("MPO", "Env-A")[0])
+    assert not data.extra("online CRR_exp_beta1|R|0|Env-A")  # its Stage 1 is MPO's
+    measured = []
+    real = report.measure_random_returns
+    monkeypatch.setattr(report, "measure_random_returns", lambda preset: measured.append(1) or real(preset))
+    text = write_report(output, plots=False)
+    assert "## Forgetting and transfer in the field's terms" in text, text
+    assert len(measured) == 1
+    record = json.loads((output / "random_returns.json").read_text())
+    assert record["env_names"] == ["Env-A", "Env-B"] and record["episodes"] == report.RANDOM_EPISODES
+    assert record["returns"] == real(data.preset)  # seeded: the same measurement every time
+    write_report(output, plots=False)
+    assert len(measured) == 1  # read back, not measured again
