@@ -144,3 +144,25 @@ def test_stage1_records_are_read_by_robot_and_seed(tmp_path):
         (tmp_path / "stage1" / robot).mkdir(parents=True, exist_ok=True)
         (tmp_path / "stage1" / robot / f"seed_{seed}.json").write_text(f'{{"seed": {seed}, "learnt": {str(learnt).lower()}}}')
     assert screen.stage1_readings(tmp_path) == {"cheetah": {0: True, 3: False}, "hopper": {1: False}}
+
+
+def test_field_terms_of_a_learnt_seed_hand_computed(tmp_path):
+    screen = load_screen()
+    row = dict(candidate="cheetah_back_reversed", seed=0, stage1_env_a=2000.0, zero_shot_env_b=0.0, end_env_a=1500.0,
+               end_env_b=3000.0, env_a_learnt=True)  # fmt: skip
+    terms = screen.field_terms(row, tmp_path, {"Env-A": -300.0, "Env-B": -300.0})
+    # reference: A 2000 (the switch), B 3000 (the end); s0 = [1, 300 / 3300], s1 = [1800 / 2300, 1]
+    assert terms["forgetting_env_a"] == pytest.approx(1 - 1800 / 2300)
+    assert terms["backward_transfer"] == pytest.approx(-(1 - 1800 / 2300))
+    assert terms["average_performance"] == pytest.approx((1800 / 2300 + 1) / 2)
+    assert terms["forward_transfer"] == pytest.approx(300 / 3300)
+    # the section lists learnt seeds only, with the random policy's returns read from the candidate's folder
+    (tmp_path / "cheetah_back_reversed").mkdir()
+    record = dict(
+        env_names=["Env-A", "Env-B"], stages=[{}, {"leg_motor_scale": -1.0}], returns={"Env-A": -300.0, "Env-B": -300.0}
+    )
+    (tmp_path / "cheetah_back_reversed" / "random_returns.json").write_text(json.dumps(record))
+    lines = screen.field_terms_lines([row, {**row, "seed": 1, "env_a_learnt": False}], tmp_path)
+    assert lines[-1].startswith("| cheetah_back_reversed | 0 | -300, -300 | +0.89 | +0.22 | -0.22 | +0.09 |")
+    assert not any(line.startswith("| cheetah_back_reversed | 1 ") for line in lines)
+    assert screen.field_terms_lines([{**row, "env_a_learnt": False}], tmp_path) == []

@@ -363,6 +363,70 @@ def fmt(values: list[float], digits: int = 2) -> str:
     return f"{np.mean(values):.{digits}f} +- {np.std(values, ddof=1):.{digits}f}"
 
 
+def random_returns_of(candidate: str, results: pathlib.Path) -> dict[str, float]:
+    """
+    A uniformly random policy's return in each environment of a candidate (the zero of the field's normalised
+    scores), measured once and kept in ``results/<candidate>/random_returns.json``.
+    """
+    from sb3_lifelong.experiments.report import random_returns
+
+    settings = preset(candidate)
+    return random_returns(results / candidate, {**settings.describe(), "env_names": list(settings.env_names)})
+
+
+def field_terms(row: dict[str, Any], results: pathlib.Path, random: dict[str, float]) -> dict[str, float]:
+    """
+    One learnt seed's forgetting and transfer in the continual-learning field's terms
+    (:func:`~sb3_lifelong.evaluation.continual.continual_metrics`), from the screen's own last-``LAST`` means: ``R[0]``
+    at the switch (Env-A: the Stage-1 level; Env-B: the frozen Stage-1 agent on the same ``SAME_EPISODES`` Env-B
+    episodes, as Stage 1 evaluated Env-A only) and ``R[1]`` at the end.
+    """
+    from sb3_lifelong.evaluation.continual import continual_metrics
+
+    matrix = [[row["stage1_env_a"], row["zero_shot_env_b"]], [row["end_env_a"], row["end_env_b"]]]
+    found = continual_metrics(matrix, [random["Env-A"], random["Env-B"]])
+    return dict(
+        average_performance=found["average_performance"],
+        forgetting_env_a=found["forgetting"][0],
+        backward_transfer=found["backward_transfer"],
+        forward_transfer=found["forward_transfer"],
+    )
+
+
+def field_terms_lines(rows: list[dict[str, Any]], results: pathlib.Path) -> list[str]:
+    """:return: the results' section of the field's terms, for every seed that learnt Env-A"""
+    from sb3_lifelong.evaluation.continual import NORMALISATION
+
+    learnt = [r for r in rows if r["env_a_learnt"]]
+    if not learnt:
+        return []
+    lines = [
+        "",
+        "## In the continual-learning field's terms (seeds that learnt Env-A)",
+        "",
+        f"As Continual World, CORA and GEM report them, from R[i][j] (the return in environment j at the end of stage i, "
+        f"last-{LAST} means as above; Env-B before its first step: the frozen Stage-1 agent's zero-shot return on "
+        f"{SAME_EPISODES} episodes, as Stage 1 evaluated Env-A only). Normalised per "
+        f"environment: {NORMALISATION}; the reference is the seed's best end-of-stage return there, the random policy's "
+        "returns are measured once per candidate (`<candidate>/random_returns.json`). Forgetting of Env-A: its score at "
+        "the switch minus at the end (positive: forgotten); backward transfer is its negative; forward transfer: the "
+        "Env-B score before training in it.",
+        "",
+        "| candidate | seed | random policy: Env-A, Env-B | average performance | forgetting of Env-A "
+        "| backward transfer | forward transfer |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in learnt:
+        random = random_returns_of(row["candidate"], results)
+        terms = field_terms(row, results, random)
+        lines.append(
+            f"| {row['candidate']} | {row['seed']} | {random['Env-A']:.0f}, {random['Env-B']:.0f} | "
+            + " | ".join(f"{terms[k]:+.2f}" for k in ("average_performance", "forgetting_env_a", "backward_transfer"))
+            + f" | {terms['forward_transfer']:+.2f} |"
+        )
+    return lines
+
+
 def report(args: argparse.Namespace) -> None:
     results = pathlib.Path(args.results)
     rows = measured_rows(results)
@@ -405,6 +469,7 @@ def report(args: argparse.Namespace) -> None:
             f"{fmt([r['overestimation_env_a_end'] for r in mine], 0)} | {verdict} |"
         )
     lines += ["", f"**Selection:** {chosen or '-'} ({why})."]
+    lines += field_terms_lines(rows, results)
     (results / "results.md").write_text("\n".join(lines) + "\n")
     figure(rows, results / "screen.png")
     print("\n".join(lines))
