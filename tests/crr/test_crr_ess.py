@@ -229,6 +229,7 @@ SEARCH_CASES = [
     *[(seed, target, max_weight, None) for seed in (0, 1) for target in (0.05, 0.5, 0.9) for max_weight in (20.0, 1e30)],
     (2, 0.7, 20.0, 1.2),  # warm, the target inside the window (the start is a factor of the cold answer)
     (2, 0.7, 20.0, 100.0),  # warm, outside it: the search starts again from scratch
+    (2, 0.7, 20.0, math.exp(0.495)),  # warm, the crossing in the window's first cell: still inside, one pass
     (3, 0.3, 1e30, 0.9),
     ("tied", 0.5, 1e30, None),  # the window moves down past the Gaussian guess's (two nearly tied best rows)
     ("clipped", 0.02, 20.0, None),  # below every size the clipped weights reach: the window moves to its limit
