@@ -54,7 +54,11 @@ RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 #: the modules measured, each with the test files that target it (fast ones: a mutant's run takes seconds)
 MODULES: dict[str, list[str]] = {
-    "sb3_lifelong/mpo/losses.py": ["tests/mpo/test_mpo_losses.py", "tests/common/test_properties.py"],
+    "sb3_lifelong/mpo/losses.py": [
+        "tests/mpo/test_mpo_losses.py",
+        "tests/common/test_properties.py",
+        "tests/mpo/test_mpo.py::test_dual_parametrisation",
+    ],
     "sb3_lifelong/crr/losses.py": [
         "tests/crr/test_crr_losses.py",
         "tests/crr/test_crr_ess.py",
