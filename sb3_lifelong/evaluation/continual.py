@@ -43,7 +43,8 @@ def continual_metrics(
     The field's metrics of a return matrix (see the module's docstring).
 
     :param returns: ``R[i][j]``, one row per ended stage (at least one), one column per environment; stage ``i``
-        trained in environment ``i``
+        trained in environment ``i``. An environment not evaluated before its stage (``j > i``) may be NaN: forward
+        transfer is then NaN
     :param random: a uniformly random policy's return in each environment
     :param reference: the reference return of each environment (None: the largest ``R[i][j]`` over the rows)
     :return: ``scores`` (the normalised matrix), ``average_performance``, ``forgetting`` (per environment that a later
@@ -56,8 +57,13 @@ def continual_metrics(
     stages, envs = matrix.shape
     if stages > envs:
         raise ValueError(f"{stages} stages but {envs} environments: stage i trains in environment i")
+    seen = np.tril(np.ones_like(matrix, dtype=bool))  # environment j at the end of stage i >= j: measured
+    if not np.all(np.isfinite(matrix[seen])):
+        raise ValueError(
+            f"returns must be finite in every environment at the end of its own stage and later, got {matrix.tolist()}"
+        )
     low = np.asarray(random, dtype=np.float64)
-    high = matrix.max(axis=0) if reference is None else np.asarray(reference, dtype=np.float64)
+    high = np.nanmax(matrix, axis=0) if reference is None else np.asarray(reference, dtype=np.float64)
     if low.shape != (envs,) or high.shape != (envs,):
         raise ValueError(f"random and reference need one value per environment ({envs}), got {low.shape} and {high.shape}")
     if not np.all(high > low):

@@ -176,6 +176,11 @@ def random_returns(output: pathlib.Path, preset: Mapping[str, Any]) -> dict[str,
     return returns
 
 
+def _signed(value: float) -> str:
+    """:return: ``value`` with its sign and two decimals, or ``n/a`` when it was not measured"""
+    return f"{value:+.2f}" if np.isfinite(value) else "n/a"
+
+
 def continual_table(study: Study, random: Mapping[str, float]) -> str:
     """
     :param random: the random policy's return per environment
@@ -204,8 +209,8 @@ def continual_table(study: Study, random: Mapping[str, float]) -> str:
         collected: dict[str, list[float]] = {}
         for seed in study.seeds:
             matrix = [[rows_of[i][env].get(seed, float("nan")) for env in envs] for i in range(stages)]
-            if not np.all(np.isfinite(matrix)):
-                continue
+            if not np.all(np.isfinite(np.asarray(matrix)[np.tril_indices(stages)])):
+                continue  # unfinished: an environment not measured at the end of its stage or later
             try:
                 found = continual_metrics(matrix, [random[env] for env in envs])
             except ValueError:  # a seed that learnt nothing above the random policy somewhere: nothing to normalise by
@@ -219,9 +224,12 @@ def continual_table(study: Study, random: Mapping[str, float]) -> str:
             }
             for key, value in values.items():
                 collected.setdefault(key, []).append(value)
-            lines.append(f"| {method} | {seed} | " + " | ".join(f"{v:+.2f}" for v in values.values()) + " |")
+            lines.append(f"| {method} | {seed} | " + " | ".join(_signed(v) for v in values.values()) + " |")
         if collected and len(next(iter(collected.values()))) > 1:
-            cells = [f"{np.mean(v):+.2f} +- {np.std(v, ddof=1):.2f}" for v in collected.values()]
+            cells = [
+                f"{np.mean(v):+.2f} +- {np.std(v, ddof=1):.2f}" if np.all(np.isfinite(v)) else "n/a"
+                for v in collected.values()
+            ]
             lines.append(f"| {method} | mean +- std | " + " | ".join(cells) + " |")
     return "\n".join(lines) if len(lines) > 2 else ""
 
@@ -288,8 +296,8 @@ def continual_section(output: pathlib.Path, study: Study) -> str:
         + f"returns ({RANDOM_EPISODES} seeded episodes, `{RANDOM_RETURNS_FILE}`): {measured}; the reference is each "
         + "seed's best end-of-stage return in that environment. Forgetting of an environment: its score at the end of "
         + "its stage minus at the end (positive: forgotten); backward transfer: minus the mean forgetting; forward "
-        + "transfer: the mean score in each later environment before training in it. Online baselines share MPO's "
-        + f"Stage 1.\n\n{table}"
+        + "transfer: the mean score in each later environment before training in it (n/a where that environment was not "
+        + f"evaluated before its stage). Online baselines share MPO's Stage 1.\n\n{table}"
     )
 
 

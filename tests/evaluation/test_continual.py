@@ -95,3 +95,14 @@ def test_callback_refuses_what_it_cannot_read():
     standalone = ContinualMetricsCallback(stage_ends=[10])
     with pytest.raises(TypeError, match="callback_after_eval of a MultiEnvEvalCallback"):
         standalone.init_callback(MPO("MlpPolicy", "Pendulum-v1", learning_starts=10))
+
+
+def test_an_environment_not_evaluated_before_its_stage_leaves_forward_transfer_undefined():
+    # Env-B was not evaluated at the end of stage 0 (a Stage 1 run alone, adopted later): everything else is defined
+    metrics = continual_metrics([[100.0, math.nan], [60.0, 120.0]], [0.0, 20.0])
+    assert metrics["average_performance"] == pytest.approx((0.6 + 1.0) / 2)
+    assert metrics["forgetting"] == {0: pytest.approx(0.4)} and math.isnan(metrics["forward_transfer"])
+    # an environment must be measured at the end of its own stage and later
+    for missing in ([[math.nan, 5.0], [60.0, 120.0]], [[100.0, 5.0], [math.nan, 120.0]], [[100.0, 5.0], [60.0, math.nan]]):
+        with pytest.raises(ValueError, match="finite in every environment at the end of its own stage"):
+            continual_metrics(missing, [0.0, 0.0])

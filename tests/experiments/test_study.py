@@ -485,6 +485,11 @@ def test_continual_metrics_of_the_report_hand_computed():
     assert cells(("online CRR_exp_beta1", "1")) == ["+0.95", "+0.10", "-0.10", "+0.00"]
     assert cells(("MPO", "mean +- std")) == ["+0.80 +- 0.00", "+0.40 +- 0.00", "-0.40 +- 0.00", "+0.00 +- 0.00"]
     assert "forgetting of Env-A" in table.splitlines()[0] and "forgetting of Env-B" not in table
+    # Env-B not evaluated before its stage (a Stage 1 run alone, adopted): forward transfer is not measured
+    unseen = continual_study()
+    unseen.extras.loc[unseen.extras["metric"] == "MPO|R|0|Env-B", "value"] = np.nan
+    rows = continual_table(unseen, {"Env-A": 0.0, "Env-B": 20.0}).splitlines()
+    assert rows[2] == "| MPO | 0 | +0.80 | +0.40 | -0.40 | n/a |" and rows[4].endswith("| n/a |")
     # a seed that learnt nothing above the random policy in an environment has no normalised scores
     flat = continual_table(continual_study(), {"Env-A": 0.0, "Env-B": 500.0})
     assert "not defined: no return above the random policy's" in flat
