@@ -350,3 +350,27 @@ def test_capacity_corrupted_chunk_files(tmp_path):
     os.remove(last)
     with pytest.raises(BufferFormatError, match="missing"):
         LifelongReplayBuffer.open(path, read_only=True)
+
+
+def test_a_new_capacity_is_checked_against_the_rows_retained_not_ever_added(tmp_path):
+    # 83 rows through a capacity of 25: 58 evicted, 25 retained (first_row 58). A larger capacity keeps them all
+    evicted = tmp_path / "evicted"
+    buffer = LifelongReplayBuffer(0, OBS, ACT, path=evicted, chunk_size=10, capacity=25)
+    add_rows(buffer, 0, 83)
+    buffer.close()
+    manifest = json.loads((evicted / "manifest.json").read_text())
+    assert manifest["num_transitions"] - manifest["first_row"] == 25 and manifest["first_row"] > 0
+    grown = LifelongReplayBuffer.open(evicted, capacity=40)
+    assert grown.capacity == 40 and grown.size() == 25 and float(grown.store.read_range("rewards", 24, 25)[0]) == 82.0
+    grown.close()
+    # 20 rows under a capacity of 25: a capacity of exactly 20 evicts nothing, so it needs no evict=True; 19 does
+    partial = tmp_path / "partial"
+    buffer = LifelongReplayBuffer(0, OBS, ACT, path=partial, chunk_size=10, capacity=25)
+    add_rows(buffer, 0, 20)
+    buffer.close()
+    exact = LifelongReplayBuffer.open(partial, capacity=20)
+    assert exact.capacity == 20 and exact.size() == 20
+    exact.close()
+    with pytest.raises(ValueError, match="would evict the oldest 1 of them at once"):
+        LifelongReplayBuffer.open(partial, capacity=19)
+    assert LifelongReplayBuffer.open(partial, read_only=True).size() == 20  # nothing was changed
