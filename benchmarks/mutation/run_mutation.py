@@ -78,6 +78,7 @@ MODULES: dict[str, list[str]] = {
     ],
     "sb3_lifelong/experiments/claims.py": [
         "tests/experiments/test_claims_both_ways.py",
+        "tests/experiments/test_claims_files.py",
         "tests/experiments/test_study.py::test_a_ratio_with_a_non_positive_denominator_is_left_out",
         "tests/experiments/test_study.py::test_claims_pair_the_compared_series_by_seed",
     ],

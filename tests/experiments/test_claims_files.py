@@ -73,3 +73,21 @@ def test_ratios_keep_positive_denominators_below_one():
     numerator, denominator = {0: 0.3, 1: 2.0, 2: 1.0}, {0: 0.5, 1: 0.0, 2: -1.0}
     assert ratio(numerator, denominator) == {0: 0.3 / 0.5}
     assert undefined_ratios(numerator, denominator) == {1: 0.0, 2: -1.0}
+
+
+def test_mean_over_environments_is_the_mean_on_the_seeds_scored_in_each():
+    import pathlib
+
+    import pandas as pd
+
+    from sb3_lifelong.experiments.claims import mean_over, mean_over_envs
+    from sb3_lifelong.experiments.scores import Study
+
+    finals = pd.DataFrame(
+        [dict(seed=0, method="X", kind="student", env="Env-A", score=100.0),
+         dict(seed=0, method="X", kind="student", env="Env-B", score=50.0),
+         dict(seed=1, method="X", kind="student", env="Env-A", score=80.0)]  # seed 1 has no Env-B score
+    )  # fmt: skip
+    study = Study(pathlib.Path("synthetic"), {"env_names": ["Env-A", "Env-B"]}, [0, 1], finals, pd.DataFrame())
+    assert mean_over_envs(study, "X") == {0: 75.0}
+    assert mean_over(study, "X", ["Env-A"]) == {0: 100.0, 1: 80.0}
