@@ -193,7 +193,7 @@ def continual_table(study: Study, random: Mapping[str, float]) -> str:
     envs = study.preset["env_names"]
     stages = len(envs)
     metrics = set(study.extras["metric"]) if len(study.extras) else set()
-    methods = [m for m in dict.fromkeys(metric.split("|R|")[0] for metric in metrics if "|R|" in metric)]
+    methods = list(dict.fromkeys(metric.split("|R|")[0] for metric in metrics if "|R|" in metric))
     methods.sort(key=lambda m: (m != "MPO", m))
     if "MPO" not in methods:
         return ""

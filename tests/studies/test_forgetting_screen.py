@@ -150,7 +150,7 @@ def test_field_terms_of_a_learnt_seed_hand_computed(tmp_path):
     screen = load_screen()
     row = dict(candidate="cheetah_back_reversed", seed=0, stage1_env_a=2000.0, zero_shot_env_b=0.0, end_env_a=1500.0,
                end_env_b=3000.0, env_a_learnt=True)  # fmt: skip
-    terms = screen.field_terms(row, tmp_path, {"Env-A": -300.0, "Env-B": -300.0})
+    terms = screen.field_terms(row, {"Env-A": -300.0, "Env-B": -300.0})
     # reference: A 2000 (the switch), B 3000 (the end); s0 = [1, 300 / 3300], s1 = [1800 / 2300, 1]
     assert terms["forgetting_env_a"] == pytest.approx(1 - 1800 / 2300)
     assert terms["backward_transfer"] == pytest.approx(-(1 - 1800 / 2300))

@@ -374,7 +374,7 @@ def random_returns_of(candidate: str, results: pathlib.Path) -> dict[str, float]
     return random_returns(results / candidate, {**settings.describe(), "env_names": list(settings.env_names)})
 
 
-def field_terms(row: dict[str, Any], results: pathlib.Path, random: dict[str, float]) -> dict[str, float]:
+def field_terms(row: dict[str, Any], random: dict[str, float]) -> dict[str, float]:
     """
     One learnt seed's forgetting and transfer in the continual-learning field's terms
     (:func:`~sb3_lifelong.evaluation.continual.continual_metrics`), from the screen's own last-``LAST`` means: ``R[0]``
@@ -418,7 +418,7 @@ def field_terms_lines(rows: list[dict[str, Any]], results: pathlib.Path) -> list
     ]
     for row in learnt:
         random = random_returns_of(row["candidate"], results)
-        terms = field_terms(row, results, random)
+        terms = field_terms(row, random)
         lines.append(
             f"| {row['candidate']} | {row['seed']} | {random['Env-A']:.0f}, {random['Env-B']:.0f} | "
             + " | ".join(f"{terms[k]:+.2f}" for k in ("average_performance", "forgetting_env_a", "backward_transfer"))
