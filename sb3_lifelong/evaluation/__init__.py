@@ -11,7 +11,7 @@ from sb3_lifelong.evaluation.callbacks import (
     TrainLogCallback,
     make_eval_envs,
 )
-from sb3_lifelong.evaluation.continual import ContinualMetricsCallback, continual_metrics
+from sb3_lifelong.evaluation.continual import ContinualMetricsCallback, continual_metrics, random_policy_returns
 from sb3_lifelong.evaluation.overestimation import MonteCarloProbe, discounted_returns, monte_carlo_horizon
 
 __all__ = [
@@ -25,4 +25,5 @@ __all__ = [
     "discounted_returns",
     "make_eval_envs",
     "monte_carlo_horizon",
+    "random_policy_returns",
 ]

@@ -24,11 +24,13 @@ import json
 import math
 import os
 import pathlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Optional, Union
 
+import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_lifelong.core.atomic import write_text_atomic
 
@@ -84,6 +86,54 @@ def continual_metrics(
         backward_transfer=-float(np.mean(list(forgetting.values()))) if forgetting else math.nan,
         forward_transfer=float(np.mean(forward)) if forward else math.nan,
     )
+
+
+def _returning(env: gym.Env) -> Callable[[], gym.Env]:
+    """:return: a factory of ``env`` itself, for a VecEnv around an existing environment"""
+    return lambda: env
+
+
+def random_policy_returns(
+    envs: Mapping[str, Union[gym.Env, VecEnv]],
+    episodes: int,
+    env_seeds: Optional[Sequence[int]] = None,
+    action_seeds: Optional[Sequence[int]] = None,
+) -> dict[str, float]:
+    """
+    A uniformly random policy's mean return in each environment: the zero of the scores of :func:`continual_metrics`.
+    With seeds, the measurement is the same every time.
+
+    :param envs: environment name -> environment (a gymnasium env or a VecEnv, whose sub-environments all play)
+    :param episodes: episodes per environment, the first ones to end
+    :param env_seeds: the seed each environment gets before its first reset, in the order of ``envs`` (None: unseeded)
+    :param action_seeds: the seed of each environment's action space, which draws the actions (None: unseeded)
+    :return: environment name -> mean return over ``episodes`` episodes
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    for what, seeds in (("env_seeds", env_seeds), ("action_seeds", action_seeds)):
+        if seeds is not None and len(seeds) != len(envs):
+            raise ValueError(f"{what} has {len(seeds)} seeds for {len(envs)} environments ({list(envs)})")
+    out = {}
+    for index, (name, env) in enumerate(envs.items()):
+        vec_env = env if isinstance(env, VecEnv) else DummyVecEnv([_returning(env)])
+        if env_seeds is not None:
+            vec_env.seed(int(env_seeds[index]))
+        space = vec_env.action_space
+        if action_seeds is not None:
+            space.seed(int(action_seeds[index]))
+        returns: list[float] = []
+        vec_env.reset()
+        total = np.zeros(vec_env.num_envs)
+        while len(returns) < episodes:
+            actions = np.stack([space.sample() for _ in range(vec_env.num_envs)])
+            _, rewards, dones, _ = vec_env.step(actions)
+            total += rewards
+            for k in np.flatnonzero(dones):
+                returns.append(float(total[k]))
+                total[k] = 0.0
+        out[name] = float(np.mean(returns[:episodes]))
+    return out
 
 
 class ContinualMetricsCallback(BaseCallback):
@@ -159,26 +209,19 @@ class ContinualMetricsCallback(BaseCallback):
         self._env_names()
 
     def measure_random(self) -> dict[str, float]:
-        """:return: a uniformly random policy's mean return in each evaluation environment"""
+        """
+        :return: a uniformly random policy's mean return in each evaluation environment (:func:`random_policy_returns`),
+            seeded like the evaluations when the parent has a seed
+        """
         parent: Any = self.parent
-        out = {}
-        for index, (name, env) in enumerate(parent.eval_envs.items()):
-            if parent.seed is not None:
-                env.seed(parent.episode_seed(index))
-            space = env.action_space
-            space.seed(0 if parent.seed is None else parent.seed + index)
-            returns: list[float] = []
-            env.reset()
-            total = np.zeros(env.num_envs)
-            while len(returns) < self.random_episodes:
-                actions = np.stack([space.sample() for _ in range(env.num_envs)])
-                _, rewards, dones, _ = env.step(actions)
-                total += rewards
-                for k in np.flatnonzero(dones):
-                    returns.append(float(total[k]))
-                    total[k] = 0.0
-            out[name] = float(np.mean(returns[: self.random_episodes]))
-        return out
+        count = len(parent.eval_envs)
+        seeded = parent.seed is not None
+        return random_policy_returns(
+            parent.eval_envs,
+            self.random_episodes,
+            env_seeds=[parent.episode_seed(index) for index in range(count)] if seeded else None,
+            action_seeds=[parent.seed + index for index in range(count)] if seeded else [0] * count,
+        )
 
     def stage_of(self, timesteps: int) -> int:
         """:return: the stage an evaluation at ``timesteps`` belongs to"""

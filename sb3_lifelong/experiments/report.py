@@ -136,25 +136,21 @@ def measure_random_returns(preset: Mapping[str, Any], episodes: int = RANDOM_EPI
     """
     from sb3_lifelong.envs import stage_envs
     from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
+    from sb3_lifelong.evaluation.continual import random_policy_returns
 
     steps = preset.get("max_episode_steps")
     env_kwargs = {} if steps is None else dict(max_episode_steps=steps)
     envs = stage_envs(preset["env_id"], list(preset["stages"]), preset["env_names"], env_kwargs, append_params=True)
-    returns = {}
-    for index, (name, env) in enumerate(envs.items()):
-        env.action_space.seed(EVAL_SEED_OFFSET + index)
-        totals = []
-        for episode in range(episodes):
-            env.reset(seed=EVAL_SEED_OFFSET + 1000 * index + episode)
-            total, ended = 0.0, False
-            while not ended:
-                _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
-                total += float(reward)
-                ended = bool(terminated or truncated)
-            totals.append(total)
-        env.close()
-        returns[name] = float(np.mean(totals))
-    return returns
+    try:
+        return random_policy_returns(
+            envs,
+            episodes,
+            env_seeds=[EVAL_SEED_OFFSET + 1000 * index for index in range(len(envs))],
+            action_seeds=[EVAL_SEED_OFFSET + index for index in range(len(envs))],
+        )
+    finally:
+        for env in envs.values():
+            env.close()
 
 
 def random_returns(output: pathlib.Path, preset: Mapping[str, Any]) -> dict[str, float]:

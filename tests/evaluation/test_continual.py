@@ -6,11 +6,12 @@ import math
 import gymnasium as gym
 import numpy as np
 import pytest
+from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_lifelong import MPO
 from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
-from sb3_lifelong.evaluation.continual import ContinualMetricsCallback, continual_metrics
+from sb3_lifelong.evaluation.continual import ContinualMetricsCallback, continual_metrics, random_policy_returns
 
 
 def test_metrics_by_hand_on_three_stages():
@@ -106,3 +107,34 @@ def test_an_environment_not_evaluated_before_its_stage_leaves_forward_transfer_u
     for missing in ([[math.nan, 5.0], [60.0, 120.0]], [[100.0, 5.0], [math.nan, 120.0]], [[100.0, 5.0], [60.0, math.nan]]):
         with pytest.raises(ValueError, match="finite in every environment at the end of its own stage"):
             continual_metrics(missing, [0.0, 0.0])
+
+
+def test_random_policy_returns_follow_a_seeded_random_policy_episode_by_episode():
+    def by_hand(env_seed: int, action_seed: int, episodes: int) -> float:
+        env = gym.make("Pendulum-v1", max_episode_steps=50)
+        env.action_space.seed(action_seed)
+        totals, seed = [], env_seed
+        for _ in range(episodes):
+            env.reset(seed=seed)
+            seed, total, ended = None, 0.0, False
+            while not ended:
+                _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+                total, ended = total + float(reward), terminated or truncated
+            totals.append(total)
+        return float(np.mean(totals))
+
+    envs = {"A": gym.make("Pendulum-v1", max_episode_steps=50), "B": gym.make("Pendulum-v1", max_episode_steps=50)}
+    measured = random_policy_returns(envs, 3, env_seeds=[5, 6], action_seeds=[7, 8])
+    # a VecEnv keeps rewards as float32, so equal to float32 rounding
+    assert measured == pytest.approx({"A": by_hand(5, 7, 3), "B": by_hand(6, 8, 3)}, rel=1e-6)
+    # a VecEnv of the same environment plays the same episodes; another action seed plays others
+    vec = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=50)])
+    assert random_policy_returns({"A": vec}, 3, env_seeds=[5], action_seeds=[7]) == pytest.approx({"A": measured["A"]})
+    assert random_policy_returns({"A": vec}, 3, env_seeds=[5], action_seeds=[9])["A"] != pytest.approx(measured["A"])
+    # several sub-environments: the first episodes to end count, no more
+    pair = DummyVecEnv([lambda: gym.make("Pendulum-v1", max_episode_steps=50)] * 2)
+    assert np.isfinite(random_policy_returns({"A": pair}, 3, env_seeds=[5], action_seeds=[7])["A"])
+    with pytest.raises(ValueError, match="env_seeds has 1 seeds for 2 environments"):
+        random_policy_returns(envs, 1, env_seeds=[5])
+    with pytest.raises(ValueError, match="episodes must be >= 1"):
+        random_policy_returns(envs, 0)
