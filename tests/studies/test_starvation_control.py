@@ -127,6 +127,7 @@ def test_report_reads_starvation_from_a_written_tree(tmp_path):
     assert "Seeds with every variant and both student seeds: [10, 13, 15]" in text
     assert "S2 on this setting (the dose's Env-A drop D): **drop**" in text
     assert "matched by batch: **starvation**" in text and "matched by updates: **starvation**" in text
+    assert "the answer for S2 (both ways must agree): **starvation**" in text
     table = pd.read_csv(results / "starvation.csv")
     assert len(table) == 3 * 4 * 2 * 2 + 2
     assert (results / "results.md").read_text() == text
@@ -143,5 +144,21 @@ def test_report_reads_imbalance_and_refuses_an_empty_tree(tmp_path):
                 write_student(output, seed, variant, repeat, 0.8 * r5 + (seed - 11) * 2.0, 3000.0)
     text = starvation.report(output, tmp_path / "results")
     assert "matched by batch: **imbalance**" in text and "matched by updates: **imbalance**" in text
+    assert "the answer for S2 (both ways must agree): **imbalance**" in text
     with pytest.raises(FileNotFoundError, match="no finished student"):
         starvation.report(tmp_path / "nothing", tmp_path / "results")
+
+
+@pytest.mark.parametrize(
+    "readings, expected",
+    [
+        ({"batch": "starvation", "updates": "starvation"}, "starvation"),
+        ({"batch": "imbalance", "updates": "imbalance"}, "imbalance"),
+        ({"batch": "too few seeds", "updates": "too few seeds"}, "too few seeds"),
+        ({"batch": "both", "updates": "starvation"}, "by batch: both; by updates: starvation"),
+        ({"batch": "inconclusive", "updates": "inconclusive"}, "by batch: inconclusive; by updates: inconclusive"),
+        ({"batch": "imbalance", "updates": "starvation"}, "by batch: imbalance; by updates: starvation"),
+    ],
+)
+def test_the_answer_needs_both_ways_to_agree(readings, expected):
+    assert starvation.answer(readings) == expected

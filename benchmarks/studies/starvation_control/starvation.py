@@ -205,6 +205,19 @@ def control_reading(drop: dict[str, float], left: dict[str, float], recovered: d
     return "inconclusive"
 
 
+def answer(readings: dict[str, str]) -> str:
+    """
+    The answer for S2 (README, "How it reads"): ``starvation`` or ``imbalance`` only when every matched way gives that
+    reading; otherwise each reading as measured.
+
+    :param readings: matched way -> its :func:`control_reading`
+    """
+    values = set(readings.values())
+    if len(values) == 1 and values <= {"starvation", "imbalance", "too few seeds"}:
+        return values.pop()
+    return "; ".join(f"by {way}: {reading}" for way, reading in readings.items())
+
+
 def series(means: pd.DataFrame) -> dict[str, dict[int, float]]:
     """:return: the per-seed series the readings use: ``D``, and ``H_<way>``, ``G_<way>`` for each matched way"""
     reference = means[(REFERENCE, "Env-A")]
@@ -270,14 +283,17 @@ def report(output: pathlib.Path, results: pathlib.Path) -> str:
         for key, values in per_seed.items():
             summary = summaries[key]
             cells = " | ".join(f"{values[s]:+.3f}" for s in seeds)
-            sd = f"{summary['sd']:.3f}" if math.isfinite(summary["sd"]) else "-"
-            bounds = f"[{summary['low']:+.3f}, {summary['high']:+.3f}]" if math.isfinite(summary["low"]) else "-"
-            lines.append(f"| {key} | {cells} | {summary['mean']:+.3f} +- {sd} {bounds} |")
+            if math.isfinite(summary["low"]):
+                spread = f"+- {summary['sd']:.3f} [{summary['low']:+.3f}, {summary['high']:+.3f}]"
+            else:
+                spread = "(one seed: no interval)"
+            lines.append(f"| {key} | {cells} | {summary['mean']:+.3f} {spread} |")
         lines += ["", '## Readings (README, "How it reads"; margin +-' + f"{MARGIN})", ""]
         lines.append(f"- S2 on this setting (the dose's Env-A drop D): **{drop_reading(summaries['D'])}**")
-        for way in MATCHED:
-            reading = control_reading(summaries["D"], summaries[f"H_{way}"], summaries[f"G_{way}"])
+        readings = {way: control_reading(summaries["D"], summaries[f"H_{way}"], summaries[f"G_{way}"]) for way in MATCHED}
+        for way, reading in readings.items():
             lines.append(f"- matched by {way}: **{reading}**")
+        lines.append(f"- the answer for S2 (both ways must agree): **{answer(readings)}**")
         noise = student_noise(data, seeds)
         lines += ["", "## The students' noise apart from the buffers'", "", "| variant | env | within sd | between sd |"]
         lines += ["| --- | --- | --- | --- |"]
