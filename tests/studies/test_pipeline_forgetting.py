@@ -161,3 +161,28 @@ def test_env_b_marks_its_finished_collection_done_for_the_rest(tmp_path, monkeyp
     monkeypatch.setattr(pipeline.subprocess, "call", lambda command: parts.append(command) or 0)
     assert pipeline.run_rest(args) == 0 and parts[-1][-len(pipeline.REST_JOBS) :] == list(pipeline.REST_JOBS)
     assert parts[-1][parts[-1].index("--backend") + 1] == "process"  # one worker: no Ray daemons beside it
+
+
+def test_progress_names_each_seeds_collection_state(tmp_path, monkeypatch):
+    import argparse
+    import json
+
+    pipeline = benchmark_module("pipeline")
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    (results / "stage1").mkdir(parents=True)
+    for seed in (10, 13, 15):
+        (results / "stage1" / f"seed_{seed}.json").write_text(json.dumps({"learnt": True}))
+    (results / "stage1" / "seed_11.json").write_text(json.dumps({"learnt": False}))
+    study = pipeline.study_dir(runs, "cheetah_back_reversed")
+    (study / "seed_10" / "collect").mkdir(parents=True)  # finished: its done.json, and a pause record left behind
+    (study / "seed_10" / "collect" / "done.json").write_text(json.dumps({"job": "collect"}))
+    (study / "seed_10" / "collect" / "paused.json").write_text(json.dumps({"timesteps": 220_000}))
+    (study / "seed_13" / "collect").mkdir(parents=True)
+    (study / "seed_13" / "collect" / "paused.json").write_text(json.dumps({"timesteps": 120_000}))
+    (study / "seed_15" / "collect").mkdir(parents=True)
+    lines = pipeline.progress(argparse.Namespace(runs=str(runs), results=str(results)))
+    by_seed = {line.split(":")[0]: line for line in lines}
+    assert "cheetah_back_reversed: collected, done: collect" in by_seed["seed 10"]
+    assert "cheetah_back_reversed: collection paused at 120,000, done: -" in by_seed["seed 13"]
+    assert "cheetah_back_reversed: collection not started" in by_seed["seed 15"]
+    assert by_seed["seed 11"] == "seed 11: Env-A not learnt (stops here)"

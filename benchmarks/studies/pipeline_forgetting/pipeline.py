@@ -201,7 +201,11 @@ def progress(args: argparse.Namespace) -> list[str]:
             seed_dir = study_dir(runs, candidate) / f"seed_{seed}"
             if seed_dir.exists():
                 done = sorted(p.parent.name for p in seed_dir.glob("*/done.json"))
-                state += f"; {candidate}: collection at {rules.paused_at(seed_dir):,}, done: {', '.join(done) or '-'}"
+                at = rules.paused_at(seed_dir)
+                collection = (
+                    "collected" if "collect" in done else f"collection paused at {at:,}" if at else "collection not started"
+                )
+                state += f"; {candidate}: {collection}, done: {', '.join(done) or '-'}"
         lines.append(f"seed {seed}: {state}")
     print("\n".join(lines))
     return lines
