@@ -156,7 +156,7 @@ def test_report_reads_imbalance_and_refuses_an_empty_tree(tmp_path):
         ({"batch": "imbalance", "updates": "imbalance"}, "imbalance"),
         ({"batch": "too few seeds", "updates": "too few seeds"}, "too few seeds"),
         ({"batch": "both", "updates": "starvation"}, "by batch: both; by updates: starvation"),
-        ({"batch": "inconclusive", "updates": "inconclusive"}, "by batch: inconclusive; by updates: inconclusive"),
+        ({"batch": "inconclusive", "updates": "inconclusive"}, "inconclusive"),
         ({"batch": "imbalance", "updates": "starvation"}, "by batch: imbalance; by updates: starvation"),
     ],
 )

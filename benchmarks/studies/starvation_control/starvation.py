@@ -208,12 +208,12 @@ def control_reading(drop: dict[str, float], left: dict[str, float], recovered: d
 def answer(readings: dict[str, str]) -> str:
     """
     The answer for S2 (README, "How it reads"): ``starvation`` or ``imbalance`` only when every matched way gives that
-    reading; otherwise each reading as measured.
+    reading; otherwise each reading as measured (once, when the ways agree).
 
     :param readings: matched way -> its :func:`control_reading`
     """
     values = set(readings.values())
-    if len(values) == 1 and values <= {"starvation", "imbalance", "too few seeds"}:
+    if len(values) == 1:  # the ways agree: that reading, once
         return values.pop()
     return "; ".join(f"by {way}: {reading}" for way, reading in readings.items())
 
