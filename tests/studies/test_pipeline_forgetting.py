@@ -186,3 +186,43 @@ def test_progress_names_each_seeds_collection_state(tmp_path, monkeypatch):
     assert "cheetah_back_reversed: collection paused at 120,000, done: -" in by_seed["seed 13"]
     assert "cheetah_back_reversed: collection not started" in by_seed["seed 15"]
     assert by_seed["seed 11"] == "seed 11: Env-A not learnt (stops here)"
+
+
+def test_summary_reads_each_claim_from_its_interval_on_the_testable_seeds():
+    """The registered three-way reading, on the testable seeds only: a seed whose Env-A was not learnt is left out."""
+    pipeline = benchmark_module("pipeline")
+    seeds = (10, 11, 12, 13)
+    scores = {
+        ("MPO", "Env-A"): (1000, 1100, 1200, 5000),  # seed 13 did not learn Env-A: its 5000 must not count
+        ("online CRR_exp_beta1", "Env-A"): (1500, 1700, 1650, 100),
+        ("CRR_exp_beta1", "Env-A"): (1800, 1900, 2000, 100),
+        ("CRR_indicator", "Env-A"): (900, 1000, 1100, 100),
+        ("MPO", "Env-B"): (4000, 4000, 4000, 4000),
+        ("CRR_exp_beta1", "Env-B"): (2000, 3900, 4100, 4000),
+        ("CRR_indicator", "Env-B"): (3000, 3100, 3200, 4000),
+    }
+    extras = {"MPO|switch|Env-A": (3000, 3000, 3000, 1000), "MPO|switch_spread|Env-A": (0.05,) * 4}
+    readings = {row["claim"][:3]: row for row in pipeline.claim_readings(study(scores, extras, seeds))}
+    assert set(readings["C1 "]["values"]) == {10, 11, 12}
+    assert readings["C1 "]["mean"] == pytest.approx(1100 / 3000) and readings["C1 "]["reading"] == "holds"
+    assert readings["C2 "]["reading"] == "holds" and readings["C2 "]["verdict"] == "reproduced"
+    assert readings["C3a"]["reading"] == "holds"
+    assert readings["C3b"]["reading"] == "inconclusive"  # 0.5, 0.975, 1.025: the interval holds 0.9
+    beside = {row["series"]: row for row in pipeline.students_beside(study(scores, extras, seeds))}
+    assert beside["CRR_indicator / MPO (Env-A)"]["values"] == {10: 0.9, 11: 1000 / 1100, 12: 1100 / 1200, 13: 100 / 5000}
+    assert beside["exp - indicator (Env-A)"]["mean"] == pytest.approx((900 + 900 + 900 + 0) / 4)
+    assert beside["exp - indicator (Env-A)"]["reading"] == "-"
+
+
+def test_summary_separates_the_student_noise_from_the_buffers():
+    pipeline = benchmark_module("pipeline")
+    rows = [
+        dict(seed=seed, student="CRR_exp_beta1", repeat=repeat, env="Env-A", score=base + delta)
+        for seed, base in ((10, 1000.0), (11, 2000.0), (12, 3000.0))
+        for repeat, delta in ((0, -100.0), (1, 100.0))
+    ]
+    rows.append(dict(seed=13, student="CRR_exp_beta1", repeat=0, env="Env-A", score=9000.0))  # one training only: left out
+    (noise,) = pipeline.student_noise(pd.DataFrame(rows))
+    assert noise["seeds"] == 3
+    assert noise["within_sd"] == pytest.approx(200 / math.sqrt(2))  # two values 200 apart: sd 141
+    assert noise["between_sd"] == pytest.approx(1000.0)

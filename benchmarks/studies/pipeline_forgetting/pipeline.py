@@ -211,21 +211,245 @@ def progress(args: argparse.Namespace) -> list[str]:
     return lines
 
 
+# ------------------------------------------------------------------------------------------------ the summary
+#: the students, and what each is in the README
+STUDENTS = {"CRR_exp_beta1": "exp, beta = 1 (the pipeline)", "CRR_indicator": "indicator (the paper's baseline)"}
+ENVS = ("Env-A", "Env-B")
+
+
+def _stats(values: dict[int, float]) -> dict[str, Any]:
+    """A per-seed series: its values, mean, sd and 95 % BCa interval (the report's :func:`bootstrap_ci`)."""
+    import numpy as np
+
+    from sb3_lifelong.experiments.statistics import bootstrap_ci
+
+    finite = {seed: v for seed, v in sorted(values.items()) if np.isfinite(v)}
+    data = list(finite.values())
+    low, high = bootstrap_ci(data) if data else (float("nan"), float("nan"))
+    return dict(
+        values=finite,
+        mean=float(np.mean(data)) if data else float("nan"),
+        sd=float(np.std(data, ddof=1)) if len(data) > 1 else float("nan"),
+        low=float(low),
+        high=float(high),
+    )
+
+
+def claim_readings(study: Any) -> list[dict[str, Any]]:
+    """
+    Each registered claim read as the README says: its series over the testable seeds, the engine's verdict (the
+    criterion on the mean) and the study's reading from the series' 95 % BCa interval (``claims.reading``).
+
+    :param study: the study's scores (:func:`sb3_lifelong.experiments.scores.load_study`)
+    :return: one row per claim
+    """
+    from sb3_lifelong.experiments.claims import PRECONDITIONS, evaluate_claims, testable_seeds
+
+    claims = _load(STUDY / "claims.py", "pipeline_forgetting_claims")
+    verdicts = {row["claim"]: row["verdict"] for row in evaluate_claims(study, claims.CLAIMS)}
+    checks = {name: precondition.check(study) for name, precondition in PRECONDITIONS.items()}
+    rows = []
+    for claim in claims.CLAIMS:
+        ((name, values),) = claim.values(study).items()  # each claim is one series (claims.py)
+        testable = testable_seeds(study, claim, checks)
+        if testable is not None:
+            values = {seed: v for seed, v in values.items() if seed in testable[0]}
+        stats = _stats(values)
+        threshold, above = claims.THRESHOLDS[claim.name]
+        verdict = verdicts[claim.name]
+        rows.append(
+            dict(claim=claim.name, series=name, threshold=threshold, claimed_side="above" if above else "below",
+                 verdict=verdict, reading=claims.reading(claim.name, stats["low"], stats["high"], verdict), **stats)
+        )  # fmt: skip
+    return rows
+
+
+def students_beside(study: Any) -> list[dict[str, Any]]:
+    """
+    Reported beside the claims: each student over MPO's end agent in each environment, in C3's terms (the indicator
+    student read against C3's thresholds too, for the record), and the exp student minus the indicator student.
+    """
+    from sb3_lifelong.experiments.claims import ratio
+    from sb3_lifelong.experiments.statistics import paired_difference
+
+    claims = _load(STUDY / "claims.py", "pipeline_forgetting_claims")
+    rows = []
+    for env, claim in zip(ENVS, [c.name for c in claims.CLAIMS if c.name.startswith("C3")]):
+        for student in STUDENTS:
+            stats = _stats(ratio(study.score(student, env), study.score("MPO", env)))
+            rows.append(dict(series=f"{student} / MPO ({env})", reading=claims.reading(claim, stats["low"], stats["high"]),
+                             **stats))  # fmt: skip
+        exp, indicator = (study.score(student, env) for student in STUDENTS)
+        paired = paired_difference(exp, indicator)
+        stats = _stats({seed: exp[seed] - indicator[seed] for seed in exp if seed in indicator})
+        stats.update(low=paired["low"], high=paired["high"])
+        rows.append(dict(series=f"exp - indicator ({env})", reading="-", **stats))
+    return rows
+
+
+def training_scores(output: pathlib.Path, seeds: list[int]) -> Any:
+    """:return: every student training's score (the mean of its last evaluations, as the report scores a repeat)"""
+    import pandas as pd
+
+    from sb3_lifelong.experiments.scores import STUDENT_LAST, last_mean, read_eval
+
+    rows = []
+    for seed in seeds:
+        for student in STUDENTS:
+            for repeat, job in enumerate((f"distill_{student}", f"distill_{student}__r1")):
+                frame = read_eval(output, seed, job)
+                if frame is not None:
+                    for env in ENVS:
+                        rows.append(dict(seed=seed, student=student, repeat=repeat, env=env,
+                                         score=last_mean(frame, env, STUDENT_LAST)))  # fmt: skip
+    return pd.DataFrame(rows, columns=["seed", "student", "repeat", "env", "score"])
+
+
+def student_noise(trainings: Any) -> list[dict[str, Any]]:
+    """
+    The students' noise apart from the buffers': per student and environment, the sd between a seed's two student
+    seeds (pooled over seeds: the root of the mean within-seed variance) against the sd over seeds of the two-training
+    means.
+    """
+    import numpy as np
+
+    rows = []
+    for (student, env), part in trainings.groupby(["student", "env"], sort=True):
+        complete = part.groupby("seed").filter(lambda group: len(group) == 2)
+        per_seed = complete.groupby("seed")["score"]
+        within = float(np.sqrt(per_seed.var(ddof=1).mean())) if len(complete) else float("nan")
+        between = float(per_seed.mean().std(ddof=1)) if per_seed.ngroups > 1 else float("nan")
+        rows.append(dict(student=student, env=env, seeds=per_seed.ngroups, within_sd=within, between_sd=between))
+    return rows
+
+
+def agents(output: pathlib.Path, seed: int, cache: pathlib.Path, episodes: int = 10) -> dict[str, Any]:
+    """
+    MPO's frozen Stage-1 agent against its end agent on the same seeded episodes (the screen's ``measure_agent``),
+    measured once and kept in ``cache``.
+
+    :param output: the study's directory
+    :param seed: the seed
+    :param cache: the JSON file of this seed's measurement
+    :param episodes: episodes per environment
+    """
+    if cache.exists():
+        return json.loads(cache.read_text())
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.experiments.branching import measure_agent
+
+    settings = study_preset(output.name)
+    run_dir = output / f"seed_{seed}"
+    out: dict[str, Any] = dict(seed=seed, episodes=episodes)
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        for name in ("stage1", "final"):
+            out.update(measure_agent(name, run_dir, buffer, settings, seed, episodes))
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps(out, indent=1) + "\n")
+    return out
+
+
+def _cell(stats: dict[str, Any], digits: int) -> str:
+    def number(value: float) -> str:
+        return f"{value:+.{digits}f}"
+
+    return f"{number(stats['mean'])} +- {number(stats['sd'])} [{number(stats['low'])}, {number(stats['high'])}]"
+
+
+def _per_seed(values: dict[int, float], digits: int) -> str:
+    return ", ".join(f"s{seed}: {value:.{digits}f}" for seed, value in values.items())
+
+
+def summary(args: argparse.Namespace) -> str:
+    """
+    The registered readings and what is reported beside them, from a study whose seeds are done:
+    ``results/summary.md``, ``results/readings.csv``, ``results/trainings.csv`` and ``results/agents/seed_<k>.json``.
+    Run the experiments' report first (README, "How to run"): the summary reads the same scores.
+    """
+    import pandas as pd
+
+    from sb3_lifelong.experiments.scores import load_study
+
+    output, results = study_dir(pathlib.Path(args.runs), args.candidate), pathlib.Path(args.results)
+    study = load_study(output)
+    complete = [s for s in study.seeds if all((output / f"seed_{s}" / job / "done.json").exists() for job in REST_JOBS)]
+    if complete != study.seeds:
+        raise SystemExit(f"seeds {sorted(set(study.seeds) - set(complete))} have not finished `rest`: run it first")
+    readings, beside = claim_readings(study), students_beside(study)
+    trainings = training_scores(output, study.seeds)
+    noise = student_noise(trainings)
+    measured = [agents(output, seed, results / "agents" / f"seed_{seed}.json") for seed in study.seeds]
+    lines = [
+        "# The pipeline on `" + args.candidate + "`: the registered readings (generated by `pipeline.py summary`)",
+        "",
+        f"Seeds: {study.seeds}. Each claim is read from the 95 % BCa interval of its series' mean over the testable "
+        'seeds (README, "How each claim reads"): *holds* when the whole interval is on the claimed side of the '
+        "threshold, *fails* when it is on the other side, *inconclusive* otherwise. The engine's verdict is the "
+        "criterion on the mean alone.",
+        "",
+        "| claim | series: per seed | mean +- sd [95 % BCa] | threshold, claimed side | engine | reading |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in readings:
+        digits = 0 if abs(row["mean"]) >= 10 else 2
+        lines.append(
+            f"| {row['claim']} | {row['series']}: {_per_seed(row['values'], digits)} | {_cell(row, digits)} | "
+            f"{row['threshold']:g}, {row['claimed_side']} | {row['verdict']} | **{row['reading']}** |"
+        )
+    lines += ["", "## Beside the claims (they decide nothing)", "", "### Both students in C3's terms", "",
+              "| series: per seed | mean +- sd [95 % BCa] | C3's reading, for the record |",
+              "| --- | --- | --- |"]  # fmt: skip
+    for row in beside:
+        digits = 0 if abs(row["mean"]) >= 10 else 2
+        lines.append(f"| {row['series']}: {_per_seed(row['values'], digits)} | {_cell(row, digits)} | {row['reading']} |")
+    lines += ["", "### The students' noise apart from the buffers'", "",
+              "Within: the sd between a seed's two student seeds, pooled over seeds. Between: the sd over seeds of the "
+              "two-training means.", "", "| student | env | seeds | within sd | between sd |",
+              "| --- | --- | --- | --- | --- |"]  # fmt: skip
+    for row in noise:
+        sds = f"{row['within_sd']:.0f} | {row['between_sd']:.0f}"
+        lines.append(f"| {row['student']} | {row['env']} | {row['seeds']} | {sds} |")
+    lines += ["", "### MPO's frozen Stage-1 agent against its end agent, on the same seeded episodes", "",
+              f"{measured[0]['episodes']} episodes per environment, seeded as the collection's evaluations; the critic's "
+              "overestimation of Env-A data is its mean Q minus the discounted return that followed (Monte Carlo).", "",
+              "| seed | Stage-1 agent, Env-A | end agent, Env-A | end / Stage-1 | Stage-1 agent, Env-B (zero-shot) "
+              "| end agent, Env-B | overestimation of Env-A data: Stage-1 critic -> end critic |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    ratios = {}
+    for m in measured:
+        ratios[m["seed"]] = m["final_same_episodes_Env-A"] / m["stage1_same_episodes_Env-A"]
+        lines.append(
+            f"| {m['seed']} | {m['stage1_same_episodes_Env-A']:.0f} | {m['final_same_episodes_Env-A']:.0f} | "
+            f"{ratios[m['seed']]:.2f} | {m['stage1_same_episodes_Env-B']:.0f} | {m['final_same_episodes_Env-B']:.0f} | "
+            f"{m['stage1_overestimation_Env-A']:+.1f} -> {m['final_overestimation_Env-A']:+.1f} |"
+        )
+    lines.append(f"| mean +- sd [95 % BCa] | | | {_cell(_stats(ratios), 2)} | | | |")
+    text = "\n".join(lines) + "\n"
+    results.mkdir(parents=True, exist_ok=True)
+    (results / "summary.md").write_text(text)
+    pd.DataFrame([{**row, "values": json.dumps(row["values"])} for row in readings + beside]).to_csv(
+        results / "readings.csv", index=False
+    )
+    trainings.to_csv(results / "trainings.csv", index=False)
+    print(text)
+    return text
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("stage1", "env-b", "rest", "progress"):
+    for name in ("stage1", "env-b", "rest", "progress", "summary"):
         command = sub.add_parser(name)
         command.add_argument("--runs", default="runs", help="where buffers and agents go")
         command.add_argument("--results", default=str(RESULTS), help="where the small results go")
-        if name != "progress":
+        if name not in ("progress", "summary"):
             command.add_argument("--seed", type=int, required=True)
-        if name in ("env-b", "rest"):
+        if name in ("env-b", "rest", "summary"):
             command.add_argument("--candidate", required=True, help="the screen's selection")
     args = parser.parse_args()
-    handlers = {"stage1": run_stage1, "env-b": run_env_b, "rest": run_rest, "progress": progress}
+    handlers = {"stage1": run_stage1, "env-b": run_env_b, "rest": run_rest, "progress": progress, "summary": summary}
     result = handlers[args.command](args)
     sys.exit(result if isinstance(result, int) else 0)
 
