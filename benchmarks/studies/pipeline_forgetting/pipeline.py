@@ -13,6 +13,10 @@ run. A seed runs in three commands, each one self-contained and continuing where
     OMP_NUM_THREADS=1 python benchmarks/studies/pipeline_forgetting/pipeline.py rest --seed 10 --runs /work/runs \
         --candidate cheetah_back_reversed
     python benchmarks/studies/pipeline_forgetting/pipeline.py progress --runs /work/runs
+    # 4. once every seed is done: the experiments' report (the engine's verdicts), then the registered readings
+    python -m sb3_lifelong.experiments report /work/runs/pipeline_forgetting/cheetah_back_reversed \
+        --claims benchmarks/studies/pipeline_forgetting/claims.py
+    python benchmarks/studies/pipeline_forgetting/pipeline.py summary --runs /work/runs --candidate cheetah_back_reversed
 
 Stage 1 does not depend on the candidate (the screen's design: the appended parameter column is 0 in Env-A whatever the
 parameter), so it runs before the screen has chosen. Small results go to ``results/`` beside this script; buffers
