@@ -357,7 +357,7 @@ def _cell(stats: dict[str, Any], digits: int) -> str:
     def number(value: float) -> str:
         return f"{value:+.{digits}f}"
 
-    return f"{number(stats['mean'])} +- {number(stats['sd'])} [{number(stats['low'])}, {number(stats['high'])}]"
+    return f"{number(stats['mean'])} +- {stats['sd']:.{digits}f} [{number(stats['low'])}, {number(stats['high'])}]"
 
 
 def _per_seed(values: dict[int, float], digits: int) -> str:
