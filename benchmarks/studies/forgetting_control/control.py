@@ -1,0 +1,411 @@
+"""
+The forgetting control: what does the change cost MPO in Env-A, against the same agent continuing in Env-A?
+
+Pre-registered in ``README.md`` beside this script (design, per-seed values, readings) before any run. Per seed, MPO
+learns Env-A for 120k steps (``stage1``); when Env-A was learnt (the screen's rule), the Stage-1 (agent, optimisers,
+duals, buffer) continues in two branches of 120k steps each: ``switched`` (the back leg's motors reversed, the
+screen's closest candidate) and ``control`` (the nominal robot: Env-A goes on). Both branches see the same seeded
+evaluation episodes, so their Env-A returns compare seed by seed.
+
+One command runs seeds in order and skips what is done; a killed command continues from its last part::
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/forgetting_control/control.py queue --seeds 30 32 --runs /work/runs
+    python benchmarks/studies/forgetting_control/control.py progress --runs /work/runs
+    python benchmarks/studies/forgetting_control/control.py report      # results/control.csv, results.md, control.png
+
+Small results go to ``results/`` beside this script; buffers and agents stay in ``--runs``.
+"""
+
+import argparse
+import csv
+import dataclasses
+import functools
+import importlib.util
+import json
+import pathlib
+import time
+from collections.abc import Sequence
+from typing import Any, Optional
+
+import numpy as np
+
+STUDY = pathlib.Path(__file__).resolve().parent
+RESULTS = STUDY / "results"
+SCREEN_FILE = STUDY.parent / "forgetting_screen" / "screen.py"
+
+#: the screen's candidate whose change the switched branch makes
+CANDIDATE = "cheetah_back_reversed"
+ENV_A_STEPS = 120_000
+STAGE2_STEPS = 120_000
+#: Stage 2 of each branch: the change, or the nominal value of the same parameter (the same appended column)
+BRANCHES: dict[str, dict[str, float]] = {"switched": {"leg_motor_scale": -1.0}, "control": {"leg_motor_scale": 1.0}}
+#: fresh seeds (the screen used 0-3, the pipeline study 10-17), started in this order until FIVE learnt Env-A
+SEEDS = tuple(range(30, 42))
+LEARNT_SEEDS_WANTED = 5
+#: a change is a change when the frozen Stage-1 agent's zero-shot Env-B return is at most this share of its Env-A one
+CHANGE_IS_REAL = 0.8
+COSTS_A_FIFTH = 0.8  # K1: reported when the whole interval of the cost ratio is below it
+NO_COST = (0.9, 1.1)  # K1: the equivalence margin of "no cost"
+FORGETS = 0.8  # K2: the screen's threshold
+SAME_GROWTH = 15.0  # K3: the equivalence margin of the overestimation growth's difference (Q units)
+
+
+@functools.cache
+def screen() -> Any:
+    """The forgetting screen's script: its collector, parts, Stage-1 rule and measurements are this study's."""
+    spec = importlib.util.spec_from_file_location("forgetting_screen_script", SCREEN_FILE)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def preset(branch: str) -> Any:
+    """The collection of one branch: the screen's collector and candidate, with this study's stages and budgets."""
+    if branch not in BRANCHES:
+        raise ValueError(f"no branch {branch!r}: one of {sorted(BRANCHES)}")
+    return dataclasses.replace(
+        screen().preset(CANDIDATE),
+        stages=({}, dict(BRANCHES[branch])),
+        stage_steps=(ENV_A_STEPS, STAGE2_STEPS),
+        note=f"forgetting control, {branch} (benchmarks/studies/forgetting_control/README.md)",
+    )
+
+
+def stage1_dir(runs: pathlib.Path, seed: int) -> pathlib.Path:
+    return runs / "forgetting_control" / "stage1" / f"seed_{seed}"
+
+
+def branch_dir(runs: pathlib.Path, branch: str, seed: int) -> pathlib.Path:
+    return runs / "forgetting_control" / branch / f"seed_{seed}"
+
+
+def run_stage1(seed: int, runs: pathlib.Path, results: pathlib.Path) -> dict[str, Any]:
+    """MPO learns Env-A (either branch's preset: Env-A is the same), then the screen's reading, kept in ``results``."""
+    rules = screen()
+    out = results / "stage1" / f"seed_{seed}.json"
+    if out.exists():
+        return json.loads(out.read_text())
+    run_dir = stage1_dir(runs, seed)
+    if not (run_dir / "collect" / "stage1.zip").exists():
+        rules.collect_in_parts(preset("switched"), seed, run_dir, ENV_A_STEPS)
+    evals = rules.last_evaluations(run_dir / "collect" / "eval.csv", "Env-A", ENV_A_STEPS)
+    mean, spread, learnt = rules.stage1_level(evals, rules.ROBOTS["cheetah"].threshold)
+    record = dict(seed=seed, evals=evals, mean=mean, spread=spread, learnt=learnt and len(evals) == rules.LAST)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    (out.parent / f"seed_{seed}_eval.csv").write_text((run_dir / "collect" / "eval.csv").read_text())
+    out.write_text(json.dumps(record, indent=1) + "\n")
+    print(f"seed {seed}: Env-A {'learnt' if record['learnt'] else 'not learnt'} (last 5: {mean:.0f}, spread {spread:.2f})")
+    return record
+
+
+def measure(branch: str, seed: int, run_dir: pathlib.Path) -> dict[str, Any]:
+    """One branch's measurements at its end (README, "Per seed"): the screen's, on this study's budgets."""
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.experiments.branching import measure_agent
+
+    rules = screen()
+    settings = preset(branch)
+    switch, end = settings.stage_steps[0], sum(settings.stage_steps)
+    eval_csv, q_csv = run_dir / "collect" / "eval.csv", run_dir / "collect" / "q_sources.csv"
+    end_a = rules.last_evaluations(eval_csv, "Env-A", None)
+    out: dict[str, Any] = dict(
+        branch=branch, seed=seed, switch=switch, end=end, end_evals_env_a=end_a, end_env_a=float(np.mean(end_a)),
+        overestimation_env_a_switch=rules.overestimation_at(q_csv, "Env-A", switch),
+        overestimation_env_a_end=rules.overestimation_at(q_csv, "Env-A", end),
+    )  # fmt: skip
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        for name in ("stage1", "final"):
+            out.update(measure_agent(name, run_dir, buffer, settings, seed, rules.SAME_EPISODES))
+    return out
+
+
+def run_branch(branch: str, seed: int, runs: pathlib.Path, results: pathlib.Path) -> dict[str, Any]:
+    """One branch of a learnt seed from its Stage-1, then its measurement (skipped when measured)."""
+    from sb3_lifelong.experiments.branching import adopt_stage1
+
+    out = results / branch / f"seed_{seed}" / "measure.json"
+    if out.exists():
+        return json.loads(out.read_text())
+    settings = preset(branch)
+    run_dir = branch_dir(runs, branch, seed)
+    if not run_dir.exists():
+        adopt_stage1(settings, stage1_dir(runs, seed), run_dir)
+    start = time.perf_counter()
+    screen().collect_in_parts(settings, seed, run_dir, sum(settings.stage_steps))
+    measured = measure(branch, seed, run_dir)
+    measured["seconds"] = time.perf_counter() - start
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for name in ("eval.csv", "q_sources.csv"):
+        (out.parent / name).write_text((run_dir / "collect" / name).read_text())
+    out.write_text(json.dumps(measured, indent=1) + "\n")
+    print(f"{branch} seed {seed}: Env-A at the end {measured['end_env_a']:.0f} -> {out}", flush=True)
+    return measured
+
+
+def queue(args: argparse.Namespace) -> None:
+    """The given seeds in order: Stage 1, then, when Env-A was learnt, the switched branch and the control."""
+    runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
+    for seed in args.seeds:
+        if seed not in SEEDS:
+            raise SystemExit(f"seed {seed} is not one of the registered seeds {SEEDS[0]}-{SEEDS[-1]}")
+        if not run_stage1(seed, runs, results)["learnt"]:
+            print(f"seed {seed}: Env-A not learnt at the switch; by the README it stops here", flush=True)
+            continue
+        for branch in BRANCHES:
+            run_branch(branch, seed, runs, results)
+
+
+def progress(args: argparse.Namespace) -> list[str]:
+    """Where each seed stands."""
+    rules = screen()
+    runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
+    lines = []
+    for seed in SEEDS:
+        stage1 = results / "stage1" / f"seed_{seed}.json"
+        if not stage1.exists():
+            at = rules.paused_at(stage1_dir(runs, seed))
+            lines.append(f"seed {seed}: Stage 1 " + (f"paused at {at:,}" if at else "not started"))
+            continue
+        if not json.loads(stage1.read_text())["learnt"]:
+            lines.append(f"seed {seed}: Env-A not learnt (stops)")
+            continue
+        states = []
+        for branch in BRANCHES:
+            if (results / branch / f"seed_{seed}" / "measure.json").exists():
+                states.append(f"{branch} measured")
+            else:
+                at = rules.paused_at(branch_dir(runs, branch, seed)) if branch_dir(runs, branch, seed).exists() else 0
+                states.append(f"{branch} " + (f"paused at {at:,}" if at else "not started"))
+        lines.append(f"seed {seed}: " + ", ".join(states))
+    print("\n".join(lines))
+    return lines
+
+
+# ------------------------------------------------------------------------------------------------- the readings
+def seed_values(stage1: dict[str, Any], switched: dict[str, Any], control: dict[str, Any]) -> dict[str, Any]:
+    """
+    The per-seed values of the README ("Per seed") from a seed's Stage-1 reading and its two branches' measurements.
+
+    :return: ``cost_ratio`` (K1), ``forgetting_ratio`` (K2), ``control_ratio``, ``same_episode_cost``,
+        ``growth_switched`` and ``growth_control`` (the overestimation of Env-A data, end minus switch),
+        ``offline_growth`` (K3: their difference), ``zero_shot_share`` and ``change_is_real``
+    """
+    growth = {
+        name: branch["overestimation_env_a_end"] - branch["overestimation_env_a_switch"]
+        for name, branch in (("switched", switched), ("control", control))
+    }
+    zero_shot = switched["stage1_same_episodes_Env-B"] / switched["stage1_same_episodes_Env-A"]
+    return dict(
+        seed=stage1["seed"],
+        stage1_env_a=stage1["mean"],
+        end_env_a_switched=switched["end_env_a"],
+        end_env_a_control=control["end_env_a"],
+        cost_ratio=switched["end_env_a"] / control["end_env_a"],
+        forgetting_ratio=switched["end_env_a"] / stage1["mean"],
+        control_ratio=control["end_env_a"] / stage1["mean"],
+        same_episode_cost=switched["final_same_episodes_Env-A"] / control["final_same_episodes_Env-A"],
+        same_episode_forgetting=switched["final_same_episodes_Env-A"] / switched["stage1_same_episodes_Env-A"],
+        growth_switched=growth["switched"],
+        growth_control=growth["control"],
+        offline_growth=growth["switched"] - growth["control"],
+        zero_shot_share=zero_shot,
+        change_is_real=bool(zero_shot <= CHANGE_IS_REAL),
+    )
+
+
+def interval(values: Sequence[float]) -> tuple[float, float, float, float]:
+    """:return: mean, sd and the 95 % t interval of the mean (the README's)"""
+    from sb3_lifelong.experiments.statistics import t_interval
+
+    return t_interval(list(values))
+
+
+def read_claim(claim: str, values: Sequence[float]) -> str:
+    """
+    The README's reading of one claim from the 95 % t interval of its per-seed values.
+
+    :param claim: ``K1``, ``K2`` or ``K3``
+    :param values: one value per counted seed
+    :return: for K1 ``costs`` (with `` at least a fifth`` when below 0.8), ``no cost``, ``helps`` or ``inconclusive``;
+        for K2 ``holds``, ``fails`` or ``inconclusive``; for K3 ``holds``, ``no difference``, ``reversed`` or
+        ``inconclusive``; ``pending`` with fewer than the wanted seeds
+    """
+    if len(values) < LEARNT_SEEDS_WANTED:
+        return "pending"
+    _, _, low, high = interval(values)
+    if claim == "K1":
+        if high < 1.0:
+            return "costs at least a fifth" if high < COSTS_A_FIFTH else "costs"
+        if NO_COST[0] <= low and high <= NO_COST[1]:
+            return "no cost"
+        return "helps" if low > 1.0 else "inconclusive"
+    if claim == "K2":
+        return "holds" if high <= FORGETS else "fails" if low > FORGETS else "inconclusive"
+    if claim == "K3":
+        if low > 0.0:
+            return "holds"
+        if -SAME_GROWTH <= low and high <= SAME_GROWTH:
+            return "no difference"
+        return "reversed" if high < 0.0 else "inconclusive"
+    raise ValueError(f"no claim {claim!r}: K1, K2 or K3")
+
+
+def collected(results: pathlib.Path) -> list[dict[str, Any]]:
+    """:return: the per-seed values of every seed with both branches measured (learnt seeds only reach them)"""
+    rows = []
+    for seed in SEEDS:
+        paths = [results / "stage1" / f"seed_{seed}.json"] + [
+            results / b / f"seed_{seed}" / "measure.json" for b in ("switched", "control")
+        ]
+        if all(p.exists() for p in paths):
+            stage1, switched, control = (json.loads(p.read_text()) for p in paths)
+            rows.append(seed_values(stage1, switched, control))
+    return rows
+
+
+def readings(rows: list[dict[str, Any]], stage1: dict[int, bool]) -> dict[str, Any]:
+    """
+    :param rows: the per-seed values (:func:`collected`)
+    :param stage1: seed -> whether Env-A was learnt, for every seed whose Stage-1 has ended
+    :return: claim -> (reading, the values it read); K1 reads only seeds where the change is real; with every
+        registered seed's Stage-1 ended and fewer than the wanted seeds learnt, a claim is ``not testable``
+    """
+    out: dict[str, Any] = {}
+    series = {
+        "K1": [r["cost_ratio"] for r in rows if r["change_is_real"]],
+        "K2": [r["forgetting_ratio"] for r in rows],
+        "K3": [r["offline_growth"] for r in rows],
+    }
+    exhausted = len(stage1) == len(SEEDS) and sum(stage1.values()) < LEARNT_SEEDS_WANTED
+    for claim, values in series.items():
+        out[claim] = ("not testable" if exhausted else read_claim(claim, values), values)
+    return out
+
+
+def _fmt(values: Sequence[float], digits: int) -> str:
+    if not values:
+        return "no seed"
+    mean, std, low, high = interval(values)
+    if len(values) < 2:
+        return f"{mean:.{digits}f} (one seed)"
+    return f"{mean:.{digits}f} +- {std:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
+COLUMNS = [
+    "seed", "stage1_env_a", "end_env_a_switched", "end_env_a_control", "cost_ratio", "forgetting_ratio",
+    "control_ratio", "same_episode_cost", "same_episode_forgetting", "growth_switched", "growth_control",
+    "offline_growth", "zero_shot_share", "change_is_real",
+]  # fmt: skip
+CLAIM_TEXT = {
+    "K1": ("the change costs MPO Env-A: switched / control at the end, Env-A", 3),
+    "K2": ("MPO forgets Env-A after a 120k Stage 1: switched end / Stage-1 level", 3),
+    "K3": ("Env-A data's overestimation grows more when offline: growth switched - control", 1),
+}
+
+
+def report(args: argparse.Namespace) -> str:
+    """``results/control.csv`` (one row per seed), ``results/results.md`` (readings) and ``results/control.png``."""
+    results = pathlib.Path(args.results)
+    stage1 = {
+        int(json.loads(p.read_text())["seed"]): bool(json.loads(p.read_text())["learnt"])
+        for p in sorted((results / "stage1").glob("seed_*.json"))
+    }
+    rows = collected(results)
+    with open(results / "control.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows({k: r[k] for k in COLUMNS} for r in rows)
+    read = readings(rows, stage1)
+    lines = [
+        "# Forgetting control: results (generated by `control.py report`)",
+        "",
+        f"Stage-1s ended: {len(stage1)} (Env-A learnt on {sum(stage1.values())}: seeds "
+        f"{', '.join(str(s) for s, ok in stage1.items() if ok) or 'none'}). Seeds with both branches measured: "
+        f"{len(rows)}. A reading needs {LEARNT_SEEDS_WANTED} such seeds (95 % t interval of the mean).",
+        "",
+        "| claim | values per seed | mean +- sd [95 % t] | reading |",
+        "| --- | --- | --- | --- |",
+    ]
+    for claim, (reading, values) in read.items():
+        text, digits = CLAIM_TEXT[claim]
+        per_seed = " / ".join(f"{v:.{digits}f}" for v in values) or "-"
+        lines.append(f"| {claim} {text} | {per_seed} | {_fmt(values, digits)} | **{reading}** |")
+    lines += ["", "Per seed (`control.csv`):", "", "| " + " | ".join(COLUMNS) + " |", "|" + " --- |" * len(COLUMNS)]
+    for row in rows:
+        cells = [f"{row[k]:.3f}" if isinstance(row[k], float) else str(row[k]) for k in COLUMNS]
+        lines.append("| " + " | ".join(cells) + " |")
+    text = "\n".join(lines) + "\n"
+    (results / "results.md").write_text(text)
+    if rows:
+        figure(rows, results, results / "control.png")
+    print(text)
+    return text
+
+
+def _curve(path: pathlib.Path, key: str, name: str, value: str) -> list[tuple[int, float]]:
+    with open(path, newline="") as handle:
+        found = [(int(r["timesteps"]), float(r[value])) for r in csv.DictReader(handle) if r[key] == name and r[value]]
+    return sorted(found)
+
+
+def figure(rows: list[dict[str, Any]], results: pathlib.Path, path: pathlib.Path) -> None:
+    """Per seed: Env-A return of both branches (top) and the overestimation of Env-A data (bottom)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(rows), figsize=(4.6 * len(rows) + 0.6, 6.4), squeeze=False)
+    colours = {"switched": "tab:red", "control": "tab:blue"}
+    for column, row in enumerate(rows):
+        seed = row["seed"]
+        top, bottom = axes[0, column], axes[1, column]
+        stage1 = _curve(results / "stage1" / f"seed_{seed}_eval.csv", "env", "Env-A", "mean_reward")
+        top.plot(*zip(*stage1), color="k", lw=1.2, label="Stage 1 (Env-A)")
+        for branch, colour in colours.items():
+            folder = results / branch / f"seed_{seed}"
+            evals = [p for p in _curve(folder / "eval.csv", "env", "Env-A", "mean_reward") if p[0] >= ENV_A_STEPS]
+            top.plot(*zip(*evals), color=colour, lw=1.2, label=f"{branch}: Env-A")
+            q = _curve(folder / "q_sources.csv", "name", "Env-A", "overestimation")
+            if q:
+                bottom.plot(*zip(*q), color=colour, lw=1.2, label=f"{branch}")
+        top.hlines(row["stage1_env_a"], ENV_A_STEPS, ENV_A_STEPS + STAGE2_STEPS, colors="grey", linestyles=":", lw=1)
+        for ax in (top, bottom):
+            ax.axvline(ENV_A_STEPS, color="k", lw=0.8)
+            ax.set_xlabel("environment steps")
+        top.set_title(f"seed {seed}: cost ratio {row['cost_ratio']:.2f}, forgetting ratio {row['forgetting_ratio']:.2f}",
+                      fontsize=9)  # fmt: skip
+        top.set_ylabel("Env-A return (5 seeded episodes)")
+        bottom.set_ylabel("overestimation of Env-A data")
+        for ax in (top, bottom):
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7)
+    fig.suptitle(
+        "MPO after a 120k-step Stage 1: back leg reversed (switched) against the nominal robot (control)\n"
+        "(vertical line: the branch point; grey dotted: the Stage-1 agent's Env-A level, last 5 evaluations)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in ("queue", "progress", "report"):
+        command = sub.add_parser(name)
+        command.add_argument("--results", default=str(RESULTS), help="where the small results go")
+        if name != "report":
+            command.add_argument("--runs", default="runs", help="where buffers and agents go")
+        if name == "queue":
+            command.add_argument("--seeds", type=int, nargs="+", required=True, help="registered seeds, run in order")
+    args = parser.parse_args(argv)
+    {"queue": queue, "progress": progress, "report": report}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""benchmarks/studies/forgetting_control/control.py: one Stage-1 per seed, a switched and a control branch from it,
+measured, and read by the pre-registered rules in both directions."""
+
+import argparse
+import csv
+import dataclasses
+import json
+
+import pytest
+from testkit import benchmark_module
+
+
+@pytest.fixture
+def control():
+    return benchmark_module("control")
+
+
+def test_branches_are_the_screens_collector_and_differ_only_in_stage2(control):
+    screen = control.screen()
+    switched, nominal = control.preset("switched"), control.preset("control")
+    theirs = screen.preset(control.CANDIDATE).describe()
+    for mine in (switched.describe(), nominal.describe()):
+        assert {k: v for k, v in mine.items() if k not in {"stages", "stage_steps", "note"}} == {
+            k: v for k, v in theirs.items() if k not in {"stages", "stage_steps", "note"}
+        }
+    assert switched.stages == ({}, {"leg_motor_scale": -1.0}) and nominal.stages == ({}, {"leg_motor_scale": 1.0})
+    assert switched.stage_steps == nominal.stage_steps == (120_000, 120_000)
+    assert not set(control.SEEDS) & set(range(0, 22))  # fresh: the screen used 0-3, the pipeline study 10-21
+    with pytest.raises(ValueError, match="no branch 'other'"):
+        control.preset("other")
+
+
+@pytest.fixture
+def tiny(control, monkeypatch):
+    """The study at seconds' scale: 600 steps of Env-A, 400 per branch, tiny networks, every Env-A counted learnt."""
+    screen = control.screen()
+    monkeypatch.setattr(control, "ENV_A_STEPS", 600)
+    monkeypatch.setattr(control, "STAGE2_STEPS", 400)
+    monkeypatch.setattr(screen, "ROBOTS", {"cheetah": screen.Robot("HalfCheetah-v5", 600, -1e9)})
+    monkeypatch.setattr(screen, "MAX_SPREAD", float("inf"))
+    monkeypatch.setattr(screen, "EVAL_FREQ", 100)  # five evaluations before the switch
+    monkeypatch.setattr(screen, "EVAL_EPISODES", 1)
+    monkeypatch.setattr(screen, "SAME_EPISODES", 1)
+    monkeypatch.setattr(screen, "PART", 400)
+    full = screen.preset
+
+    def small(candidate):
+        return dataclasses.replace(full(candidate), net_arch=(16, 16), batch_size=32, num_samples=4, learning_starts=100,
+                                   max_episode_steps=100)  # fmt: skip
+
+    monkeypatch.setattr(screen, "preset", small)
+    return control
+
+
+def test_both_branches_continue_one_stage1_and_report(tiny, tmp_path):
+    control = tiny
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    control.queue(argparse.Namespace(runs=str(runs), results=str(results), seeds=[30]))
+    stage1 = runs / "forgetting_control" / "stage1" / "seed_30"
+    assert json.loads((results / "stage1" / "seed_30.json").read_text())["learnt"]
+    measured = {}
+    for branch in control.BRANCHES:
+        run_dir = runs / "forgetting_control" / branch / "seed_30"
+        assert json.loads((run_dir / "adopted.json").read_text())["stage1_from"] == str(stage1)
+        measured[branch] = json.loads((results / branch / "seed_30" / "measure.json").read_text())
+        evals = [r for r in csv.DictReader(open(results / branch / "seed_30" / "eval.csv")) if r["env"] == "Env-A"]
+        assert [int(r["timesteps"]) for r in evals] == list(range(100, 1001, 100))
+        assert measured[branch]["switch"] == 600 and measured[branch]["end"] == 1000
+    # the same frozen Stage-1 agent on the same seeded episodes in both branches
+    assert measured["switched"]["stage1_same_episodes_Env-A"] == measured["control"]["stage1_same_episodes_Env-A"]
+    # the control's Stage 2 is the nominal robot: its frozen agent scores the same in "Env-B" as in Env-A
+    assert measured["control"]["stage1_same_episodes_Env-B"] == pytest.approx(
+        measured["control"]["stage1_same_episodes_Env-A"]
+    )
+    assert measured["switched"]["stage1_same_episodes_Env-B"] != measured["switched"]["stage1_same_episodes_Env-A"]
+    lines = control.progress(argparse.Namespace(runs=str(runs), results=str(results)))
+    assert lines[0] == "seed 30: switched measured, control measured" and lines[1] == "seed 31: Stage 1 not started"
+    text = control.report(argparse.Namespace(results=str(results)))
+    rows = list(csv.DictReader(open(results / "control.csv")))
+    assert [int(r["seed"]) for r in rows] == [30]
+    assert float(rows[0]["cost_ratio"]) == pytest.approx(measured["switched"]["end_env_a"] / measured["control"]["end_env_a"])
+    assert text.count("**pending**") == 3 and (results / "control.png").exists()
+    # a second call skips what is measured; a seed outside the registration is refused
+    control.queue(argparse.Namespace(runs=str(runs), results=str(results), seeds=[30]))
+    with pytest.raises(SystemExit, match="not one of the registered seeds"):
+        control.queue(argparse.Namespace(runs=str(runs), results=str(results), seeds=[3]))
+
+
+def test_seed_values(control):
+    stage1 = dict(seed=30, mean=2000.0)
+    switched = {
+        "end_env_a": 1500.0, "overestimation_env_a_switch": 40.0, "overestimation_env_a_end": 100.0,
+        "stage1_same_episodes_Env-A": 2100.0, "stage1_same_episodes_Env-B": 200.0, "final_same_episodes_Env-A": 1400.0,
+    }  # fmt: skip
+    nominal = dict(switched, end_env_a=3000.0, overestimation_env_a_end=70.0, **{"final_same_episodes_Env-A": 2800.0})
+    values = control.seed_values(stage1, switched, nominal)
+    assert values["cost_ratio"] == 0.5 and values["forgetting_ratio"] == 0.75 and values["control_ratio"] == 1.5
+    assert values["same_episode_cost"] == 0.5 and values["same_episode_forgetting"] == pytest.approx(1400 / 2100)
+    assert (values["growth_switched"], values["growth_control"], values["offline_growth"]) == (60.0, 30.0, 30.0)
+    assert values["change_is_real"] and values["zero_shot_share"] == pytest.approx(200 / 2100)
+    assert not control.seed_values(stage1, dict(switched, **{"stage1_same_episodes_Env-B": 1900.0}), nominal)["change_is_real"]
+
+
+@pytest.mark.parametrize(
+    "claim, values, reading",
+    [
+        ("K1", [0.6, 0.65, 0.7, 0.62, 0.68], "costs at least a fifth"),
+        ("K1", [0.85, 0.9, 0.88, 0.92, 0.87], "costs"),
+        ("K1", [0.98, 1.0, 1.02, 0.99, 1.01], "no cost"),
+        ("K1", [1.3, 1.4, 1.5, 1.35, 1.45], "helps"),
+        ("K1", [0.5, 1.5, 0.7, 1.3, 1.0], "inconclusive"),
+        ("K1", [0.5, 0.5, 0.5, 0.5], "pending"),
+        ("K2", [0.5, 0.6, 0.55, 0.65, 0.6], "holds"),
+        ("K2", [1.1, 1.2, 1.3, 1.0, 1.15], "fails"),
+        ("K2", [0.5, 1.2, 0.7, 1.0, 0.8], "inconclusive"),
+        ("K3", [20.0, 30.0, 25.0, 35.0, 28.0], "holds"),
+        ("K3", [-2.0, 3.0, 1.0, -1.0, 0.5], "no difference"),
+        ("K3", [-20.0, -30.0, -25.0, -35.0, -28.0], "reversed"),
+        ("K3", [-40.0, 50.0, 10.0, -30.0, 20.0], "inconclusive"),
+    ],
+)
+def test_readings_in_every_direction(control, claim, values, reading):
+    assert control.read_claim(claim, values) == reading
+
+
+def test_not_testable_once_every_stage1_ended_with_too_few_learnt(control):
+    rows = [dict(cost_ratio=0.5, forgetting_ratio=0.5, offline_growth=10.0, change_is_real=True)] * 4
+    stage1 = {seed: seed < 34 for seed in control.SEEDS}
+    assert {claim: reading for claim, (reading, _) in control.readings(rows, stage1).items()} == dict.fromkeys(
+        ("K1", "K2", "K3"), "not testable"
+    )
+    # while seeds are left to start it waits
+    assert control.readings(rows, {30: True})["K1"][0] == "pending"
+    # K1 counts only seeds where the change is a change
+    mixed = [*rows, dict(cost_ratio=2.0, forgetting_ratio=0.5, offline_growth=10.0, change_is_real=False)]
+    assert control.readings(mixed, {30: True})["K1"][1] == [0.5] * 4
+    with pytest.raises(ValueError, match="no claim 'K4'"):
+        control.read_claim("K4", [1.0] * 5)
