@@ -22,6 +22,7 @@ import dataclasses
 import functools
 import importlib.util
 import json
+import math
 import pathlib
 import time
 from collections.abc import Sequence
@@ -131,6 +132,8 @@ def run_branch(branch: str, seed: int, runs: pathlib.Path, results: pathlib.Path
     run_dir = branch_dir(runs, branch, seed)
     if not run_dir.exists():
         adopt_stage1(settings, stage1_dir(runs, seed), run_dir)
+    if not (run_dir / "adopted.json").exists():  # adopt_stage1 writes it last: a stopped adoption left a partial copy
+        raise SystemExit(f"{run_dir} holds an unfinished adoption of the Stage-1 (no adopted.json): move it away, run again")
     start = time.perf_counter()
     screen().collect_in_parts(settings, seed, run_dir, sum(settings.stage_steps))
     measured = measure(branch, seed, run_dir)
@@ -185,32 +188,54 @@ def progress(args: argparse.Namespace) -> list[str]:
 # ------------------------------------------------------------------------------------------------- the readings
 def seed_values(stage1: dict[str, Any], switched: dict[str, Any], control: dict[str, Any]) -> dict[str, Any]:
     """
-    The per-seed values of the README ("Per seed") from a seed's Stage-1 reading and its two branches' measurements.
+    The per-seed values of the README ("Per seed", as amended) from a seed's Stage-1 reading and its two branches'
+    measurements.
 
-    :return: ``cost_ratio`` (K1), ``forgetting_ratio`` (K2), ``control_ratio``, ``same_episode_cost``,
-        ``growth_switched`` and ``growth_control`` (the overestimation of Env-A data, end minus switch),
-        ``offline_growth`` (K3: their difference), ``zero_shot_share`` and ``change_is_real``
+    :return: ``cost_ratio`` (K1; NaN when the control's end return is not positive), ``forgetting_ratio`` (K2),
+        ``control_ratio``, ``same_episode_cost``, ``same_episode_forgetting``, ``growth_switched`` and
+        ``growth_control`` (the end agent's overestimation of Env-A data minus the frozen Stage-1 agent's, on the same
+        rows), ``offline_growth`` (K3: their difference), the same growths from the logged curves (``logged_growth_*``,
+        reported only), ``zero_shot_share`` (NaN when the frozen agent's Env-A return is not positive) and
+        ``change_is_real``
+    :raises ValueError: a value a claim reads is missing or not finite (named with its seed)
     """
+    seed = stage1["seed"]
+    needed = ["end_env_a", "stage1_same_episodes_Env-A", "final_same_episodes_Env-A", "stage1_same_episodes_Env-B",
+              "stage1_overestimation_Env-A", "final_overestimation_Env-A"]  # fmt: skip
+    for name, branch in (("switched", switched), ("control", control)):
+        for key in needed:
+            if not math.isfinite(float(branch.get(key, math.nan))):
+                raise ValueError(f"seed {seed}, {name}: {key} is missing or not finite ({branch.get(key)!r})")
+
+    def ratio(top: float, bottom: float) -> float:
+        return top / bottom if bottom > 0 else math.nan
+
     growth = {
+        name: branch["final_overestimation_Env-A"] - branch["stage1_overestimation_Env-A"]
+        for name, branch in (("switched", switched), ("control", control))
+    }
+    logged = {
         name: branch["overestimation_env_a_end"] - branch["overestimation_env_a_switch"]
         for name, branch in (("switched", switched), ("control", control))
     }
-    zero_shot = switched["stage1_same_episodes_Env-B"] / switched["stage1_same_episodes_Env-A"]
+    zero_shot = ratio(switched["stage1_same_episodes_Env-B"], switched["stage1_same_episodes_Env-A"])
     return dict(
-        seed=stage1["seed"],
+        seed=seed,
         stage1_env_a=stage1["mean"],
         end_env_a_switched=switched["end_env_a"],
         end_env_a_control=control["end_env_a"],
-        cost_ratio=switched["end_env_a"] / control["end_env_a"],
-        forgetting_ratio=switched["end_env_a"] / stage1["mean"],
-        control_ratio=control["end_env_a"] / stage1["mean"],
-        same_episode_cost=switched["final_same_episodes_Env-A"] / control["final_same_episodes_Env-A"],
-        same_episode_forgetting=switched["final_same_episodes_Env-A"] / switched["stage1_same_episodes_Env-A"],
+        cost_ratio=ratio(switched["end_env_a"], control["end_env_a"]),
+        forgetting_ratio=ratio(switched["end_env_a"], stage1["mean"]),
+        control_ratio=ratio(control["end_env_a"], stage1["mean"]),
+        same_episode_cost=ratio(switched["final_same_episodes_Env-A"], control["final_same_episodes_Env-A"]),
+        same_episode_forgetting=ratio(switched["final_same_episodes_Env-A"], switched["stage1_same_episodes_Env-A"]),
         growth_switched=growth["switched"],
         growth_control=growth["control"],
         offline_growth=growth["switched"] - growth["control"],
+        logged_growth_switched=logged["switched"],
+        logged_growth_control=logged["control"],
         zero_shot_share=zero_shot,
-        change_is_real=bool(zero_shot <= CHANGE_IS_REAL),
+        change_is_real=bool(zero_shot <= CHANGE_IS_REAL),  # False for NaN
     )
 
 
@@ -221,38 +246,45 @@ def interval(values: Sequence[float]) -> tuple[float, float, float, float]:
     return t_interval(list(values))
 
 
+def _side(low: float, high: float, line: float, margin: tuple[float, float], below: str, above: str) -> str:
+    """The reading of an interval against ``line`` and an equivalence ``margin`` (README, amendment 1's order)."""
+    inside = margin[0] <= low and high <= margin[1]
+    if high < line:
+        return below + (", within the margin" if inside else "")
+    if low > line:
+        return above + (", within the margin" if inside else "")
+    return "no difference" if inside else "inconclusive"
+
+
 def read_claim(claim: str, values: Sequence[float]) -> str:
     """
-    The README's reading of one claim from the 95 % t interval of its per-seed values.
+    The README's reading of one claim from the 95 % t interval of its per-seed values (amendment 1: which side of
+    the line first, then whether the interval also lies within the equivalence margin).
 
     :param claim: ``K1``, ``K2`` or ``K3``
-    :param values: one value per counted seed
-    :return: for K1 ``costs`` (with `` at least a fifth`` when below 0.8), ``no cost``, ``helps`` or ``inconclusive``;
-        for K2 ``holds``, ``fails`` or ``inconclusive``; for K3 ``holds``, ``no difference``, ``reversed`` or
+    :param values: one value per counted seed (the first ``LEARNT_SEEDS_WANTED`` are read)
+    :return: K1 ``costs at least a fifth`` / ``costs`` / ``helps`` (each with ``, within the margin`` when the interval
+        also lies in [0.9, 1.1]), ``no cost`` or ``inconclusive``; K2 ``holds``, ``fails`` or ``inconclusive``; K3
+        ``holds`` / ``reversed`` (with ``, within the margin`` when also in [-15, 15]), ``no difference`` or
         ``inconclusive``; ``pending`` with fewer than the wanted seeds
     """
+    if claim not in ("K1", "K2", "K3"):
+        raise ValueError(f"no claim {claim!r}: K1, K2 or K3")
     if len(values) < LEARNT_SEEDS_WANTED:
         return "pending"
-    _, _, low, high = interval(values)
+    _, _, low, high = interval(list(values)[:LEARNT_SEEDS_WANTED])
     if claim == "K1":
-        if high < 1.0:
-            return "costs at least a fifth" if high < COSTS_A_FIFTH else "costs"
-        if NO_COST[0] <= low and high <= NO_COST[1]:
-            return "no cost"
-        return "helps" if low > 1.0 else "inconclusive"
+        if high < COSTS_A_FIFTH:
+            return "costs at least a fifth"
+        reading = _side(low, high, 1.0, NO_COST, "costs", "helps")
+        return "no cost" if reading == "no difference" else reading
     if claim == "K2":
         return "holds" if high <= FORGETS else "fails" if low > FORGETS else "inconclusive"
-    if claim == "K3":
-        if low > 0.0:
-            return "holds"
-        if -SAME_GROWTH <= low and high <= SAME_GROWTH:
-            return "no difference"
-        return "reversed" if high < 0.0 else "inconclusive"
-    raise ValueError(f"no claim {claim!r}: K1, K2 or K3")
+    return _side(low, high, 0.0, (-SAME_GROWTH, SAME_GROWTH), "reversed", "holds")
 
 
 def collected(results: pathlib.Path) -> list[dict[str, Any]]:
-    """:return: the per-seed values of every seed with both branches measured (learnt seeds only reach them)"""
+    """:return: the per-seed values of every seed with both branches measured, in seed order"""
     rows = []
     for seed in SEEDS:
         paths = [results / "stage1" / f"seed_{seed}.json"] + [
@@ -266,20 +298,26 @@ def collected(results: pathlib.Path) -> list[dict[str, Any]]:
 
 def readings(rows: list[dict[str, Any]], stage1: dict[int, bool]) -> dict[str, Any]:
     """
-    :param rows: the per-seed values (:func:`collected`)
+    :param rows: the per-seed values (:func:`collected`, in seed order)
     :param stage1: seed -> whether Env-A was learnt, for every seed whose Stage-1 has ended
-    :return: claim -> (reading, the values it read); K1 reads only seeds where the change is real; with every
-        registered seed's Stage-1 ended and fewer than the wanted seeds learnt, a claim is ``not testable``
+    :return: claim -> (reading, the values it read): each claim reads its first five counted seeds in seed order (K1
+        counts a seed where the change is real and its cost ratio is defined; K2 and K3 every measured seed). With
+        every registered seed's Stage 1 ended, every learnt seed measured and fewer than five counted, ``not testable``
     """
     out: dict[str, Any] = {}
     series = {
-        "K1": [r["cost_ratio"] for r in rows if r["change_is_real"]],
+        "K1": [r["cost_ratio"] for r in rows if r["change_is_real"] and math.isfinite(r["cost_ratio"])],
         "K2": [r["forgetting_ratio"] for r in rows],
         "K3": [r["offline_growth"] for r in rows],
     }
-    exhausted = len(stage1) == len(SEEDS) and sum(stage1.values()) < LEARNT_SEEDS_WANTED
+    measured = {r["seed"] for r in rows}
+    finished = len(stage1) == len(SEEDS) and all(seed in measured for seed, learnt in stage1.items() if learnt)
     for claim, values in series.items():
-        out[claim] = ("not testable" if exhausted else read_claim(claim, values), values)
+        values = values[:LEARNT_SEEDS_WANTED]
+        if finished and len(values) < LEARNT_SEEDS_WANTED:
+            out[claim] = ("not testable", values)
+        else:
+            out[claim] = (read_claim(claim, values), values)
     return out
 
 
@@ -295,7 +333,7 @@ def _fmt(values: Sequence[float], digits: int) -> str:
 COLUMNS = [
     "seed", "stage1_env_a", "end_env_a_switched", "end_env_a_control", "cost_ratio", "forgetting_ratio",
     "control_ratio", "same_episode_cost", "same_episode_forgetting", "growth_switched", "growth_control",
-    "offline_growth", "zero_shot_share", "change_is_real",
+    "offline_growth", "logged_growth_switched", "logged_growth_control", "zero_shot_share", "change_is_real",
 ]  # fmt: skip
 CLAIM_TEXT = {
     "K1": ("the change costs MPO Env-A: switched / control at the end, Env-A", 3),
