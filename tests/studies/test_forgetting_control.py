@@ -7,6 +7,7 @@ import dataclasses
 import json
 import math
 
+import numpy as np
 import pytest
 from testkit import benchmark_module
 
@@ -84,11 +85,20 @@ def test_both_branches_continue_one_stage1_and_report(tiny, tmp_path):
     control_end = measured["control"]["end_env_a"]
     expected = measured["switched"]["end_env_a"] / control_end if control_end > 0 else math.nan
     assert float(rows[0]["cost_ratio"]) == pytest.approx(expected, nan_ok=True)
-    assert text.count("**pending**") == 3 and (results / "control.png").exists()
+    assert text.count("**pending**") == 4 and (results / "control.png").exists()
     for name, branch in measured.items():  # the end's evaluations are the last five; the overestimation was measured
         evals = [r for r in csv.DictReader(open(results / name / "seed_30" / "eval.csv")) if r["env"] == "Env-A"]
         assert branch["end_evals_env_a"] == [float(r["mean_reward"]) for r in evals][-5:]
         assert all(math.isfinite(branch[k]) for k in ("final_overestimation_Env-A", "overestimation_env_a_end"))
+    # K4: the frozen and both end agents against their own policy's return from the restored Env-A states
+    control.run_true_error(argparse.Namespace(runs=str(runs), results=str(results), seeds=[30], rows=4))
+    true = json.loads((results / "true_error" / "seed_30.json").read_text())
+    assert true["rows"] == 4 and set(true) >= {"stage1", "final_switched", "final_control"}
+    for agent in ("stage1", "final_switched", "final_control"):
+        assert true[agent]["true_error"] == pytest.approx(true[agent]["q"] - true[agent]["g"])
+    assert true["true_offline_error"] == true["final_switched"]["true_error"] - true["final_control"]["true_error"]
+    rows = list(csv.DictReader(open(results / "control.csv")))
+    assert control.collected(results)[0]["true_offline_error"] == true["true_offline_error"]
     # a second call skips what is measured; a seed outside the registration is refused
     control.queue(argparse.Namespace(runs=str(runs), results=str(results), seeds=[30]))
     with pytest.raises(SystemExit, match="not one of the registered seeds"):
@@ -156,7 +166,7 @@ def test_not_testable_once_every_stage1_ended_with_too_few_learnt(control):
     rows = [dict(row, seed=seed) for seed in (30, 31, 32, 33)]
     stage1 = {seed: seed < 34 for seed in control.SEEDS}
     assert {claim: reading for claim, (reading, _) in control.readings(rows, stage1).items()} == dict.fromkeys(
-        ("K1", "K2", "K3"), "not testable"
+        ("K1", "K2", "K3", "K4"), "not testable"
     )
     # while seeds are left to start, or a learnt seed is still running, it waits
     assert control.readings(rows, {30: True})["K1"][0] == "pending"
@@ -169,8 +179,8 @@ def test_not_testable_once_every_stage1_ended_with_too_few_learnt(control):
     four = [*rows, dict(row, seed=34, change_is_real=False)]
     read = control.readings(four, {seed: seed < 35 for seed in control.SEEDS})
     assert read["K1"][0] == "not testable" and read["K2"][0] == "holds"
-    with pytest.raises(ValueError, match="no claim 'K4'"):
-        control.read_claim("K4", [1.0] * 5)
+    with pytest.raises(ValueError, match="no claim 'K5'"):
+        control.read_claim("K5", [1.0] * 5)
 
 
 def test_an_interrupted_adoption_is_refused(tiny, tmp_path):
@@ -181,3 +191,18 @@ def test_an_interrupted_adoption_is_refused(tiny, tmp_path):
     with pytest.raises(SystemExit, match="unfinished adoption"):
         tiny.run_branch("switched", 30, runs, results)
     assert (partial / "eval.csv").exists()  # nothing is deleted
+
+
+def test_a_restored_state_steps_as_the_original(control):
+    import gymnasium as gym
+
+    original, copy = gym.make("HalfCheetah-v5"), gym.make("HalfCheetah-v5")
+    obs, _ = original.reset(seed=0)
+    for _ in range(20):
+        obs, *_ = original.step(original.action_space.sample())
+    copy.reset(seed=1)
+    control.restore(copy, obs)
+    action = original.action_space.sample()
+    np.testing.assert_allclose(copy.step(action)[0], original.step(action)[0], atol=1e-5)
+    with pytest.raises(ValueError, match="did not give it back"):
+        control.restore(copy, obs[:10])

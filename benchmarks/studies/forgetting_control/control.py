@@ -185,6 +185,113 @@ def progress(args: argparse.Namespace) -> list[str]:
     return lines
 
 
+# ------------------------------------------------------------------------------------------------- K4 (amendment 2)
+TRUE_ERROR_ROWS = 256
+
+
+def env_a_rows(run_dir: pathlib.Path, seed: int, count: int = TRUE_ERROR_ROWS) -> dict[str, np.ndarray]:
+    """:return: ``count`` Env-A rows (source 0) of a branch's final buffer, drawn with ``seed`` (normalised actions)"""
+    from sb3_lifelong import LifelongReplayBuffer
+
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
+        columns = buffer.to_d4rl(by_episode=True, normalized_actions=True)
+    candidates = np.flatnonzero(np.asarray(columns["sources"]).reshape(-1) == 0)
+    picked = np.sort(np.random.default_rng(seed).choice(candidates, size=min(count, len(candidates)), replace=False))
+    return dict(observations=columns["observations"][picked], actions=columns["actions"][picked], index=picked)
+
+
+def restore(env: Any, observation: np.ndarray) -> None:
+    """
+    Put a HalfCheetah copy in the state an observation was made in: ``qpos = (0, obs[:8])``, ``qvel = obs[8:17]``
+    (the x position is left out of the observation; the dynamics and the reward do not depend on it).
+
+    :raises ValueError: the restored state does not give the observation back (another robot, another layout)
+    """
+    robot = env.unwrapped
+    nq, nv = robot.model.nq, robot.model.nv
+    if len(observation) < nq - 1 + nv:
+        raise ValueError(f"an observation of {len(observation)} values did not give it back: {nq - 1 + nv} expected")
+    qpos = np.concatenate([[0.0], observation[: nq - 1]]).astype(np.float64)
+    robot.set_state(qpos, np.asarray(observation[nq - 1 : nq - 1 + nv], dtype=np.float64))
+    back = robot._get_obs()
+    if back.shape != (nq - 1 + nv,) or not np.allclose(back, observation[: len(back)], atol=1e-4):
+        raise ValueError(f"restoring {robot.__class__.__name__} from an observation did not give it back: not HalfCheetah?")
+
+
+def true_error(agent: Any, rows: dict[str, np.ndarray], envs: list[Any], seed: int) -> dict[str, float]:
+    """
+    The critic's error on ``rows`` against its own policy's return (README, amendment 2): each row's state restored in
+    Env-A, its stored action applied, then the agent's stochastic policy, ``monte_carlo_horizon(gamma)`` steps in all.
+
+    :param agent: an MPO agent (its critic's first head is read, as by the Monte-Carlo probe)
+    :param rows: :func:`env_a_rows`
+    :param envs: one Env-A copy per row (``stage_envs``' Env-A, the observation as the agent sees it)
+    :param seed: seeds the copies and the policy's sampling
+    :return: ``q`` (mean Q(s, a)), ``g`` (mean discounted return), ``true_error`` (mean of their difference)
+    """
+    import torch as th
+
+    from sb3_lifelong.evaluation import overestimation
+
+    observations, actions = rows["observations"], rows["actions"]
+    with th.no_grad():
+        obs_t = th.as_tensor(observations, dtype=th.float32, device=agent.device)
+        q = agent.critic(obs_t, th.as_tensor(actions, dtype=th.float32, device=agent.device))[0].flatten().double()
+    th.manual_seed(seed)
+    horizon = overestimation.monte_carlo_horizon(agent.gamma)
+    returns = np.zeros(len(envs))
+    current = np.zeros_like(observations)
+    for i, env in enumerate(envs):
+        env.reset(seed=seed + i)
+        restore(env, observations[i])
+    step_actions = agent.policy.unscale_action(np.asarray(actions))
+    for k in range(horizon):
+        for i, env in enumerate(envs):
+            current[i], reward, terminated, truncated, _ = env.step(step_actions[i])
+            if terminated or truncated:
+                raise ValueError(f"a rollout ended at step {k} (HalfCheetah does not end before its time limit)")
+            returns[i] += agent.gamma**k * reward
+        step_actions, _ = agent.predict(current, deterministic=False)
+    g = th.as_tensor(returns, dtype=th.float64)
+    return dict(q=float(q.mean()), g=float(g.mean()), true_error=float((q.cpu() - g).mean()))
+
+
+def run_true_error(args: argparse.Namespace) -> None:
+    """K4 of each given seed with both branches ended: the frozen and both end agents, kept in ``results/true_error``."""
+    from sb3_lifelong import MPO
+    from sb3_lifelong.envs import stage_envs
+
+    runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
+    for seed in args.seeds:
+        out = results / "true_error" / f"seed_{seed}.json"
+        dirs = {branch: branch_dir(runs, branch, seed) for branch in BRANCHES}
+        if out.exists() or not all((d / "collect" / "final.zip").exists() for d in dirs.values()):
+            print(f"seed {seed}: {'measured' if out.exists() else 'both branches have not ended'}", flush=True)
+            continue
+        rows = {branch: env_a_rows(d, seed, args.rows) for branch, d in dirs.items()}
+        if not np.array_equal(rows["switched"]["observations"], rows["control"]["observations"]):
+            raise SystemExit(f"seed {seed}: the branches' Env-A rows differ: they should be the same Stage-1 rows")
+        settings = preset("switched")
+        envs = [
+            stage_envs(settings.env_id, list(settings.stages), settings.env_names, settings.env_kwargs, append_params=True)[
+                "Env-A"
+            ]
+            for _ in range(len(rows["switched"]["observations"]))
+        ]
+        record: dict[str, Any] = dict(seed=seed, rows=len(envs))
+        start = time.perf_counter()
+        agents = {"stage1": dirs["switched"] / "collect" / "stage1.zip"}
+        agents.update({f"final_{branch}": d / "collect" / "final.zip" for branch, d in dirs.items()})
+        for name, path in agents.items():
+            agent = MPO.load(path, device="cpu", custom_objects={"replay_buffer_kwargs": {}})
+            record[name] = true_error(agent, rows["switched"], envs, seed)
+        record["true_offline_error"] = record["final_switched"]["true_error"] - record["final_control"]["true_error"]
+        record["seconds"] = time.perf_counter() - start
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(record, indent=1) + "\n")
+        print(f"seed {seed}: true error measured -> {out}", flush=True)
+
+
 # ------------------------------------------------------------------------------------------------- the readings
 def seed_values(stage1: dict[str, Any], switched: dict[str, Any], control: dict[str, Any]) -> dict[str, Any]:
     """
@@ -268,8 +375,8 @@ def read_claim(claim: str, values: Sequence[float]) -> str:
         ``holds`` / ``reversed`` (with ``, within the margin`` when also in [-15, 15]), ``no difference`` or
         ``inconclusive``; ``pending`` with fewer than the wanted seeds
     """
-    if claim not in ("K1", "K2", "K3"):
-        raise ValueError(f"no claim {claim!r}: K1, K2 or K3")
+    if claim not in ("K1", "K2", "K3", "K4"):
+        raise ValueError(f"no claim {claim!r}: K1, K2, K3 or K4")
     if len(values) < LEARNT_SEEDS_WANTED:
         return "pending"
     _, _, low, high = interval(list(values)[:LEARNT_SEEDS_WANTED])
@@ -292,7 +399,10 @@ def collected(results: pathlib.Path) -> list[dict[str, Any]]:
         ]
         if all(p.exists() for p in paths):
             stage1, switched, control = (json.loads(p.read_text()) for p in paths)
-            rows.append(seed_values(stage1, switched, control))
+            row = seed_values(stage1, switched, control)
+            true = results / "true_error" / f"seed_{seed}.json"  # K4 (amendment 2); a seed without it does not count
+            row["true_offline_error"] = json.loads(true.read_text())["true_offline_error"] if true.exists() else math.nan
+            rows.append(row)
     return rows
 
 
@@ -309,6 +419,7 @@ def readings(rows: list[dict[str, Any]], stage1: dict[int, bool]) -> dict[str, A
         "K1": [r["cost_ratio"] for r in rows if r["change_is_real"] and math.isfinite(r["cost_ratio"])],
         "K2": [r["forgetting_ratio"] for r in rows],
         "K3": [r["offline_growth"] for r in rows],
+        "K4": [r["true_offline_error"] for r in rows if math.isfinite(r.get("true_offline_error", math.nan))],
     }
     measured = {r["seed"] for r in rows}
     finished = len(stage1) == len(SEEDS) and all(seed in measured for seed, learnt in stage1.items() if learnt)
@@ -334,11 +445,13 @@ COLUMNS = [
     "seed", "stage1_env_a", "end_env_a_switched", "end_env_a_control", "cost_ratio", "forgetting_ratio",
     "control_ratio", "same_episode_cost", "same_episode_forgetting", "growth_switched", "growth_control",
     "offline_growth", "logged_growth_switched", "logged_growth_control", "zero_shot_share", "change_is_real",
+    "true_offline_error",
 ]  # fmt: skip
 CLAIM_TEXT = {
     "K1": ("the change costs MPO Env-A: switched / control at the end, Env-A", 3),
     "K2": ("MPO forgets Env-A after a 120k Stage 1: switched end / Stage-1 level", 3),
     "K3": ("Env-A data's overestimation grows more when offline: growth switched - control", 1),
+    "K4": ("the critic's error on Env-A rows against its own policy's return, switched - control", 1),
 }
 
 
@@ -434,15 +547,17 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         description=__doc__.split("\n\n")[1], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("queue", "progress", "report"):
+    for name in ("queue", "progress", "report", "true-error"):
         command = sub.add_parser(name)
         command.add_argument("--results", default=str(RESULTS), help="where the small results go")
         if name != "report":
             command.add_argument("--runs", default="runs", help="where buffers and agents go")
-        if name == "queue":
+        if name in ("queue", "true-error"):
             command.add_argument("--seeds", type=int, nargs="+", required=True, help="registered seeds, run in order")
+        if name == "true-error":
+            command.add_argument("--rows", type=int, default=TRUE_ERROR_ROWS, help="Env-A rows (the README: 256)")
     args = parser.parse_args(argv)
-    {"queue": queue, "progress": progress, "report": report}[args.command](args)
+    {"queue": queue, "progress": progress, "report": report, "true-error": run_true_error}[args.command](args)
 
 
 if __name__ == "__main__":
