@@ -501,44 +501,60 @@ def _curve(path: pathlib.Path, key: str, name: str, value: str) -> list[tuple[in
 
 
 def figure(rows: list[dict[str, Any]], results: pathlib.Path, path: pathlib.Path) -> None:
-    """Per seed: Env-A return of both branches (top) and the overestimation of Env-A data (bottom)."""
+    """
+    Per seed (three seeds a row): the Env-A return of both branches (top), and the overestimation of Env-A data
+    against the stored returns with K4's error against the agent's own return at the branch point and the ends (bottom).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, len(rows), figsize=(4.6 * len(rows) + 0.6, 6.4), squeeze=False)
+    columns = min(3, len(rows))
+    pairs = math.ceil(len(rows) / columns)
+    fig, axes = plt.subplots(2 * pairs, columns, figsize=(4.8 * columns + 0.4, 5.6 * pairs + 0.8), squeeze=False)
     colours = {"switched": "tab:red", "control": "tab:blue"}
-    for column, row in enumerate(rows):
+    for index, row in enumerate(rows):
         seed = row["seed"]
-        top, bottom = axes[0, column], axes[1, column]
+        top, bottom = axes[2 * (index // columns), index % columns], axes[2 * (index // columns) + 1, index % columns]
         stage1 = _curve(results / "stage1" / f"seed_{seed}_eval.csv", "env", "Env-A", "mean_reward")
         top.plot(*zip(*stage1), color="k", lw=1.2, label="Stage 1 (Env-A)")
+        true_path = results / "true_error" / f"seed_{seed}.json"
+        true = json.loads(true_path.read_text()) if true_path.exists() else None
+        if true:
+            bottom.plot([ENV_A_STEPS], [true["stage1"]["true_error"]], "kx", ms=7, label="own-policy error (K4)")
         for branch, colour in colours.items():
             folder = results / branch / f"seed_{seed}"
             evals = [p for p in _curve(folder / "eval.csv", "env", "Env-A", "mean_reward") if p[0] >= ENV_A_STEPS]
             top.plot(*zip(*evals), color=colour, lw=1.2, label=f"{branch}: Env-A")
             q = _curve(folder / "q_sources.csv", "name", "Env-A", "overestimation")
             if q:
-                bottom.plot(*zip(*q), color=colour, lw=1.2, label=f"{branch}")
+                bottom.plot(*zip(*q), color=colour, lw=1.2, label=f"{branch}: against stored returns")
+            if true:
+                bottom.plot([ENV_A_STEPS + STAGE2_STEPS], [true[f"final_{branch}"]["true_error"]], "x", color=colour, ms=7)
         top.hlines(row["stage1_env_a"], ENV_A_STEPS, ENV_A_STEPS + STAGE2_STEPS, colors="grey", linestyles=":", lw=1)
+        bottom.axhline(0.0, color="grey", lw=0.6)
         for ax in (top, bottom):
             ax.axvline(ENV_A_STEPS, color="k", lw=0.8)
             ax.set_xlabel("environment steps")
         top.set_title(f"seed {seed}: cost ratio {row['cost_ratio']:.2f}, forgetting ratio {row['forgetting_ratio']:.2f}",
                       fontsize=9)  # fmt: skip
         top.set_ylabel("Env-A return (5 seeded episodes)")
-        bottom.set_ylabel("overestimation of Env-A data")
+        bottom.set_ylabel("critic error on Env-A rows")
         for ax in (top, bottom):
             if ax.get_legend_handles_labels()[0]:
                 ax.legend(fontsize=7)
+    for index in range(len(rows), pairs * columns):
+        axes[2 * (index // columns), index % columns].axis("off")
+        axes[2 * (index // columns) + 1, index % columns].axis("off")
     fig.suptitle(
         "MPO after a 120k-step Stage 1: back leg reversed (switched) against the nominal robot (control)\n"
-        "(vertical line: the branch point; grey dotted: the Stage-1 agent's Env-A level, last 5 evaluations)",
+        "top: vertical line the branch point, grey dotted the Stage-1 agent's level; bottom: lines Q minus the stored "
+        "return (logged), crosses Q minus the agent's own return",
         fontsize=10,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
