@@ -79,9 +79,17 @@ def test_both_branches_continue_one_stage1_and_report(tiny, tmp_path):
     assert measured["switched"]["stage1_same_episodes_Env-B"] != measured["switched"]["stage1_same_episodes_Env-A"]
     lines = control.progress(argparse.Namespace(runs=str(runs), results=str(results)))
     assert lines[0] == "seed 30: switched measured, control measured" and lines[1] == "seed 31: Stage 1 not started"
+    # K4: the frozen and both end agents against their own policy's return from the restored Env-A states
+    control.run_true_error(argparse.Namespace(runs=str(runs), results=str(results), seeds=[30], rows=4))
+    true = json.loads((results / "true_error" / "seed_30.json").read_text())
+    assert true["rows"] == 4 and set(true) >= {"stage1", "final_switched", "final_control"}
+    for agent in ("stage1", "final_switched", "final_control"):
+        assert true[agent]["true_error"] == pytest.approx(true[agent]["q"] - true[agent]["g"])
+    assert true["true_offline_error"] == true["final_switched"]["true_error"] - true["final_control"]["true_error"]
+    assert control.collected(results)[0]["true_offline_error"] == true["true_offline_error"]
     text = control.report(argparse.Namespace(results=str(results)))
     rows = list(csv.DictReader(open(results / "control.csv")))
-    assert [int(r["seed"]) for r in rows] == [30]
+    assert [int(r["seed"]) for r in rows] == [30] and float(rows[0]["true_offline_error"]) == true["true_offline_error"]
     control_end = measured["control"]["end_env_a"]
     expected = measured["switched"]["end_env_a"] / control_end if control_end > 0 else math.nan
     assert float(rows[0]["cost_ratio"]) == pytest.approx(expected, nan_ok=True)
@@ -90,15 +98,6 @@ def test_both_branches_continue_one_stage1_and_report(tiny, tmp_path):
         evals = [r for r in csv.DictReader(open(results / name / "seed_30" / "eval.csv")) if r["env"] == "Env-A"]
         assert branch["end_evals_env_a"] == [float(r["mean_reward"]) for r in evals][-5:]
         assert all(math.isfinite(branch[k]) for k in ("final_overestimation_Env-A", "overestimation_env_a_end"))
-    # K4: the frozen and both end agents against their own policy's return from the restored Env-A states
-    control.run_true_error(argparse.Namespace(runs=str(runs), results=str(results), seeds=[30], rows=4))
-    true = json.loads((results / "true_error" / "seed_30.json").read_text())
-    assert true["rows"] == 4 and set(true) >= {"stage1", "final_switched", "final_control"}
-    for agent in ("stage1", "final_switched", "final_control"):
-        assert true[agent]["true_error"] == pytest.approx(true[agent]["q"] - true[agent]["g"])
-    assert true["true_offline_error"] == true["final_switched"]["true_error"] - true["final_control"]["true_error"]
-    rows = list(csv.DictReader(open(results / "control.csv")))
-    assert control.collected(results)[0]["true_offline_error"] == true["true_offline_error"]
     # a second call skips what is measured; a seed outside the registration is refused
     control.queue(argparse.Namespace(runs=str(runs), results=str(results), seeds=[30]))
     with pytest.raises(SystemExit, match="not one of the registered seeds"):

@@ -11,6 +11,8 @@ One command runs seeds in order and skips what is done; a killed command continu
 
     OMP_NUM_THREADS=1 python benchmarks/studies/forgetting_control/control.py queue --seeds 30 32 --runs /work/runs
     python benchmarks/studies/forgetting_control/control.py progress --runs /work/runs
+    # K4 (amendment 2), once both branches of a seed have ended and while its agents are still in --runs
+    OMP_NUM_THREADS=1 python benchmarks/studies/forgetting_control/control.py true-error --seeds 30 --runs /work/runs
     python benchmarks/studies/forgetting_control/control.py report      # results/control.csv, results.md, control.png
 
 Small results go to ``results/`` beside this script; buffers and agents stay in ``--runs``.
