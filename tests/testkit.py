@@ -4,6 +4,7 @@ Helpers shared by the test files (imported as ``from testkit import ...``: pytes
 Test files never import from each other; what two of them need lives here or, as a fixture, in ``conftest.py``.
 """
 
+import dataclasses
 import importlib.util
 import pathlib
 import types
@@ -112,3 +113,23 @@ def fill(buffer, steps, n_envs, seed=0, start=0, stage=None, rng=None):
 
 def all_rows(buffer):
     return {name: np.array(buffer.store.read_range(name, 0, buffer.size())) for name in FIELD_NAMES}
+
+
+def shrink_screen(screen: types.ModuleType, monkeypatch, eval_freq: int) -> None:
+    """
+    The forgetting screen's script at seconds' scale, for the studies that build on it: one robot (HalfCheetah, 600
+    steps of Env-A, every Env-A counted learnt), ``eval_freq``, one episode per evaluation, 400-step parts, tiny
+    networks and 100-step episodes.
+    """
+    monkeypatch.setattr(screen, "ROBOTS", {"cheetah": screen.Robot("HalfCheetah-v5", 600, -1e9)})
+    monkeypatch.setattr(screen, "EVAL_FREQ", eval_freq)
+    monkeypatch.setattr(screen, "EVAL_EPISODES", 1)
+    monkeypatch.setattr(screen, "SAME_EPISODES", 1)
+    monkeypatch.setattr(screen, "PART", 400)
+    full = screen.preset
+
+    def small(candidate: str):
+        return dataclasses.replace(full(candidate), net_arch=(16, 16), batch_size=32, num_samples=4, learning_starts=100,
+                                   max_episode_steps=100)  # fmt: skip
+
+    monkeypatch.setattr(screen, "preset", small)

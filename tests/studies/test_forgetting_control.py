@@ -3,13 +3,12 @@ measured, and read by the pre-registered rules in both directions."""
 
 import argparse
 import csv
-import dataclasses
 import json
 import math
 
 import numpy as np
 import pytest
-from testkit import benchmark_module
+from testkit import benchmark_module, shrink_screen
 
 
 @pytest.fixture
@@ -38,21 +37,10 @@ def tiny(control, monkeypatch):
     screen = control.screen()
     monkeypatch.setattr(control, "ENV_A_STEPS", 600)
     monkeypatch.setattr(control, "STAGE2_STEPS", 400)
-    monkeypatch.setattr(screen, "ROBOTS", {"cheetah": screen.Robot("HalfCheetah-v5", 600, -1e9)})
+    shrink_screen(screen, monkeypatch, eval_freq=100)  # five evaluations before the switch
     monkeypatch.setattr(screen, "MAX_SPREAD", float("inf"))
-    monkeypatch.setattr(screen, "EVAL_FREQ", 100)  # five evaluations before the switch
-    monkeypatch.setattr(screen, "EVAL_EPISODES", 1)
-    monkeypatch.setattr(screen, "SAME_EPISODES", 1)
-    monkeypatch.setattr(screen, "PART", 400)
     # Monte-Carlo returns over 10 steps, so that 100-step episodes give overestimation values to read
     monkeypatch.setattr("sb3_lifelong.evaluation.overestimation.monte_carlo_horizon", lambda gamma: 10)
-    full = screen.preset
-
-    def small(candidate):
-        return dataclasses.replace(full(candidate), net_arch=(16, 16), batch_size=32, num_samples=4, learning_starts=100,
-                                   max_episode_steps=100)  # fmt: skip
-
-    monkeypatch.setattr(screen, "preset", small)
     return control
 
 

@@ -3,13 +3,13 @@ measured, and read by the pre-registered rule."""
 
 import argparse
 import csv
-import dataclasses
 import importlib.util
 import json
 import pathlib
 import types
 
 import pytest
+from testkit import shrink_screen
 
 SCRIPT = pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "studies" / "forgetting_screen" / "screen.py"
 
@@ -26,23 +26,12 @@ def load_screen() -> types.ModuleType:
 def tiny_screen(monkeypatch):
     """The screen at seconds' scale: one robot, two candidates, 600 steps of Env-A, tiny networks."""
     screen = load_screen()
-    monkeypatch.setattr(screen, "ROBOTS", {"cheetah": screen.Robot("HalfCheetah-v5", 600, -1e9)})
+    shrink_screen(screen, monkeypatch, eval_freq=200)
     monkeypatch.setattr(screen, "CANDIDATES", {
         "cheetah_back_reversed": ("cheetah", {"leg_motor_scale": -1.0}),
         "cheetah_back_knee_locked": ("cheetah", {"joint_lock": 1.0}),
     })  # fmt: skip
     monkeypatch.setattr(screen, "ENV_B_FACTOR", 2)
-    monkeypatch.setattr(screen, "EVAL_FREQ", 200)
-    monkeypatch.setattr(screen, "EVAL_EPISODES", 1)
-    monkeypatch.setattr(screen, "SAME_EPISODES", 1)
-    monkeypatch.setattr(screen, "PART", 400)
-    full = screen.preset
-
-    def small(candidate):
-        return dataclasses.replace(full(candidate), net_arch=(16, 16), batch_size=32, num_samples=4, learning_starts=100,
-                                   max_episode_steps=100)  # fmt: skip
-
-    monkeypatch.setattr(screen, "preset", small)
     return screen
 
 
