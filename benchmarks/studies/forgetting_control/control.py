@@ -475,7 +475,9 @@ def report(args: argparse.Namespace) -> str:
         "",
         f"Stage-1s ended: {len(stage1)} (Env-A learnt on {sum(stage1.values())}: seeds "
         f"{', '.join(str(s) for s, ok in stage1.items() if ok) or 'none'}). Seeds with both branches measured: "
-        f"{len(rows)}. A reading needs {LEARNT_SEEDS_WANTED} such seeds (95 % t interval of the mean).",
+        f"{len(rows)}. A reading needs {LEARNT_SEEDS_WANTED} such seeds (95 % t interval of the mean); each claim reads "
+        f"its first {LEARNT_SEEDS_WANTED} counted seeds in seed order (K2, K3: "
+        f"{', '.join(str(r['seed']) for r in rows[:LEARNT_SEEDS_WANTED]) or 'none'}); later seeds are reported below.",
         "",
         "| claim | values per seed | mean +- sd [95 % t] | reading |",
         "| --- | --- | --- | --- |",
@@ -539,8 +541,9 @@ def figure(rows: list[dict[str, Any]], results: pathlib.Path, path: pathlib.Path
         for ax in (top, bottom):
             ax.axvline(ENV_A_STEPS, color="k", lw=0.8)
             ax.set_xlabel("environment steps")
-        top.set_title(f"seed {seed}: cost ratio {row['cost_ratio']:.2f}, forgetting ratio {row['forgetting_ratio']:.2f}",
-                      fontsize=9)  # fmt: skip
+        unread = " (reported, not read)" if index >= LEARNT_SEEDS_WANTED else ""
+        top.set_title(f"seed {seed}{unread}: cost ratio {row['cost_ratio']:.2f}, forgetting ratio "
+                      f"{row['forgetting_ratio']:.2f}", fontsize=9)  # fmt: skip
         top.set_ylabel("Env-A return (5 seeded episodes)")
         bottom.set_ylabel("critic error on Env-A rows")
         for ax in (top, bottom):
