@@ -92,13 +92,13 @@ def run_stage1(seed: int, runs: pathlib.Path, results: pathlib.Path) -> dict[str
     run_dir = stage1_dir(runs, seed)
     if not (run_dir / "collect" / "stage1.zip").exists():
         rules.collect_in_parts(preset("switched"), seed, run_dir, ENV_A_STEPS)
-    evals = rules.last_evaluations(run_dir / "collect" / "eval.csv", "Env-A", ENV_A_STEPS)
-    mean, spread, learnt = rules.stage1_level(evals, rules.ROBOTS["cheetah"].threshold)
-    record = dict(seed=seed, evals=evals, mean=mean, spread=spread, learnt=learnt and len(evals) == rules.LAST)
+    reading = rules.stage1_reading(run_dir / "collect" / "eval.csv", ENV_A_STEPS, rules.ROBOTS["cheetah"].threshold)
+    record = dict(seed=seed, **reading)
     out.parent.mkdir(parents=True, exist_ok=True)
     (out.parent / f"seed_{seed}_eval.csv").write_text((run_dir / "collect" / "eval.csv").read_text())
     out.write_text(json.dumps(record, indent=1) + "\n")
-    print(f"seed {seed}: Env-A {'learnt' if record['learnt'] else 'not learnt'} (last 5: {mean:.0f}, spread {spread:.2f})")
+    state = "learnt" if record["learnt"] else "not learnt"
+    print(f"seed {seed}: Env-A {state} (last 5: {record['mean']:.0f}, spread {record['spread']:.2f})", flush=True)
     return record
 
 
@@ -199,7 +199,7 @@ def env_a_rows(run_dir: pathlib.Path, seed: int, count: int = TRUE_ERROR_ROWS) -
         columns = buffer.to_d4rl(by_episode=True, normalized_actions=True)
     candidates = np.flatnonzero(np.asarray(columns["sources"]).reshape(-1) == 0)
     picked = np.sort(np.random.default_rng(seed).choice(candidates, size=min(count, len(candidates)), replace=False))
-    return dict(observations=columns["observations"][picked], actions=columns["actions"][picked], index=picked)
+    return dict(observations=columns["observations"][picked], actions=columns["actions"][picked])
 
 
 def restore(env: Any, observation: np.ndarray) -> None:
@@ -254,8 +254,8 @@ def true_error(agent: Any, rows: dict[str, np.ndarray], envs: list[Any], seed: i
                 raise ValueError(f"a rollout ended at step {k} (HalfCheetah does not end before its time limit)")
             returns[i] += agent.gamma**k * reward
         step_actions, _ = agent.predict(current, deterministic=False)
-    g = th.as_tensor(returns, dtype=th.float64)
-    return dict(q=float(q.mean()), g=float(g.mean()), true_error=float((q.cpu() - g).mean()))
+    q_values = q.cpu().numpy()
+    return dict(q=float(q_values.mean()), g=float(returns.mean()), true_error=float((q_values - returns).mean()))
 
 
 def run_true_error(args: argparse.Namespace) -> None:
@@ -370,7 +370,7 @@ def read_claim(claim: str, values: Sequence[float]) -> str:
     The README's reading of one claim from the 95 % t interval of its per-seed values (amendment 1: which side of
     the line first, then whether the interval also lies within the equivalence margin).
 
-    :param claim: ``K1``, ``K2`` or ``K3``
+    :param claim: ``K1``, ``K2``, ``K3`` or ``K4`` (K4 reads as K3)
     :param values: one value per counted seed (the first ``LEARNT_SEEDS_WANTED`` are read)
     :return: K1 ``costs at least a fifth`` / ``costs`` / ``helps`` (each with ``, within the margin`` when the interval
         also lies in [0.9, 1.1]), ``no cost`` or ``inconclusive``; K2 ``holds``, ``fails`` or ``inconclusive``; K3

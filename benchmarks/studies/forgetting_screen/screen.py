@@ -188,6 +188,19 @@ def stage1_level(evals: Sequence[float], threshold: float) -> tuple[float, float
     return mean, spread, bool(mean >= threshold and spread <= MAX_SPREAD)
 
 
+def stage1_reading(eval_csv: pathlib.Path, switch: int, threshold: float) -> dict[str, Any]:
+    """
+    Whether Env-A was learnt at the switch, by the screen's rule: the mean of the last ``LAST`` Env-A evaluations up to
+    ``switch`` at least ``threshold``, their spread at most ``MAX_SPREAD``, and ``LAST`` evaluations there at all.
+
+    :return: ``evals``, ``mean``, ``spread``, ``threshold``, ``max_spread``, ``learnt``
+    """
+    evals = last_evaluations(eval_csv, "Env-A", switch)
+    mean, spread, learnt = stage1_level(evals, threshold)
+    return dict(evals=evals, mean=mean, spread=spread, threshold=threshold, max_spread=MAX_SPREAD,
+                learnt=learnt and len(evals) == LAST)  # fmt: skip
+
+
 def overestimation_at(q_csv: pathlib.Path, name: str, timesteps: int) -> float:
     """:return: the critic's overestimation of source ``name`` logged at ``timesteps`` (NaN when not logged)"""
     with open(q_csv, newline="") as handle:
