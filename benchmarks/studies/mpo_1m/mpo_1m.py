@@ -1,0 +1,235 @@
+"""
+MPO at the field's bar: one resumable run of MPO (Acme's MuJoCo baseline, :func:`sb3_lifelong.mpo.presets.acme_mujoco`)
+or of SB3's SAC at the same update ratio, batch and network sizes, with a deterministic evaluation every
+``--eval-every`` steps (10 seeded episodes, as Acme's example), written as one CSV row per evaluation.
+
+One command is one run; it checkpoints (model, optimisers, replay buffer, random streams) every
+``--checkpoint-every`` steps and a killed command continues from its last checkpoint::
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/mpo_1m/mpo_1m.py run --algo mpo --env HalfCheetah-v5 --seed 0 \\
+        --runs /work/runs/mpo_1m
+    python benchmarks/studies/mpo_1m/mpo_1m.py report       # results.md and curves.png from results/*.csv
+
+The same command measures OP3's Stage 1 for the paper's study (``--env sb3_lifelong/OP3Walk-v0 --appended
+hip_deformation``: the observation carries the hip's true parameter, as in the study's Stage 1), with the distance
+walked and the falls of each evaluation beside the return. Small results go to ``--results``; checkpoints and
+buffers stay in ``--runs``.
+"""
+
+import argparse
+import csv
+import json
+import os
+import pathlib
+import platform
+import subprocess
+import sys
+import time
+from typing import Any, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+
+STUDY = pathlib.Path(__file__).resolve().parent
+RESULTS = STUDY / "results"
+FIELDS = [
+    "timesteps",
+    "updates",
+    "mean_return",
+    "std_return",
+    "mean_length",
+    "falls",
+    "mean_distance",
+    "episodes",
+    "wall_s",
+]
+#: reset seeds of the evaluation episodes (the same at every evaluation: differences are the policy's alone)
+EVAL_SEED = 10_000
+#: a stage switch that never comes: the study's Stage-1 observation (the appended parameter at its nominal value)
+NEVER = 10**12
+
+
+def make_env(env_id: str, appended: Optional[str]) -> gym.Env:
+    """:return: the env, with ``appended``'s true value in the observation (at its nominal value) when given"""
+    import sb3_lifelong.envs  # noqa: F401  (registers sb3_lifelong/OP3Walk-v0)
+    from sb3_lifelong.envs import DynamicsSchedule
+
+    env = gym.make(env_id)
+    if appended:
+        env = DynamicsSchedule(env, stages=[{}, {appended: 0.3}], switch_at=[NEVER], append_params=True)
+    return env
+
+
+def make_model(algo: str, env: gym.Env, seed: int) -> Any:
+    """:return: MPO at Acme's MuJoCo baseline, or SB3's SAC at its update ratio, batch and network sizes"""
+    from stable_baselines3 import SAC
+
+    from sb3_lifelong import MPO
+    from sb3_lifelong.mpo.presets import acme_mujoco
+
+    preset = acme_mujoco()
+    if algo == "mpo":
+        return MPO("MlpPolicy", env, seed=seed, compile_losses=False, **preset)
+    same = {key: preset[key] for key in ("train_freq", "gradient_steps", "batch_size", "learning_rate", "learning_starts")}
+    return SAC("MlpPolicy", env, seed=seed, policy_kwargs={"net_arch": preset["policy_kwargs"]["net_arch"]}, **same)
+
+
+def evaluate(model: Any, env: gym.Env, episodes: int) -> dict[str, float]:
+    """
+    Deterministic episodes from the reset seeds ``EVAL_SEED + k``.
+
+    :return: mean and sd of the return, mean length, falls (terminated before the time limit) and the mean distance
+        walked along x (from ``info["x_position"]`` where the env gives it, else NaN)
+    """
+    returns, lengths, falls, distances = [], [], 0, []
+    for k in range(episodes):
+        obs, info = env.reset(seed=EVAL_SEED + k)
+        x0 = info.get("x_position")
+        total, length, done = 0.0, 0, False
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            obs, reward, terminated, truncated, info = env.step(action)
+            total, length = total + float(reward), length + 1
+            done = terminated or truncated
+        falls += int(terminated)
+        returns.append(total)
+        lengths.append(length)
+        distances.append(info["x_position"] - x0 if x0 is not None and "x_position" in info else float("nan"))
+    return {
+        "mean_return": float(np.mean(returns)),
+        "std_return": float(np.std(returns)),
+        "mean_length": float(np.mean(lengths)),
+        "falls": falls,
+        "mean_distance": float(np.mean(distances)),
+        "episodes": episodes,
+    }
+
+
+def run_name(algo: str, env_id: str, seed: int, appended: Optional[str]) -> str:
+    return f"{algo}_{env_id.split('/')[-1]}{'_' + appended if appended else ''}_s{seed}"
+
+
+def _read_rows(path: pathlib.Path) -> list[dict[str, str]]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def _write_rows(path: pathlib.Path, rows: list[dict[str, Any]]) -> None:
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+def machine() -> dict[str, Any]:
+    """:return: what the cost of a run depends on: CPU model and flags, versions, torch threads"""
+    cpuinfo = pathlib.Path("/proc/cpuinfo").read_text() if pathlib.Path("/proc/cpuinfo").exists() else ""
+    model = next((line.split(":", 1)[1].strip() for line in cpuinfo.splitlines() if line.startswith("model name")), "")
+    flags = sorted({flag for flag in cpuinfo.split() if flag.startswith("amx") or flag == "avx512_bf16"})
+    import mujoco
+    import stable_baselines3
+
+    import sb3_lifelong
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=STUDY, capture_output=True, text=True).stdout
+    except OSError:
+        commit = ""
+    return {
+        "cpu": model or platform.processor(),
+        "cpu_flags": flags,
+        "torch_threads": th.get_num_threads(),
+        "python": platform.python_version(),
+        "torch": th.__version__,
+        "stable_baselines3": stable_baselines3.__version__,
+        "sb3_lifelong": sb3_lifelong.__version__,
+        "mujoco": mujoco.__version__,
+        "gymnasium": gym.__version__,
+        "commit": commit.strip(),
+    }
+
+
+def run(args: argparse.Namespace) -> None:
+    """One run to ``--steps``, from its last checkpoint in ``--runs`` when there is one."""
+    from stable_baselines3 import SAC
+
+    from sb3_lifelong import MPO
+
+    if args.steps <= 0 or args.eval_every <= 0 or args.checkpoint_every % args.eval_every:
+        raise SystemExit("--steps and --eval-every must be > 0, and --checkpoint-every a multiple of --eval-every")
+    th.set_num_threads(1)
+    name = run_name(args.algo, args.env, args.seed, args.appended)
+    folder = pathlib.Path(args.runs) / name
+    folder.mkdir(parents=True, exist_ok=True)
+    results = pathlib.Path(args.results)
+    results.mkdir(parents=True, exist_ok=True)
+    csv_path, meta_path, state_path = results / f"{name}.csv", results / f"{name}.json", folder / "state.json"
+    env, eval_env = make_env(args.env, args.appended), make_env(args.env, args.appended)
+    algo_class = MPO if args.algo == "mpo" else SAC
+    if state_path.exists():
+        state = json.loads(state_path.read_text())
+        model = algo_class.load(folder / "model.zip", env=env)
+        model.load_replay_buffer(folder / "replay.pkl")
+        done, wall = int(state["timesteps"]), float(state["wall_s"])
+        rows = [row for row in _read_rows(csv_path) if int(row["timesteps"]) <= done]  # later rows are evaluated again
+        print(f"{name}: resumed at {done} steps ({wall / 3600:.2f} h so far)", flush=True)
+    else:
+        model, done, wall = make_model(args.algo, env, args.seed), 0, 0.0
+        rows = []
+        rows.append({"timesteps": 0, "updates": 0, **evaluate(model, eval_env, args.eval_episodes), "wall_s": 0.0})
+        _write_rows(csv_path, rows)
+    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {"machines": []}
+    meta.update({"algo": args.algo, "env": args.env, "appended": args.appended, "seed": args.seed, "steps": args.steps})
+    meta.update({"eval_every": args.eval_every, "eval_episodes": args.eval_episodes, "command": " ".join(sys.argv)})
+    meta["machines"].append({"from_timesteps": done, **machine()})
+    meta_path.write_text(json.dumps(meta, indent=1) + "\n")
+    while done < args.steps:
+        chunk = min(args.eval_every, args.steps - done)
+        start = time.perf_counter()
+        model.learn(chunk, reset_num_timesteps=done == 0 and model.num_timesteps == 0)
+        wall += time.perf_counter() - start
+        done = model.num_timesteps
+        updates = int(getattr(model, "_n_updates", 0))
+        rows.append({"timesteps": done, "updates": updates, **evaluate(model, eval_env, args.eval_episodes), "wall_s": wall})
+        _write_rows(csv_path, rows)
+        last = rows[-1]
+        print(
+            f"{name}: {done} steps, {updates} updates, return {last['mean_return']:.0f}, falls {last['falls']}, "
+            f"{wall / done * 1000:.1f} ms/step",
+            flush=True,
+        )
+        if done % args.checkpoint_every == 0 or done >= args.steps:
+            model.save(folder / "model.tmp.zip")
+            model.save_replay_buffer(folder / "replay.tmp.pkl")
+            os.replace(folder / "model.tmp.zip", folder / "model.zip")
+            os.replace(folder / "replay.tmp.pkl", folder / "replay.pkl")
+            state_path.write_text(json.dumps({"timesteps": done, "wall_s": wall}) + "\n")
+    print(f"{name}: done at {done} steps in {wall / 3600:.2f} h", flush=True)
+
+
+def main(argv: Optional[list[str]] = None) -> None:
+    parser = argparse.ArgumentParser(prog="mpo_1m.py", description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    one = commands.add_parser("run", help="one run (resumes from its last checkpoint)")
+    one.add_argument("--algo", choices=["mpo", "sac"], required=True)
+    one.add_argument("--env", required=True)
+    one.add_argument("--seed", type=int, required=True)
+    one.add_argument("--steps", type=int, default=1_000_000)
+    one.add_argument("--eval-every", type=int, default=10_000)
+    one.add_argument("--eval-episodes", type=int, default=10)
+    one.add_argument("--checkpoint-every", type=int, default=50_000)
+    one.add_argument("--appended", default=None, help="a parameter whose true value the observation carries")
+    one.add_argument("--runs", required=True, help="folder of the checkpoints and buffers (not committed)")
+    one.add_argument("--results", default=str(RESULTS), help="folder of the CSV and JSON of each run")
+    args = parser.parse_args(argv)
+    if args.command == "run":
+        run(args)
+
+
+if __name__ == "__main__":
+    main()
