@@ -38,7 +38,7 @@ from sb3_lifelong.evaluation.callbacks import MultiEnvEvalCallback
 from sb3_lifelong.mpo import MPO
 from sb3_lifelong.zoo.optimize import CONVERTERS, SAMPLERS
 
-__all__ = ["ALGORITHMS", "HYPERPARAMS", "StageEvalCallback", "hyperparams_file", "register", "run_buffer_path"]
+__all__ = ["ALGORITHMS", "HYPERPARAMS", "PRESETS", "StageEvalCallback", "hyperparams_file", "register", "run_buffer_path"]
 
 #: the zoo's names of this package's algorithms (online use: CRR learns online too, from its own replay buffer)
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"mpo": MPO, "crr": CRR}
@@ -48,11 +48,24 @@ HYPERPARAMS = pathlib.Path(__file__).parent / "hyperparams"
 ZOO_NAMES: dict[str, Any] = {"sb3_lifelong": sb3_lifelong, "LifelongReplayBuffer": LifelongReplayBuffer}
 
 
-def hyperparams_file(algo: str) -> pathlib.Path:
-    """:return: this package's hyperparameter file for ``algo`` (``mpo`` or ``crr``)"""
+#: the named presets of each algorithm that have a hyperparameter file of their own (``--conf-file`` / ``-conf``)
+PRESETS: dict[str, tuple[str, ...]] = {"mpo": ("acme",), "crr": ()}
+
+
+def hyperparams_file(algo: str, preset: Optional[str] = None) -> pathlib.Path:
+    """
+    :param algo: ``mpo`` or ``crr``
+    :param preset: None for the package's defaults (the file ``train`` uses without ``-conf``), or a named preset
+        (:data:`PRESETS`: ``"acme"`` is MPO at Acme's MuJoCo baseline, :func:`sb3_lifelong.mpo.presets.acme_mujoco`)
+    :return: this package's hyperparameter file for ``algo``
+    """
     if algo not in ALGORITHMS:
         raise ValueError(f"no hyperparameters for {algo!r} here: this package adds {sorted(ALGORITHMS)} to the zoo")
-    return HYPERPARAMS / f"{algo}.yml"
+    if preset is None:
+        return HYPERPARAMS / f"{algo}.yml"
+    if preset not in PRESETS[algo]:
+        raise ValueError(f"no preset {preset!r} for {algo}: the presets are {list(PRESETS[algo])}")
+    return HYPERPARAMS / f"{algo}_{preset}.yml"
 
 
 #: the names a hyperparameter file's buffer ``path`` may use (:func:`run_buffer_path`)

@@ -1,0 +1,70 @@
+"""MPO's named presets: Acme's MuJoCo baseline, its zoo file, and what it builds."""
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+from torch import nn
+
+from sb3_lifelong import MPO
+from sb3_lifelong.mpo.presets import ACME_MUJOCO, ACME_MUJOCO_SOURCES, acme_mujoco
+from sb3_lifelong.zoo import PRESETS, hyperparams_file
+
+SMALL = {"learning_starts": 100, "policy_kwargs": {"net_arch": [32, 32]}, "batch_size": 32, "num_samples": 4}
+
+
+def test_every_setting_has_a_source():
+    names = {key for key in ACME_MUJOCO if key != "policy_kwargs"}
+    names |= {f"policy_kwargs.{key}" for key in ACME_MUJOCO["policy_kwargs"]}
+    assert set(ACME_MUJOCO_SOURCES) == names
+    assert all("acme" in source for source in ACME_MUJOCO_SOURCES.values())
+
+
+def test_overrides_merge_and_copies_are_fresh():
+    kwargs = acme_mujoco(learning_starts=5, policy_kwargs={"net_arch": [8]})
+    assert kwargs["learning_starts"] == 5 and kwargs["policy_kwargs"]["net_arch"] == [8]
+    assert kwargs["policy_kwargs"]["init_std"] == 0.5  # the rest of the preset's policy_kwargs stays
+    kwargs["policy_kwargs"]["init_std"] = 9.0
+    assert ACME_MUJOCO["policy_kwargs"]["init_std"] == 0.5 and acme_mujoco()["learning_starts"] == 1_000
+    with pytest.raises(TypeError, match=r"\['not_an_mpo_setting'\]"):
+        acme_mujoco(not_an_mpo_setting=1)
+
+
+def test_builds_acme_networks_duals_and_ratio():
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **acme_mujoco())
+    actor = model.actor
+    linears = [module for module in actor.latent_pi if isinstance(module, nn.Linear)]
+    assert [layer.out_features for layer in linears] == [256, 256, 256]
+    kinds = [type(module).__name__ for module in actor.latent_pi]
+    assert kinds[:3] == ["Linear", "LayerNorm", "Tanh"] and kinds.count("ELU") == 2
+    critic_kinds = [type(module).__name__ for module in model.critic.q_networks[0]]
+    assert critic_kinds.count("LayerNorm") == 1 and critic_kinds.count("ELU") == 2
+    assert not actor.squash_mean and model.action_penalty
+    assert math.isclose(actor._std_scale * math.log(2.0), 0.5)  # the std at a zero pre-activation: the init scale
+    assert model.train_freq.frequency == 4 and model.gradient_steps == 1 and model.n_steps == 4
+    assert model.replay_buffer.n_steps == 4
+    assert model.epsilon_mean == 0.01 and model.learning_rate == 3e-4 and model.target_update_interval == 100
+    assert math.isclose(model.temperature, 10.0, rel_tol=1e-4)
+    assert np.allclose(model.log_alpha_stddev.detach().numpy(), 1000.0)  # softplus is the identity up there
+
+
+def test_one_update_per_four_steps():
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **acme_mujoco(**SMALL))
+    model.learn(500)
+    # rollouts of 4 steps; learning after the 100 warm-up steps: (500 - 100) / 4 updates
+    assert model._n_updates == 100
+
+
+def test_zoo_file_is_the_preset():
+    path = hyperparams_file("mpo", "acme")
+    assert path.name == "mpo_acme.yml" and PRESETS["mpo"] == ("acme",)
+    entries = yaml.safe_load(path.read_text())
+    expected = acme_mujoco()
+    for env_id, entry in entries.items():
+        settings = {key: value for key, value in entry.items() if key not in ("n_timesteps", "policy")}
+        settings["policy_kwargs"] = eval(settings["policy_kwargs"], {"nn": nn})  # the zoo evaluates it so
+        assert settings == expected, env_id
+    assert {"HalfCheetah-v5", "Walker2d-v5", "Hopper-v5", "sb3_lifelong/OP3Walk-v0"} <= set(entries)
+    with pytest.raises(ValueError, match="no preset 'paper' for mpo"):
+        hyperparams_file("mpo", "paper")
