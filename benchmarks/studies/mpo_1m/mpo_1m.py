@@ -19,6 +19,7 @@ buffers stay in ``--runs``.
 import argparse
 import csv
 import json
+import math
 import os
 import pathlib
 import platform
@@ -61,14 +62,17 @@ def make_env(env_id: str, appended: Optional[str]) -> gym.Env:
     return env
 
 
-def make_model(algo: str, env: gym.Env, seed: int) -> Any:
-    """:return: MPO at Acme's MuJoCo baseline, or SB3's SAC at its update ratio, batch and network sizes"""
+def make_model(algo: str, env: gym.Env, seed: int, net_arch: Optional[list[int]] = None) -> Any:
+    """
+    :param net_arch: hidden layers instead of the preset's 256x256x256 (small-scale checks only)
+    :return: MPO at Acme's MuJoCo baseline, or SB3's SAC at its update ratio, batch and network sizes
+    """
     from stable_baselines3 import SAC
 
     from sb3_lifelong import MPO
     from sb3_lifelong.mpo.presets import acme_mujoco
 
-    preset = acme_mujoco()
+    preset = acme_mujoco(**({"policy_kwargs": {"net_arch": net_arch}} if net_arch else {}))
     if algo == "mpo":
         return MPO("MlpPolicy", env, seed=seed, compile_losses=False, **preset)
     same = {key: preset[key] for key in ("train_freq", "gradient_steps", "batch_size", "learning_rate", "learning_starts")}
@@ -179,12 +183,13 @@ def run(args: argparse.Namespace) -> None:
         rows = [row for row in _read_rows(csv_path) if int(row["timesteps"]) <= done]  # later rows are evaluated again
         print(f"{name}: resumed at {done} steps ({wall / 3600:.2f} h so far)", flush=True)
     else:
-        model, done, wall = make_model(args.algo, env, args.seed), 0, 0.0
+        model, done, wall = make_model(args.algo, env, args.seed, args.net_arch), 0, 0.0
         rows = []
         rows.append({"timesteps": 0, "updates": 0, **evaluate(model, eval_env, args.eval_episodes), "wall_s": 0.0})
         _write_rows(csv_path, rows)
     meta = json.loads(meta_path.read_text()) if meta_path.exists() else {"machines": []}
     meta.update({"algo": args.algo, "env": args.env, "appended": args.appended, "seed": args.seed, "steps": args.steps})
+    meta["net_arch"] = args.net_arch or "the preset's"
     meta.update({"eval_every": args.eval_every, "eval_episodes": args.eval_episodes, "command": " ".join(sys.argv)})
     meta["machines"].append({"from_timesteps": done, **machine()})
     meta_path.write_text(json.dumps(meta, indent=1) + "\n")
@@ -212,6 +217,192 @@ def run(args: argparse.Namespace) -> None:
     print(f"{name}: done at {done} steps in {wall / 3600:.2f} h", flush=True)
 
 
+#: rl-zoo3's SAC at 1M steps (one update per step), the reference lines of the curves and M2's band
+ZOO_SAC = {"HalfCheetah-v5": 9535.0, "Walker2d-v5": 3863.0, "Hopper-v5": 2326.0}
+TASKS = ("HalfCheetah-v5", "Walker2d-v5", "Hopper-v5")
+#: a run's final return: the mean of its last FINAL_EVALS evaluations
+FINAL_EVALS = 10
+NON_INFERIORITY = 0.10
+ZOO_BAND = 0.9
+
+
+def load_runs(results: pathlib.Path) -> list[dict[str, Any]]:
+    """:return: every run in ``results``: its settings (JSON) and its evaluations (CSV) as float arrays"""
+    runs = []
+    for meta_path in sorted(results.glob("*.json")):
+        meta = json.loads(meta_path.read_text())
+        rows = _read_rows(meta_path.with_suffix(".csv"))
+        if not rows:
+            continue
+        curve = {key: np.asarray([float(row[key]) for row in rows]) for key in FIELDS}
+        runs.append({**meta, "name": meta_path.stem, "curve": curve, "finished": curve["timesteps"][-1] >= meta["steps"]})
+    return runs
+
+
+def final_return(run: dict[str, Any]) -> float:
+    """:return: the mean of the run's last :data:`FINAL_EVALS` evaluations (NaN until the run has finished)"""
+    returns = run["curve"]["mean_return"]
+    return float(np.mean(returns[-FINAL_EVALS:])) if run["finished"] else float("nan")
+
+
+def _interval(values: list[float]) -> tuple[float, float, float, float]:
+    from sb3_lifelong.experiments.statistics import t_interval
+
+    return t_interval(values)
+
+
+def read_claims(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """:return: M1 and M2 per task, read by the registered rules (README.md)"""
+    readings = []
+    for task in [task for task in TASKS if any(run["env"] == task for run in runs)]:
+        finals = {
+            algo: {
+                run["seed"]: final_return(run)
+                for run in runs
+                if run["env"] == task and run["algo"] == algo and run["finished"]
+            }
+            for algo in ("mpo", "sac")
+        }
+        paired = sorted(set(finals["mpo"]) & set(finals["sac"]))
+        if len(paired) < 3:
+            readings.append(
+                {"task": task, "claim": "M1", "n": len(paired), "reading": "not testable (fewer than 3 paired seeds)"}
+            )
+        else:
+            difference = [finals["mpo"][seed] - finals["sac"][seed] for seed in paired]
+            mean, sd, low, high = _interval(difference)
+            margin = NON_INFERIORITY * float(np.mean([finals["sac"][seed] for seed in paired]))
+            reading = "holds" if low > -margin else "fails" if high < -margin else "inconclusive"
+            readings.append(
+                {
+                    "task": task,
+                    "claim": "M1",
+                    "n": len(paired),
+                    "mean": mean,
+                    "sd": sd,
+                    "low": low,
+                    "high": high,
+                    "bound": -margin,
+                    "reading": reading,
+                }
+            )
+        for algo in ("mpo", "sac"):
+            values = list(finals[algo].values())
+            if len(values) < 3:
+                readings.append(
+                    {"task": task, "claim": f"M2 {algo}", "n": len(values), "reading": "not testable (fewer than 3 seeds)"}
+                )
+                continue
+            mean, sd, low, high = _interval(values)
+            band = ZOO_BAND * ZOO_SAC[task]
+            reading = "holds" if low > band else "fails" if high < band else "inconclusive"
+            readings.append(
+                {
+                    "task": task,
+                    "claim": f"M2 {algo}",
+                    "n": len(values),
+                    "mean": mean,
+                    "sd": sd,
+                    "low": low,
+                    "high": high,
+                    "bound": band,
+                    "reading": reading,
+                }
+            )
+    return readings
+
+
+def _cost(run: dict[str, Any]) -> str:
+    curve = run["curve"]
+    steps, updates, wall = curve["timesteps"][-1], curve["updates"][-1], curve["wall_s"][-1]
+    cpu = run["machines"][-1]["cpu"] + (
+        " " + ",".join(run["machines"][-1]["cpu_flags"]) if run["machines"][-1]["cpu_flags"] else ""
+    )
+    per_update = 1000 * wall / max(updates, 1)
+    return (
+        f"{wall / 3600:.2f} h, {1000 * wall / max(steps, 1):.2f} ms/step, ~{per_update:.0f} ms/update (with collection), {cpu}"
+    )
+
+
+def report(args: argparse.Namespace) -> None:
+    """``results.md`` and ``curves.png`` from every run's CSV in ``--results``."""
+    results = pathlib.Path(args.results)
+    runs = load_runs(results)
+    if not runs:
+        raise SystemExit(f"no runs in {results}")
+    lines = [
+        "# Results (generated by `python benchmarks/studies/mpo_1m/mpo_1m.py report`)",
+        "",
+        "## Every run",
+        "",
+        "| run | steps | updates | last eval | best eval | final (mean of last 10) | falls at last eval | cost |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for run in runs:
+        curve = run["curve"]
+        final = final_return(run)
+        lines.append(
+            f"| {run['name']} | {curve['timesteps'][-1]:.0f} of {run['steps']} | {curve['updates'][-1]:.0f} | "
+            f"{curve['mean_return'][-1]:.0f} | {curve['mean_return'].max():.0f} | "
+            f"{'running' if math.isnan(final) else f'{final:.0f}'} | {curve['falls'][-1]:.0f} / {run['eval_episodes']} | "
+            f"{_cost(run)} |"
+        )
+    lines += [
+        "",
+        "## Readings (README.md's rules)",
+        "",
+        "| task | claim | seeds | mean +- sd [95 % t] | bound | reading |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for reading in read_claims(runs):
+        if "mean" in reading:
+            value = f"{reading['mean']:.0f} +- {reading['sd']:.0f} [{reading['low']:.0f}, {reading['high']:.0f}]"
+            bound = f"{reading['bound']:.0f}"
+        else:
+            value, bound = "-", "-"
+        lines.append(f"| {reading['task']} | {reading['claim']} | {reading['n']} | {value} | {bound} | {reading['reading']} |")
+    (pathlib.Path(args.out) / "results.md").write_text("\n".join(lines) + "\n")
+    draw(runs, pathlib.Path(args.out) / "curves.png")
+    print("\n".join(lines))
+
+
+def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
+    """Learning curves: one panel per env (and distance and falls for OP3), every seed thin, the mean over seeds bold."""
+    from sb3_lifelong.experiments.style import pyplot, save
+
+    plt = pyplot()
+    envs = sorted({run["env"] for run in runs}, key=lambda env: TASKS.index(env) if env in TASKS else len(TASKS))
+    panels = [(env, "mean_return", "return (10 deterministic episodes)") for env in envs]
+    if any("x_position" in env or "OP3" in env for env in envs):
+        panels += [(env, "mean_distance", "distance walked (m)") for env in envs if "OP3" in env]
+        panels += [(env, "falls", "falls in 10 episodes") for env in envs if "OP3" in env]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.6), squeeze=False)
+    colors = {"mpo": "tab:blue", "sac": "tab:orange"}
+    for ax, (env, key, label) in zip(axes[0], panels):
+        for algo in ("mpo", "sac"):
+            mine = [run for run in runs if run["env"] == env and run["algo"] == algo]
+            for run in mine:
+                ax.plot(run["curve"]["timesteps"], run["curve"][key], color=colors[algo], lw=0.7, alpha=0.45)
+            if mine:
+                length = min(len(run["curve"][key]) for run in mine)
+                mean = np.mean([run["curve"][key][:length] for run in mine], axis=0)
+                ax.plot(
+                    mine[0]["curve"]["timesteps"][:length],
+                    mean,
+                    color=colors[algo],
+                    lw=2.0,
+                    label=f"{algo.upper()} (mean of {len(mine)} seed{'s' * (len(mine) > 1)})",
+                )
+        if key == "mean_return" and env in ZOO_SAC:
+            ax.axhline(ZOO_SAC[env], color="gray", ls="--", lw=1, label="rl-zoo3 SAC at 1M (ratio 1)")
+        ax.set_title(env.split("/")[-1], fontsize=10)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left")
+    save(plt, fig, path)
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     parser = argparse.ArgumentParser(prog="mpo_1m.py", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -224,11 +415,17 @@ def main(argv: Optional[list[str]] = None) -> None:
     one.add_argument("--eval-episodes", type=int, default=10)
     one.add_argument("--checkpoint-every", type=int, default=50_000)
     one.add_argument("--appended", default=None, help="a parameter whose true value the observation carries")
+    one.add_argument("--net-arch", type=int, nargs="+", default=None, help="small-scale checks only: hidden layers")
     one.add_argument("--runs", required=True, help="folder of the checkpoints and buffers (not committed)")
     one.add_argument("--results", default=str(RESULTS), help="folder of the CSV and JSON of each run")
+    summary = commands.add_parser("report", help="results.md and curves.png from the runs' CSV files")
+    summary.add_argument("--results", default=str(RESULTS), help="folder of the runs' CSV and JSON files")
+    summary.add_argument("--out", default=str(STUDY), help="folder of results.md and curves.png")
     args = parser.parse_args(argv)
     if args.command == "run":
         run(args)
+    else:
+        report(args)
 
 
 if __name__ == "__main__":

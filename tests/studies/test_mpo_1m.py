@@ -1,0 +1,122 @@
+"""benchmarks/studies/mpo_1m/mpo_1m.py: one resumable run with seeded deterministic evaluations, and its report read
+by the registered rules."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from testkit import benchmark_module
+
+
+@pytest.fixture
+def bench():
+    return benchmark_module("mpo_1m")
+
+
+def rows(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_run_resumes_from_its_checkpoint_and_drops_later_rows(bench, tmp_path):
+    common = ["--algo", "mpo", "--env", "Pendulum-v1", "--seed", "3", "--eval-every", "400", "--checkpoint-every", "400"]
+    common += [
+        "--net-arch",
+        "16",
+        "16",
+        "--eval-episodes",
+        "2",
+        "--runs",
+        str(tmp_path / "runs"),
+        "--results",
+        str(tmp_path / "res"),
+    ]
+    bench.main(["run", *common, "--steps", "1200"])
+    name = bench.run_name("mpo", "Pendulum-v1", 3, None)
+    csv_path = tmp_path / "res" / f"{name}.csv"
+    first = rows(csv_path)
+    assert [int(row["timesteps"]) for row in first] == [0, 400, 800, 1200]
+    assert [int(row["updates"]) for row in first] == [0, 0, 0, 50]  # (1200 - 1000 warm-up) / 4: Acme's ratio
+    assert all(int(row["episodes"]) == 2 and float(row["mean_length"]) == 200 for row in first)
+    # an evaluation written after the last checkpoint (a run killed before its next one) is evaluated again
+    with open(csv_path, "a", newline="") as handle:
+        csv.writer(handle).writerow([1400, 100, 0.0, 0.0, 200, 0, "nan", 2, 99.0])
+    bench.main(["run", *common, "--steps", "1600"])
+    resumed = rows(csv_path)
+    assert [int(row["timesteps"]) for row in resumed] == [0, 400, 800, 1200, 1600]
+    assert [int(row["updates"]) for row in resumed][-1] == 150
+    assert resumed[:4] == first
+    meta = json.loads((tmp_path / "res" / f"{name}.json").read_text())
+    assert [machine["from_timesteps"] for machine in meta["machines"]] == [0, 1200]
+    with pytest.raises(SystemExit, match="multiple of --eval-every"):
+        bad = list(common)
+        bad[bad.index("--checkpoint-every") + 1] = "700"
+        bench.main(["run", *bad, "--steps", "1600"])
+
+
+def test_evaluation_episodes_are_seeded_and_deterministic(bench):
+    from sb3_lifelong import MPO
+    from sb3_lifelong.mpo.presets import acme_mujoco
+
+    env = bench.make_env("Pendulum-v1", None)
+    model = MPO("MlpPolicy", env, seed=0, **acme_mujoco(policy_kwargs={"net_arch": [16]}))
+    first, second = bench.evaluate(model, env, 3), bench.evaluate(model, env, 3)
+    assert first == {**second, "mean_distance": first["mean_distance"]} and np.isnan(first["mean_distance"])
+    assert first["falls"] == 0 and first["mean_length"] == 200
+
+
+def write_run(folder, algo, env, seed, finals):
+    name = bench_name = f"{algo}_{env}_s{seed}"
+    meta = {"algo": algo, "env": env, "seed": seed, "steps": 1_000_000, "eval_episodes": 10, "appended": None}
+    meta["machines"] = [{"from_timesteps": 0, "cpu": "test CPU", "cpu_flags": []}]
+    (folder / f"{name}.json").write_text(json.dumps(meta))
+    with open(folder / f"{bench_name}.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(
+            [
+                "timesteps",
+                "updates",
+                "mean_return",
+                "std_return",
+                "mean_length",
+                "falls",
+                "mean_distance",
+                "episodes",
+                "wall_s",
+            ]
+        )
+        for k in range(101):
+            value = finals if k >= 91 else 0.0  # the last 10 evaluations hold the final return
+            writer.writerow([k * 10_000, k * 2500, value, 0, 1000, 0, "nan", 10, k * 10.0])
+
+
+@pytest.mark.parametrize(
+    "mpo, sac, reading",
+    [
+        ((9000, 9100, 9200), (9000, 9000, 9000), "holds"),
+        ((5000, 5100, 5200), (9000, 9000, 9000), "fails"),
+        ((9000, 4000, 9400), (9000, 9000, 9000), "inconclusive"),
+    ],
+)
+def test_report_reads_m1_and_m2_by_the_registered_rules(bench, tmp_path, mpo, sac, reading):
+    for seed, (mine, theirs) in enumerate(zip(mpo, sac)):
+        write_run(tmp_path, "mpo", "HalfCheetah-v5", seed, mine)
+        write_run(tmp_path, "sac", "HalfCheetah-v5", seed, theirs)
+    readings = {r["claim"]: r for r in bench.read_claims(bench.load_runs(tmp_path))}
+    assert readings["M1"]["reading"] == reading and readings["M1"]["n"] == 3
+    assert readings["M1"]["bound"] == pytest.approx(-900.0)  # 10 % of SAC's mean final return
+    assert readings["M1"]["mean"] == pytest.approx(np.mean(np.subtract(mpo, sac)))
+    # M2: 0.9 x the zoo's 9,535 = 8,581.5; SAC's 9,000 on every seed is above it (sd 0: a zero-width interval)
+    assert readings["M2 sac"]["reading"] == "holds" and readings["M2 sac"]["bound"] == pytest.approx(8581.5)
+    bench.main(["report", "--results", str(tmp_path), "--out", str(tmp_path)])
+    text = (tmp_path / "results.md").read_text()
+    assert "| HalfCheetah-v5 | M1 | 3 |" in text and reading in text and (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_a_run_that_has_not_finished_has_no_final_return(bench, tmp_path):
+    write_run(tmp_path, "mpo", "Hopper-v5", 0, 1000.0)
+    meta = json.loads((tmp_path / "mpo_Hopper-v5_s0.json").read_text())
+    (tmp_path / "mpo_Hopper-v5_s0.json").write_text(json.dumps({**meta, "steps": 2_000_000}))
+    (run,) = bench.load_runs(tmp_path)
+    assert not run["finished"] and np.isnan(bench.final_return(run))
