@@ -1,8 +1,8 @@
 """
 What :meth:`~sb3_lifelong.buffers.LifelongReplayBuffer.add` accepts: real numbers (bool, integer or float arrays) in the
 shapes SB3's ``ReplayBuffer.add`` accepts for ``n_envs`` envs (at most :data:`MAX_ENVS_PER_ADD`), converted to the
-stored dtypes, with finite values; anything else is refused with a ``ValueError`` naming the field, before anything of
-the call is stored.
+stored dtypes, with finite values, and only where an integer (or bool) field holds them exactly; anything else is
+refused with a ``ValueError`` naming the field, before anything of the call is stored.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 
 from sb3_lifelong.buffers.manifest import obs_keys_of
 
-__all__ = ["MAX_ENVS_PER_ADD", "AddChecks", "raise_if_not_finite"]
+__all__ = ["MAX_ENVS_PER_ADD", "AddChecks", "exact_integers", "raise_if_not_finite"]
 
 _vdot = np.vdot
 _isfinite = math.isfinite
@@ -57,6 +57,55 @@ def numeric(label: str, value: Any) -> np.ndarray:
             "(bool, integer or float arrays) are stored; nothing of this add() was stored"
         )
     return array
+
+
+def _integer_bounds(dtype: np.dtype) -> tuple[int, int]:
+    """:return: the smallest and largest value of an integer or bool dtype"""
+    if dtype.kind == "b":
+        return 0, 1
+    info = np.iinfo(dtype)
+    return int(info.min), int(info.max)
+
+
+def exact_integers(label: str, value: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """
+    The float rules for a stored integer (or bool) field: a value is stored only if the stored dtype holds it exactly
+    (as a float field refuses what overflows its dtype and a complex value, whose imaginary part would be lost).
+
+    :param label: The field, for the message (e.g. ``"observations"``, ``"observations['image']"``)
+    :param value: What ``add()`` was given for it (real numbers: see :func:`numeric`)
+    :param dtype: The stored dtype (integers or bool)
+    :return: ``value`` converted to ``dtype`` (``value`` itself when its dtype casts safely, e.g. uint8 into int64)
+    :raises ValueError: naming the field, the first value and the range, for a value out of the range of ``dtype``
+        (300 or -1 into uint8), a fractional one (0.7 into an integer field), NaN or infinite; nothing is stored
+    """
+    if np.can_cast(value.dtype, dtype, casting="safe"):
+        return value
+    low, high = _integer_bounds(dtype)
+    if value.dtype.kind == "f":
+        wide = value.astype(np.float64, copy=False)
+        # the bounds +-2**k are exact floats; high + 1 is too (a power of two), high itself may not be (2**63 - 1)
+        bad = ~((wide >= low) & (wide < float(high + 1)) & (np.floor(wide) == wide))
+    else:  # integers (or bools, which every integer dtype holds)
+        bad = (value < low) | (value > high) if value.size else np.zeros(value.shape, bool)
+    if np.any(bad):
+        flat = np.asarray(value).reshape(-1)
+        at = int(np.flatnonzero(np.asarray(bad).reshape(-1))[0])
+        first = flat[at]
+        count = int(np.count_nonzero(bad))
+        more = f" (and {count - 1} more)" if count > 1 else ""
+        env = f" of env {at // max(1, flat.size // len(value))}" if value.ndim else ""
+        what = "only 0 and 1" if dtype.kind == "b" else f"integers from {low:,} to {high:,}"
+        why = (
+            "is not finite"
+            if not np.isfinite(first)
+            else "is not an integer" if first != np.floor(first) else "is out of range"
+        )
+        raise ValueError(
+            f"add(): {label}{env}: the value {first.item()!r}{more} {why}: the field is stored as {dtype} ({what}), and numpy "
+            "would store another value (wrapped around or truncated); nothing of this add() was stored"
+        )
+    return value.astype(dtype)
 
 
 def _conform(label: str, value: np.ndarray, target: tuple[int, ...], what: str = "") -> np.ndarray:
@@ -179,16 +228,21 @@ class AddChecks:
         done = np.asarray(done)
         if done.dtype is not _BOOL:
             numeric("dones", done)
+        if done.shape != self._done:
+            done = _conform("dones", done, self._done)
+        if done.dtype is not _BOOL:
+            done = exact_integers("dones", done, _BOOL)  # 0 and 1 only: a done of 2 (or 0.5) is refused
         flags = np.array(done, dtype=bool)
-        if flags.shape != self._done:
-            flags = np.array(_conform("dones", flags, self._done))
         actions = np.asarray(action)
         if actions.dtype is not self.dtypes["actions"]:
             numeric("actions", actions)
         if actions.shape != self._actions:
             actions = self._conform_actions(actions, width)
-        if actions.dtype != self._action_dtype and self._action_dtype.kind == "f":
-            actions = actions.astype(self._action_dtype)  # stored as this: the finiteness check sees the stored values
+        if actions.dtype != self._action_dtype:
+            if self._action_dtype.kind == "f":
+                actions = actions.astype(self._action_dtype)  # stored as this: the finiteness check sees the stored values
+            else:
+                actions = exact_integers("actions", actions, self._action_dtype)
         rows = self._checked_rows(obs, next_obs, actions, reward, width)
         rows["actions"] = actions
         rows["rewards"] = reward
@@ -211,10 +265,10 @@ class AddChecks:
                 numeric("next_observations", next_observations)
             if next_observations.shape != target:
                 next_observations = self._conform_obs("next_observations", next_observations, target)
-            if observations.dtype != dtype and dtype.kind == "f":
-                observations = observations.astype(dtype)
-            if next_observations.dtype != dtype and dtype.kind == "f":
-                next_observations = next_observations.astype(dtype)
+            if observations.dtype != dtype:
+                observations = self._stored("observations", observations, dtype)
+            if next_observations.dtype != dtype:
+                next_observations = self._stored("next_observations", next_observations, dtype)
             # a cheap test of every value: a NaN or an infinity in x or y makes the dot product x.y NaN or infinite
             # (x * 0 is NaN for x infinite, and an infinite sum never comes back). Large finite values that overflow
             # do so too: then the exact check finds nothing
@@ -238,6 +292,14 @@ class AddChecks:
             }
             _check_finite(rows, actions, reward)
         return rows
+
+    @staticmethod
+    def _stored(label: str, value: np.ndarray, dtype: np.dtype) -> np.ndarray:
+        """``value`` in the stored ``dtype``: floats converted (their finiteness is checked after), integers and bools
+        only where exact (:func:`exact_integers`)."""
+        if dtype.kind == "f":
+            return value.astype(dtype)
+        return exact_integers(label, value, dtype)
 
     def _set_shapes(self, width: int) -> None:
         """The shapes add() expects for ``width`` envs, and the stored dtypes of its float fields."""
@@ -294,5 +356,5 @@ class AddChecks:
             if value.shape != target:
                 value = self._conform_obs(f"{base}[{key!r}]", value, target, self._key_spaces[key])
             dtype = self.dtypes[name]
-            rows[name] = value.astype(dtype) if value.dtype != dtype and dtype.kind == "f" else value
+            rows[name] = self._stored(f"{base}[{key!r}]", value, dtype) if value.dtype != dtype else value
         return rows

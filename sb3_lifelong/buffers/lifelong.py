@@ -28,6 +28,7 @@ from sb3_lifelong.buffers.manifest import (
     FLAG_TIMEOUT,
     MANIFEST_NAME,
     BufferFormatError,
+    MetadataError,
     check_source_id,
     committed_transitions,
     obs_keys_of,
@@ -116,6 +117,11 @@ class LifelongReplayBuffer(LifelongSampler):
         ``BufferFormatError`` naming it, both before anything is deleted. Ignored with ``read_only=True``
     :param evict: Reopening a directory with a ``capacity`` smaller than the number of transitions it holds evicts
         the oldest of them at once: only with ``evict=True``; otherwise that raises a ``ValueError`` (nothing changes)
+    :param allow_foreign_files: A ``path`` to write to that is a directory without a buffer (no ``manifest.json``) but
+        with other files in it is refused by default, with a ``FileExistsError`` naming a few of them, before anything
+        is written there: creating a buffer among them would mix its files with someone else's. True: create it there
+        all the same (those files are never read, changed or deleted). A ``path`` that is an existing file always
+        raises ``NotADirectoryError`` naming it
     """
 
     def __init__(
@@ -139,6 +145,7 @@ class LifelongReplayBuffer(LifelongSampler):
         read_mode: str = "mmap",
         mode: str = "new",
         evict: bool = False,
+        allow_foreign_files: bool = False,
     ) -> None:
         # BaseBuffer.__init__ is not called: it would allocate and assign attributes that are properties here
         if optimize_memory_usage:
@@ -168,6 +175,7 @@ class LifelongReplayBuffer(LifelongSampler):
             read_mode=read_mode,
             overwrite=mode == "overwrite" and not read_only,
             evict=evict,
+            allow_foreign_files=allow_foreign_files,
         )
         if not self.store.spaces and observation_space is not None and action_space is not None and not read_only:
             self.store.describe_spaces(
@@ -340,7 +348,11 @@ class LifelongReplayBuffer(LifelongSampler):
 
         :param source: Source id in [0, 65534]
         :param name: Name (default: the name it has, else ``"source_<id>"``)
-        :param metadata: JSON-serialisable dict (default: the metadata it has, else ``{}``)
+        :param metadata: JSON-serialisable dict (default: the metadata it has, else ``{}``), checked with the manifest
+            reader's own limits: numpy scalars and arrays of numbers are converted exactly to Python numbers and lists;
+            NaN or infinite floats, ints of more than 100 characters, more than 8 levels of nesting, keys that are not
+            strings and other objects raise a ``ValueError`` (``MetadataError``) naming the source and the key, with
+            nothing changed
         """
         source = check_source_id(source)
         known = self.store.source(source)
@@ -361,22 +373,25 @@ class LifelongReplayBuffer(LifelongSampler):
 
         :param source: Source id in [0, 65534]
         :param name: Name (default ``"source_<id>"``)
-        :param metadata: JSON-serialisable dict (e.g. the physical parameters of this environment variant)
+        :param metadata: JSON-serialisable dict (e.g. the physical parameters of this environment variant), checked as
+            by :meth:`name_source` (a refused one changes nothing, not even the source of the next transitions)
         """
-        self._source = check_source_id(source)
-        self.name_source(self._source, name, metadata)
+        source = check_source_id(source)
+        self.name_source(source, name, metadata)
+        self._source = source
 
     def _source_of(self, info: dict[str, Any]) -> int:
         stage = info.get(STAGE_KEY)
         if stage is None:
             return self._source
         source = int(stage)
-        known = self.store.source(source)
-        if known is not None and known["name"] != f"source_{source}":
+        known = self.store.source_name(source)
+        if known is not None and known != f"source_{source}":
             return source  # named already: by an earlier transition of this stage, or by set_source(name=...)
         source = check_source_id(source)
         params = info.get(DYNAMICS_PARAMS_KEY)
-        metadata = {str(k): float(v) for k, v in params.items()} if isinstance(params, dict) else {}
+        # checked (and numpy scalars converted exactly) by set_source, with the manifest reader's limits
+        metadata = {str(k): v for k, v in params.items()} if isinstance(params, dict) else {}
         self.store.set_source(source, stage_name(source), metadata)  # Env-A, Env-B, ...: as stage_envs names them
         return source
 
@@ -407,7 +422,13 @@ class LifelongReplayBuffer(LifelongSampler):
         reward (after conversion to the stored dtype) raises a ``ValueError`` naming the field and the env; nothing of
         that call is stored. Only real numbers are stored (bool, integer and float arrays): complex, datetime,
         timedelta, string, bytes and object arrays raise a ``ValueError`` naming the field and the dtype, as does a
-        call with more than 65,535 envs (``MAX_ENVS_PER_ADD``).
+        call with more than 65,535 envs (``MAX_ENVS_PER_ADD``). Integer (and bool) fields store only what their dtype
+        holds exactly, as float fields refuse what overflows: a value out of their range (300 or -1 in a uint8 image),
+        fractional (0.7 for an integer action), NaN or infinite raises a ``ValueError`` naming the field and the env,
+        instead of being wrapped around or truncated; ``done`` must be 0 or 1 (or a bool). The metadata a new
+        stage's ``info["dynamics_params"]`` gives its source is checked as :meth:`name_source` checks it (numpy
+        scalars converted exactly; NaN, infinities and what the manifest's reader would refuse raise a ``ValueError``
+        naming the source and the key): a refused add stores nothing and every earlier transition stays committable.
 
         A directory writer writes only in the process that opened it: in a child of ``os.fork()``, ``add`` (and
         ``flush``, ``close``, ``checkpoint``) raise :class:`~sb3_lifelong.buffers.ForkedWriterError`.
@@ -439,7 +460,7 @@ class LifelongReplayBuffer(LifelongSampler):
             self._stream_ids = np.arange(self._stream_base, self._stream_base + width, dtype=np.uint32)
             self._widths = np.full(width, width, dtype=np.uint16)
         source = self._source
-        if self.store.source(source) is None:
+        if self.store.source_name(source) is None:
             self.name_source(source)
         sources = self._source_rows
         if self._source_rows_of != source or len(sources) != width:
@@ -450,7 +471,13 @@ class LifelongReplayBuffer(LifelongSampler):
             if STAGE_KEY in info:
                 if sources is self._source_rows:
                     sources = sources.copy()
-                sources[i] = self._source_of(info)
+                try:
+                    sources[i] = self._source_of(info)
+                except MetadataError as error:
+                    raise MetadataError(
+                        f"add(): info[{DYNAMICS_PARAMS_KEY!r}] of env {i}: {error.core or error}; nothing of this add() was "
+                        "stored (every earlier transition stays committable)"
+                    ) from None
             if timeouts and info.get("TimeLimit.truncated", False):
                 flags = flags.view(np.uint8)
                 flags[i] |= FLAG_TIMEOUT

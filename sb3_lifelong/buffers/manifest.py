@@ -23,6 +23,7 @@ Like every module of the row store, this one imports only numpy and the standard
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -59,6 +60,9 @@ MAX_ROW_ELEMENTS = 1 << 24
 MAX_ROW_BYTES = 1 << 26  # one field of one row: 64 MiB (e.g. 2**24 float32 elements)
 MAX_JSON_DEPTH = 32  # a valid manifest nests at most about 14 levels (metadata: 8 levels below its source)
 MAX_NUMBER_CHARS = 100  # the longest number a manifest may hold (written ones have at most 20 digits or 25 characters)
+#: the deepest a source's metadata (or the spaces' description) may nest: a value 9 levels below it is refused, by the
+#: writer (at the add or set_source that gives it) and by the reader alike (see json_value)
+MAX_METADATA_DEPTH = 8
 MAX_SOURCE_ID = 65534
 # dtypes a manifest may name (numpy ``dtype.str``), nothing else is accepted
 ALLOWED_DTYPES = frozenset(["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"])
@@ -95,22 +99,102 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _check_json_value(value: Any, where: str, depth: int = 0) -> None:
-    if depth > 8:
-        raise BufferFormatError(f"{where}: metadata nested too deeply")
-    if value is None or isinstance(value, (bool, int, float, str)):
-        return
-    if isinstance(value, list):
-        for item in value:
-            _check_json_value(item, where, depth + 1)
-        return
+class MetadataError(ValueError):
+    """A value of a source's metadata (or of the spaces' description) that a manifest cannot hold, or that the
+    manifest's reader would refuse: the message names where it is (``['key'][0]``...) and the limit."""
+
+    #: the message without what was (not) changed, for a caller that says it in its own terms
+    core: str = ""
+
+
+def _json_path(path: str) -> str:
+    return path or "(the value itself)"
+
+
+def _int_chars(value: int) -> int:
+    """:return: the characters of ``str(value)`` (without making the string of a huge int)"""
+    if value.bit_length() > 4 * MAX_NUMBER_CHARS:  # more than 1.2 * MAX_NUMBER_CHARS digits: the exact count is moot
+        return 4 * MAX_NUMBER_CHARS
+    return len(str(value))
+
+
+def json_value(value: Any, convert: bool = True, path: str = "", depth: int = 0) -> Any:
+    """
+    The one check of what a manifest's metadata (and its description of the spaces) may hold, used by the writer
+    (:meth:`ManifestRecords.set_source`, before anything is stored) and by the reader (:func:`validate_manifest`):
+    JSON's own values (None, bool, int, float, str, lists, objects with string keys), finite floats, numbers of at
+    most :data:`MAX_NUMBER_CHARS` characters, at most :data:`MAX_METADATA_DEPTH` levels of nesting.
+
+    :param value: The value
+    :param convert: Writers: return a new copy in which what converts exactly is converted (numpy scalars and arrays
+        of bool, integers and floats to Python ``bool``, ``int``, ``float`` and lists, tuples to lists, ``str`` and
+        ``int`` subclasses to ``str`` and ``int``); False (readers): only check a decoded document
+    :param path: Where ``value`` is, for the message (``['gains'][2]``)
+    :param depth: Its nesting level (0: the metadata object itself)
+    :return: The value, converted (``convert=True``), or ``value`` as it is
+    :raises MetadataError: naming where the value is and the limit it is beyond
+    """
+    if depth > MAX_METADATA_DEPTH:
+        raise MetadataError(
+            f"{_json_path(path)}: nested {depth} levels deep, more than the {MAX_METADATA_DEPTH} a buffer's manifest "
+            "accepts (MAX_METADATA_DEPTH)"
+        )
+    if value is None or (isinstance(value, str) and (type(value) is str or not convert)):
+        return value
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value) if convert else value
+    if convert and isinstance(value, np.ndarray):
+        if value.dtype.kind not in "biuf":
+            raise MetadataError(f"{_json_path(path)}: an array of dtype {value.dtype}: only arrays of real numbers convert")
+        if value.ndim == 0:
+            return json_value(value[()], convert, path, depth)
+        return [json_value(item, convert, f"{path}[{i}]", depth + 1) for i, item in enumerate(value)]
+    if isinstance(value, (int, np.integer)):
+        number = int(value)
+        chars = _int_chars(number)
+        if chars > MAX_NUMBER_CHARS:
+            size = f"{chars}" if chars < 4 * MAX_NUMBER_CHARS else f"over {chars}"
+            raise MetadataError(
+                f"{_json_path(path)}: an int of {size} characters, more than the {MAX_NUMBER_CHARS} a number of a buffer's "
+                "manifest may have (MAX_NUMBER_CHARS)"
+            )
+        return number if convert else value
+    if isinstance(value, (float, np.floating)):
+        real = float(value)
+        if not math.isfinite(real):
+            raise MetadataError(
+                f"{_json_path(path)}: {value!r} is not finite: JSON holds only finite numbers (a buffer's manifest "
+                "refuses NaN and infinities)"
+            )
+        if convert and not isinstance(value, float) and np.asarray(real, dtype=np.asarray(value).dtype) != value:
+            raise MetadataError(f"{_json_path(path)}: {value!r} ({type(value).__name__}) has no exact float64 value")
+        return real if convert else value
+    if isinstance(value, str):  # a subclass (e.g. numpy.str_)
+        return str(value)
+    if isinstance(value, (list, tuple) if convert else list):
+        return [json_value(item, convert, f"{path}[{i}]", depth + 1) for i, item in enumerate(value)]
     if isinstance(value, dict):
+        result = {}
         for key, item in value.items():
             if not isinstance(key, str):
-                raise BufferFormatError(f"{where}: metadata keys must be strings")
-            _check_json_value(item, where, depth + 1)
-        return
-    raise BufferFormatError(f"{where}: unsupported metadata value of type {type(value).__name__}")
+                raise MetadataError(
+                    f"{_json_path(path)}: the key {key!r} is a {type(key).__name__}: keys of JSON objects are strings (it "
+                    f"would be read back as {json.dumps(str(key))})"
+                )
+            result[str(key)] = json_value(item, convert, f"{path}[{key!r}]", depth + 1)
+        return result if convert else value
+    raise MetadataError(
+        f"{_json_path(path)}: a value of type {type(value).__name__} ({value!r:.60}): JSON holds None, bool, int, float, "
+        "str, lists and objects with string keys (numpy scalars and arrays of numbers are converted)"
+    )
+
+
+def _check_json_value(value: Any, where: str) -> None:
+    """Readers: raise ``BufferFormatError`` naming ``where`` if a decoded value is not what :func:`json_value` accepts."""
+    try:
+        json_value(value, convert=False)
+    except MetadataError as error:
+        raise BufferFormatError(f"{where}: {error}") from None
 
 
 def check_obs_key(key: Any) -> str:
@@ -556,23 +640,44 @@ class ManifestRecords:
         return first
 
     def source(self, source: int) -> Optional[dict[str, Any]]:
-        """:return: ``{"name": str, "metadata": dict}`` of a source id (a copy), or None if it is not known"""
+        """:return: ``{"name": str, "metadata": dict}`` of a source id (a deep copy), or None if it is not known"""
         known = self._sources.get(source)
-        return None if known is None else {"name": known["name"], "metadata": dict(known["metadata"])}
+        return None if known is None else {"name": known["name"], "metadata": copy.deepcopy(known["metadata"])}
 
-    def set_source(self, source: int, name: str, metadata: dict[str, Any]) -> None:
+    def source_name(self, source: int) -> Optional[str]:
+        """:return: the name of a source id, or None if it is not known (no copy of its metadata: ``add``'s test)"""
+        known = self._sources.get(source)
+        return None if known is None else known["name"]
+
+    def set_source(self, source: int, name: str, metadata: Mapping[str, Any]) -> None:
         """
-        Name a source id and set its metadata (JSON-serialisable); saved with the next commit.
+        Name a source id and set its metadata; saved with the next commit. The metadata is checked (and copied) first,
+        with the reader's own limits (:func:`json_value`): numpy scalars and arrays of numbers are converted exactly to
+        Python numbers and lists, tuples to lists; anything the manifest could not hold, or its reader would refuse
+        (NaN or infinite floats, ints of more than :data:`MAX_NUMBER_CHARS` characters, more than
+        :data:`MAX_METADATA_DEPTH` levels of nesting, keys that are not strings, other objects), is refused with
+        nothing changed, so that every later commit can write the manifest.
 
         :param source: source id in ``[0, MAX_SOURCE_ID]``
         :param name: its name
-        :param metadata: its metadata (copied)
+        :param metadata: its metadata (a dict with string keys)
+        :raises MetadataError: (a ``ValueError``) naming the source, the key and the limit; nothing was changed
         """
-        self._sources[check_source_id(source)] = {"name": str(name), "metadata": dict(metadata)}
+        source = check_source_id(source)
+        if not isinstance(metadata, Mapping):
+            raise MetadataError(f"source {source} ({name!r}): metadata must be a dict, got {type(metadata).__name__}")
+        try:
+            checked = json_value(dict(metadata))
+        except MetadataError as error:
+            refused = MetadataError(f"source {source} ({str(name)!r}): its metadata cannot be stored: metadata{error}")
+            refused.core = str(refused)
+            refused.args = (f"{refused.core}; nothing was changed",)
+            raise refused from None
+        self._sources[source] = {"name": str(name), "metadata": checked}
 
     def source_table(self) -> dict[int, dict[str, Any]]:
-        """:return: every source id -> ``{"name": str, "metadata": dict}`` (copies)"""
-        return {k: {"name": v["name"], "metadata": dict(v["metadata"])} for k, v in self._sources.items()}
+        """:return: every source id -> ``{"name": str, "metadata": dict}`` (deep copies)"""
+        return {k: {"name": v["name"], "metadata": copy.deepcopy(v["metadata"])} for k, v in self._sources.items()}
 
     def describe_spaces(self, spaces: dict[str, Any]) -> None:
         """

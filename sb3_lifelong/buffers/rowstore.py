@@ -24,7 +24,7 @@ from typing import Any, Optional
 import numpy as np
 
 from sb3_lifelong.buffers import files
-from sb3_lifelong.buffers.layouts import Layout, LayoutState, make_layout
+from sb3_lifelong.buffers.layouts import Layout, LayoutState, check_buffer_path, make_layout
 from sb3_lifelong.buffers.manifest import (
     BufferFormatError,
     ManifestRecords,
@@ -123,6 +123,10 @@ class RowStore(ManifestRecords):
         package's buffers is refused (``BufferFormatError``)
     :param evict: Reopening a directory with a capacity smaller than the number of transitions it retains evicts the
         oldest of them at once: only with ``evict=True``; otherwise that raises ``ValueError`` and nothing changes
+    :param allow_foreign_files: Writers: create a buffer in a directory that holds other files (no manifest) all the
+        same; by default that raises ``FileExistsError`` naming some of them (see
+        :func:`~sb3_lifelong.buffers.layouts.check_buffer_path`), and a ``path`` that is a file ``NotADirectoryError``,
+        before anything is written
     """
 
     def __init__(
@@ -137,6 +141,7 @@ class RowStore(ManifestRecords):
         read_mode: str = "mmap",
         overwrite: bool = False,
         evict: bool = False,
+        allow_foreign_files: bool = False,
     ) -> None:
         check_read_mode(read_mode, max_resident_bytes)
         if chunk_size < 1:
@@ -150,6 +155,8 @@ class RowStore(ManifestRecords):
                 f"capacity must be a positive int (the number of most recent transitions kept) or None, got {capacity!r}"
             )
         self.path = None if path is None else os.path.abspath(os.fspath(path))
+        if self.path is not None:  # before anything is written there (the writer lock is a file of the directory)
+            check_buffer_path(self.path, allow_foreign_files, writing=not read_only)
         self.read_only = read_only
         self.chunk_size = chunk_size
         self._state = LayoutState(self.path, chunk_size, None if capacity is None else int(capacity), read_only)

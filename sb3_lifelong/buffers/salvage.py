@@ -165,8 +165,12 @@ def salvage_buffer(path: str, destination: str, chunk_size: int = 10_000) -> Buf
     :param chunk_size: Transitions per chunk of the copy
     :return: The report of the check, with the number of transitions copied
     :raises BufferFormatError: ``path``'s manifest is not valid (nothing can be located)
-    :raises FileExistsError: ``destination`` is ``path`` or holds files
+    :raises FileExistsError: ``destination`` is ``path``, lies inside it (even through a symbolic link) or holds
+        files; nothing is written
+    :raises ValueError: ``chunk_size`` is not a positive int (checked before anything else)
     """
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"salvage: chunk_size must be a positive int (transitions per chunk of the copy), got {chunk_size!r}")
     manifest, layout, state = _source(path)
     source = os.path.abspath(os.fspath(path))
     destination = os.path.abspath(os.fspath(destination))
@@ -174,6 +178,12 @@ def salvage_buffer(path: str, destination: str, chunk_size: int = 10_000) -> Buf
         not os.path.isdir(destination) or os.listdir(destination) or os.path.samefile(source, destination)
     ):
         raise FileExistsError(f"salvage writes a new buffer: {destination!r} exists and is not an empty directory")
+    real_source, real_destination = os.path.realpath(source), os.path.realpath(destination)
+    if os.path.commonpath([real_source, real_destination]) == real_source:
+        raise FileExistsError(
+            f"salvage never writes into the directory it copies from: {destination!r} lies inside {source!r} (resolved: "
+            f"{real_destination!r}). Choose a destination outside it; nothing was written"
+        )
     report = BufferCheck(source, manifest.get("layout", "single"), _checks(manifest), destination=destination)
     fields = state.fields
     copy = RowStore(dict(fields), path=destination, chunk_size=chunk_size, capacity=manifest.get("capacity"))

@@ -16,6 +16,8 @@ trajectories, so it also gives the next action in the data (for SARSA targets).
 
 import os
 import warnings
+import zipfile
+import zlib
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple, Optional, Union
 
@@ -248,7 +250,8 @@ def read_npz(file: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
     :return: its arrays by name
     :raises FileNotFoundError: if there is no such file
     :raises OfflineDataError: naming the file (and the array) for anything else than named arrays readable without
-        pickle: a single ``np.save`` array, pickled content, object arrays
+        pickle: a single ``np.save`` array, pickled content, object arrays, an archive (or a member) that is truncated
+        or damaged
     """
     name = os.fspath(file)
     if not os.path.isfile(name):
@@ -258,6 +261,11 @@ def read_npz(file: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
     except ValueError as error:  # pickled content, or not a numpy file at all
         raise OfflineDataError(
             f"{name}: not a .npz archive of arrays that can be read without pickle (nothing pickled is loaded): {error}"
+        ) from None
+    except (zipfile.BadZipFile, EOFError) as error:  # an archive cut short (or damaged), an empty file
+        raise OfflineDataError(
+            f"{name}: not a readable .npz archive: it is truncated or damaged ({type(error).__name__}: {error}); nothing "
+            "was read. Write it again (np.savez), or copy it again from where it came"
         ) from None
     if not hasattr(loaded, "files"):  # np.save wrote one array (a .npy file): no names
         raise OfflineDataError(
@@ -269,12 +277,31 @@ def read_npz(file: Union[str, os.PathLike]) -> dict[str, np.ndarray]:
         for key in npz.files:
             try:
                 result[key] = npz[key]
-            except ValueError as error:  # object arrays need pickle
+            except (ValueError, zipfile.BadZipFile, EOFError, zlib.error) as error:
+                if _stored_with_pickle(npz, key):  # object arrays need pickle
+                    raise OfflineDataError(
+                        f"{name}: array {key!r} is stored with pickle (object dtype), which is refused (arrays are read "
+                        f"without pickle): {error}"
+                    ) from None
                 raise OfflineDataError(
-                    f"{name}: array {key!r} is stored with pickle (object dtype), which is refused (arrays are read "
-                    f"without pickle): {error}"
+                    f"{name}: array {key!r} cannot be read: the archive is truncated or damaged ({type(error).__name__}: "
+                    f"{error}); nothing was read. Write it again (np.savez), or copy it again from where it came"
                 ) from None
     return result
+
+
+def _stored_with_pickle(npz: Any, key: str) -> bool:
+    """Whether the member ``key`` of an open ``.npz`` has an intact ``.npy`` header naming a dtype with objects."""
+    try:
+        with npz.zip.open(f"{key}.npy") as member:
+            version = np.lib.format.read_magic(member)
+            if version == (1, 0):
+                _, _, dtype = np.lib.format.read_array_header_1_0(member)
+            else:
+                _, _, dtype = np.lib.format.read_array_header_2_0(member)
+    except Exception:  # a header cut short or damaged: not what pickle would need
+        return False
+    return bool(dtype.hasobject)
 
 
 def import_minari(purpose: str) -> Any:
