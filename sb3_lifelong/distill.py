@@ -2,7 +2,8 @@
 Offline distillation: train a fresh student (CRR by default, or BC) on everything a robot has collected.
 
 The second half of the Offline Distillation Pipeline (:mod:`sb3_lifelong.common.distillation`), with CRR as the
-default student. A model reaches the same pipeline with ``model.distill(CRR, ...)``.
+default student. A model reaches the same pipeline with ``model.distill(CRR, ...)``, which takes the arguments of
+:func:`distill` (documented here, once).
 """
 
 from typing import Any, Optional, Union
@@ -11,7 +12,7 @@ import torch as th
 from stable_baselines3.common.type_aliases import MaybeCallback, Schedule
 
 from sb3_lifelong.common.distillation import DistillSource
-from sb3_lifelong.common.distillation import distill as distill_into
+from sb3_lifelong.common.distillation import distill as pipeline
 from sb3_lifelong.crr import CRR
 
 __all__ = ["DistillSource", "distill"]
@@ -98,7 +99,7 @@ def distill(
         defaults; an argument the student does not take (``beta`` for BC) raises a ``TypeError`` naming it.
     :return: the trained student, ready for ``predict`` and ``save``
     """
-    return distill_into(
+    return pipeline(
         source,
         CRR if student_class is None else student_class,
         gradient_steps=gradient_steps,

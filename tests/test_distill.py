@@ -148,24 +148,42 @@ def test_distill_from_a_dict_leaves_it_alone():
         np.testing.assert_array_equal(data[key], value, err_msg=key)
 
 
-def test_distill_shows_the_students_arguments():
-    """``help(model.distill)`` and an IDE show the student's main arguments: the three ways in take the same ones."""
+def test_distill_documents_its_arguments_once():
+    """
+    ``help(distill)`` and an IDE show the student's main arguments, documented there once; the pipeline below the
+    algorithms takes the same ones with the same defaults, and ``model.distill`` forwards them to it by name.
+    """
     import inspect
 
+    from sb3_lifelong.common import distillation
     from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
-    from sb3_lifelong.common.distillation import distill as pipeline
 
-    def parameters(function, skip):
-        return [(p.name, p.kind, p.default) for p in inspect.signature(function).parameters.values() if p.name not in skip]
+    def parameters(function, kinds):
+        return {p.name: p.default for p in inspect.signature(function).parameters.values() if p.kind in kinds}
 
-    expected = parameters(pipeline, {"source", "student_class"})
-    assert parameters(distill, {"source", "student_class"}) == expected
-    assert parameters(LifelongOffPolicyAlgorithm.distill, {"self", "student_class"}) == expected
+    Parameter = inspect.Parameter
+    public = inspect.signature(distill).parameters
+    assert list(public)[:2] == ["source", "student_class"] and public["student_class"].default is None
+    learning = parameters(distill, {Parameter.POSITIONAL_OR_KEYWORD})
+    del learning["source"], learning["student_class"]
+    assert parameters(distillation.distill, {Parameter.KEYWORD_ONLY}) == learning  # the same defaults
+    named = parameters(distill, {Parameter.KEYWORD_ONLY})
+    assert list(named) == list(distillation.NAMED_STUDENT_ARGUMENTS) and set(named.values()) == {None}
     for name in ("beta", "advantage_transform", "batch_size", "learning_rate", "seed", "eval_env", "loss"):
-        assert name in dict((p[0], p) for p in expected)
-    for function in (pipeline, distill, LifelongOffPolicyAlgorithm.distill):
-        for name, _, _ in expected:
-            assert f":param {name}:" in function.__doc__, f"{function.__qualname__} does not document {name}"
+        assert name in {**learning, **named}
+    for name in [*learning, *named, "source", "student_class", "student_kwargs"]:
+        assert f":param {name}:" in distill.__doc__, f"distill does not document {name}"
+    method = inspect.signature(LifelongOffPolicyAlgorithm.distill).parameters
+    assert list(method) == ["self", "student_class", "kwargs"] and method["kwargs"].kind is Parameter.VAR_KEYWORD
+    assert ":func:`sb3_lifelong.distill.distill`" in LifelongOffPolicyAlgorithm.distill.__doc__
+
+
+def test_model_distill_leaves_none_to_the_student():
+    """A named argument left at None takes the student's default, through the method as through the function."""
+    model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net(), learning_starts=10, batch_size=8, num_samples=4)
+    model.learn(20)
+    student = model.distill(BC, gradient_steps=2, beta=None, batch_size=None, seed=0, policy_kwargs=net())
+    assert isinstance(student, BC) and student.batch_size == BC("MlpPolicy", "Pendulum-v1").batch_size
 
 
 def test_distill_forwards_the_named_arguments_and_refuses_foreign_ones():

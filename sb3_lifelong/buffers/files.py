@@ -1,28 +1,20 @@
 """
 File operations of a buffer directory: writing every byte, fsync of files and directories, files that are never
-opened through a symbolic link, and the atomic replacement of a JSON document (the manifest's commit).
+opened through a symbolic link. The manifest's commit is ``sb3_lifelong.core.atomic.write_json_atomic``, whose
+:class:`CommitNotDurableError` this module re-exports.
 
 The modules of the row store (``files``, ``manifest``, ``layouts``, ``readers``, ``rowstore``) import only numpy,
-the standard library and one another, never torch: crash tests and tools can load them in light subprocesses.
+the standard library, ``core/atomic.py`` (the standard library only) and one another, never torch: crash tests and
+tools can load them in light subprocesses.
 """
 
 from __future__ import annotations
 
 import errno
-import json
 import os
 from typing import Any
 
-
-class CommitNotDurableError(OSError):
-    """
-    A buffer's new manifest was renamed into place, so its rows are committed and readable (by this object, by
-    readers and by a reopen), but the fsync of the directory that follows the rename failed: the commit may not
-    survive a power loss or an operating-system crash (it survives a crash of the process). Whichever manifest a
-    power loss leaves, the directory stays consistent: no file that the previous manifest needs is deleted until a
-    later manifest is synced. ``flush()`` (or ``close()``) writes and syncs the manifest again.
-    """
-
+from sb3_lifelong.core.atomic import CommitNotDurableError  # noqa: F401 (raised by the manifest's commit)
 
 # errno values of an fsync of a directory that mean "this filesystem cannot sync directories" (nothing to wait for)
 _DIR_FSYNC_UNSUPPORTED = frozenset({errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP})
@@ -120,37 +112,3 @@ def remove_quietly(file_name: str) -> None:
         os.remove(file_name)
     except OSError:
         pass
-
-
-def write_json_atomic(path: str, data: dict[str, Any]) -> None:
-    """
-    Write a JSON document atomically: temporary file, fsync, rename over the target, fsync of the directory.
-
-    :param path: Target file
-    :param data: JSON-serialisable document
-    :raises OSError: (e.g. disk full) the target is unchanged and the temporary file removed
-    :raises CommitNotDurableError: only the fsync of the directory after the rename failed: the target is replaced
-        by the new document, which may not survive a power loss
-    """
-    directory = os.path.dirname(os.path.abspath(path))
-    tmp = path + ".tmp"
-    payload = json.dumps(data, indent=1, sort_keys=True, allow_nan=False).encode("utf-8")
-    try:
-        fd = create_new_file(tmp)  # a new file, never through a link planted at the temporary name
-        try:
-            write_all(fd, payload)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        remove_quietly(tmp)
-        raise
-    try:
-        fsync_dir(directory, strict=True)
-    except OSError as error:
-        raise CommitNotDurableError(
-            error.errno,
-            f"{path} was replaced, but the fsync of its directory failed ({error.strerror}): the new version may not "
-            "survive a power loss or an operating-system crash",
-        ) from error

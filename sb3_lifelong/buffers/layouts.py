@@ -35,6 +35,7 @@ from sb3_lifelong.buffers.manifest import (
     read_manifest,
     validate_fields,
 )
+from sb3_lifelong.core.atomic import write_json_atomic
 
 if sys.platform == "win32":  # pragma: no cover: no flock; the writer lock goes through filelock (LockFileEx)
     fcntl = None
@@ -357,7 +358,7 @@ class _DirectoryLayout:
 
     def write_manifest(self, manifest: dict[str, Any]) -> None:
         try:
-            files.write_json_atomic(os.path.join(self.path, MANIFEST_NAME), manifest)
+            write_json_atomic(os.path.join(self.path, MANIFEST_NAME), manifest, fixed_temporary=True)
         except files.CommitNotDurableError as error:
             raise files.CommitNotDurableError(
                 error.errno,
@@ -733,3 +734,40 @@ def orphaned_data_files(path: str) -> list[str]:
             if os.path.islink(file_name) or not os.path.isfile(file_name) or os.path.getsize(file_name) > 0:
                 found.append(entry)
     return found
+
+
+def check_buffer_path(path: str, allow_foreign_files: bool = False, writing: bool = True) -> None:
+    """
+    Refuse, before anything is written there, a buffer path that is not a directory, and (writers) a directory that
+    holds no buffer but files that are not a buffer's: creating a buffer among them would mix its files with someone
+    else's (and ``mode="overwrite"`` of that buffer later would leave theirs in its directory).
+
+    :param path: The buffer directory (absolute)
+    :param allow_foreign_files: Create the buffer among other files all the same (they are never read, changed or
+        deleted)
+    :param writing: Whether the buffer is opened for writing (a reader only needs a directory)
+    :raises NotADirectoryError: ``path`` is an existing file (or a link to one, or a dangling link)
+    :raises FileExistsError: ``path`` is a directory without ``manifest.json`` that holds other files than a buffer's
+        (``writer.lock``, ``manifest.json.tmp`` and data files, which :meth:`Layout.refuse_orphans` checks), naming
+        a few of them, unless ``allow_foreign_files``
+    """
+    if not os.path.lexists(path):
+        return
+    if not os.path.isdir(path):
+        kind = "a symbolic link to no directory" if os.path.islink(path) else "an existing file"
+        raise NotADirectoryError(
+            f"buffer path {path!r} is {kind}, not a directory: a buffer's path names a directory (a new one, or one that "
+            "holds a buffer). Choose another path; nothing was written"
+        )
+    if not writing or allow_foreign_files or os.path.lexists(os.path.join(path, MANIFEST_NAME)):
+        return
+    buffer_names = {LOCK_NAME, MANIFEST_NAME + ".tmp"}
+    foreign = sorted(e for e in os.listdir(path) if e not in buffer_names and DATA_FILE_PATTERN.fullmatch(e) is None)
+    if foreign:
+        listed = ", ".join(repr(name) for name in foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise FileExistsError(
+            f"buffer path {path!r} is a directory that holds no buffer (no {MANIFEST_NAME}) but {len(foreign)} other "
+            f"entries: {listed}. Refusing to create a buffer among them. Choose a new (or empty) directory, e.g. a "
+            "subdirectory; or pass allow_foreign_files=True to create it there all the same (those entries are never "
+            "read, changed or deleted); nothing was written"
+        )

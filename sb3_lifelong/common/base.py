@@ -19,7 +19,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.logger import HumanOutputFormat
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer
@@ -172,36 +172,7 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng", "_forward", "_saved_buffer"]
 
-    def distill(
-        self,
-        student_class: type,
-        gradient_steps: int = 100_000,
-        policy: Any = "MlpPolicy",
-        eval_env: Optional[Any] = None,
-        eval_freq: int = 10_000,
-        n_eval_episodes: int = 5,
-        callback: MaybeCallback = None,
-        log_interval: int = 1_000,
-        tb_log_name: str = "distill",
-        progress_bar: bool = False,
-        eval_sources: Optional[dict[str, int]] = None,
-        *,
-        learning_rate: Optional[Union[float, Schedule]] = None,
-        batch_size: Optional[int] = None,
-        gamma: Optional[float] = None,
-        advantage_transform: Optional[str] = None,
-        beta: Optional[float] = None,
-        max_weight: Optional[float] = None,
-        num_samples: Optional[int] = None,
-        critic_target: Optional[str] = None,
-        actor_averaging: Optional[float] = None,
-        loss: Optional[str] = None,
-        policy_kwargs: Optional[dict[str, Any]] = None,
-        seed: Optional[int] = None,
-        device: Optional[Union[th.device, str]] = None,
-        verbose: Optional[int] = None,
-        **student_kwargs: Any,
-    ) -> Any:
+    def distill(self, student_class: type, **kwargs: Any) -> Any:
         """
         Distil this model's whole replay buffer into a fresh policy, offline (the Offline Distillation Pipeline):
         ``model.distill(CRR, beta=1.0, eval_env={"Env-A": env_a, "Env-B": env_b})``. The same as
@@ -210,76 +181,12 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
 
         :param student_class: the offline algorithm (:class:`~sb3_lifelong.CRR`; :class:`~sb3_lifelong.BC` for
             behaviour cloning)
-        :param gradient_steps: number of offline gradient updates
-        :param policy: the student's policy
-        :param eval_env: environment(s) to evaluate the student on every ``eval_freq`` updates (a dict name -> env
-            gives the names of the ``eval/<name>/mean_reward`` curves: Env-A, Env-B, ...)
-        :param eval_freq: evaluation period, in updates
-        :param n_eval_episodes: episodes per environment and evaluation
-        :param callback: extra callback(s), called after every update
-        :param log_interval: dump the training logs every this many updates
-        :param tb_log_name: the name of the student's log folder; when ``source`` is a model that logs (to its
-            ``tensorboard_log``, or to a logger given with ``set_logger``), the student logs into ``<the model's log
-            folder>/<tb_log_name>`` with the model's output formats (and CSV), beside the collection curves, unless
-            ``tensorboard_log`` is given here
-        :param progress_bar: show a progress bar
-        :param eval_sources: with ``actor_per_source=True`` (a CRR diagnostic): the source whose actor is evaluated in
-            each environment of ``eval_env``, by name
-        :param learning_rate: the student's learning rate (CRR and BC: 3e-4)
-        :param batch_size: transitions per update (CRR and BC: 256)
-        :param gamma: discount factor of CRR's critic (0.99)
-        :param advantage_transform: CRR's weight of an action from its advantage ``A``: ``"exp"`` (default,
-            ``min(exp(A / beta), max_weight)``) or ``"indicator"`` (``1[A > 0]``)
-        :param beta: CRR's temperature of ``"exp"``, in the critic's return units (1.0); higher is closer to behaviour
-            cloning
-        :param max_weight: CRR's clip of the ``"exp"`` weights (20.0)
-        :param num_samples: CRR's policy samples per state for the advantage's baseline (4)
-        :param critic_target: CRR's TD target: ``"policy"`` (default, an action of the target policy) or ``"sarsa"``
-            (the next action recorded in the data)
-        :param actor_averaging: CRR's exponential moving average of the actor's weights, used by ``predict``
-            (default None: off; e.g. 1e-3)
-        :param loss: BC's loss: ``"nll"`` (default) or ``"mse"``
-        :param policy_kwargs: the student's network settings (``net_arch``, ``layer_norm``, ...)
-        :param seed: the student's seed
-        :param device: the student's device (default: the model's when ``source`` is a model, else ``"auto"``)
-        :param verbose: 1 prints what is distilled and one line per evaluation, 2 also SB3's tables of the training
-            values (default: the model's when ``source`` is a model, else 0)
-        :param student_kwargs: any other argument of the student's constructor (``tensorboard_log``,
-            ``target_update_interval``, ``tau``, ``advantage_baseline``, ``actor_per_source``, ...: see
-            :class:`~sb3_lifelong.CRR` and :class:`~sb3_lifelong.BC`) or of ``from_offline_data``
-            (``observation_space``, ``action_space``, ``normalized_actions``). Arguments left at None take the student's
-            defaults; an argument the student does not take (``beta`` for BC) raises a ``TypeError`` naming it.
+        :param kwargs: the arguments of :func:`sb3_lifelong.distill.distill`, by name and with its defaults
+            (``gradient_steps``, ``eval_env``, ``beta``, ``batch_size``, ...; any other argument of the student's
+            constructor)
         :return: the trained student, ready for ``predict`` and ``save``
         """
-        return distill(
-            self,
-            student_class,
-            gradient_steps=gradient_steps,
-            policy=policy,
-            eval_env=eval_env,
-            eval_freq=eval_freq,
-            n_eval_episodes=n_eval_episodes,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            progress_bar=progress_bar,
-            eval_sources=eval_sources,
-            learning_rate=learning_rate,
-            batch_size=batch_size,
-            gamma=gamma,
-            advantage_transform=advantage_transform,
-            beta=beta,
-            max_weight=max_weight,
-            num_samples=num_samples,
-            critic_target=critic_target,
-            actor_averaging=actor_averaging,
-            loss=loss,
-            policy_kwargs=policy_kwargs,
-            seed=seed,
-            device=device,
-            verbose=verbose,
-            **student_kwargs,
-        )
+        return distill(self, student_class, **kwargs)
 
     def _setup_learn(
         self,

@@ -18,7 +18,7 @@ if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skip
 
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
-from sb3_lifelong.experiments.jobs import _common, job_callbacks, make_env, tensorboard_dir
+from sb3_lifelong.experiments.jobs import job_callbacks, make_env, model_kwargs, tensorboard_dir
 from sb3_lifelong.experiments.ownership import OWNED_MARKER, NotOwnedError, claim_directory, remove_unfinished
 from sb3_lifelong.experiments.presets import (
     Preset,
@@ -163,7 +163,7 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
     )
 
 
-def _aside_name(path: pathlib.Path, paused: int) -> pathlib.Path:
+def aside_name(path: pathlib.Path, paused: int) -> pathlib.Path:
     """:return: ``<stem>.after_pause_<paused>[.k]<suffix>`` beside ``path``, the first such name that is free"""
     for attempt in range(1000):
         tag = f".after_pause_{paused}" + (f".{attempt}" if attempt else "")
@@ -174,8 +174,8 @@ def _aside_name(path: pathlib.Path, paused: int) -> pathlib.Path:
 
 
 def _set_aside(path: pathlib.Path, paused: int) -> pathlib.Path:
-    """Rename ``path`` to :func:`_aside_name`'s name and return it."""
-    aside = _aside_name(path, paused)
+    """Rename ``path`` to :func:`aside_name`'s name and return it."""
+    aside = aside_name(path, paused)
     os.replace(path, aside)
     return aside
 
@@ -210,7 +210,7 @@ def _drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
 
     kept = [rows[0], *(row for row in rows[1:] if before_pause(row))]
     if len(kept) < len(rows):
-        shutil.copy2(path, _aside_name(path, timesteps))  # the whole log first: a stop in between leaves it twice
+        shutil.copy2(path, aside_name(path, timesteps))  # the whole log first: a stop in between leaves it twice
         with atomic_write(path, "w", newline="") as rewritten:
             csv.writer(rewritten).writerows(kept)
 
@@ -291,7 +291,7 @@ def _new_collection(preset: Preset, seed: int, run_dir: pathlib.Path, log: Calla
         batch_size=preset.batch_size,
         learning_rate=preset.learning_rate,
         tensorboard_log=tensorboard_dir(directory),
-        **_common(preset, seed),
+        **model_kwargs(preset, seed),
     )
     buffer: Any = model.replay_buffer
     for index in reversed(range(len(preset.env_names))):  # names in the manifest; transitions carry their stage

@@ -1,8 +1,9 @@
 """
-What every job of a study shares: the robot through its stages (:func:`make_env`), where models run (the preset's ``device``),
-a job's callbacks and logs (:func:`job_callbacks`, :func:`tensorboard_dir`), and the value support of a bounded critic
-(:func:`value_support`). The jobs themselves: :mod:`~sb3_lifelong.experiments.collection` (MPO through the stages) and
-:mod:`~sb3_lifelong.experiments.protocol` (the students, the online baselines, one seed).
+What every job of a study shares: the robot through its stages (:func:`make_env`), what every model is built with
+(:func:`model_kwargs`: the preset's network and ``device``), a job's callbacks and logs (:func:`job_callbacks`,
+:func:`tensorboard_dir`), and the value support of a bounded critic (:func:`value_support`). The jobs themselves:
+:mod:`~sb3_lifelong.experiments.collection` (MPO through the stages) and :mod:`~sb3_lifelong.experiments.protocol` (the
+students, the online baselines, one seed).
 """
 
 import pathlib
@@ -49,9 +50,16 @@ def tensorboard_dir(directory: pathlib.Path) -> Optional[str]:
     return str(directory / "tb")
 
 
-def _common(preset: Preset, seed: int) -> dict[str, Any]:
-    # every model of a study runs on the preset's device (``--device``); models that continue a paused job load onto
-    # it too, so that a run in parts computes what an uninterrupted one does
+def model_kwargs(preset: Preset, seed: int) -> dict[str, Any]:
+    """
+    What every model of a study is built with: the preset's network (``net_arch``, ``layer_norm``), the seed, and the
+    preset's device (``--device``). Models that continue a paused job load onto that device too, so that a run in
+    parts computes what an uninterrupted one does.
+
+    :param preset: the study's preset
+    :param seed: the model's seed
+    :return: ``policy_kwargs``, ``seed`` and ``device``, as constructor arguments
+    """
     return dict(
         policy_kwargs=dict(net_arch=list(preset.net_arch), layer_norm=preset.layer_norm), seed=seed, device=preset.device
     )

@@ -52,11 +52,11 @@ from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
-from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, _aside_name, collect, remove_unfinished_collection
+from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, aside_name, collect, remove_unfinished_collection
 from sb3_lifelong.experiments.jobs import (
-    _common,
     job_callbacks,
     make_env,
+    model_kwargs,
     tensorboard_dir,
     value_support,
 )
@@ -103,7 +103,7 @@ def online(
         learning_rate=preset.learning_rate,
         tensorboard_log=tensorboard_dir(directory),
         **ONLINE[name],
-        **_common(preset, seed),
+        **model_kwargs(preset, seed),
     )
     model.policy.load_state_dict(stage1.policy.state_dict())
     with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1_buffer:
@@ -152,7 +152,7 @@ def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None
         kept = [row for row in rows if _timesteps(row) <= updates]
         if len(kept) == len(rows):
             continue
-        aside = _aside_name(path, updates)
+        aside = aside_name(path, updates)
         shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
         with atomic_write(path, "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
@@ -311,7 +311,7 @@ def distill_student(
     if kwargs.get("actor_per_source"):
         sources = {env_name: index for index, env_name in enumerate(preset.env_names)}
     algorithm: Any = {"CRR": CRR, "BC": BC}[student.algorithm]  # Student checks the name
-    common = _common(preset, seed)
+    common = model_kwargs(preset, seed)
     if algorithm is CRR and preset.student_critic == "categorical":
         common["policy_kwargs"]["distributional_critic"] = True
     common["policy_kwargs"].update(kwargs.pop("policy_kwargs", {}))  # the student's own network options

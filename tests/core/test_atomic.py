@@ -81,3 +81,45 @@ def test_refuses_a_directory_and_other_modes(tmp_path):
     with pytest.raises(AtomicWriteError, match=r"could not write .*missing") as caught:
         write_text_atomic(tmp_path / "missing" / "done.json", "{}")
     assert caught.value.errno == errno.ENOENT
+
+
+def test_a_failed_directory_sync_after_the_rename_says_the_file_is_replaced(tmp_path, monkeypatch):
+    """The new version is in place: the error says it may not be durable, not that the previous version is kept."""
+    import stat
+
+    path = tmp_path / "done.json"
+    write_json_atomic(path, {"seconds": 1})
+    real_fsync = os.fsync
+
+    def directory_fsync_fails(fd: int) -> None:
+        if stat.S_ISDIR(os.fstat(fd).st_mode):
+            raise OSError(errno.EIO, "Input/output error")
+        real_fsync(fd)
+
+    monkeypatch.setattr(atomic.os, "fsync", directory_fsync_fails)
+    with pytest.raises(atomic.CommitNotDurableError, match="was replaced, but the fsync of its directory failed") as caught:
+        write_json_atomic(path, {"seconds": 2})
+    assert caught.value.errno == errno.EIO and not isinstance(caught.value, AtomicWriteError)
+    assert json.loads(path.read_text()) == {"seconds": 2}
+    assert os.listdir(tmp_path) == ["done.json"]
+
+
+def test_the_one_writer_of_a_file_may_use_a_fixed_temporary_name(tmp_path, monkeypatch):
+    """``fixed_temporary``: ``<name>.tmp``, written with os.write (every byte); a link planted there is unlinked."""
+    outside = tmp_path / "outside"
+    outside.write_text("not ours")
+    path = tmp_path / "manifest.json"
+    os.symlink(outside, tmp_path / "manifest.json.tmp")
+    names, real_write = [], os.write
+
+    def short_write(fd: int, data) -> int:  # a write may write fewer bytes than asked
+        names.append(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")))
+        return real_write(fd, memoryview(data)[:5])
+
+    if os.path.isdir("/proc/self/fd"):
+        monkeypatch.setattr(atomic.os, "write", short_write)
+    write_json_atomic(str(path), {"num_transitions": 3, "layout": "chunked"}, fixed_temporary=True)
+    monkeypatch.undo()
+    assert path.read_bytes() == json.dumps({"num_transitions": 3, "layout": "chunked"}, indent=1, sort_keys=True).encode()
+    assert set(names) <= {"manifest.json.tmp"} and (len(names) > 1 or not os.path.isdir("/proc/self/fd"))
+    assert outside.read_text() == "not ours" and sorted(os.listdir(tmp_path)) == ["manifest.json", "outside"]

@@ -7,15 +7,15 @@ import pytest
 import torch as th
 
 from sb3_lifelong.experiments.__main__ import main
-from sb3_lifelong.experiments.jobs import _common
+from sb3_lifelong.experiments.jobs import model_kwargs
 from sb3_lifelong.experiments.presets import PRESETS, Preset, check_device, same_settings
 from sb3_lifelong.experiments.protocol import record_settings
 
 
 def test_the_presets_run_on_the_cpu_and_every_model_gets_the_preset_device():
     assert all(preset.device == "cpu" for preset in PRESETS.values())
-    assert _common(PRESETS["tiny"], 3)["device"] == "cpu"
-    assert _common(dataclasses.replace(PRESETS["tiny"], device="cuda:1"), 3)["device"] == "cuda:1"
+    assert model_kwargs(PRESETS["tiny"], 3)["device"] == "cpu"
+    assert model_kwargs(dataclasses.replace(PRESETS["tiny"], device="cuda:1"), 3)["device"] == "cuda:1"
 
 
 @pytest.mark.parametrize("name", ["gpu", "cuda:x", "meta", ""])
