@@ -9,6 +9,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_lifelong.bc.policies import BCPolicy, MlpPolicy, MultiInputPolicy
+from sb3_lifelong.common.arguments import check_sizes_of
 from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
 
@@ -102,6 +103,7 @@ class BC(LifelongOfflineAlgorithm):
             supported_action_spaces=(spaces.Box,),
             support_multi_env=True,
         )
+        check_sizes_of(self)
         if loss not in BC_LOSSES:
             raise ValueError(f"Invalid BC hyperparameters: loss={loss!r} (must be one of {BC_LOSSES})")
         if max_grad_norm is not None and max_grad_norm <= 0:

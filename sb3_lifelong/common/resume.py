@@ -14,6 +14,8 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.type_aliases import GymEnv
 
+from sb3_lifelong.core.contract import reset_options
+
 
 def capture_rng_state(action_space: Optional[spaces.Space] = None) -> dict[str, Any]:
     """
@@ -85,7 +87,7 @@ class EpisodeRngRecorder(gym.Wrapper):
             self._start_record = {"seed": int(seed)}
         else:
             self._start_record = {"rng": self.env.np_random.bit_generator.state}
-        return self.env.reset(seed=seed, options=options)
+        return self.env.reset(seed=seed, **reset_options(options))
 
     def sb3_lifelong_rng_record(self, at_episode_start: Optional[bool]) -> Optional[dict[str, Any]]:
         """

@@ -21,7 +21,12 @@ reset), as ``method(timestep=model.num_timesteps, n_envs=vec_env.num_envs)``; fr
 **One name per environment.** Stage ``i`` is called :func:`stage_name` ``(i)`` (``Env-A``, ``Env-B``, ...) everywhere:
 the evaluation copies of :func:`~sb3_lifelong.envs.stage_envs`, the buffer's source of that stage (so its Q-value
 curves, CSV columns and ``source_counts(by_name=True)``), the reports.
+
+**Resets as SB3 calls them.** The package's wrappers pass ``options`` on to the wrapped env's ``reset`` only when
+it is given (:func:`reset_options`), as SB3's ``VecEnv`` does, so an env whose ``reset`` takes only ``seed`` works.
 """
+
+from typing import Any, Optional
 
 #: ``info`` key of the stage index (the transition's source id in the buffer)
 STAGE_KEY = "stage"
@@ -41,4 +46,15 @@ def stage_name(index: int) -> str:
     return f"Env-{chr(ord('A') + index)}" if index < 26 else f"Env-{index}"
 
 
-__all__ = ["DYNAMICS_PARAMS_KEY", "STAGE_KEY", "SYNC_TIMESTEP_METHOD", "stage_name"]
+def reset_options(options: Optional[dict[str, Any]]) -> dict[str, Any]:
+    """
+    The keyword arguments that carry a wrapper's ``options`` on to the wrapped env's ``reset``, as SB3 passes them:
+    none when ``options`` is None, so that an env whose ``reset`` accepts only ``seed`` can be wrapped.
+
+    :param options: the ``options`` the wrapper's ``reset`` was given
+    :return: ``{}`` or ``{"options": options}``, for ``env.reset(seed=seed, **reset_options(options))``
+    """
+    return {} if options is None else {"options": options}
+
+
+__all__ = ["DYNAMICS_PARAMS_KEY", "STAGE_KEY", "SYNC_TIMESTEP_METHOD", "reset_options", "stage_name"]

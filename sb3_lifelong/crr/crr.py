@@ -13,6 +13,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_lifelong.buffers.loading import as_lifelong_data
+from sb3_lifelong.common.arguments import check_sizes_of
 from sb3_lifelong.common.losses import bootstrap_discount
 from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian
@@ -256,6 +257,7 @@ class CRR(LifelongOfflineAlgorithm):
             self._setup_model()
 
     def _check_hyperparameters(self) -> None:
+        check_sizes_of(self)
         checks = {
             "num_samples": self.num_samples >= 1,
             "advantage_baseline": self.advantage_baseline in ADVANTAGE_BASELINES,

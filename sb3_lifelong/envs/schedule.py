@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY, stage_name
+from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY, reset_options, stage_name
 from sb3_lifelong.envs.perturbations import LIMB_PERTURBATIONS, PERTURBATIONS, PhysicsEditor, find_mujoco, stable_seed
 from sb3_lifelong.envs.stages import NAMED_STAGES
 
@@ -608,7 +608,7 @@ class DynamicsSchedule(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 self._episode_values[name] = scheduler.sample_episode(self._episode_rng)
         self._apply(self._target(self.timestep))
         self.episodes += 1
-        obs, info = self.env.reset(seed=seed, options=options)
+        obs, info = self.env.reset(seed=seed, **reset_options(options))
         return self._augment(obs), self._info(info)
 
     def step(self, action: Any) -> Tuple[Any, SupportsFloat, bool, bool, Dict[str, Any]]:

@@ -29,6 +29,7 @@ from typing import Any, Literal, Optional
 
 import torch as th
 
+from sb3_lifelong.core.cli import plain_text
 from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, Preset, check_device, load_presets
 from sb3_lifelong.experiments.protocol import record_settings, run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
@@ -46,7 +47,9 @@ REUSE_HELP = "reuse this study's collection of the seed (same collection setting
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m sb3_lifelong.experiments", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m sb3_lifelong.experiments",
+        description=plain_text(__doc__),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     commands = parser.add_subparsers(dest="command", required=True)
 

@@ -32,6 +32,7 @@ from typing import Any, Optional, Union
 
 import pandas as pd
 
+from sb3_lifelong.core.cli import plain_text
 from sb3_lifelong.core.contract import stage_name
 from sb3_lifelong.experiments.style import (
     SEQUENTIAL_METHODS,
@@ -395,7 +396,11 @@ def main(argv: Optional[list[str]] = None) -> None:
 
     :param argv: the arguments (default: ``sys.argv[1:]``)
     """
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_lifelong.plotting",
+        description=plain_text(__doc__),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("directory", help="an experiment's output directory")
     args = parser.parse_args(argv)
     for path in plot_experiment(args.directory):

@@ -11,6 +11,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule
 from torch.profiler import record_function
 
+from sb3_lifelong.common.arguments import check_sizes_of
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
@@ -237,6 +238,7 @@ class MPO(LifelongOffPolicyAlgorithm):
             self._setup_model()
 
     def _check_hyperparameters(self) -> None:
+        check_sizes_of(self)
         checks = {
             "num_samples": self.num_samples >= 1,
             "epsilon": self.epsilon > 0,
