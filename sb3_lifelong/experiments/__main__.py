@@ -178,6 +178,7 @@ def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) 
         if len(args.stage_steps) != stages:
             parser.error(f"--stage-steps needs one value per stage: preset {args.preset} has {stages}, got {args.stage_steps}")
     if args.command in ("run", "study"):
+        _check_counts(parser, args)
         if args.device == "auto":  # this machine's GPU if torch sees one: the study records the device it chose
             args.device = "cuda" if th.cuda.is_available() else "cpu"
         if args.device is not None:
@@ -223,6 +224,36 @@ def _report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         copied = export_results(pathlib.Path(args.output), pathlib.Path(args.export))
         print(f"copied {len(copied)} result files into {args.export}")
     return 0
+
+
+def _check_counts(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """
+    Refuse counts below 1 and job names the preset does not have, before anything is written (a refused command leaves
+    the output as it was, so the corrected command is not taken for a study of other settings).
+
+    :param parser: the command line's parser
+    :param args: its parsed arguments (``args.settings``: the preset)
+    """
+    counts = {
+        "--stage-steps": getattr(args, "stage_steps", None) or [],
+        "--distill-steps": [getattr(args, "distill_steps", None)],
+        "--student-repeats": [args.student_repeats],
+        "--until": [getattr(args, "until", None)],
+        "--threads": [getattr(args, "threads", None)],
+        "--workers": [getattr(args, "workers", None)],
+    }
+    for flag, values in counts.items():
+        bad = [value for value in values if value is not None and value < 1]
+        if bad:
+            parser.error(f"{flag} must be at least 1, got {bad[0]}")
+    if args.jobs:
+        preset = args.settings
+        if args.student_repeats is not None:
+            preset = dataclasses.replace(preset, student_repeats=args.student_repeats)
+        known = preset.jobs()
+        unknown = [job for job in args.jobs if job not in known]
+        if unknown:
+            parser.error(f"unknown job {unknown[0]!r} for preset {args.preset}: its jobs are {known} (see the 'list' command)")
 
 
 def main(argv: Optional[list[str]] = None) -> int:
