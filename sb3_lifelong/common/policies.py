@@ -148,6 +148,10 @@ class GaussianActor(BasePolicy):
     :param min_std: Lower bound of the standard deviation
     :param layer_norm: LayerNorm and tanh after the first hidden layer, as Acme's ``LayerNormMLP`` (see
         :func:`mlp_layers`)
+    :param head_init_scale: None for torch's default initialisation of the mean's and the standard deviation's output
+        layers; a float ``s`` draws their weights from a normal truncated at two standard deviations, of variance
+        ``s / fan_in``, with zero biases (Acme's ``MultivariateNormalDiagHead``: ``s = 1e-4``), so that the initial policy
+        has a mean near 0 and a standard deviation near ``init_std`` in every state
     """
 
     def __init__(
@@ -163,6 +167,7 @@ class GaussianActor(BasePolicy):
         init_std: float = 0.7,
         min_std: float = 1e-4,
         layer_norm: bool = False,
+        head_init_scale: Optional[float] = None,
     ):
         super().__init__(
             observation_space,
@@ -173,6 +178,8 @@ class GaussianActor(BasePolicy):
         )
         if init_std <= 0 or min_std < 0:
             raise ValueError(f"init_std must be > 0 and min_std >= 0, got init_std={init_std}, min_std={min_std}")
+        if head_init_scale is not None and not (isinstance(head_init_scale, (int, float)) and head_init_scale > 0):
+            raise ValueError(f"head_init_scale must be None or a number > 0, got {head_init_scale!r}")
         self.net_arch = net_arch
         self.features_dim = features_dim
         self.activation_fn = activation_fn
@@ -186,6 +193,12 @@ class GaussianActor(BasePolicy):
         self.mu = nn.Linear(last_layer_dim, action_dim)
         self.std_head = nn.Linear(last_layer_dim, action_dim)
         self._std_scale = init_std / math.log(2.0)  # softplus(0) = log(2)
+        self.head_init_scale = head_init_scale
+        if head_init_scale is not None:
+            for head in (self.mu, self.std_head):
+                std = math.sqrt(head_init_scale / head.in_features)
+                nn.init.trunc_normal_(head.weight, std=std, a=-2.0 * std, b=2.0 * std)
+                nn.init.zeros_(head.bias)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -199,6 +212,7 @@ class GaussianActor(BasePolicy):
                 init_std=self.init_std,
                 min_std=self.min_std,
                 layer_norm=self.layer_norm,
+                head_init_scale=self.head_init_scale,
             )
         )
         return data
@@ -251,6 +265,8 @@ class GaussianPolicy(BasePolicy):
     :param min_std: Lower bound of the policy's standard deviation
     :param layer_norm: LayerNorm and tanh after the first hidden layer of every network (actor and critics), as
         Acme's ``LayerNormMLP`` (see :func:`mlp_layers`)
+    :param head_init_scale: the initial weight scale of the actor's output layers (None: torch's default; see
+        :class:`GaussianActor`)
     :param features_extractor_class: Features extractor to use
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor
     :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
@@ -269,6 +285,7 @@ class GaussianPolicy(BasePolicy):
         init_std: float = 0.7,
         min_std: float = 1e-4,
         layer_norm: bool = False,
+        head_init_scale: Optional[float] = None,
         features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
         features_extractor_kwargs: Optional[dict[str, Any]] = None,
         normalize_images: bool = True,
@@ -293,6 +310,7 @@ class GaussianPolicy(BasePolicy):
         self.init_std = init_std
         self.min_std = min_std
         self.layer_norm = layer_norm
+        self.head_init_scale = head_init_scale
         self.actor_kwargs: dict[str, Any] = {
             "observation_space": self.observation_space,
             "action_space": self.action_space,
@@ -303,6 +321,7 @@ class GaussianPolicy(BasePolicy):
             "init_std": init_std,
             "min_std": min_std,
             "layer_norm": layer_norm,
+            "head_init_scale": head_init_scale,
         }
 
     #: a :class:`GaussianActor` (see the subclasses' declarations; CRR's may be one actor per data source)
@@ -318,6 +337,7 @@ class GaussianPolicy(BasePolicy):
                 init_std=self.init_std,
                 min_std=self.min_std,
                 layer_norm=self.layer_norm,
+                head_init_scale=self.head_init_scale,
                 lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,

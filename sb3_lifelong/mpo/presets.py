@@ -46,6 +46,8 @@ ACME_MUJOCO: dict[str, Any] = {
         "layer_norm": True,
         "activation_fn": nn.ELU,
         "init_std": 0.5,
+        "min_std": 1e-6,
+        "head_init_scale": 1e-4,
         "squash_mean": False,
     },
 }
@@ -81,6 +83,8 @@ ACME_MUJOCO_SOURCES: dict[str, str] = {
     "policy_kwargs.layer_norm": f"{_NETWORKS}: LayerNormMLP torso (Linear, LayerNorm, tanh first) for both networks",
     "policy_kwargs.activation_fn": f"{_NETWORKS}: LayerNormMLP's later layers use elu",
     "policy_kwargs.init_std": f"{_RUN_MPO}: policy_init_scale=0.5 (MultivariateNormalDiagHead's init_scale)",
+    "policy_kwargs.min_std": f"{_NETWORKS}: MultivariateNormalDiagHead's min_scale=1e-6",
+    "policy_kwargs.head_init_scale": f"{_NETWORKS}: MultivariateNormalDiagHead's w_init=VarianceScaling(1e-4), zero biases",
     "policy_kwargs.squash_mean": f"{_NETWORKS}: MultivariateNormalDiagHead's mean is not squashed",
 }
 
@@ -91,8 +95,9 @@ def acme_mujoco(**overrides: Any) -> dict[str, Any]:
 
     What differs from Acme and cannot be set here: Acme runs 4 actors beside one learner and rate-limits the learner
     to the samples-per-insert ratio on average; here one process alternates 4 steps and one update. Acme's
-    policy head starts its mean and scale layers at a small weight scale (1e-4 variance scaling); ours use torch's
-    default initialisation. Acme's critic clips the sampled actions to the bounds before scoring them, as ours does.
+    critic starts its output layer at a truncated normal of scale 0.01; ours uses torch's default initialisation (both
+    give Q-values near 0 at the start). Acme's critic clips the sampled actions to the bounds before scoring them, as
+    ours does.
 
     :param overrides: settings to change (a ``policy_kwargs`` given here is merged into the preset's)
     :return: the keyword arguments

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+import torch as th
 import yaml
 from torch import nn
 
@@ -68,3 +69,34 @@ def test_zoo_file_is_the_preset():
     assert {"HalfCheetah-v5", "Walker2d-v5", "Hopper-v5", "sb3_lifelong/OP3Walk-v0"} <= set(entries)
     with pytest.raises(ValueError, match="no preset 'paper' for mpo"):
         hyperparams_file("mpo", "paper")
+
+
+def test_head_init_scale_starts_every_state_at_mean_zero_and_the_init_std():
+    kwargs = acme_mujoco(**SMALL)
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **kwargs)
+    obs = th.as_tensor(np.random.default_rng(0).uniform(-5, 5, size=(512, 3)), dtype=th.float32)
+    with th.no_grad():
+        mean, std = model.actor.distribution_params(obs)
+    assert mean.abs().max() < 0.05 and float((std - 0.5).abs().max()) < 0.01
+    assert th.count_nonzero(model.actor.mu.bias) == 0 and th.count_nonzero(model.actor.std_head.bias) == 0
+    fan_in = model.actor.mu.in_features
+    assert float(model.actor.mu.weight.std()) == pytest.approx(math.sqrt(1e-4 / fan_in) * 0.88, rel=0.25)  # truncated
+    default = MPO(
+        "MlpPolicy",
+        "Pendulum-v1",
+        seed=0,
+        **acme_mujoco(**{**SMALL, "policy_kwargs": {"net_arch": [32, 32], "head_init_scale": None}}),
+    )
+    with th.no_grad():
+        spread = default.actor.distribution_params(obs)[1]
+    assert float((spread - 0.5).abs().max()) > 0.02  # torch's default heads: the std varies by state
+
+
+def test_head_init_scale_is_saved_and_checked(tmp_path):
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **acme_mujoco(**SMALL))
+    model.save(tmp_path / "model")
+    loaded = MPO.load(tmp_path / "model")
+    assert loaded.actor.head_init_scale == 1e-4 and loaded.actor.min_std == 1e-6
+    assert th.equal(loaded.actor.mu.weight, model.actor.mu.weight)
+    with pytest.raises(ValueError, match="head_init_scale must be None or a number > 0, got -1"):
+        MPO("MlpPolicy", "Pendulum-v1", policy_kwargs={"head_init_scale": -1})
