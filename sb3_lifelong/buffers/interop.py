@@ -16,6 +16,7 @@ from typing import Any, Callable, Optional, Protocol, TypeVar, Union
 
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3.common.preprocessing import get_action_dim
 
 from sb3_lifelong.buffers.manifest import FLAG_DONE, FLAG_TIMEOUT, MAX_SOURCE_ID, check_source_id
 from sb3_lifelong.buffers.rowstore import RowStore
@@ -70,15 +71,46 @@ def _check_exportable(buffer: Exportable, what: str) -> None:
 def _to_env_units(actions: np.ndarray, action_space: spaces.Space) -> np.ndarray:
     """
     Exports: map the normalised ``[-1, 1]`` actions SB3 stores to the action space's bounds (the inverse of
-    :func:`~sb3_lifelong.core.datasets.normalize_actions`, which every import uses). Unbounded spaces, and spaces
-    that already are ``[-1, 1]``, leave the actions untouched (bit for bit).
+    :func:`~sb3_lifelong.core.datasets.normalize_actions`, which every import uses). Unbounded spaces, spaces
+    that already are ``[-1, 1]``, and integer (or bool) Box spaces, whose actions are stored in the env's units, leave
+    the actions untouched (bit for bit).
     """
-    if not isinstance(action_space, spaces.Box) or not action_space.is_bounded():
+    if not isinstance(action_space, spaces.Box) or not _is_float_box(action_space) or not action_space.is_bounded():
         return actions
     low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
     if np.all(low == -1.0) and np.all(high == 1.0):
         return actions
     return (low + 0.5 * (actions.astype(np.float64) + 1.0) * (high - low)).astype(actions.dtype)
+
+
+def _is_float_box(space: spaces.Space) -> bool:
+    """:return: whether ``space`` is a Box of floats (whose actions SB3 stores normalised; an integer Box's are not)"""
+    return isinstance(space, spaces.Box) and np.dtype(space.dtype).kind == "f"
+
+
+def _stored_actions(
+    actions: np.ndarray, action_space: spaces.Space, normalized_actions: bool, action_dim: int, where: str
+) -> np.ndarray:
+    """
+    Imports: the actions as the buffer stores them, ``(N, action_dim)``: a float Box's normalised to ``[-1, 1]`` (with
+    the one normaliser, :func:`~sb3_lifelong.core.datasets.normalize_actions`); the actions of an integer (or bool) Box
+    and of Discrete, MultiDiscrete and MultiBinary spaces as they are (the env's units, ``normalized_actions`` has no
+    effect), in the stored dtype, where it holds them exactly.
+
+    :raises ValueError: naming ``where``, for an integer action its dtype does not hold exactly (out of range, fractional)
+    """
+    if _is_float_box(action_space) or not isinstance(
+        action_space, (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+    ):
+        return normalize_actions(actions, action_space, normalized_actions).reshape(len(actions), action_dim)
+    dtype = np.dtype(action_space.dtype)
+    stored = actions.astype(dtype).reshape(len(actions), action_dim)
+    if not np.array_equal(stored, np.asarray(actions).reshape(len(actions), action_dim)):
+        raise ValueError(
+            f"{where}: an action is not a value of the action space's dtype {dtype} ({action_space}: its actions are "
+            "stored as they are, integers in the env's units): out of range or fractional"
+        )
+    return stored
 
 
 def _minari_env_spec(dataset: Any) -> Optional[str]:
@@ -184,7 +216,7 @@ def to_minari(
         raise ValueError("the buffer holds no finished episode to export (unfinished='drop')")
     obs_shape = tuple(buffer.observation_space.shape or ())
     action_space = buffer.action_space
-    if normalized_actions and isinstance(action_space, spaces.Box):
+    if normalized_actions and isinstance(action_space, spaces.Box) and _is_float_box(action_space):
         action_space = spaces.Box(-1.0, 1.0, shape=action_space.shape, dtype=action_space.dtype.type)
     action_shape = tuple(action_space.shape or ())
     sources = data["sources"].astype(np.int64)
@@ -258,7 +290,8 @@ def from_d4rl(
         observation_space = spaces.Box(-np.inf, np.inf, shape=obs.shape[1:], dtype=obs.dtype.type)
     if action_space is None:
         action_space = spaces.Box(-np.inf, np.inf, shape=actions.shape[1:], dtype=actions.dtype.type)
-    actions = normalize_actions(actions, action_space, normalized_actions)  # the one normaliser (also checks bounds)
+    # the one normaliser (also checks bounds) for float Box actions; integer actions as they are, exactly
+    actions = _stored_actions(actions, action_space, normalized_actions, get_action_dim(action_space), where)
     buffer = cls(total, observation_space, action_space, source=source, **kwargs)
     terminals, timeouts, next_obs = data["terminals"], data["timeouts"], data["next_observations"]
     sources = data["sources"] if "sources" in data else np.full(total, source)
@@ -318,6 +351,9 @@ def from_minari(
         cast_observations=False,
         integer_actions=True,
     )
+    actions = _stored_actions(  # before anything is created
+        valid["actions"], action_space, normalized_actions, get_action_dim(action_space), f"from_minari({name_of})"
+    )
     buffer = cls(total, observation_space, action_space, path=path, **kwargs)
     common = {
         "minari_dataset_id": dataset_id if isinstance(dataset_id, str) else None,
@@ -346,7 +382,6 @@ def from_minari(
         sources = np.full(total, source, dtype=np.int64)
         name = source_name or f"minari:{dataset_id if isinstance(dataset_id, str) else 'dataset'}"
         buffer.name_source(source, name, {**common, **dict(source_metadata or {})})
-    actions = normalize_actions(valid["actions"].reshape(total, buffer.action_dim), action_space, normalized_actions)
     terminals, timeouts = valid["terminals"], valid["timeouts"]
     base = buffer.store.reserve_streams(len(lengths))
     rows = {

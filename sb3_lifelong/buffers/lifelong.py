@@ -36,7 +36,13 @@ from sb3_lifelong.buffers.manifest import (
 from sb3_lifelong.buffers.rowstore import RowStore
 from sb3_lifelong.buffers.salvage import BufferCheck, check_buffer, salvage_buffer
 from sb3_lifelong.buffers.sampling import LifelongSampler, RunIndex
-from sb3_lifelong.buffers.schema import buffer_fields, observation_space_of, space_from_json, space_to_json
+from sb3_lifelong.buffers.schema import (
+    action_space_of,
+    buffer_fields,
+    check_spaces,
+    describe_spaces,
+    observation_space_of,
+)
 from sb3_lifelong.core.contract import DYNAMICS_PARAMS_KEY, STAGE_KEY, stage_name
 
 __all__ = ["BufferFormatError", "CommitNotDurableError", "LifelongReplayBuffer"]
@@ -76,8 +82,13 @@ class LifelongReplayBuffer(LifelongSampler):
     ``add`` width is its own stream).
 
     :param buffer_size: SB3's buffer size: informational only, nothing is evicted because of it (see ``capacity``)
-    :param observation_space: Observation space (Box, Discrete, or Dict of those; optional when opening a ``path``)
-    :param action_space: Action space (optional when opening an existing ``path``)
+    :param observation_space: Observation space (Box, Discrete, MultiDiscrete, MultiBinary, or a Dict of those;
+        optional when opening a ``path``). A directory reopens with spaces equal to the ones it was created with (bounds,
+        dtype, ``nvec``, ``start``, ``n``); any other space is refused here with a ``NotImplementedError`` that lists
+        the supported ones (``sb3_lifelong.buffers.schema.SUPPORTED_SPACES``)
+    :param action_space: Action space (Box, Discrete, MultiDiscrete or MultiBinary; optional when opening an existing
+        ``path``). Box actions are stored as given to ``add``: SB3's off-policy algorithms give a float Box's actions
+        normalised to ``[-1, 1]``; an integer Box's actions are stored (and exported) in the env's units, as integers
     :param device: PyTorch device of the sampled tensors
     :param n_envs: Number of parallel envs expected first (any number is accepted later)
     :param optimize_memory_usage: Not supported (must be False)
@@ -150,10 +161,11 @@ class LifelongReplayBuffer(LifelongSampler):
         # BaseBuffer.__init__ is not called: it would allocate and assign attributes that are properties here
         if optimize_memory_usage:
             raise ValueError("LifelongReplayBuffer stores next observations: optimize_memory_usage is not supported")
-        if isinstance(action_space, (spaces.Dict, spaces.Tuple)):
-            raise NotImplementedError(f"LifelongReplayBuffer supports Box and Discrete action spaces, not {action_space}")
-        if isinstance(observation_space, spaces.Tuple):
-            raise NotImplementedError("LifelongReplayBuffer does not support Tuple observation spaces (Dict ones are)")
+        # every space accepted reopens equal (schema.SUPPORTED_SPACES); the rest is refused before anything is written
+        check_spaces(observation_space, action_space)
+        description = None
+        if observation_space is not None and action_space is not None and not read_only:
+            description = describe_spaces(observation_space, action_space)
         path_str = None if path is None else os.fspath(path)
         held = _prepare_directory(path_str, mode) if path_str is not None and not read_only else 0
         #: a re-run must not add to an earlier run's data silently: without mode="append", adding to a directory that
@@ -177,16 +189,13 @@ class LifelongReplayBuffer(LifelongSampler):
             evict=evict,
             allow_foreign_files=allow_foreign_files,
         )
-        if not self.store.spaces and observation_space is not None and action_space is not None and not read_only:
-            self.store.describe_spaces(
-                {"observation": space_to_json(observation_space), "action": space_to_json(action_space)}
-            )
+        if not self.store.spaces and description is not None:
+            self.store.describe_spaces(description)
         if observation_space is None or action_space is None:
-            act_dtype, act_shape = self.store.fields["actions"]
             try:
                 observation_space = observation_space_of(self.store)
-                action_space = space_from_json(self.store.spaces.get("action", {}), act_dtype, act_shape)
-            except (ValueError, TypeError, OverflowError, KeyError, AttributeError) as error:
+                action_space = action_space_of(self.store)
+            except (ValueError, TypeError, OverflowError, KeyError, AttributeError, AssertionError) as error:
                 self.store.abandon()
                 raise BufferFormatError(
                     f"{os.path.join(str(path_str), MANIFEST_NAME)}: its 'spaces' do not describe the observation and "

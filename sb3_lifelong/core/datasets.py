@@ -85,11 +85,12 @@ def _as_array(data: Mapping[str, Any], key: str, where: str) -> np.ndarray:
         raise OfflineDataError(f"{where} key {key!r} cannot be read as an array: {error}") from error
 
 
-def _check_numeric(key: str, array: np.ndarray, allow_int: bool, where: str) -> None:
+def _check_numeric(key: str, array: np.ndarray, allow_int: bool, where: str, allow_bool: bool = False) -> None:
     kind = array.dtype.kind
-    allowed = "fiu" if allow_int else "f"
+    allowed = ("fiu" if allow_int else "f") + ("b" if allow_bool else "")
     if kind not in allowed:
         expected = "a numeric (float or integer)" if allow_int else "a floating-point"
+        expected += " or bool" if allow_bool else ""
         raise OfflineDataError(f"{where} key {key!r} must have {expected} dtype, got {array.dtype}")
     if kind != "f":
         return
@@ -158,8 +159,9 @@ def validate_d4rl(
         raise OfflineDataError(
             f"{where}: observations {obs.shape} and next_observations {next_obs.shape} must have the same shape"
         )
-    _check_numeric("observations", obs, allow_int=True, where=where)
-    _check_numeric("next_observations", next_obs, allow_int=True, where=where)
+    # bool observations too: what a buffer with a bool Box exports (to_d4rl) imports again
+    _check_numeric("observations", obs, allow_int=True, where=where, allow_bool=True)
+    _check_numeric("next_observations", next_obs, allow_int=True, where=where, allow_bool=True)
     actions = arrays["actions"]
     _check_numeric("actions", actions, allow_int=integer_actions, where=where)
     if actions.ndim == 1:
