@@ -214,13 +214,16 @@ def evaluate_claims(study: Study, claims: Sequence[Claim]) -> list[dict[str, Any
                 )
                 for s in sorted(set(study.seeds) | set(values))
             )
-            low, high = bootstrap_ci(list(values.values()))
             fmt = "{:.2f}" if abs(means[name]) < 10 else "{:.0f}"
-            details.append(
-                f"{name}: {fmt.format(means[name])} [{fmt.format(low)}, {fmt.format(high)}] ({per_seed})"
-                if values
-                else f"{name}: no data"
-            )
+            if len(values) > 1:
+                low, high = bootstrap_ci(list(values.values()))
+                details.append(f"{name}: {fmt.format(means[name])} [{fmt.format(low)}, {fmt.format(high)}] ({per_seed})")
+            elif values:  # one seed: its value, no interval (the seed named when the study has others)
+                details.append(
+                    f"{name}: {fmt.format(means[name])}" + (f", 1 seed ({per_seed})" if len(study.seeds) > 1 else "")
+                )
+            else:
+                details.append(f"{name}: no data")
         paired = [describe_pair(a, b, paired_difference(series[a], series[b])) for a, b in claim.compared(list(series))]
         row = dict(
             claim=claim.name, statement=claim.statement, verdict=verdict, values="; ".join(details), paired="; ".join(paired)
@@ -236,11 +239,14 @@ def describe_pair(first: str, second: str, difference: Mapping[str, Any]) -> str
     :param first: the first series' name
     :param second: the second series' name
     :param difference: :func:`paired_difference` of the two
-    :return: ``first - second: mean [low, high], first higher on k of n seeds``
+    :return: ``first - second: mean [low, high], first higher on k of n seeds`` (one seed: ``first - second: mean,
+        1 seed``, no interval)
     """
     if difference["n"] == 0:
         return f"{first} - {second}: no paired seeds"
     fmt = "{:+.2f}" if abs(difference["mean"]) < 10 else "{:+.0f}"
+    if difference["n"] == 1:
+        return f"{first} - {second}: {fmt.format(difference['mean'])}, 1 seed"
     wins = f"{difference['wins']:g}"
     return (
         f"{first} - {second}: {fmt.format(difference['mean'])} [{fmt.format(difference['low'])}, "

@@ -20,6 +20,7 @@ from sb3_lifelong.experiments.style import (
     over_seeds,
     pyplot,
     save,
+    seed_count,
     seed_lines,
     steps_axis,
     switch,
@@ -209,24 +210,65 @@ def plot_q(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
     return [save(plt, fig, directory / "fig_q_sources.png")]
 
 
-#: Fig. 6's sampling ratios Env-A : Env-B, and the suffix of the students that sample them
-RATIOS = (("1:1", "_ratio_1to1"), ("1:5 (raw)", ""), ("1:10", "_ratio_1to10"))
+#: Fig. 6's re-weighted sampling ratios: (Env-B rows drawn per Env-A row, the suffix of the students that sample
+#: them); the students without a suffix sample the raw share, the buffer's own (:func:`raw_share_label`)
+RATIOS = ((1.0, "_ratio_1to1"), (10.0, "_ratio_1to10"))
+
+
+def share_text(b_per_a: float) -> str:
+    """:return: a share Env-A : Env-B with its smaller side 1, e.g. ``"1:1.8"``, ``"1:10"``, ``"2.5:1"``"""
+
+    def number(value: float) -> str:
+        return f"{value:.0f}" if value >= 10 else f"{value:.1f}".removesuffix(".0")
+
+    return f"1:{number(b_per_a)}" if b_per_a >= 1 else f"{number(1 / b_per_a)}:1"
+
+
+def raw_shares(study: Study) -> dict[int, float]:
+    """
+    :param study: a loaded two-stage study
+    :return: seed -> the Env-B rows per Env-A row of its lifetime buffer (``buffer|rows|<env>``, as the collection
+        recorded them: :func:`~sb3_lifelong.experiments.scores.source_rows`), for the seeds that have both
+    """
+    first, second = study.preset["env_names"][:2]
+    rows_a, rows_b = study.extra(f"buffer|rows|{first}"), study.extra(f"buffer|rows|{second}")
+    return {seed: rows_b[seed] / rows_a[seed] for seed in sorted(rows_a) if seed in rows_b and rows_a[seed] > 0}
+
+
+def raw_share_label(study: Study) -> str:
+    """
+    :param study: a loaded two-stage study
+    :return: the tick label of the students that sample the whole buffer: its share Env-A : Env-B, e.g.
+        ``"raw (1:1.8)"`` (``"raw (1:1.8 to 1:1.9)"`` when the seeds' buffers differ), or ``"raw (share not
+        recorded)"`` when no seed's rows per source are known
+    """
+    shares = raw_shares(study)
+    if not shares:
+        return "raw (share not recorded)"
+    low, high = share_text(min(shares.values())), share_text(max(shares.values()))
+    return f"raw ({low})" if low == high else f"raw ({low} to {high})"
 
 
 def plot_ratios(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
-    """Paper Fig. 6: Env-A return against the Env-A : Env-B sampling ratio (the two series side by side)."""
+    """
+    Paper Fig. 6: Env-A return against the Env-A : Env-B sampling ratio (the two series side by side), the raw share
+    labelled with what the seeds' buffers hold.
+    """
     env = study.preset["env_names"][0]
     bases = ("CRR_indicator", "CRR_exp_beta1")
-    if len(study.preset["env_names"]) != 2 or not any(
-        study.score(base + suffix, env) for base in bases for _, suffix in RATIOS if suffix
-    ):
+    reweighted = any(study.score(base + suffix, env) for base in bases for _, suffix in RATIOS)
+    if len(study.preset["env_names"]) != 2 or not reweighted:
         return []  # the ratios are Env-A : Env-B of a two-stage study; without a re-weighted student there is no curve
+    shares = raw_shares(study)
+    raw = float(np.mean(list(shares.values()))) if shares else float(np.sqrt(np.prod([r for r, _ in RATIOS])))
+    ratios = sorted([*RATIOS, (raw, "")])  # in the order of Env-B's share (unknown: between the others)
+    labels = [raw_share_label(study) if not suffix else share_text(share) for share, suffix in ratios]
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    x = np.arange(len(RATIOS))
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    x = np.arange(len(ratios))
     counts = set()
     for offset, base in zip((-0.09, 0.09), bases):
-        per_ratio = [[v for v in study.score(base + suffix, env).values() if np.isfinite(v)] for _, suffix in RATIOS]
+        per_ratio = [[v for v in study.score(base + suffix, env).values() if np.isfinite(v)] for _, suffix in ratios]
         means = [float(np.mean(values)) if values else np.nan for values in per_ratio]
         stds = [float(np.std(values)) if values else 0.0 for values in per_ratio]
         if not np.isfinite(means).any():
@@ -234,20 +276,23 @@ def plot_ratios(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
         n = max(len(values) for values in per_ratio)
         counts.add(n)
         color = method_color(base)
-        label = f"{method_label(base)} (mean ± std, n={n})"
+        label = f"{method_label(base)} ({'mean ± std, ' if n > 1 else ''}n={n})"
         ax.errorbar(x + offset, means, yerr=stds, marker="o", capsize=4, color=color, label=label)
-        for position, values in zip(x + 1.7 * offset, per_ratio):  # beside the error bar (two seeds sit on its ends)
+        seed_values = per_ratio if n > 1 else []  # one seed: its dot is the mean's
+        for position, values in zip(x + 1.7 * offset, seed_values):  # beside the error bar (two seeds sit on its ends)
             ax.plot(np.full(len(values), position), values, "o", color=color, markersize=3.5, alpha=0.6, markeredgewidth=0)
     ax.set_xticks(x)
-    ax.set_xticklabels([r for r, _ in RATIOS])
-    ax.set_xlabel("Env-A : Env-B sampling ratio of the student's batches")
+    ax.set_xticklabels(labels)
+    ax.set_xlabel("Env-A : Env-B share of the student's batches (raw: the buffer's own rows)")
     ax.set_ylabel(f"final return in {env}")
-    seeds = f"{max(counts)} seeds" if counts else "no seed"
-    ax.set_title(f"{study_title(study)}\n{env} return vs sampling ratio ({seeds}; small dots: seeds)", fontsize=10)
+    seeds = max(counts) if counts else 0
+    dots = "; small dots: seeds" if seeds > 1 else ""
+    ax.set_title(f"{study_title(study)}\n{env} return vs sampling ratio ({seed_count(seeds)}{dots})", fontsize=10)
     ax.margins(x=0.12)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=9)
-    return [save(plt, fig, directory / "fig_sampling_ratio.png")]
+    handles, names = ax.get_legend_handles_labels()
+    fig.legend(handles, names, loc="lower center", ncol=len(names), fontsize=9, frameon=False)  # below: no curve hidden
+    return [save(plt, fig, directory / "fig_sampling_ratio.png", rect=(0.0, 0.07, 1.0, 1.0))]
 
 
 def plot_study(study: Study) -> list[pathlib.Path]:

@@ -107,6 +107,8 @@ class Preset:
         presets' small networks, one transition per update, run fastest as one process per CPU core; larger networks
         (the ``paper`` preset) gain from a GPU. A study runs on one device: the settings record it, and a paused job
         continues on it, so that a run in parts computes what an uninterrupted one does
+    :param toy: a budget too small to learn Env-A (``tiny``, ``demo``): a run shows that the pipeline runs, not the
+        paper's findings, and its report says so at its top (:func:`toy_budget`)
     :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
@@ -137,6 +139,7 @@ class Preset:
     min_weight_ess: Optional[float] = None
     max_switch_spread: Optional[float] = None
     device: str = "cpu"
+    toy: bool = False
     note: str = ""
 
     def __post_init__(self) -> None:
@@ -226,6 +229,7 @@ PRESETS: dict[str, Preset] = {
         learning_rate=1e-3,
         learning_starts=100,
         max_episode_steps=50,
+        toy=True,
     ),
 }
 
@@ -239,6 +243,7 @@ PRESETS["demo"] = dataclasses.replace(
     eval_episodes=2,
     students=("CRR_exp_beta1", "CRR_indicator", "CRR_indicator_A_only", "BC"),
     online=False,
+    toy=True,
     note=(
         "Forgetting is not shown at the demo's budget: MPO does not learn Env-A in 8k steps (it needs about 60k on "
         "HalfCheetah), so it has nothing to forget; the 'cpu' preset (60k + 180k steps, about 45 min of collection "
@@ -416,11 +421,13 @@ LATER_SETTINGS: dict[str, Any] = {
     "min_weight_ess": None,
     "max_switch_spread": None,
     "device": "cpu",
+    "toy": False,
 }
-#: settings that do not make two studies different ones: more repeats of the students, and the report's precondition
-#: (a study keeps the threshold it recorded, None for those recorded before there was one)
+#: settings that do not make two studies different ones: more repeats of the students, the report's precondition
+#: (a study keeps the threshold it recorded, None for those recorded before there was one), and the mark of a toy
+#: budget (a study recorded before the mark existed is the same study: :func:`toy_budget` reads its preset's mark)
 REPORT_THRESHOLDS = ("env_a_learnt", "value_gap", "min_weight_ess", "max_switch_spread")
-NOT_IDENTITY = ("student_repeats", *REPORT_THRESHOLDS)
+NOT_IDENTITY = ("student_repeats", *REPORT_THRESHOLDS, "toy")
 
 
 def same_settings(recorded: Mapping[str, Any], described: Mapping[str, Any]) -> bool:
@@ -452,6 +459,7 @@ STUDENT_SETTINGS = (
     "student_critic",
     *REPORT_THRESHOLDS,
     "note",
+    "toy",
     "minutes_per_seed",
 )
 
@@ -501,16 +509,38 @@ def load_presets(path: Union[str, os.PathLike]) -> dict[str, Preset]:
     return dict(presets)
 
 
-def preset_name(recorded: Mapping[str, Any], folder: Optional[pathlib.Path] = None) -> str:
+def named_preset(recorded: Mapping[str, Any], folder: Optional[pathlib.Path] = None) -> tuple[str, Optional[Preset]]:
     """
     :param recorded: a study's recorded settings (``preset.json``)
     :param folder: the study's directory: the presets of its ``presets.py``, when it has one, are looked at too
-    :return: the name of the preset it was run with (:data:`PRESETS`, or the study's own), or ``""``
+    :return: the name and the preset it was run with (:data:`PRESETS`, or the study's own), or ``("", None)``
     """
     candidates = dict(PRESETS)
     if folder is not None and (folder / "presets.py").is_file():
         candidates.update(load_presets(folder / "presets.py"))
     for name, candidate in candidates.items():
         if same_settings(recorded, json.loads(json.dumps(candidate.describe()))):
-            return name
-    return ""
+            return name, candidate
+    return "", None
+
+
+def preset_name(recorded: Mapping[str, Any], folder: Optional[pathlib.Path] = None) -> str:
+    """
+    :param recorded: a study's recorded settings (``preset.json``)
+    :param folder: the study's directory: the presets of its ``presets.py``, when it has one, are looked at too
+    :return: the name of the preset it was run with (:data:`PRESETS`, or the study's own), or ``""``
+    """
+    return named_preset(recorded, folder)[0]
+
+
+def toy_budget(recorded: Mapping[str, Any], folder: Optional[pathlib.Path] = None) -> bool:
+    """
+    :param recorded: a study's recorded settings (``preset.json``)
+    :param folder: the study's directory (its ``presets.py`` is looked at too)
+    :return: whether the study ran at a toy budget (:attr:`Preset.toy`): as recorded, or, for a study recorded
+        before presets were marked, as the preset it was run with is marked now
+    """
+    if "toy" in recorded:
+        return bool(recorded["toy"])
+    preset = named_preset(recorded, folder)[1]
+    return preset is not None and preset.toy

@@ -29,7 +29,8 @@ Layout of ``<output>/seed_<k>/``::
     <job>/tb/<Algorithm>_<k>/   the job's tensorboard run, as SB3 writes it (when tensorboard is installed): the
                                 eval/<env>/, diagnostics/ and train/ values, so ``tensorboard --logdir <output>``
                                 browses every seed, job and environment of the study
-    <job>/done.json             wall time and the job's settings
+    <job>/done.json             wall time and the job's settings (``collect``'s: the rows of each environment's
+                                data in the lifetime buffer too, ``source_rows``)
 """
 
 import contextlib
@@ -76,6 +77,7 @@ from sb3_lifelong.experiments.presets import (
     same_settings,
     switch_points,
 )
+from sb3_lifelong.experiments.scores import SOURCE_ROWS_RECORD, count_source_rows
 from sb3_lifelong.mpo import MPO
 
 
@@ -642,6 +644,11 @@ def run_seed(
             done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
             if parsed.kind == "distill":
                 done.update(student=dataclasses.asdict(STUDENTS[name]), repeat=repeat, student_seed=student_seed)
+            if parsed.kind == "collect":  # the share of each environment's data, for the report without the buffer
+                try:
+                    done[SOURCE_ROWS_RECORD] = count_source_rows(run_dir / "buffer")
+                except (OSError, ValueError, RuntimeError) as error:  # never lose a finished collection over a record
+                    log(f"seed {seed}: the rows per source of the buffer were not recorded ({error})")
             write_json_atomic(run_dir / job / "done.json", done)  # never a half-written "done"
             release_directory(run_dir / job)  # finished: no later attempt deletes it
             log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")

@@ -1,9 +1,11 @@
 """
 The report of a two-stage (or three-stage) study: its score tables, the pre-registered claims with their verdicts,
-and ``report.md`` with the paper's figures (:mod:`sb3_lifelong.experiments.figures`).
+and ``report.md`` with the paper's figures (:mod:`sb3_lifelong.experiments.figures`). ``report.md`` opens with what
+the run showed in three lines (:func:`summary_lines`), after a warning when the study ran at a toy budget
+(:func:`toy_warning`).
 
 The scores are each seed's (:mod:`sb3_lifelong.experiments.scores`); a table gives their mean +- std over seeds and
-a 95 % BCa bootstrap interval of the mean, from ``scipy.stats.bootstrap``.
+a 95 % BCa bootstrap interval of the mean, from ``scipy.stats.bootstrap`` (at one seed: its value alone).
 
 A claim that compares two methods also reports their paired difference: per seed (both from the same seed's
 collection), its mean with a BCa interval, and on how many seeds the first is higher (rliable's "probability of
@@ -23,6 +25,7 @@ import pandas as pd
 from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.experiments.claims import Claim, evaluate_claims, load_claims, mean_over_envs, ratio, series_mean
 from sb3_lifelong.experiments.figures import plot_study
+from sb3_lifelong.experiments.presets import STUDENTS, preset_name, toy_budget
 from sb3_lifelong.experiments.scores import (
     ONLINE_LAST,
     ONLINE_LAST_STAGE1,
@@ -32,6 +35,7 @@ from sb3_lifelong.experiments.scores import (
     load_study,
 )
 from sb3_lifelong.experiments.statistics import describe
+from sb3_lifelong.experiments.style import over_seeds
 
 
 def write_csv_atomic(frame: pd.DataFrame, path: pathlib.Path) -> None:
@@ -49,12 +53,18 @@ def score_table(study: Study) -> str:
     order.sort(key=lambda m: (0 if m == "MPO" else 1 if m.startswith("online") else 2))
     for method in order:
         kind = study.finals[study.finals["method"] == method]["kind"].iloc[0]
-        cells = [describe(list(study.score(method, env).values())) for env in envs]
+        cells = [_cell(list(study.score(method, env).values()), len(study.seeds)) for env in envs]
         overall = mean_over_envs(study, method)
         lines.append(
-            f"| {method} | {kind} | " + " | ".join(cells) + f" | {describe(list(overall.values()))} | {len(overall)} |"
+            f"| {method} | {kind} | " + " | ".join(cells) + f" | {_cell(list(overall.values()), len(study.seeds))} | "
+            f"{len(overall)} |"
         )
     return "\n".join(lines)
+
+
+def _cell(values: Sequence[float], seeds: int) -> str:
+    """:return: the values' :func:`describe`, saying "1 seed" where a study of several seeds has one value"""
+    return describe(values) + (" (1 seed)" if len(values) == 1 and seeds > 1 else "")
 
 
 def weights_table(study: Study) -> str:
@@ -230,12 +240,20 @@ def continual_table(study: Study, random: Mapping[str, float]) -> str:
     return "\n".join(lines) if len(lines) > 2 else ""
 
 
-def claims_table(rows: list[dict[str, Any]]) -> str:
-    """:return: the claims as a markdown table (with a precondition column when the rows have one)"""
+def claims_table(rows: list[dict[str, Any]], seeds: int = 2) -> str:
+    """
+    :param rows: the claims' verdicts (:func:`~sb3_lifelong.experiments.claims.evaluate_claims`)
+    :param seeds: the study's seeds (one: no interval is given, and the header says so)
+    :return: the claims as a markdown table (with a precondition column when the rows have one)
+    """
     checked = any("precondition" in r for r in rows)
     lines = [
-        "| claim | pre-registered criterion | verdict | values: mean [95 % BCa CI] (per seed) "
-        "| paired by seed: mean difference [95 % BCa CI], seeds on which the first is higher |"
+        (
+            "| claim | pre-registered criterion | verdict | values: mean [95 % BCa CI] (per seed) "
+            "| paired by seed: mean difference [95 % BCa CI], seeds on which the first is higher |"
+            if seeds > 1
+            else "| claim | pre-registered criterion | verdict | values (1 seed: no interval) | difference on that seed |"
+        )
         + (" precondition |" if checked else ""),
         "| --- | --- | --- | --- | --- |" + (" --- |" if checked else ""),
     ]
@@ -297,6 +315,86 @@ def continual_section(output: pathlib.Path, study: Study) -> str:
     )
 
 
+# ------------------------------------------------------------------------------------------------- the top
+#: the student the summary reads: the pipeline's (CRR exp beta=1 on the whole buffer)
+PIPELINE_STUDENT = "CRR_exp_beta1"
+#: the verdicts, in the order the summary counts them
+VERDICTS = ("reproduced", "not reproduced", "not testable", "no data")
+
+
+def _mean_of_seeds(values: Sequence[float]) -> str:
+    """:return: the mean of per-seed values, with their std from two seeds on (``-`` without a finite value)"""
+    data = [float(v) for v in values if np.isfinite(v)]
+    if not data:
+        return "-"
+    return f"{np.mean(data):.0f}" + (f" +- {np.std(data):.0f}" if len(data) > 1 else "")
+
+
+def summary_lines(study: Study, verdicts: Sequence[Mapping[str, Any]]) -> list[str]:
+    """
+    What the run showed, in three lines (markdown list items): the pipeline's student's final return in every
+    environment against MPO's at the end of the collection; what MPO kept of each environment it left (its return
+    there at the end against when it left); and the pre-registered claims' verdicts, counted.
+
+    :param study: the study
+    :param verdicts: its claims' verdicts (:func:`~sb3_lifelong.experiments.claims.evaluate_claims`; none: no claims
+        were given)
+    :return: the three lines
+    """
+    envs = study.preset["env_names"]
+    seeds = over_seeds(len(study.seeds), "mean +- std")
+
+    def returns(method: str) -> str:
+        return ", ".join(f"{env} {_mean_of_seeds(list(study.score(method, env).values()))}" for env in envs)
+
+    present = list(dict.fromkeys(study.finals[study.finals["kind"] == "student"]["method"])) if len(study.finals) else []
+    ordered = [name for name in STUDENTS if name in present] + [name for name in present if name not in STUDENTS]
+    mpo = f"MPO at the end of the collection: {returns('MPO')}" if study.score("MPO", envs[0]) else "MPO: no score"
+    if not ordered:
+        first = f"- **No student has finished**; {mpo} ({seeds})."
+    else:
+        student = PIPELINE_STUDENT if PIPELINE_STUDENT in ordered else ordered[0]
+        who = "The pipeline's student" if student == PIPELINE_STUDENT else "The first student"
+        first = (
+            f"- **{who}** ({student}, {study.preset['distill_steps']:,} updates): {returns(student)}; against {mpo} ({seeds})."
+        )
+    kept = []
+    for env in envs[:-1]:
+        switch, end = study.extra(f"MPO|switch|{env}"), study.score("MPO", env)
+        if switch and end:
+            kept_share = list(ratio(end, switch).values())
+            share = f"{np.mean(kept_share):.2f}" if kept_share else "n/a"
+            kept.append(
+                f"{env}: {_mean_of_seeds(list(end.values()))} at the end against {_mean_of_seeds(list(switch.values()))} "
+                f"when it left it (end / switch {share})"
+            )
+    second = "- **What MPO kept of the environments it left**: " + ("; ".join(kept) if kept else "not measured") + "."
+    if verdicts:
+        counted = {verdict: sum(row["verdict"] == verdict for row in verdicts) for verdict in VERDICTS}
+        reproduced = [str(row["claim"]) for row in verdicts if row["verdict"] == "reproduced"]
+        third = (
+            f"- **The {len(verdicts)} pre-registered claims**: "
+            + ", ".join(f"{count} {verdict}" for verdict, count in counted.items() if count)
+            + (f" (reproduced: {', '.join(reproduced)})" if reproduced else "")
+            + ("; at a toy budget, no evidence either way." if toy_budget(study.preset, study.output) else ".")
+        )
+    else:
+        third = "- **Claims**: none given, so none was tested."
+    return [first, second, third]
+
+
+def toy_warning(study: Study) -> str:
+    """:return: the report's warning at a toy budget (:func:`~sb3_lifelong.experiments.presets.toy_budget`), or ``""``"""
+    if not toy_budget(study.preset, study.output):
+        return ""
+    name = preset_name(study.preset, study.output)
+    return (
+        f"> **A toy budget**{f' (preset `{name}`)' if name else ''}: Env-A is not learnt at this budget, so these numbers "
+        "show that the pipeline runs end to end, not the paper's findings, and the claims' verdicts are no evidence "
+        "either way. The smallest study of the paper's questions here is the `cpu` preset."
+    )
+
+
 #: the claims section of a study reported without claims
 NO_CLAIMS = "No claims were given (a study's claims are the claims.py in its folder, or `report --claims FILE`)."
 
@@ -349,8 +447,13 @@ def write_report(
     verdicts = evaluate_claims(study, study_claims(output, claims))
     write_csv_atomic(pd.DataFrame(verdicts), output / f"claims{suffix}.csv")
     partial = incomplete_repeats(study)
+    warning = toy_warning(study)
+    one_seed = len(study.seeds) == 1
     text = (
         f"# {len(study.preset['env_names'])}-stage study: {study.preset['env_id']}, seeds {study.seeds}\n\n"
+        + (f"{warning}\n\n" if warning else "")
+        + "\n".join(summary_lines(study, verdicts))
+        + "\n\n"
         f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
         f"{study.preset['distill_steps']:,} updates per student"
         + (
@@ -366,8 +469,13 @@ def write_report(
             if partial
             else ""
         )
-        + "## Final returns\n\nmean +- std over seeds [95 % BCa bootstrap CI of the mean]; online methods: mean of the last "
-        + f"{ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
+        + "## Final returns\n\n"
+        + (
+            "1 seed: each cell is that seed's value (one seed gives no spread and no interval)"
+            if one_seed
+            else "mean +- std over seeds [95 % BCa bootstrap CI of the mean]"
+        )
+        + f"; online methods: mean of the last {ONLINE_LAST} evaluations, students: mean of the last {STUDENT_LAST}.\n\n"
         + score_table(study)
         + (
             "\n\n## What MPO kept of the environments it left\n\nWhen it left: the mean of its last "
@@ -391,11 +499,7 @@ def write_report(
             else ""
         )
         + "\n\n## Claims\n\n"
-        + (
-            claims_table(verdicts)
-            if verdicts
-            else "No claims were given (a study's claims are the claims.py in its folder, or `report --claims FILE`)."
-        )
+        + (claims_table(verdicts, len(study.seeds)) if verdicts else NO_CLAIMS)
         + "\n"
     )
     if plots:

@@ -23,7 +23,9 @@ A seed's scores:
   collector's critic overestimates an environment's data when it leaves it and at the end
   (:func:`collector_overestimation`);
 * a student's weights: the effective sample size and the share at the clip of its regression weights, the mean of
-  its last ``STUDENT_TRAIN_LAST`` logged values (``<student>|weight_ess``, ``<student>|weight_clip_frac``).
+  its last ``STUDENT_TRAIN_LAST`` logged values (``<student>|weight_ess``, ``<student>|weight_clip_frac``);
+* the rows of each environment's data in the seed's lifetime buffer (``buffer|rows|<env>``, :func:`source_rows`):
+  the share a student that samples the whole buffer sees.
 """
 
 import csv
@@ -296,6 +298,41 @@ def collector_overestimation(
     return extras
 
 
+#: the ``collect`` job's record (its ``done.json``) of the rows of each source in the seed's lifetime buffer
+SOURCE_ROWS_RECORD = "source_rows"
+
+
+def count_source_rows(buffer: pathlib.Path) -> dict[str, int]:
+    """
+    :param buffer: a lifetime buffer's directory (opened read-only: its sources column only is read)
+    :return: the rows of each source, by its name
+    """
+    from sb3_lifelong.buffers import LifelongReplayBuffer
+
+    with LifelongReplayBuffer.open(buffer, read_only=True) as data:
+        return {str(name): int(count) for name, count in data.source_counts(by_name=True).items()}
+
+
+def source_rows(run_dir: pathlib.Path) -> dict[str, int]:
+    """
+    :param run_dir: a seed's directory, its collection finished
+    :return: the rows of each environment's data in the seed's lifetime buffer: as its ``collect/done.json`` recorded
+        them (:data:`SOURCE_ROWS_RECORD`), else counted in its buffer when it is there (a study collected before the
+        record existed); ``{}`` when neither is (a study exported without its buffers, say)
+    """
+    done = json.loads((run_dir / "collect" / "done.json").read_text())
+    recorded = done.get(SOURCE_ROWS_RECORD)
+    if isinstance(recorded, dict):
+        return {str(name): int(count) for name, count in recorded.items()}
+    if not (run_dir / "buffer" / "manifest.json").is_file():
+        return {}
+    try:
+        return count_source_rows(run_dir / "buffer")
+    except (OSError, ValueError, RuntimeError) as error:  # unreadable: the report stands without the share
+        warnings.warn(f"{run_dir / 'buffer'}: its rows per source could not be counted ({error})", stacklevel=2)
+        return {}
+
+
 def student_weights(
     seed: int, method: str, train_log: pathlib.Path, problems: Optional[list[MalformedRow]] = None
 ) -> list[dict[str, Any]]:
@@ -409,6 +446,10 @@ def load_study(
                         extras.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=spread))
                     extras += data_values(seed, job_dir / "q_sources.csv", [])  # (its problems: counted once, below)
                     extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs, ends, problems)
+                    extras += [
+                        dict(seed=seed, metric=f"buffer|rows|{name}", value=float(rows))
+                        for name, rows in source_rows(run_dir).items()
+                    ]
             else:
                 method = parsed.name  # a student's repeats score as their mean
                 for env in envs:

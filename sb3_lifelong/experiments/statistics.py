@@ -85,9 +85,15 @@ def paired_difference(first: Mapping[int, float], second: Mapping[int, float], l
 
 
 def describe(values: Sequence[float]) -> str:
-    """:return: ``mean +- std [low, high]`` over seeds"""
+    """
+    :param values: one value per seed
+    :return: ``mean +- std [low, high]`` over seeds; the value alone for one seed (no spread, no interval); ``-``
+        without values
+    """
     data = np.asarray(values, dtype=float)
     if len(data) == 0:
         return "-"
+    if len(data) == 1:
+        return f"{data[0]:.0f}"
     low, high = bootstrap_ci(list(data))
     return f"{data.mean():.0f} +- {data.std():.0f} [{low:.0f}, {high:.0f}]"

@@ -103,7 +103,12 @@ def env_color(index: int) -> str:
 
 def over_seeds(count: int, what: str = "mean ± std") -> str:
     """:return: e.g. ``"mean ± std over 4 seeds"``, or ``"1 seed"``"""
-    return f"{what} over {count} seeds" if count > 1 else "1 seed"
+    return f"{what} over {count} seeds" if count > 1 else seed_count(count)
+
+
+def seed_count(count: int) -> str:
+    """:return: ``"no seed"``, ``"1 seed"`` or e.g. ``"4 seeds"``"""
+    return "no seed" if count == 0 else "1 seed" if count == 1 else f"{count} seeds"
 
 
 # ------------------------------------------------------------------------------------------------- drawing

@@ -353,3 +353,18 @@ def test_describe_formats_mean_std_and_interval():
     low, high = bootstrap_ci([10.0, 20.0, 30.0])
     assert describe([10.0, 20.0, 30.0]) == f"20 +- 8 [{low:.0f}, {high:.0f}]"  # np.std, ddof 0: 8.16
     assert describe([]) == "-"
+    assert describe([45.0]) == "45"  # one seed: its value, not "45 +- 0 [45, 45]"
+
+
+def test_one_seed_claims_give_no_interval():
+    from sb3_lifelong.experiments.claims import describe_pair
+
+    one = dict(n=1, mean=3.5, low=3.5, high=3.5, wins=1.0)
+    assert describe_pair("A", "B", one) == "A - B: +3.50, 1 seed"  # not "[+3.50, +3.50], A higher on 1 of 1 seeds"
+    study = synthetic_study(TWO)
+    study.seeds, study.finals = [0], study.finals[study.finals["seed"] == 0]
+    study.extras = study.extras[study.extras["seed"] == 0]
+    rows = evaluate_claims(study, load_claims(PAPER_CLAIMS))
+    assert rows and all(row["verdict"] != "no data" for row in rows)
+    assert not any("[" in row["values"] or "[" in row["paired"] or "1 seeds" in row["paired"] for row in rows)
+    assert "MPO: 100" in next(row["values"] for row in rows if row["claim"].startswith("C2a"))

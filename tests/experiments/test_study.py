@@ -4,6 +4,7 @@ import dataclasses
 import json
 import pathlib
 import re
+import shutil
 
 import numpy as np
 import pandas as pd
@@ -36,6 +37,8 @@ def test_a_seed_writes_every_job(study):
         assert {v["name"] for v in buffer.sources.values()} == {"Env-A", "Env-B"}
         counts = buffer.source_counts()  # the change takes effect at the first episode start of Stage 2
         assert counts[0] + counts[1] == 600 and 200 <= counts[0] < 250
+        # the collection records what its buffer holds, for a report that has no buffer (an exported study)
+        assert json.loads((run_dir / "collect" / "done.json").read_text())["source_rows"] == buffer.source_counts(by_name=True)
     with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1:
         assert stage1.size() == 200 and set(stage1.source_counts()) == {0}
     # the online baseline starts where Stage 1 ended and runs through Stage 2
@@ -156,6 +159,16 @@ def test_the_study_figures_read_as_they_should(study, monkeypatch):
     ratio = drawn["fig_sampling_ratio.png"].axes[0]
     series = ratio.containers  # one error-bar series per student kind
     assert len(series) == 2 and all("n=2" in container.get_label() for container in series)
+    # the raw share is the one the seeds' buffers hold, not the paper's 1:5
+    shares = []
+    for seed in (0, 1):
+        with LifelongReplayBuffer.open(output / f"seed_{seed}" / "buffer", read_only=True) as buffer:
+            rows = buffer.source_counts(by_name=True)
+        shares.append(f"1:{rows['Env-B'] / rows['Env-A']:.1f}".removesuffix(".0"))
+    raw = f"raw ({shares[0]})" if shares[0] == shares[1] else f"raw ({min(shares)} to {max(shares)})"
+    ticks = [tick.get_text() for tick in ratio.get_xticklabels()]
+    assert ticks == ["1:1", raw, "1:10"] and not any("1:5" in tick for tick in ticks)
+    assert ratio.get_legend() is None and drawn["fig_sampling_ratio.png"].legends  # below the axes, not on the curves
     first, second = (np.asarray(container.lines[0].get_xdata(), dtype=float) for container in series)
     assert np.all(np.abs(first - second) > 0.1)  # the two series side by side, not on top of each other
 
@@ -165,6 +178,106 @@ def test_the_study_figures_read_as_they_should(study, monkeypatch):
     methods = [text.get_text() for text in q.axes[-1].get_legend().get_texts()]
     assert len(seeds_lines) == 2 * len(methods)  # one line per seed and student, no mean +- std band
     assert not q.axes[0].collections
+
+
+def test_the_raw_share_reads_the_rows_of_each_source():
+    """Fig. 6's raw share: the Env-A : Env-B rows of the seeds' buffers, whatever they are; none known: said so."""
+    from sb3_lifelong.experiments.figures import raw_share_label, share_text
+    from sb3_lifelong.experiments.scores import Study
+
+    def study_of(rows: dict) -> Study:
+        extras = [
+            dict(seed=seed, metric=f"buffer|rows|{env}", value=float(n)) for seed, r in rows.items() for env, n in r.items()
+        ]
+        preset = {"env_names": ["Env-A", "Env-B"]}
+        return Study(
+            pathlib.Path("."), preset, sorted(rows), pd.DataFrame(), pd.DataFrame(extras, columns=["seed", "metric", "value"])
+        )
+
+    assert raw_share_label(study_of({0: {"Env-A": 211, "Env-B": 389}})) == "raw (1:1.8)"  # the tiny preset's
+    assert raw_share_label(study_of({0: {"Env-A": 60_000, "Env-B": 180_000}})) == "raw (1:3)"  # the cpu preset's
+    assert raw_share_label(study_of({0: {"Env-A": 100, "Env-B": 300}, 1: {"Env-A": 100, "Env-B": 500}})) == "raw (1:3 to 1:5)"
+    assert raw_share_label(study_of({})) == "raw (share not recorded)"
+    assert share_text(0.4) == "2.5:1" and share_text(12.0) == "1:12"
+
+
+def test_the_rows_per_source_of_a_study_recorded_before_the_record(study, tmp_path):
+    """A collection recorded before ``source_rows`` existed: counted in its buffer; without the buffer: not known."""
+    from sb3_lifelong.experiments.scores import source_rows
+
+    output, _ = study
+    run_dir = tmp_path / "seed_0"
+    (run_dir / "collect").mkdir(parents=True)
+    done = json.loads((output / "seed_0" / "collect" / "done.json").read_text())
+    expected = done.pop("source_rows")
+    (run_dir / "collect" / "done.json").write_text(json.dumps(done))
+    assert source_rows(run_dir) == {}  # no record, no buffer
+    shutil.copytree(output / "seed_0" / "buffer", run_dir / "buffer")
+    assert source_rows(run_dir) == expected
+
+
+def test_a_one_seed_report_gives_values_not_intervals(study, monkeypatch):
+    """At one seed: each value alone, "1 seed" (never "1 seeds"), no interval in the tables or the claims."""
+    from sb3_lifelong.experiments import figures
+
+    output, _ = study
+    text = write_report(output, plots=False, seeds=[0], claims=PAPER_CLAIMS)
+    assert "1 seeds" not in text and "1 seed" in text
+    table = text.split("## Final returns")[1].split("\n## ")[0]
+    rows = [line for line in table.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert rows and not any("[" in row or "+-" in row for row in rows)
+    at_a = load_study(output, seeds=[0]).score("CRR_exp_beta1", "Env-A")[0]
+    assert next(row for row in rows if row.startswith("| CRR_exp_beta1 |")).split("|")[3].strip() == f"{at_a:.0f}"
+    claims = [line for line in text.split("## Claims")[1].splitlines() if line.startswith("| C")]
+    assert len(claims) == len(CLAIMS) and not any("[" in row for row in claims)  # no "45 [45, 45]"
+    drawn = {}
+
+    def keep(plt, fig, path, **kwargs):
+        drawn[path.name] = fig
+        return path
+
+    monkeypatch.setattr(figures, "save", keep)
+    figures.plot_study(load_study(output, seeds=[0]))
+    titles = [fig._suptitle.get_text() if fig._suptitle is not None else fig.axes[0].get_title() for fig in drawn.values()]
+    assert len(titles) == 4 and all("1 seed" in title and "1 seeds" not in title for title in titles)
+
+
+def test_the_report_opens_with_what_the_run_showed(study, tmp_path):
+    """Its first lines: the toy budget's warning (the tiny preset), then three lines: the pipeline's student against
+    MPO, what MPO kept, the claims counted; a study that is no toy has no warning."""
+    from sb3_lifelong.experiments.presets import toy_budget
+    from sb3_lifelong.experiments.report import export_results
+
+    output, _ = study
+    text = write_report(output, plots=False, claims=PAPER_CLAIMS)
+    lines = [line for line in text.splitlines() if line]
+    assert lines[0].startswith("# 2-stage study") and lines[1].startswith("> **A toy budget** (preset `tiny`)")
+    assert "Env-A is not learnt" in lines[1] and "not the paper's findings" in lines[1]
+    summary = lines[2:5]
+    assert all(line.startswith("- **") for line in summary) and lines[5].startswith("Stages:")
+    data = load_study(output)
+    for env in ("Env-A", "Env-B"):
+        for method in ("CRR_exp_beta1", "MPO"):
+            values = list(data.score(method, env).values())
+            assert f"{env} {np.mean(values):.0f} +- {np.std(values):.0f}" in summary[0], (method, env)
+    assert "CRR_exp_beta1" in summary[0] and "mean +- std over 2 seeds" in summary[0]
+    at_switch = list(data.extra("MPO|switch|Env-A").values())
+    assert summary[1].startswith("- **What MPO kept") and f"against {np.mean(at_switch):.0f}" in summary[1]
+    verdicts = pd.read_csv(output / "claims.csv")["verdict"].value_counts()
+    assert summary[2].startswith(f"- **The {len(CLAIMS)} pre-registered claims**")
+    assert all(f"{count} {verdict}" in summary[2] for verdict, count in verdicts.items())
+
+    # a preset that is no toy: no warning (a copy of the study's results, recorded as such)
+    export_results(output, tmp_path / "cpu_like")
+    recorded = json.loads((tmp_path / "cpu_like" / "preset.json").read_text())
+    assert toy_budget(recorded) and not toy_budget(PRESETS["cpu"].describe())
+    recorded.pop("toy", None)
+    assert toy_budget(recorded)  # recorded before presets were marked: read from the preset it matches
+    assert toy_budget(json.loads(json.dumps(PRESETS["demo"].describe())))
+    (tmp_path / "cpu_like" / "preset.json").write_text(json.dumps({**recorded, "toy": False}))
+    plain = write_report(tmp_path / "cpu_like", plots=False)
+    assert "toy budget" not in plain
+    assert [line for line in plain.splitlines() if line][1].startswith("- **The pipeline's student**")
 
 
 def test_export_keeps_results_not_data(study, tmp_path):
