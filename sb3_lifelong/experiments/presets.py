@@ -108,7 +108,7 @@ class Preset:
         (the ``paper`` preset) gain from a GPU. A study runs on one device: the settings record it, and a paused job
         continues on it, so that a run in parts computes what an uninterrupted one does
     :param toy: a budget too small to learn Env-A (``tiny``, ``demo``): a run shows that the pipeline runs, not the
-        paper's findings, and its report says so at its top (:func:`toy_budget`)
+        paper's findings, and its report says so at its top (``toy_budget``)
     :param note: what a run of this preset can and cannot show (printed with the report)
     """
 
@@ -425,7 +425,7 @@ LATER_SETTINGS: dict[str, Any] = {
 }
 #: settings that do not make two studies different ones: more repeats of the students, the report's precondition
 #: (a study keeps the threshold it recorded, None for those recorded before there was one), and the mark of a toy
-#: budget (a study recorded before the mark existed is the same study: :func:`toy_budget` reads its preset's mark)
+#: budget (a study recorded before the mark existed is the same study: ``toy_budget`` reads its preset's mark)
 REPORT_THRESHOLDS = ("env_a_learnt", "value_gap", "min_weight_ess", "max_switch_spread")
 NOT_IDENTITY = ("student_repeats", *REPORT_THRESHOLDS, "toy")
 

@@ -1,8 +1,8 @@
 """
 The report of a two-stage (or three-stage) study: its score tables, the pre-registered claims with their verdicts,
 and ``report.md`` with the paper's figures (:mod:`sb3_lifelong.experiments.figures`). ``report.md`` opens with what
-the run showed in three lines (:func:`summary_lines`), after a warning when the study ran at a toy budget
-(:func:`toy_warning`).
+the run showed in three lines (``summary_lines``), after a warning when the study ran at a toy budget
+(``toy_warning``).
 
 The scores are each seed's (:mod:`sb3_lifelong.experiments.scores`); a table gives their mean +- std over seeds and
 a 95 % BCa bootstrap interval of the mean, from ``scipy.stats.bootstrap`` (at one seed: its value alone).
@@ -384,7 +384,7 @@ def summary_lines(study: Study, verdicts: Sequence[Mapping[str, Any]]) -> list[s
 
 
 def toy_warning(study: Study) -> str:
-    """:return: the report's warning at a toy budget (:func:`~sb3_lifelong.experiments.presets.toy_budget`), or ``""``"""
+    """:return: the report's warning at a toy budget (``presets.toy_budget``), or ``""``"""
     if not toy_budget(study.preset, study.output):
         return ""
     name = preset_name(study.preset, study.output)
