@@ -120,3 +120,33 @@ def test_a_run_that_has_not_finished_has_no_final_return(bench, tmp_path):
     (tmp_path / "mpo_Hopper-v5_s0.json").write_text(json.dumps({**meta, "steps": 2_000_000}))
     (run,) = bench.load_runs(tmp_path)
     assert not run["finished"] and np.isnan(bench.final_return(run))
+
+
+def test_the_op3_stage1_rule_picks_the_shortest_length_every_seed_meets(bench, tmp_path):
+    fields = [
+        "timesteps",
+        "updates",
+        "mean_return",
+        "std_return",
+        "mean_length",
+        "falls",
+        "mean_distance",
+        "episodes",
+        "wall_s",
+    ]
+    for seed, walks_from in ((0, 250_000), (1, 290_000)):
+        name = f"mpo_OP3Walk-v0_hip_deformation_s{seed}"
+        meta = {"algo": "mpo", "env": "sb3_lifelong/OP3Walk-v0", "seed": seed, "steps": 500_000, "eval_episodes": 10}
+        meta["machines"] = [{"from_timesteps": 0, "cpu": "test CPU", "cpu_flags": []}]
+        (tmp_path / f"{name}.json").write_text(json.dumps(meta))
+        with open(tmp_path / f"{name}.csv", "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(fields)
+            for k in range(51):
+                walking = k * 10_000 >= walks_from
+                writer.writerow([k * 10_000, k * 2500, 1000, 0, 1000, 0 if walking else 4, 3.0 if walking else 0.1, 10, k])
+    lines = bench.stage1_rule(bench.load_runs(tmp_path))
+    # at 300k seed 1 has walked for two of the three evaluations ending there: mean distance 2.03, falls 1.33 > 1
+    assert "| 300k | s0: 0.0 / 3.00; s1: 1.3 / 2.03 | no |" in lines
+    assert "| 400k | s0: 0.0 / 3.00; s1: 0.0 / 3.00 | yes |" in lines
+    assert lines[-1] == "Stage-1 length by the rule: 400k"

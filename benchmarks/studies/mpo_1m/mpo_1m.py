@@ -312,12 +312,48 @@ def read_claims(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return readings
 
 
+#: the Stage-1 lengths the OP3 rule may choose, and its thresholds (paper_op3/stage1/README.md)
+STAGE1_LENGTHS = (200_000, 300_000, 400_000, 500_000)
+STAGE1_MAX_FALLS = 1.0
+STAGE1_MIN_DISTANCE = 2.0
+
+
+def stage1_rule(runs: list[dict[str, Any]]) -> list[str]:
+    """
+    :return: the rule's reading, one line per length: at L, per seed, the mean falls (of 10 episodes) and the mean
+        distance of the three evaluations ending at L; L is chosen when every seed meets both thresholds
+    """
+    op3 = [run for run in runs if "OP3" in run["env"] and run["algo"] == "mpo"]
+    lines = [
+        "| length | per seed: falls / distance (m), mean of the 3 evaluations ending there | every seed meets it |",
+        "| --- | --- | --- |",
+    ]
+    chosen = None
+    for length in STAGE1_LENGTHS:
+        cells, met = [], True
+        for run in op3:
+            curve = run["curve"]
+            index = np.flatnonzero(curve["timesteps"] == length)
+            if not len(index) or index[0] < 2:
+                cells.append(f"s{run['seed']}: not reached")
+                met = False
+                continue
+            window = slice(index[0] - 2, index[0] + 1)
+            falls, distance = float(curve["falls"][window].mean()), float(curve["mean_distance"][window].mean())
+            cells.append(f"s{run['seed']}: {falls:.1f} / {distance:.2f}")
+            met = met and falls <= STAGE1_MAX_FALLS and distance >= STAGE1_MIN_DISTANCE
+        if met and chosen is None and op3:
+            chosen = length
+        lines.append(f"| {length // 1000}k | {'; '.join(cells)} | {'yes' if met else 'no'} |")
+    verdict = f"{chosen // 1000}k" if chosen else "not fixed yet (no length up to 500k met it on every seed measured so far)"
+    return [*lines, "", f"Stage-1 length by the rule: {verdict}"]
+
+
 def _cost(run: dict[str, Any]) -> str:
     curve = run["curve"]
     steps, updates, wall = curve["timesteps"][-1], curve["updates"][-1], curve["wall_s"][-1]
-    cpu = run["machines"][-1]["cpu"] + (
-        " " + ",".join(run["machines"][-1]["cpu_flags"]) if run["machines"][-1]["cpu_flags"] else ""
-    )
+    flags = run["machines"][-1]["cpu_flags"]
+    cpu = run["machines"][-1]["cpu"] + (f" ({', '.join(flags)})" if flags else " (no AMX, no AVX-512 BF16)")
     per_update = 1000 * wall / max(updates, 1)
     return (
         f"{wall / 3600:.2f} h, {1000 * wall / max(steps, 1):.2f} ms/step, ~{per_update:.0f} ms/update (with collection), {cpu}"
@@ -335,8 +371,9 @@ def report(args: argparse.Namespace) -> None:
         "",
         "## Every run",
         "",
-        "| run | steps | updates | last eval | best eval | final (mean of last 10) | falls at last eval | cost |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| run | steps | updates | last eval | best eval | final (mean of last 10) | falls at last eval "
+        "| distance at last eval (m) | cost |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for run in runs:
         curve = run["curve"]
@@ -345,7 +382,7 @@ def report(args: argparse.Namespace) -> None:
             f"| {run['name']} | {curve['timesteps'][-1]:.0f} of {run['steps']} | {curve['updates'][-1]:.0f} | "
             f"{curve['mean_return'][-1]:.0f} | {curve['mean_return'].max():.0f} | "
             f"{'running' if math.isnan(final) else f'{final:.0f}'} | {curve['falls'][-1]:.0f} / {run['eval_episodes']} | "
-            f"{_cost(run)} |"
+            f"{curve['mean_distance'][-1]:.2f} | {_cost(run)} |"
         )
     lines += [
         "",
@@ -361,6 +398,8 @@ def report(args: argparse.Namespace) -> None:
         else:
             value, bound = "-", "-"
         lines.append(f"| {reading['task']} | {reading['claim']} | {reading['n']} | {value} | {bound} | {reading['reading']} |")
+    if any("OP3" in run["env"] for run in runs):
+        lines += ["", "## OP3's Stage-1 rule (stage1/README.md)", "", *stage1_rule(runs)]
     (pathlib.Path(args.out) / "results.md").write_text("\n".join(lines) + "\n")
     draw(runs, pathlib.Path(args.out) / "curves.png")
     print("\n".join(lines))
