@@ -415,12 +415,12 @@ def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
     if any("x_position" in env or "OP3" in env for env in envs):
         panels += [(env, "mean_distance", "distance walked (m)") for env in envs if "OP3" in env]
         panels += [(env, "falls", "falls in 10 episodes") for env in envs if "OP3" in env]
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.0), squeeze=False)
     colors = {"mpo": "tab:blue", "sac": "tab:orange"}
     for ax, (env, key, label) in zip(axes[0], panels):
         for algo in ("mpo", "sac"):
             mine = [run for run in runs if run["env"] == env and run["algo"] == algo]
-            for run in mine:
+            for run in mine if len(mine) > 1 else []:  # every seed thin, beside their mean
                 ax.plot(run["curve"]["timesteps"], run["curve"][key], color=colors[algo], lw=0.7, alpha=0.45)
             if mine:
                 length = min(len(run["curve"][key]) for run in mine)
@@ -430,15 +430,19 @@ def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
                     mean,
                     color=colors[algo],
                     lw=2.0,
-                    label=f"{algo.upper()} (mean of {len(mine)} seed{'s' * (len(mine) > 1)})",
+                    label=(
+                        f"{algo.upper()} (mean of {len(mine)} seeds)"
+                        if len(mine) > 1
+                        else f"{algo.upper()} (seed {mine[0]['seed']})"
+                    ),
                 )
         if key == "mean_return" and env in ZOO_SAC:
             ax.axhline(ZOO_SAC[env], color="gray", ls="--", lw=1, label="rl-zoo3 SAC at 1M (ratio 1)")
-        ax.set_title(env.split("/")[-1], fontsize=10)
+        ax.set_title(f"{env.split('/')[-1]}: {label.split(' (')[0]}", fontsize=10)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper left")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, frameon=False)
     save(plt, fig, path)
 
 
