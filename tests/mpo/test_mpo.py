@@ -531,6 +531,10 @@ def test_variants_train(kwargs, default_run):
     assert changed  # the target networks were updated (every 100 updates, or Polyak every update)
     if kwargs.get("action_penalty"):
         assert "train/penalty_temperature" in model.logger.name_to_value
+    if kwargs.get("n_steps"):  # the critic bootstraps after up to 3 rewards: the batch's discounts are gamma^1..3
+        discounts = model.replay_buffer.sample(256).discounts.numpy().ravel()
+        assert {round(float(d), 5) for d in discounts} <= {round(model.gamma**k, 5) for k in (1, 2, 3)}
+        assert np.isclose(discounts, model.gamma**3).mean() > 0.5  # most rows are 3 steps from an episode's end
     if "policy_kwargs" not in kwargs:  # the same networks and seed as the defaults: the option changed the training
         reference = th.cat([p.flatten() for p in default_run.actor.parameters()])
         assert not th.equal(th.cat([p.flatten() for p in model.actor.parameters()]), reference)
