@@ -73,19 +73,7 @@ def write_run(folder, algo, env, seed, finals):
     (folder / f"{name}.json").write_text(json.dumps(meta))
     with open(folder / f"{bench_name}.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(
-            [
-                "timesteps",
-                "updates",
-                "mean_return",
-                "std_return",
-                "mean_length",
-                "falls",
-                "mean_distance",
-                "episodes",
-                "wall_s",
-            ]
-        )
+        writer.writerow(benchmark_module("mpo_1m").FIELDS)
         for k in range(101):
             value = finals if k >= 91 else 0.0  # the last 10 evaluations hold the final return
             writer.writerow([k * 10_000, k * 2500, value, 0, 1000, 0, "nan", 10, k * 10.0])
@@ -123,17 +111,7 @@ def test_a_run_that_has_not_finished_has_no_final_return(bench, tmp_path):
 
 
 def test_the_op3_stage1_rule_picks_the_shortest_length_every_seed_meets(bench, tmp_path):
-    fields = [
-        "timesteps",
-        "updates",
-        "mean_return",
-        "std_return",
-        "mean_length",
-        "falls",
-        "mean_distance",
-        "episodes",
-        "wall_s",
-    ]
+    fields = bench.FIELDS
     for seed, walks_from in ((0, 250_000), (1, 290_000)):
         name = f"mpo_OP3Walk-v0_hip_deformation_s{seed}"
         meta = {"algo": "mpo", "env": "sb3_lifelong/OP3Walk-v0", "seed": seed, "steps": 500_000, "eval_episodes": 10}
