@@ -10,14 +10,14 @@ tools can load them in light subprocesses.
 
 from __future__ import annotations
 
-import errno
 import os
-from typing import Any
 
-from sb3_lifelong.core.atomic import CommitNotDurableError  # noqa: F401 (raised by the manifest's commit)
+from sb3_lifelong.core.atomic import DIR_FSYNC_UNSUPPORTED as _DIR_FSYNC_UNSUPPORTED
+from sb3_lifelong.core.atomic import (
+    CommitNotDurableError,  # noqa: F401 (raised by the manifest's commit)
+    write_all,  # noqa: F401 (the data files' writes; core's manifest commit uses it too)
+)
 
-# errno values of an fsync of a directory that mean "this filesystem cannot sync directories" (nothing to wait for)
-_DIR_FSYNC_UNSUPPORTED = frozenset({errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP})
 # never open a file of a buffer directory for writing through a symbolic link (POSIX; 0 where the OS has no such flag)
 NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 
@@ -58,20 +58,6 @@ def delete_file(path: str) -> None:
         os.remove(path)
     except FileNotFoundError:  # pragma: no cover (removed by hand)
         pass
-
-
-def write_all(fd: int, data: Any) -> None:
-    """
-    Write every byte of ``data`` at the file offset of ``fd`` (``os.write`` may write fewer bytes than asked).
-
-    :raises OSError: as ``os.write`` does, e.g. ENOSPC when the disk is full (after a short write)
-    """
-    view = memoryview(data).cast("B")
-    while len(view):
-        written = os.write(fd, view)
-        if written <= 0:  # pragma: no cover (regular files do not do this)
-            raise OSError(errno.EIO, "write() wrote nothing")
-        view = view[written:]
 
 
 def open_for_writing(file_name: str, flags: int = 0) -> int:

@@ -95,8 +95,12 @@ def _failed(target: pathlib.Path, error: OSError) -> AtomicWriteError:
     return AtomicWriteError(error.errno if error.errno is not None else errno.EIO, message, str(target))
 
 
-def _write_all(fd: int, data: bytes) -> None:
-    """Write every byte of ``data`` to ``fd`` (``os.write`` may write fewer bytes than asked)."""
+def write_all(fd: int, data: Any) -> None:
+    """
+    Write every byte of ``data`` at the file offset of ``fd`` (``os.write`` may write fewer bytes than asked).
+
+    :raises OSError: as ``os.write`` does, e.g. ENOSPC when the disk is full (after a short write)
+    """
     view = memoryview(data).cast("B")
     while len(view):
         written = os.write(fd, view)
@@ -199,7 +203,7 @@ def write_bytes_atomic(path: PathLike, data: bytes, fixed_temporary: bool = Fals
         version, which may not survive a power loss
     """
     with _new_version(path, fixed_temporary) as fd:
-        _write_all(fd, data)
+        write_all(fd, data)
 
 
 def write_text_atomic(path: PathLike, text: str, encoding: str = "utf-8") -> None:
