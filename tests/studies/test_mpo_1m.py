@@ -49,6 +49,15 @@ def test_run_resumes_from_its_checkpoint_and_drops_later_rows(bench, tmp_path):
     assert resumed[:4] == first
     meta = json.loads((tmp_path / "res" / f"{name}.json").read_text())
     assert [machine["from_timesteps"] for machine in meta["machines"]] == [0, 1200]
+    assert meta["settings"] == {
+        "train_freq": 4,
+        "gradient_steps": 1,
+        "updates_per_step": 0.25,
+        "n_steps": 4,
+        "batch_size": 256,
+        "learning_rate": 3e-4,
+        "net_arch": [16, 16],
+    }
     with pytest.raises(SystemExit, match="multiple of --eval-every"):
         bad = list(common)
         bad[bad.index("--checkpoint-every") + 1] = "700"

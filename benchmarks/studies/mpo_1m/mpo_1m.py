@@ -110,6 +110,19 @@ def evaluate(model: Any, env: gym.Env, episodes: int) -> dict[str, float]:
     }
 
 
+def settings_of(model: Any) -> dict[str, Any]:
+    """:return: what a run's cost and learning depend on most: the update ratio, n-step returns, batch and networks"""
+    return {
+        "train_freq": model.train_freq.frequency,
+        "gradient_steps": model.gradient_steps,
+        "updates_per_step": model.gradient_steps / model.train_freq.frequency,
+        "n_steps": getattr(model, "n_steps", 1),
+        "batch_size": model.batch_size,
+        "learning_rate": model.learning_rate,
+        "net_arch": model.policy_kwargs.get("net_arch"),
+    }
+
+
 def run_name(algo: str, env_id: str, seed: int, appended: Optional[str]) -> str:
     return f"{algo}_{env_id.split('/')[-1]}{'_' + appended if appended else ''}_s{seed}"
 
@@ -189,7 +202,7 @@ def run(args: argparse.Namespace) -> None:
         _write_rows(csv_path, rows)
     meta = json.loads(meta_path.read_text()) if meta_path.exists() else {"machines": []}
     meta.update({"algo": args.algo, "env": args.env, "appended": args.appended, "seed": args.seed, "steps": args.steps})
-    meta["net_arch"] = args.net_arch or "the preset's"
+    meta["settings"] = settings_of(model)
     meta.update({"eval_every": args.eval_every, "eval_episodes": args.eval_episodes, "command": " ".join(sys.argv)})
     meta["machines"].append({"from_timesteps": done, **machine()})
     meta_path.write_text(json.dumps(meta, indent=1) + "\n")
