@@ -13,9 +13,12 @@ a million steps cost a quarter of the updates. :data:`ACME_MUJOCO_SOURCES` names
 """
 
 import copy
+import inspect
 from typing import Any
 
 from torch import nn
+
+from sb3_lifelong.mpo.mpo import MPO
 
 __all__ = ["ACME_MUJOCO", "ACME_MUJOCO_SOURCES", "acme_mujoco"]
 
@@ -104,31 +107,10 @@ def acme_mujoco(**overrides: Any) -> dict[str, Any]:
     """
     kwargs = copy.deepcopy(ACME_MUJOCO)
     policy_kwargs = overrides.pop("policy_kwargs", None)
-    unknown = sorted(set(overrides) - set(kwargs) - _OTHER_MPO_ARGUMENTS)
+    unknown = sorted(set(overrides) - set(inspect.signature(MPO).parameters))
     if unknown:
         raise TypeError(f"acme_mujoco() got settings MPO does not take: {unknown}")
     kwargs.update(overrides)
     if policy_kwargs is not None:
         kwargs["policy_kwargs"].update(policy_kwargs)
     return kwargs
-
-
-# MPO's other constructor arguments that a caller may add to the preset
-_OTHER_MPO_ARGUMENTS = frozenset(
-    {
-        "buffer_size",
-        "action_noise",
-        "replay_buffer_class",
-        "replay_buffer_kwargs",
-        "optimize_memory_usage",
-        "policy_on_next_obs",
-        "scoring_dtype",
-        "train_dtype",
-        "compile_losses",
-        "stats_window_size",
-        "tensorboard_log",
-        "verbose",
-        "seed",
-        "device",
-    }
-)
