@@ -168,9 +168,18 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
             raise
         # SB3's off-policy loop does not track it: the envs whose next observation starts an episode (for save())
         self._last_episode_starts = dones
+        self._stored_timesteps = self.num_timesteps  # the timestep the stored transitions reach (for save())
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_scoring_copies", "_resume_rng", "_forward", "_saved_buffer"]
+        return [
+            *super()._excluded_save_params(),
+            "_scoring_copies",
+            "_resume_rng",
+            "_forward",
+            "_saved_buffer",
+            "_stored_timesteps",
+            "_resume_timesteps",
+        ]
 
     def distill(self, student_class: type, **kwargs: Any) -> Any:
         """
@@ -198,11 +207,45 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
     ) -> tuple[int, BaseCallback]:
         self._reattach_saved_buffer()
         self._restore_loaded_rng()
+        self._continue_buffer_timesteps(reset_num_timesteps)
         self._sync_env_timestep(0 if reset_num_timesteps else self.num_timesteps)
         self._sample_on_model_device()
         setup = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        self._stored_timesteps = self.num_timesteps
         self._quiet_stdout()
         return setup
+
+    def _continue_buffer_timesteps(self, reset_num_timesteps: bool) -> None:
+        """
+        The checkpoint rule, at the first ``learn`` after a ``load`` that continues the buffer directory the checkpoint
+        committed: training resumes at the timestep its buffer reaches, so that the buffer holds one transition per
+        timestep. Transitions committed after the save (the run went on, then stopped) are kept and count as collected
+        (a warning says how many); a step in flight at the save (a callback's ``save`` runs before SB3 stores the step's
+        transition) was not stored, and is collected again.
+
+        :param reset_num_timesteps: As given to ``learn`` (True: the timesteps start again from 0, nothing to do)
+        """
+        pending = self.__dict__.pop("_resume_timesteps", None)
+        buffer = self.replay_buffer
+        if pending is None or reset_num_timesteps or not isinstance(buffer, LifelongReplayBuffer):
+            return
+        record, at_load = pending
+        same = buffer.path == record["path"] and record["buffer_id"] in (None, buffer.buffer_id)
+        if not same or buffer.store.read_only or self.num_timesteps != at_load:
+            return  # another buffer, one only read, or trained since the load: not the checkpoint's buffer continued
+        held = int(buffer.store.num_committed)
+        after = held - record["transitions"]
+        if after < 0:
+            return  # the buffer lags the checkpoint: refused by learn, or warned at load
+        timesteps = record["timesteps"] + after
+        if after > 0:
+            warnings.warn(
+                f"{buffer.path} holds {after:,} transitions committed after this checkpoint was saved (the run went on, "
+                f"then stopped): they are kept and count as collected, so training resumes at timestep {timesteps:,}, "
+                f"not {self.num_timesteps:,} (the updates the stopped run made after its checkpoint are lost)",
+                stacklevel=5,
+            )
+        self.num_timesteps = timesteps
 
     def _quiet_stdout(self) -> None:
         """
@@ -275,9 +318,15 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
             # loaded without its buffer, or not trained since load: what the loaded checkpoint recorded, as it was
             return self.__dict__.get("_buffer_checkpoint")
         checkpoint = getattr(self.replay_buffer, "checkpoint", None)
-        if callable(checkpoint):
-            return checkpoint()
-        return None
+        if not callable(checkpoint):
+            return None
+        record = checkpoint()
+        if record is not None:
+            # the timestep its committed transitions reach: a save from a callback runs while a step is in flight
+            # (SB3 counts the step before the callbacks, and stores its transition after them)
+            in_flight = self.num_timesteps - self.__dict__.get("_stored_timesteps", self.num_timesteps)
+            record["timesteps"] = self.num_timesteps - max(in_flight, 0)
+        return record
 
     def _check_buffer_checkpoint(self, checkpoint: str = "the checkpoint") -> None:
         """Warn when the replay buffer holds fewer transitions than the loaded checkpoint recorded as committed."""
@@ -433,6 +482,9 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         finally:
             _LOADING_SAVED_BUFFER_KWARGS.reset(reopening)
         model._check_buffer_checkpoint(_describe(path))
+        record = reattach.checkpoint_record(model.__dict__.get("_buffer_checkpoint"))
+        if record is not None and record["timesteps"] is not None:
+            model.__dict__["_resume_timesteps"] = (record, model.num_timesteps)  # the checkpoint rule, at the first learn
         rng_state = model.__dict__.pop("_rng_state", None)
         if rng_state is not None:
             restore_rng_state(rng_state, model.action_space)

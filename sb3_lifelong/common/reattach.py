@@ -18,7 +18,8 @@ suggestion:
   its stored capacity, never evicting or cutting committed rows), after checking again, under the directory's writer
   lock, that it is that buffer and that it holds at least the transitions the checkpoint committed; otherwise
   ``learn`` raises, naming what to pass to ``load`` instead. New transitions continue after those it holds (all of
-  them, also those committed after the save). A writer of this process that still holds the directory (the saved
+  them, also those committed after the save), and training resumes at the timestep they reach (the checkpoint
+  rule: one transition per timestep, ``docs/modules/buffer.md``). A writer of this process that still holds the directory (the saved
   model, still alive) is closed first, its pending transitions committed. As any writer, the reopened buffer discards
   the uncommitted bytes a crashed writer left after the committed rows.
 
@@ -58,17 +59,28 @@ def checkpoint_record(record: Any) -> Optional[dict[str, Any]]:
     The buffer record a zip holds (``_buffer_checkpoint``, written by ``save``), checked: plain data from a file.
 
     :param record: The record as loaded
-    :return: ``{"path": str, "transitions": int, "buffer_id": str or None}``, or None when it is not one
+    :return: ``{"path": str, "transitions": int, "buffer_id": str or None, "timesteps": int or None}`` (``timesteps``:
+        the model's timestep those transitions reach; None in a zip saved before checkpoints recorded it), or None when
+        it is not one
     """
+
+    def count(value: Any) -> Optional[int]:
+        return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else None
+
     if not isinstance(record, dict) or not isinstance(record.get("path"), str):
         return None
-    transitions = record.get("transitions")
-    if not isinstance(transitions, int) or isinstance(transitions, bool) or transitions < 0:
+    transitions = count(record.get("transitions"))
+    if transitions is None:
         return None
     buffer_id = record.get("buffer_id")
     if not (isinstance(buffer_id, str) and ID_PATTERN.fullmatch(buffer_id)):
         buffer_id = None
-    return {"path": record["path"], "transitions": transitions, "buffer_id": buffer_id}
+    return {
+        "path": record["path"],
+        "transitions": transitions,
+        "buffer_id": buffer_id,
+        "timesteps": count(record.get("timesteps")),
+    }
 
 
 def identity_problem(path: str, buffer_id: Optional[str]) -> tuple[Optional[str], int]:

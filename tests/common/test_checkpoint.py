@@ -14,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from testkit import flat_params
 
 from sb3_lifelong import BC, CRR, MPO, LifelongReplayBuffer
@@ -46,7 +47,8 @@ def test_save_commits_the_buffer_and_records_it(tmp_path):
     data = json.loads(zipfile.ZipFile(tmp_path / "model.zip").read("data"))
     buffer_id = model.replay_buffer.buffer_id
     assert isinstance(buffer_id, str) and len(buffer_id) == 32  # the buffer's identity, checked when it is reattached
-    assert data["_buffer_checkpoint"] == {"path": str(tmp_path / "buffer"), "transitions": 152, "buffer_id": buffer_id}
+    record = {"path": str(tmp_path / "buffer"), "transitions": 152, "buffer_id": buffer_id, "timesteps": 152}
+    assert data["_buffer_checkpoint"] == record
     model.replay_buffer.close()
 
 
@@ -183,3 +185,115 @@ def test_loading_a_model_created_with_overwrite_keeps_its_buffer(tmp_path):
         fresh = MPO.load(tmp_path / "model.zip", replay_buffer_kwargs=dict(path=str(tmp_path / "buffer"), mode="overwrite"))
     assert fresh.replay_buffer.size() == 0
     fresh.replay_buffer.close()
+
+
+CRASH_IN_A_STEP = textwrap.dedent("""
+    import os, signal, sys
+    import torch as th
+    th.set_num_threads(1)
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
+    from sb3_lifelong import MPO, LifelongReplayBuffer
+    buffer, checkpoints, point, at = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+
+    def die():
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    class Die(BaseCallback):  # after the checkpoint callback: the step's transition is not stored yet
+        def _on_step(self):
+            if point == "callback" and self.num_timesteps == at:
+                die()
+            return True
+
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=4, replay_buffer_class=LifelongReplayBuffer,
+                replay_buffer_kwargs=dict(path=buffer, chunk_size=30), **{kwargs})
+    if point == "update":  # on the class: an attribute of the model would be saved with it
+        train = MPO.train
+        def die_in_train(self, *args, **kwargs):
+            train(self, *args, **kwargs)
+            if self.num_timesteps >= at:
+                die()
+        MPO.train = die_in_train
+    model.learn(400, callback=CallbackList([CheckpointCallback(100, checkpoints), Die()]))
+    """)
+
+
+@pytest.mark.parametrize(
+    "point, at, kept_after",
+    [
+        ("callback", 200, 0),  # in the step that SB3's CheckpointCallback saved: its transition was never stored
+        ("callback", 201, 0),  # the next step: that transition stored, not committed
+        ("callback", 250, 30),  # a chunk committed after the checkpoint
+        ("update", 204, 0),  # in the first update after the checkpoint
+    ],
+)
+def test_the_checkpoint_rule_after_sigkill_at_each_point_of_a_step(tmp_path, point, at, kept_after):
+    """SB3's CheckpointCallback saves every 100 steps (from a callback: the step in flight is counted, its transition
+    not yet stored), the run is killed; load of the last checkpoint + learn(reset_num_timesteps=False) resumes at the
+    timestep its buffer reaches: one transition per timestep, none lost or stored twice."""
+    script = CRASH_IN_A_STEP.replace("{kwargs}", repr(KWARGS))
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    args = [str(tmp_path / "buffer"), str(tmp_path / "checkpoints"), point, str(at)]
+    child = subprocess.run([sys.executable, "-c", script, *args], env=env, capture_output=True, text=True, timeout=600)
+    assert child.returncode == -signal.SIGKILL, child.stderr
+    held = committed(tmp_path / "buffer")
+    assert held == 199 + kept_after  # the save at 200 committed the 199 stored transitions; a chunk after it
+
+    uninterrupted = pendulum_model(tmp_path / "uninterrupted", chunk_size=30)
+    uninterrupted.learn(held)
+    expected = {name: np.array(uninterrupted.replay_buffer.store.read_range(name, 0, held)) for name in FIELDS}
+    uninterrupted.replay_buffer.close()
+
+    resumed = MPO.load(tmp_path / "checkpoints" / "rl_model_200_steps.zip", env=gym.make("Pendulum-v1"))
+    assert resumed.num_timesteps == 200
+    if kept_after:
+        with pytest.warns(
+            UserWarning,
+            match=f"holds {kept_after} transitions committed after this checkpoint .* resumes at " f"timestep {held}, not 200",
+        ):
+            resumed.learn(100, reset_num_timesteps=False)
+    else:
+        with warnings_as_errors():
+            resumed.learn(100, reset_num_timesteps=False)
+    resumed.replay_buffer.close()
+    assert resumed.num_timesteps == held + 100
+    assert committed(tmp_path / "buffer") == resumed.num_timesteps  # one transition per timestep
+    for name in FIELDS:  # the stopped run's transitions, each once, then the resumed run's
+        np.testing.assert_array_equal(np.array(resumed.replay_buffer.store.read_range(name, 0, held)), expected[name], name)
+
+
+def test_a_checkpoint_records_the_timestep_its_transitions_reach(tmp_path):
+    model = pendulum_model(tmp_path / "buffer")
+
+    class SaveInTheStep(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps == 120:
+                self.model.save(tmp_path / "in_step.zip")
+            return True
+
+    model.learn(150, callback=SaveInTheStep())
+    model.save(tmp_path / "between.zip")
+    model.replay_buffer.close()
+    in_step = json.loads(zipfile.ZipFile(tmp_path / "in_step.zip").read("data"))
+    between = json.loads(zipfile.ZipFile(tmp_path / "between.zip").read("data"))
+    assert (in_step["num_timesteps"], in_step["_buffer_checkpoint"]["transitions"]) == (120, 119)
+    assert in_step["_buffer_checkpoint"]["timesteps"] == 119  # the step in flight was counted, not stored
+    assert between["_buffer_checkpoint"]["timesteps"] == between["_buffer_checkpoint"]["transitions"] == model.num_timesteps
+
+
+def test_the_checkpoint_rule_holds_with_the_buffer_named_again_at_load(tmp_path):
+    model = pendulum_model(tmp_path / "buffer", chunk_size=50)
+    model.learn(100)
+    model.save(tmp_path / "model.zip")
+    model.learn(80, reset_num_timesteps=False)  # 50 more committed (a chunk), 30 pending
+    model.replay_buffer.store.abandon()  # the process stops: what was pending is lost
+    assert committed(tmp_path / "buffer") == 150
+    kwargs = dict(path=str(tmp_path / "buffer"), mode="append", chunk_size=50)
+    resumed = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"), replay_buffer_kwargs=kwargs)
+    with pytest.warns(UserWarning, match="holds 50 transitions committed after this checkpoint"):
+        resumed.learn(50, reset_num_timesteps=False)
+    resumed.replay_buffer.close()
+    assert resumed.num_timesteps == committed(tmp_path / "buffer") == 150 + 52  # 50, rounded up to rollouts of 4
+    again = MPO.load(tmp_path / "model.zip", env=gym.make("Pendulum-v1"), replay_buffer_kwargs=kwargs)
+    again.learn(20)  # reset_num_timesteps=True: the timesteps count from 0 again, as in SB3
+    again.replay_buffer.close()
+    assert again.num_timesteps == 20

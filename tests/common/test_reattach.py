@@ -86,7 +86,7 @@ def test_load_then_learn_resumes_appending_to_the_saved_buffer(tmp_path):
     assert loaded.num_timesteps == loaded.replay_buffer.size() == 100 and not loaded.replay_buffer.store.read_only
     loaded.save(tmp_path / "again.zip")
     loaded.replay_buffer.close()
-    assert record(tmp_path / "again.zip") == dict(record(tmp_path / "model.zip"), transitions=100)  # the same buffer
+    assert record(tmp_path / "again.zip") == dict(record(tmp_path / "model.zip"), transitions=100, timesteps=100)
     resumed = rewards(tmp_path / "buffer")
     assert len(resumed) == 100 and np.array_equal(resumed[:60], first)  # continued after the rows it held
     twice = MPO.load(tmp_path / "again.zip", env=gym.make("Pendulum-v1"))
