@@ -19,9 +19,9 @@ suggestion:
   lock, that it is that buffer and that it holds at least the transitions the checkpoint committed; otherwise
   ``learn`` raises, naming what to pass to ``load`` instead. New transitions continue after those it holds (all of
   them, also those committed after the save), and training resumes at the timestep they reach (the checkpoint
-  rule: one transition per timestep, ``docs/modules/buffer.md``). A writer of this process that still holds the directory (the saved
-  model, still alive) is closed first, its pending transitions committed. As any writer, the reopened buffer discards
-  the uncommitted bytes a crashed writer left after the committed rows.
+  rule: one transition per timestep, ``docs/modules/buffer.md``). A writer of this process that still holds the
+  directory (the saved model, still alive) is closed first, its pending transitions committed. As any writer, the
+  reopened buffer discards the uncommitted bytes a crashed writer left after the committed rows.
 
 A buffer created before buffers had an identity, or a zip saved before checkpoints recorded it, has an unknown
 identity: then only the number of committed transitions is checked (and, as for any reopening, that the directory
