@@ -25,8 +25,11 @@ extensions = [
     "sphinx.ext.intersphinx",
     "sphinx.ext.mathjax",
     "sphinx.ext.viewcode",
+    "sphinx_copybutton",
 ]
 myst_enable_extensions = ["dollarmath", "colon_fence"]
+# links to a page's sections by their titles ([Guarantees](buffer.md#guarantees))
+myst_heading_anchors = 3
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 master_doc = "index"
 exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
@@ -205,3 +208,6 @@ try:
 except ImportError:
     html_theme = "alabaster"
 html_static_path = ["_static"]
+# wrapping table cells and code lines (the theme clips them), figures within the column; sphinx_copybutton puts a copy
+# button on every code block (it leaves out the prompts and line numbers that Pygments marks)
+html_css_files = ["css/readable.css"]
