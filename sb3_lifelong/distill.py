@@ -22,7 +22,7 @@ def distill(
     source: DistillSource,
     student_class: Optional[type] = None,
     gradient_steps: int = 100_000,
-    policy: Any = "MlpPolicy",
+    policy: Any = None,
     eval_env: Optional[Any] = None,
     eval_freq: int = 10_000,
     n_eval_episodes: int = 5,
@@ -59,7 +59,11 @@ def distill(
     :param student_class: the offline algorithm (default :class:`~sb3_lifelong.CRR`; :class:`~sb3_lifelong.BC` for
         behaviour cloning)
     :param gradient_steps: number of offline gradient updates
-    :param policy: the student's policy
+    :param policy: the student's policy (``"MlpPolicy"``, ``"CnnPolicy"``, ``"MultiInputPolicy"``, a class); None:
+        when ``source`` is a model, the policy of the same name as the model's (a ``CnnPolicy`` teacher, MPO's or SAC's,
+        gets a ``CnnPolicy`` student; the network settings are the student's own, ``policy_kwargs``), else the one the
+        data's observation space calls for: ``"MultiInputPolicy"`` for a Dict space, ``"CnnPolicy"`` for channel-first
+        images, ``"MlpPolicy"`` otherwise
     :param eval_env: environment(s) to evaluate the student on every ``eval_freq`` updates (a dict name -> env
         gives the names of the ``eval/<name>/mean_reward`` curves: Env-A, Env-B, ...)
     :param eval_freq: evaluation period, in updates

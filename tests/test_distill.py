@@ -198,3 +198,85 @@ def test_distill_forwards_the_named_arguments_and_refuses_foreign_ones():
         distill(data, BC, gradient_steps=2, beta=3.0)
     with pytest.raises(TypeError, match="CRR takes no argument 'betta'"):
         distill(data, CRR, gradient_steps=2, betta=3.0)
+
+
+def test_the_student_sees_what_the_teacher_saw():
+    """
+    ``policy`` left at None: a ``CnnPolicy`` teacher (MPO's, or SAC's) gets a ``CnnPolicy`` student, an ``MlpPolicy``
+    teacher an ``MlpPolicy`` one; data alone get the policy their observation space calls for. A named policy wins.
+    """
+    from stable_baselines3.common.envs import FakeImageEnv
+    from stable_baselines3.common.torch_layers import FlattenExtractor, NatureCNN
+
+    from sb3_lifelong.bc import CnnPolicy as BCCnnPolicy
+    from sb3_lifelong.common.distillation import teacher_policy_alias
+    from sb3_lifelong.crr import CnnPolicy as CRRCnnPolicy
+    from sb3_lifelong.crr import MlpPolicy as CRRMlpPolicy
+
+    small_cnn = dict(net_arch=[16], features_extractor_kwargs=dict(features_dim=16))
+    env = FakeImageEnv(screen_height=36, screen_width=36, n_channels=1, discrete=False)
+    teacher = MPO(
+        "CnnPolicy",
+        env,
+        learning_starts=40,
+        batch_size=8,
+        num_samples=4,
+        policy_kwargs=small_cnn,
+        seed=0,
+        replay_buffer_class=LifelongReplayBuffer,
+    )
+    teacher.learn(50)
+    student = teacher.distill(CRR, gradient_steps=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
+    assert type(student.policy) is CRRCnnPolicy and isinstance(student.actor.features_extractor, NatureCNN)
+    assert student.observation_space == teacher.observation_space  # channel-first, as the teacher's buffer holds it
+    student = teacher.distill(BC, gradient_steps=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
+    assert type(student.policy) is BCCnnPolicy
+    named = teacher.distill(CRR, policy="MlpPolicy", gradient_steps=2, batch_size=8, seed=0, policy_kwargs=net())
+    assert type(named.policy) is CRRMlpPolicy and isinstance(named.actor.features_extractor, FlattenExtractor)
+    # the buffer alone: its channel-first uint8 images call for a CNN
+    from_data = distill(teacher.replay_buffer, BC, gradient_steps=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
+    assert type(from_data.policy) is BCCnnPolicy
+
+    assert teacher_policy_alias(SAC("CnnPolicy", env, buffer_size=10), CRR) == "CnnPolicy"
+    assert teacher_policy_alias(MPO("MlpPolicy", "Pendulum-v1"), CRR) == "MlpPolicy"
+    assert teacher_policy_alias(teacher, BC) == "CnnPolicy"
+
+    class OwnPolicy(BCCnnPolicy):
+        pass
+
+    # a policy class of the teacher's own: no name to follow (the data's observation space decides)
+    assert teacher_policy_alias(BC(OwnPolicy, env, buffer_size=10, policy_kwargs=small_cnn), CRR) is None
+
+
+def test_policy_alias_for_an_observation_space():
+    from gymnasium import spaces
+
+    from sb3_lifelong.common.policies import policy_alias_for
+
+    image = spaces.Box(0, 255, (3, 36, 36), np.uint8)
+    assert policy_alias_for(image) == "CnnPolicy"
+    assert policy_alias_for(spaces.Dict({"img": image, "vec": spaces.Box(-1, 1, (2,))})) == "MultiInputPolicy"
+    assert policy_alias_for(spaces.Box(-1, 1, (3,), np.float32)) == "MlpPolicy"
+    assert policy_alias_for(spaces.Box(0, 255, (36, 36, 3), np.uint8)) == "MlpPolicy"  # channel-last: a CNN would misread it
+    assert policy_alias_for(spaces.Box(0.0, 1.0, (3, 36, 36), np.float32)) == "MlpPolicy"  # not an image to SB3
+
+
+def test_from_offline_data_picks_the_policy_of_its_data_when_given_none():
+    from gymnasium import spaces
+
+    from sb3_lifelong.bc import MultiInputPolicy as BCMultiInputPolicy
+    from sb3_lifelong.crr import MlpPolicy as CRRMlpPolicy
+
+    model = CRR.from_offline_data(pendulum_data(50), policy=None, action_space=gym.make("Pendulum-v1").action_space)
+    assert type(model.policy) is CRRMlpPolicy
+    observation_space = spaces.Dict({"pos": spaces.Box(-1, 1, (3,), np.float32), "mode": spaces.Discrete(2)})
+    action_space = spaces.Box(-1, 1, (2,), np.float32)
+    buffer = LifelongReplayBuffer(0, observation_space, action_space)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        obs = {"pos": rng.uniform(-1, 1, (1, 3)).astype(np.float32), "mode": rng.integers(0, 2, (1, 1))}
+        buffer.add(obs, obs, rng.uniform(-1, 1, (1, 2)).astype(np.float32), np.zeros(1), np.zeros(1), [{}])
+    model = BC.from_offline_data(buffer, policy=None, policy_kwargs=net())
+    assert type(model.policy) is BCMultiInputPolicy
+    model.learn_offline(2)
+    assert model.num_timesteps == 2

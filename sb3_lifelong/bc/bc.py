@@ -8,7 +8,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
-from sb3_lifelong.bc.policies import BCPolicy, MlpPolicy, MultiInputPolicy
+from sb3_lifelong.bc.policies import BCPolicy, CnnPolicy, MlpPolicy, MultiInputPolicy
 from sb3_lifelong.common.arguments import check_sizes_of
 from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
@@ -27,7 +27,7 @@ class BC(LifelongOfflineAlgorithm):
     ``OffPolicyAlgorithm`` like CRR, so ``learn(...)`` online also runs, cloning the policy's own rollouts,
     which is only useful to test a pipeline.
 
-    :param policy: The policy model to use (MlpPolicy, MultiInputPolicy, ...)
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, ...)
     :param env: environment (optional: gives the spaces, and can be used for evaluation); None for offline data
     :param learning_rate: learning rate (Adam), a constant or a schedule of the remaining progress
     :param buffer_size: size of the replay buffer (online; offline it is the data's size)
@@ -52,6 +52,7 @@ class BC(LifelongOfflineAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }
     policy: BCPolicy

@@ -78,6 +78,20 @@ def _describe(buffer: Any) -> str:
     return f"{sum(counts.values()):,} transitions ({per_source})"
 
 
+def teacher_policy_alias(teacher: OffPolicyAlgorithm, student_class: type) -> Optional[str]:
+    """
+    :param teacher: the model whose buffer is distilled
+    :param student_class: the student's algorithm
+    :return: the name under which the teacher's algorithm lists its policy class (``"CnnPolicy"`` for MPO's or SAC's
+        ``CnnPolicy``, ...) when the student's algorithm has a policy of that name; None otherwise (a policy class
+        of the teacher's own, a name the student lacks)
+    """
+    teacher_aliases = getattr(teacher, "policy_aliases", {}) or {}
+    names = [name for name, policy in teacher_aliases.items() if policy is type(teacher.policy)]
+    student_aliases = getattr(student_class, "policy_aliases", {}) or {}
+    return next((name for name in names if name in student_aliases), None)
+
+
 # what from_offline_data takes besides the constructor's arguments
 _FROM_OFFLINE_DATA = {"observation_space", "action_space", "normalized_actions", "env"}
 
@@ -120,7 +134,7 @@ def distill(
     student_class: type,
     *,
     gradient_steps: int = 100_000,
-    policy: Any = "MlpPolicy",
+    policy: Any = None,
     eval_env: Optional[Any] = None,
     eval_freq: int = 10_000,
     n_eval_episodes: int = 5,
@@ -158,8 +172,11 @@ def distill(
         student_kwargs.setdefault("observation_space", teacher.observation_space)
         student_kwargs.setdefault("action_space", teacher.action_space)
         student_kwargs.setdefault("device", teacher.device)
+        if policy is None:  # the student sees what the teacher saw: a CNN for a teacher's CnnPolicy, ...
+            policy = teacher_policy_alias(teacher, student_class)
     else:
         data = source  # a buffer directory is opened read-only by from_offline_data
+    # still None: from_offline_data picks the policy that the data's observation space calls for
 
     student = student_class.from_offline_data(data, policy=policy, **student_kwargs)
 

@@ -29,6 +29,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_lifelong.buffers.loading import resolve_data
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+from sb3_lifelong.common.policies import policy_alias_for
 from sb3_lifelong.core.datasets import (
     OfflineData,
     OfflineDataError,
@@ -95,7 +96,9 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
             model's device from then on, as after SB3's ``load_replay_buffer``), a d4rl-style dict (``observations``,
             ``actions``, ``rewards``, ``next_observations``, ``terminals``, optional ``timeouts``), the path of a
             ``.npz`` file holding one, or a Minari dataset (id or object)
-        :param policy: the policy (``"MlpPolicy"``, ...)
+        :param policy: the policy (``"MlpPolicy"``, ``"CnnPolicy"``, ``"MultiInputPolicy"``, a class); None: the one
+            the observation space calls for (``sb3_lifelong.common.policies.policy_alias_for``: a Dict space
+            ``"MultiInputPolicy"``, channel-first images ``"CnnPolicy"``, anything else ``"MlpPolicy"``)
         :param env: optional environment: gives the spaces, and lets the model ``learn()`` online afterwards
         :param observation_space: observation space (default: the env's, the buffer's, or inferred from the data)
         :param action_space: bounded Box action space (default: the env's, the buffer's, or inferred from the data;
@@ -124,6 +127,8 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
                 f"the data's observation space {buffer.observation_space} does not match the env's {model.observation_space}"
             )
         model._check_offline_spaces()
+        if policy is None:
+            model.policy_class = model._get_policy_from_name(policy_alias_for(model.observation_space))
         model.replay_buffer = buffer
         model.buffer_size = buffer.buffer_size
         model._setup_model()

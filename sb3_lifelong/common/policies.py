@@ -12,11 +12,12 @@ from typing import Any, Callable, Optional, Union
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BaseModel, BasePolicy, ContinuousCritic
-from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.preprocessing import get_action_dim, is_image_space, is_image_space_channels_first
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     CombinedExtractor,
     FlattenExtractor,
+    NatureCNN,
     create_mlp,
     get_actor_critic_arch,
 )
@@ -114,6 +115,25 @@ def mlp_layers(
     return [
         HiddenLinear.of(layer) if isinstance(layer, nn.Linear) and id(layer) in between_hidden else layer for layer in layers
     ]
+
+
+def policy_alias_for(observation_space: spaces.Space) -> str:
+    """
+    The policy alias an observation space calls for, as SB3 names them: ``"MultiInputPolicy"`` for a Dict space,
+    ``"CnnPolicy"`` for a channel-first image (SB3's ``is_image_space``: a ``uint8`` Box ``(C, H, W)`` of bounds 0 and
+    255, as SB3 stores an environment's images), ``"MlpPolicy"`` otherwise, channel-last images ``(H, W, C)``
+    included (a CNN would read their height as channels). What a model built from data uses when it is given no
+    policy (``from_offline_data(data, policy=None)``, ``distill`` from data).
+
+    :param observation_space: the model's observation space
+    :return: the alias
+    """
+    if isinstance(observation_space, spaces.Dict):
+        return "MultiInputPolicy"
+    box = observation_space if isinstance(observation_space, spaces.Box) else None
+    if box is not None and is_image_space(box, check_channels=False) and is_image_space_channels_first(box):
+        return "CnnPolicy"
+    return "MlpPolicy"
 
 
 def with_fast_optimizer(optimizer_class: type[th.optim.Optimizer], optimizer_kwargs: Optional[dict]) -> dict:
@@ -511,6 +531,34 @@ class DictObservationsMixin(GaussianPolicy):
         action_space: spaces.Box,
         lr_schedule: Schedule,
         features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
+        **kwargs: Any,
+    ):
+        super().__init__(
+            observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
+        )
+
+
+class ImageObservationsMixin(GaussianPolicy):
+    """
+    Mixed in before a policy class of this package (a :class:`GaussianPolicy`), makes its ``features_extractor_class``
+    default to SB3's ``NatureCNN``: the policy for image observation spaces (``CnnPolicy``), as SB3's SAC has it. The
+    actor and each critic get their own CNN unless ``share_features_extractor=True``; ``normalize_images=False``
+    feeds the pixels to the CNN as they are (SB3 then tells ``NatureCNN`` that they are already normalised).
+
+    :param observation_space: Observation space: an image, a ``uint8`` Box ``(C, H, W)`` of bounds 0 and 255, at least
+        36x36 for ``NatureCNN`` (an algorithm gets it from SB3, which transposes an environment's ``(H, W, C)`` images)
+    :param action_space: Action space (Box)
+    :param lr_schedule: Learning rate schedule (could be constant)
+    :param features_extractor_class: Features extractor to use (``NatureCNN`` by default)
+    :param kwargs: the policy's other settings (``net_arch``, ``features_extractor_kwargs``, ``normalize_images``, ...)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Box,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN,
         **kwargs: Any,
     ):
         super().__init__(

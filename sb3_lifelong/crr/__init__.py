@@ -1,4 +1,4 @@
 from sb3_lifelong.crr.crr import CRR
-from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy
+from sb3_lifelong.crr.policies import CnnPolicy, CRRPolicy, MlpPolicy, MultiInputPolicy
 
-__all__ = ["CRR", "CRRPolicy", "MlpPolicy", "MultiInputPolicy"]
+__all__ = ["CRR", "CRRPolicy", "CnnPolicy", "MlpPolicy", "MultiInputPolicy"]

@@ -26,7 +26,7 @@ from sb3_lifelong.crr.losses import (
     advantage_weights,
     effective_sample_size,
 )
-from sb3_lifelong.crr.policies import CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor, actor_distribution
+from sb3_lifelong.crr.policies import CnnPolicy, CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor, actor_distribution
 from sb3_lifelong.crr.targets import critic_loss, critic_td_target, target_actions
 from sb3_lifelong.numerics.compiling import COMPILE_CHOICES, LazyCompiled
 from sb3_lifelong.numerics.hardware import TRAIN_DTYPES
@@ -78,7 +78,7 @@ class CRR(LifelongOfflineAlgorithm):
     action sampled from the target policy (or, ``critic_target="sarsa"``, the next action recorded in the data).
     Both the critic loss and the advantages use the same (pre-update) critic, like Acme's CRR.
 
-    :param policy: The policy model to use (MlpPolicy, MultiInputPolicy, ...)
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str); None for offline training
     :param learning_rate: learning rate of the actor and critic (Adam), a constant or a schedule of the
         remaining progress
@@ -150,6 +150,7 @@ class CRR(LifelongOfflineAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }
     policy: CRRPolicy

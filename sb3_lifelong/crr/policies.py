@@ -10,7 +10,13 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActor, GaussianActorCriticPolicy, QCritic
+from sb3_lifelong.common.policies import (
+    DictObservationsMixin,
+    GaussianActor,
+    GaussianActorCriticPolicy,
+    ImageObservationsMixin,
+    QCritic,
+)
 from sb3_lifelong.crr.distributional import CategoricalCritic
 
 
@@ -194,6 +200,23 @@ class MultiInputPolicy(DictObservationsMixin, CRRPolicy):
     """
     CRR policy for Dict observation spaces (``CombinedExtractor`` by default).
     See :class:`CRRPolicy` for the parameters.
+    """
+
+
+class CnnPolicy(ImageObservationsMixin, CRRPolicy):
+    """
+    CRR policy for image observation spaces, as SB3's SAC ``CnnPolicy``: ``NatureCNN`` features (a CNN for each
+    actor, one per source with ``actor_per_source``, and one for the critic, regression or categorical, unless
+    ``share_features_extractor=True``; each target copy has its own), then :class:`CRRPolicy`'s networks.
+
+    :param observation_space: an image space: a ``uint8`` Box ``(C, H, W)`` of bounds 0 and 255 (SB3 transposes an
+        environment's ``(H, W, C)`` images to it), at least 36x36 for ``NatureCNN``
+    :param action_space: Action space (Box)
+    :param lr_schedule: Learning rate schedule (could be constant)
+    :param features_extractor_class: Features extractor to use (``NatureCNN`` by default)
+    :param kwargs: :class:`CRRPolicy`'s other parameters: ``net_arch``, ``features_extractor_kwargs`` (e.g.
+        ``features_dim``), ``normalize_images`` (True by default: the pixels are divided by 255.0; False feeds them as
+        they are), ...
     """
 
 

@@ -1,4 +1,4 @@
 from sb3_lifelong.mpo.mpo import MPO
-from sb3_lifelong.mpo.policies import MlpPolicy, MultiInputPolicy
+from sb3_lifelong.mpo.policies import CnnPolicy, MlpPolicy, MultiInputPolicy
 
-__all__ = ["MPO", "MlpPolicy", "MultiInputPolicy"]
+__all__ = ["MPO", "CnnPolicy", "MlpPolicy", "MultiInputPolicy"]

@@ -16,7 +16,7 @@ from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
 from sb3_lifelong.mpo.losses import DUAL_RAW_FLOOR, dual_value, e_step, inverse_softplus, m_step_loss, trust_region
-from sb3_lifelong.mpo.policies import MlpPolicy, MPOPolicy, MultiInputPolicy
+from sb3_lifelong.mpo.policies import CnnPolicy, MlpPolicy, MPOPolicy, MultiInputPolicy
 from sb3_lifelong.numerics.compiling import COMPILE_CHOICES, LazyCompiled
 from sb3_lifelong.numerics.hardware import TRAIN_DTYPES
 from sb3_lifelong.numerics.scoring import SCORING_DTYPES, score_actions
@@ -73,7 +73,7 @@ class MPO(LifelongOffPolicyAlgorithm):
     E-step weights, because the policy is improved on the batch's next observations
     (``policy_on_next_obs=True``, as in Acme).
 
-    :param policy: The policy model to use (MlpPolicy, MultiInputPolicy, ...)
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, ...)
     :param env: The environment to learn from (if registered in Gym, can be str)
     :param learning_rate: learning rate of the actor and critic (Adam), a constant or a schedule of the
         remaining progress
@@ -138,6 +138,7 @@ class MPO(LifelongOffPolicyAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }
     policy: MPOPolicy

@@ -4,7 +4,12 @@ from typing import Any
 
 from stable_baselines3.common.policies import ContinuousCritic
 
-from sb3_lifelong.common.policies import DictObservationsMixin, GaussianActor, GaussianActorCriticPolicy
+from sb3_lifelong.common.policies import (
+    DictObservationsMixin,
+    GaussianActor,
+    GaussianActorCriticPolicy,
+    ImageObservationsMixin,
+)
 
 
 class MPOPolicy(GaussianActorCriticPolicy):
@@ -32,6 +37,23 @@ class MPOPolicy(GaussianActorCriticPolicy):
 class MultiInputPolicy(DictObservationsMixin, MPOPolicy):
     """
     MPO policy for Dict observation spaces (``CombinedExtractor`` by default). See :class:`MPOPolicy`.
+    """
+
+
+class CnnPolicy(ImageObservationsMixin, MPOPolicy):
+    """
+    MPO policy for image observation spaces, as SB3's SAC ``CnnPolicy``: ``NatureCNN`` features (a CNN for the
+    actor and one for the critics, unless ``share_features_extractor=True``; each target copy has its own), then
+    :class:`MPOPolicy`'s networks (with its LayerNorm torso by default).
+
+    :param observation_space: an image space: a ``uint8`` Box ``(C, H, W)`` of bounds 0 and 255 (SB3 transposes an
+        environment's ``(H, W, C)`` images to it), at least 36x36 for ``NatureCNN``
+    :param action_space: Action space (Box)
+    :param lr_schedule: Learning rate schedule (could be constant)
+    :param features_extractor_class: Features extractor to use (``NatureCNN`` by default)
+    :param kwargs: :class:`MPOPolicy`'s other parameters: ``net_arch``, ``features_extractor_kwargs`` (e.g.
+        ``features_dim``), ``normalize_images`` (True by default: the pixels are divided by 255.0; False feeds them as
+        they are), ...
     """
 
 
