@@ -9,6 +9,8 @@ from sb3_lifelong.experiments import PRESETS, run_seed
 
 # One torch thread per test process: the suite runs with pytest-xdist on 2 cores.
 th.set_num_threads(1)
+# No cost log (sb3_lifelong.experiments.costs) from the tests' runs, and none read: a test that needs one sets its own
+os.environ["SB3_LIFELONG_COSTS"] = ""
 
 _SHARED_MENAGERIE = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
 if "MENAGERIE_ROOT" not in os.environ and _SHARED_MENAGERIE.is_dir():

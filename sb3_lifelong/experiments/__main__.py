@@ -30,6 +30,7 @@ from typing import Any, Literal, Optional
 import torch as th
 
 from sb3_lifelong.core.cli import plain_text
+from sb3_lifelong.experiments import costs
 from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, Preset, check_device, load_presets
 from sb3_lifelong.experiments.protocol import record_settings, run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
@@ -136,7 +137,9 @@ def _parser() -> argparse.ArgumentParser:
         "--export", default=None, help="also copy the small result files (CSV, JSON, MD, PNG; no buffers) into this directory"
     )
 
-    listing = commands.add_parser("list", help="the jobs of one seed, and the measured cost of a seed")
+    listing = commands.add_parser(
+        "list", help="the jobs of one seed, and what a job and a seed took in earlier runs of the preset on this CPU"
+    )
     listing.add_argument(
         "--presets",
         default=None,
@@ -263,6 +266,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.command == "list":
         preset = args.settings
         print(f"preset {args.preset}: {preset.env_id}, stages {list(preset.stages)}, steps {list(preset.stage_steps)}")
+        times = costs.measured(preset.describe())
         for job in preset.jobs():
             parsed = Job.parse(job)
             if parsed.kind == "distill":
@@ -270,7 +274,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                 about = STUDENTS[parsed.name].about + (f" (repeat {repeat}, its own student seed)" if repeat else "")
             else:
                 about = str(ONLINE.get(parsed.name, "MPO through every stage"))
-            print(f"  {job:<34} {about}")
+            seconds = costs.estimate(job, times)
+            print(f"  {job:<34} {'' if seconds is None else f'[{costs.minutes(seconds)}] '}{about}")
+        print(_measured_cost(preset, times))
         if preset.minutes_per_seed is not None:
             print(f"one seed took {preset.minutes_per_seed:.0f} min on one core of the reference machine")
         if preset.note:
@@ -324,7 +330,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     steps = sum(preset.stage_steps) + online * sum(preset.stage_steps[1:])
     print(
         f"{len(preset.env_names)}-stage protocol, preset {args.preset}: {preset.env_id}, {' -> '.join(preset.env_names)}, "
-        f"steps {list(preset.stage_steps)}, {len(jobs)} jobs for seed {args.seed} "
+        f"steps {list(preset.stage_steps)}, {len(set(jobs) | {'collect'})} jobs for seed {args.seed} "
         f"({steps:,} environment steps online, {preset.distill_steps:,} updates per student)"
     )
     if preset.note:
@@ -353,6 +359,22 @@ def _check_study(parser: argparse.ArgumentParser, preset: Preset, output: pathli
         record_settings(preset, output)
     except ValueError as error:
         parser.exit(2, f"{parser.prog}: error: {error}\n")
+
+
+def _measured_cost(preset: Preset, times: dict[str, list[float]]) -> str:
+    """:return: what ``list`` says a seed of ``preset`` costs on this kind of CPU, from the cost log of earlier runs"""
+    where = costs.costs_file()
+    if not times:
+        return (
+            f"No cost measured yet for these settings on this CPU ({costs.cpu_kind()}): "
+            + (f"each finished job records its time in {where}" if where is not None else "the cost log is off")
+            + f" (${costs.COSTS_VARIABLE} names it)"
+        )
+    runs = sum(len(values) for values in times.values())
+    return (
+        f"[time]: the median of earlier runs of these settings on this CPU ({costs.cpu_kind()}; {runs} job(s) in "
+        f"{where}). A seed: {costs.remaining(preset.jobs(), times, left='')}"
+    )
 
 
 def _closing(output: pathlib.Path, seed: int, ran: int, minutes: float) -> str:

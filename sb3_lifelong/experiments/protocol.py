@@ -53,7 +53,14 @@ from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
-from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, aside_name, collect, remove_unfinished_collection
+from sb3_lifelong.experiments import costs
+from sb3_lifelong.experiments.collection import (
+    COLLECTED_BUFFERS,
+    PAUSED_MODEL,
+    aside_name,
+    collect,
+    remove_unfinished_collection,
+)
 from sb3_lifelong.experiments.jobs import (
     job_callbacks,
     make_env,
@@ -186,7 +193,7 @@ def _paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Opt
         expected.pop("preset", None)
     if recorded != expected:
         raise ValueError(
-            f"{directory} holds a student paused at {record.get('updates', 0):,} updates with other settings "
+            f"{directory} holds a student checkpoint at {record.get('updates', 0):,} updates with other settings "
             f"({recorded}) than these ({dict(settings)}): move it away to train this one"
         )
     if not (directory / record["model"]).exists():
@@ -253,7 +260,10 @@ class _StudentPauses(BaseCallback):
         for older in _pause_checkpoints(self.directory):
             if older.name != checkpoint:
                 older.unlink()
-        self.log(f"  {self.directory.name}: paused at {updates:,} of {self.total:,} updates ({seconds / 60:.1f} min)")
+        self.log(
+            f"  {self.directory.name}: checkpoint at {updates:,} of {self.total:,} updates ({costs.minutes(seconds)} so far); "
+            "a stopped run continues from here"
+        )
         return True
 
 
@@ -301,7 +311,7 @@ def distill_student(
         claim_directory(directory, directory.name)
     else:
         _rows_up_to(directory, paused["updates"], log)
-        log(f"  continuing the student paused at {paused['updates']:,} of {preset.distill_steps:,} updates")
+        log(f"  continuing the student from its checkpoint at {paused['updates']:,} of {preset.distill_steps:,} updates")
     data = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)
     everything = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)  # unweighted, for Q per source
     if student.ratio is not None:
@@ -596,14 +606,24 @@ def run_seed(
     unknown = sorted(set(wanted) - set(known))
     if unknown:
         raise ValueError(f"unknown jobs {unknown}; the jobs are {known}")
-    if "collect" not in wanted and not (run_dir / "collect" / "done.json").exists():
+    if "collect" not in wanted:  # the others need it: run first, or counted as done
         wanted.insert(0, "collect")
     ran: list[str] = []
-    todo = [job for job in known if job in wanted and not (run_dir / job / "done.json").exists()]
-    skipped = [job for job in wanted if job not in todo]
+    planned = [job for job in known if job in wanted]  # the order they run in; numbered "job k/n" over all of them
+    todo = [job for job in planned if not (run_dir / job / "done.json").exists()]
+    skipped = [job for job in planned if job not in todo]
+    settings = preset.describe()
+    times = costs.measured(settings)  # earlier runs of these settings on this kind of CPU, and this seed's jobs
+    for job in skipped:
+        seconds = _done_seconds(run_dir / job)
+        if seconds is not None:
+            times.setdefault(costs.job_key(job), []).append(seconds)
     if skipped:
-        log(f"seed {seed}: {len(skipped)} job(s) already done, skipped: {', '.join(skipped)}")
-    for position, job in enumerate(todo):
+        log(f"seed {seed}: {len(skipped)} of {len(planned)} job(s) already done, skipped: {', '.join(skipped)}")
+    if todo:
+        log(f"seed {seed}: {costs.remaining(todo, times)}")
+    for index, job in enumerate(todo):
+        position = planned.index(job)
         with job_lock(run_dir, job) as ours:
             if not ours:
                 if job == "collect":
@@ -616,7 +636,10 @@ def run_seed(
             if (run_dir / job / "done.json").exists():  # finished by another process since the list was made
                 log(f"seed {seed}: job {job} was finished by another process: skipped")
                 continue
-            log(f"seed {seed}: job {position + 1}/{len(todo)} {job} ...")
+            expected = costs.estimate(job, times)
+            about = f" (about {costs.minutes(expected)}, as measured before)" if expected is not None else ""
+            log(f"seed {seed}: job {position + 1}/{len(planned)} {job} ...{about}")
+            resumed = job == "collect" and (run_dir / "collect" / PAUSED_MODEL).exists()  # its earlier parts not timed
             start = time.perf_counter()
             trained: Optional[float] = None  # a student's training seconds, its earlier parts' included
             parsed = Job.parse(job)
@@ -651,6 +674,19 @@ def run_seed(
                     log(f"seed {seed}: the rows per source of the buffer were not recorded ({error})")
             write_json_atomic(run_dir / job / "done.json", done)  # never a half-written "done"
             release_directory(run_dir / job)  # finished: no later attempt deletes it
-            log(f"seed {seed}: job {job} done in {seconds / 60:.1f} min")
+            if not resumed:
+                costs.record(settings, job, seconds)
+                times.setdefault(costs.job_key(job), []).append(seconds)
+            left = costs.remaining(todo[index + 1 :], times)
+            log(f"seed {seed}: job {job} done in {costs.minutes(seconds)}" + (f"; {left}" if left else "; the seed is done"))
             ran.append(job)
     return ran
+
+
+def _done_seconds(directory: pathlib.Path) -> Optional[float]:
+    """:return: the seconds a finished job's ``done.json`` records (None: unreadable)"""
+    try:
+        seconds = json.loads((directory / "done.json").read_text()).get("seconds")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return float(seconds) if isinstance(seconds, (int, float)) and not isinstance(seconds, bool) else None

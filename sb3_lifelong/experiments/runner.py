@@ -22,6 +22,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
+from sb3_lifelong.experiments import costs
 from sb3_lifelong.experiments.presets import Preset
 from sb3_lifelong.experiments.protocol import adopt_collection, record_settings, run_seed
 
@@ -133,34 +134,52 @@ def run_study(
 
 
 class _Progress:
-    def __init__(self, graph: list[Job], log: Callable[[str], None]) -> None:
+    def __init__(self, graph: list[Job], log: Callable[[str], None], preset: Preset, workers: int) -> None:
         self.total = len(graph)
         self.log = log
         self.results: dict[str, dict[str, Any]] = {}
+        self.names = {job.key: job.name for job in graph}
+        self.workers = workers
+        self.times = costs.measured(preset.describe())  # earlier runs of these settings on this CPU, then this study's
+
+    def _left(self) -> str:
+        """:return: how many jobs are left, and the work they hold where it was measured"""
+        todo = [name for key, name in self.names.items() if key not in self.results]
+        known = [costs.estimate(name, self.times) for name in todo]
+        seconds = sum(value for value in known if value is not None)
+        if not todo or not seconds:
+            return f"{len(todo)} left"
+        unmeasured = sum(value is None for value in known)
+        spread = f", {costs.minutes(seconds / self.workers)} on {self.workers} worker(s)" if self.workers else ""
+        return f"{len(todo)} left: about {costs.minutes(seconds)} of work{spread}" + (
+            f", {unmeasured} job(s) not measured yet" if unmeasured else ""
+        )
 
     def started(self, job: Job) -> None:
         self.log(f"[start] {job.key}")
 
     def finished(self, result: dict[str, Any]) -> None:
         self.results[result["key"]] = result
-        left = self.total - len(self.results)
+        if result["ran"] and not result["error"]:
+            self.times.setdefault(costs.job_key(self.names.get(result["key"], "")), []).append(result["seconds"])
+        left = self._left()
         if result["error"]:
-            self.log(f"[FAILED] {result['key']} after {result['seconds'] / 60:.1f} min ({left} left):\n{result['error']}")
+            self.log(f"[FAILED] {result['key']} after {costs.minutes(result['seconds'])} ({left}):\n{result['error']}")
         elif result["ran"]:
-            self.log(f"[done] {result['key']} in {result['seconds'] / 60:.1f} min ({left} left)")
+            self.log(f"[done] {result['key']} in {costs.minutes(result['seconds'])} ({left})")
         else:
-            self.log(f"[skip] {result['key']}: done earlier ({left} left)")
+            self.log(f"[skip] {result['key']}: done earlier ({left})")
 
     def blocked(self, job: Job, reason: str) -> None:
         self.results[job.key] = dict(key=job.key, ran=False, seconds=0.0, error=f"not run: {reason}")
-        self.log(f"[not run] {job.key}: {reason} ({self.total - len(self.results)} left)")
+        self.log(f"[not run] {job.key}: {reason} ({self._left()})")
 
     def failed(self, key: str) -> bool:
         return bool(self.results.get(key, {}).get("error"))
 
 
 def _run_pool(preset: Preset, graph: list[Job], output: str, workers: int, log: Callable[[str], None]) -> dict[str, Any]:
-    progress = _Progress(graph, log)
+    progress = _Progress(graph, log, preset, workers)
     waiting = list(graph)
     running: dict[Future, Job] = {}
     with ProcessPoolExecutor(max_workers=workers, mp_context=_process_context()) as pool:
@@ -189,7 +208,7 @@ def _run_ray(
 
     with ray_session(workers, address):
         remote_job = ray.remote(num_cpus=1, max_retries=0)(_after(run_job))
-        progress = _Progress(graph, log)
+        progress = _Progress(graph, log, preset, 0 if address else workers)  # a cluster's size is its own
         refs: dict[str, Any] = {}
         pending: dict[Any, Job] = {}
         for job in graph:  # submitted at once: Ray runs a job when the results it is given are ready

@@ -207,8 +207,8 @@ def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path
     messages: list[str] = []
     th.manual_seed(123), np.random.seed(123)  # the pause's generators are restored, whatever they are now
     assert distill_on_study(output, 0, tmp_path / "parts", student, preset, log=messages.append) == ["ind"]
-    assert any("continuing the student paused at 50 of 150 updates" in m for m in messages)
-    assert any("distill_ind: paused at 100 of 150 updates" in m for m in messages)
+    assert any("continuing the student from its checkpoint at 50 of 150 updates" in m for m in messages)
+    assert any("distill_ind: checkpoint at 100 of 150 updates" in m for m in messages)
     whole = tmp_path / "whole" / "seed_0" / "distill_ind"
     for name in ("eval.csv", "train.csv", "q_sources.csv"):
         assert (directory / name).read_text() == (whole / name).read_text(), name
@@ -236,6 +236,6 @@ def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path
     other = dataclasses.replace(preset, distill_steps=200)
     (directory / "done.json").unlink()
     (directory / "paused.json").write_text(json.dumps(dict(updates=50, model="student.zip", settings={"other": 1})))
-    with pytest.raises(ValueError, match="paused at 50 updates with other settings"):
+    with pytest.raises(ValueError, match="student checkpoint at 50 updates with other settings"):
         distill_on_study(output, 0, tmp_path / "parts", student, other, log=lambda _: None)
     assert (directory / "student.zip").exists()
