@@ -10,6 +10,7 @@ import os
 import pathlib
 import shutil
 import sys
+import time
 from typing import Any, Callable, Optional
 
 if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skipped elsewhere
@@ -31,6 +32,45 @@ from sb3_lifelong.mpo import MPO
 #: a paused collection (``collect(..., until=...)``): its checkpoint (the model, which commits the lifetime buffer) and
 #: what the pause recorded (timesteps, the buffer's transitions), in the ``collect`` directory
 PAUSED_MODEL, PAUSED_RECORD = "paused.zip", "paused.json"
+
+
+def paused_at(run_dir: pathlib.Path) -> int:
+    """
+    :param run_dir: a seed's directory
+    :return: the timestep its collection paused at (``collect/paused.json``; 0: not started, or not paused)
+    """
+    record = run_dir / "collect" / PAUSED_RECORD
+    return int(json.loads(record.read_text())["timesteps"]) if record.exists() else 0
+
+
+def collect_in_parts(
+    preset: Preset, seed: int, run_dir: pathlib.Path, stop: int, part: int, log: Callable[[str], None] = print
+) -> bool:
+    """
+    Collect to ``stop`` environment steps in parts of ``part``: each part ends with a checkpoint (:func:`collect` with
+    ``until``) that the next continues, so a command killed loses at most one part, and the same call continues.
+
+    :param preset: the protocol's settings
+    :param seed: the seed
+    :param run_dir: the seed's directory
+    :param stop: the step to collect to (the end of the collection, or a switch: a Stage-1 alone)
+    :param part: the environment steps of a part (at least 1)
+    :param log: where the one-line messages go (one per part, with its seconds)
+    :return: True when the collection finished (its last step reached), False when it stopped at ``stop`` before that
+    :raises ValueError: ``part`` is below 1
+    """
+    if part < 1:
+        raise ValueError(f"part must be at least 1 environment step, got {part}")
+    done = paused_at(run_dir)
+    while done < stop:
+        start = time.perf_counter()
+        until = min(stop, (done // part + 1) * part)
+        finished = collect(preset, seed, run_dir, log=log, until=until)
+        log(f"{run_dir}: to step {until:,} in {time.perf_counter() - start:.0f} s")
+        if finished:
+            return True
+        done = paused_at(run_dir)
+    return False
 
 
 def collect(

@@ -31,12 +31,14 @@ A seed's scores:
 import csv
 import io
 import json
+import math
 import pathlib
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, NamedTuple, Optional
 
+import numpy as np
 import pandas as pd
 
 from sb3_lifelong.experiments.presets import Job, stage_ends
@@ -245,6 +247,66 @@ def switch_spread(frame: pd.DataFrame, env: str, start: int, end: int) -> float:
     if len(returns) < 2:
         returns = last_returns(frame, env, 2, until=end, after=start)
     return relative_spread(returns)
+
+
+def last_evaluations(eval_csv: pathlib.Path, env: str, upto: Optional[int], count: int) -> list[float]:
+    """
+    :param eval_csv: a collection's ``eval.csv`` (``timesteps``, ``env``, ``mean_reward``)
+    :param env: the environment's name
+    :param upto: the last timestep counted (None: every evaluation)
+    :param count: how many
+    :return: the mean returns of the last ``count`` evaluations in ``env`` at timesteps <= ``upto``, oldest first
+    """
+    with open(eval_csv, newline="") as handle:
+        rows = [row for row in csv.DictReader(handle) if row["env"] == env]
+    rows = [row for row in rows if upto is None or int(row["timesteps"]) <= upto]
+    rows.sort(key=lambda row: int(row["timesteps"]))
+    return [float(row["mean_reward"]) for row in rows[-count:]]
+
+
+def learnt_level(evals: Sequence[float], threshold: float, max_spread: float) -> tuple[float, float, bool]:
+    """
+    :param evals: an agent's last evaluations in an environment
+    :param threshold: the return at which the environment counts as learnt
+    :param max_spread: the largest spread (sample sd / mean) of a steady level
+    :return: their mean, their spread, and whether it was learnt: a mean of at least ``threshold`` and a spread of at
+        most ``max_spread`` (an infinite spread at a mean of 0)
+    """
+    mean = float(np.mean(evals))
+    spread = float(np.std(evals, ddof=1) / abs(mean)) if mean else math.inf
+    return mean, spread, bool(mean >= threshold and spread <= max_spread)
+
+
+def switch_reading(eval_csv: pathlib.Path, switch: int, threshold: float, max_spread: float, count: int) -> dict[str, Any]:
+    """
+    Whether Env-A was learnt when the robot changed: the mean of the last ``count`` Env-A evaluations up to
+    ``switch`` at least ``threshold``, their spread at most ``max_spread``, and ``count`` evaluations there at all.
+
+    :param eval_csv: the collection's ``eval.csv``
+    :param switch: the timestep of the change
+    :param threshold: the return at which Env-A counts as learnt (a preset's ``env_a_learnt``)
+    :param max_spread: the largest spread of a steady level (a preset's ``max_switch_spread``)
+    :param count: the evaluations read
+    :return: ``evals``, ``mean``, ``spread``, ``threshold``, ``max_spread``, ``learnt``
+    """
+    evals = last_evaluations(eval_csv, "Env-A", switch, count)
+    mean, spread, learnt = learnt_level(evals, threshold, max_spread)
+    return dict(evals=evals, mean=mean, spread=spread, threshold=threshold, max_spread=max_spread,
+                learnt=learnt and len(evals) == count)  # fmt: skip
+
+
+def overestimation_at(q_csv: pathlib.Path, name: str, timesteps: int) -> float:
+    """
+    :param q_csv: a collection's ``q_sources.csv``
+    :param name: the source's name (``Env-A``, ...)
+    :param timesteps: the timestep of the measurement
+    :return: the critic's overestimation of that source logged at ``timesteps`` (NaN when not logged)
+    """
+    with open(q_csv, newline="") as handle:
+        for row in csv.DictReader(handle):
+            if row["name"] == name and int(row["timesteps"]) == timesteps and row.get("overestimation"):
+                return float(row["overestimation"])
+    return math.nan
 
 
 def data_values(seed: int, q_log: pathlib.Path, problems: Optional[list[MalformedRow]] = None) -> list[dict[str, Any]]:

@@ -3,12 +3,13 @@ measured, and read by the pre-registered rules in both directions."""
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 
 import numpy as np
 import pytest
-from testkit import benchmark_module, shrink_screen
+from testkit import benchmark_module
 
 
 @pytest.fixture
@@ -17,7 +18,7 @@ def control():
 
 
 def test_branches_are_the_screens_collector_and_differ_only_in_stage2(control):
-    screen = control.screen()
+    screen = benchmark_module("screen")  # the study reads its own presets file, equal to the screen's collection
     switched, nominal = control.preset("switched"), control.preset("control")
     theirs = screen.preset(control.CANDIDATE).describe()
     for mine in (switched.describe(), nominal.describe()):
@@ -34,11 +35,18 @@ def test_branches_are_the_screens_collector_and_differ_only_in_stage2(control):
 @pytest.fixture
 def tiny(control, monkeypatch):
     """The study at seconds' scale: 600 steps of Env-A, 400 per branch, tiny networks, every Env-A counted learnt."""
-    screen = control.screen()
     monkeypatch.setattr(control, "ENV_A_STEPS", 600)
     monkeypatch.setattr(control, "STAGE2_STEPS", 400)
-    shrink_screen(screen, monkeypatch, eval_freq=100)  # five evaluations before the switch
-    monkeypatch.setattr(screen, "MAX_SPREAD", float("inf"))
+    monkeypatch.setattr(control, "SAME_EPISODES", 1)
+    monkeypatch.setattr(control, "PART", 400)
+    full = control.preset
+
+    def small(branch: str):  # five evaluations before the switch, one episode each, every Env-A counted learnt
+        return dataclasses.replace(full(branch), eval_freq=100, eval_episodes=1, env_a_learnt=-1e9,
+                                   max_switch_spread=math.inf, net_arch=(16, 16), batch_size=32, num_samples=4,
+                                   learning_starts=100, max_episode_steps=100)  # fmt: skip
+
+    monkeypatch.setattr(control, "preset", small)
     # Monte-Carlo returns over 10 steps, so that 100-step episodes give overestimation values to read
     monkeypatch.setattr("sb3_lifelong.evaluation.overestimation.monte_carlo_horizon", lambda gamma: 10)
     return control

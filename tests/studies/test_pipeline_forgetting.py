@@ -130,7 +130,6 @@ def test_env_b_marks_its_finished_collection_done_for_the_rest(tmp_path, monkeyp
     """The parts run the collector directly; `env-b` then writes the runner's done.json, which `rest` needs."""
     import argparse
     import json
-    import types
 
     pipeline = benchmark_module("pipeline")
     runs, results = tmp_path / "runs", tmp_path / "results"
@@ -140,12 +139,12 @@ def test_env_b_marks_its_finished_collection_done_for_the_rest(tmp_path, monkeyp
     (run_dir / "collect").mkdir(parents=True)  # adopted already
     parts = []
 
-    def collect_in_parts(settings, seed, directory, stop):
+    def collect_in_parts(settings, seed, directory, stop, part, log):
         parts.append((seed, directory, stop))
         if len(parts) > 1:  # the second call finishes: the collector's final checkpoint
             (directory / "collect" / "final.zip").write_bytes(b"final")
 
-    monkeypatch.setattr(pipeline, "screen", lambda: types.SimpleNamespace(collect_in_parts=collect_in_parts))
+    monkeypatch.setattr(pipeline, "collect_in_parts", collect_in_parts)
     args = argparse.Namespace(runs=str(runs), results=str(results), seed=10, candidate="cheetah_back_reversed")
     with pytest.raises(SystemExit, match="has not finished"):  # a stop before the last step: no done.json
         pipeline.run_env_b(args)

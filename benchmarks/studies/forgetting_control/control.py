@@ -22,7 +22,6 @@ import argparse
 import csv
 import dataclasses
 import functools
-import importlib.util
 import json
 import math
 import pathlib
@@ -34,7 +33,7 @@ import numpy as np
 
 STUDY = pathlib.Path(__file__).resolve().parent
 RESULTS = STUDY / "results"
-SCREEN_FILE = STUDY.parent / "forgetting_screen" / "screen.py"
+PRESETS_FILE = STUDY / "presets.py"
 
 #: the screen's candidate whose change the switched branch makes
 CANDIDATE = "cheetah_back_reversed"
@@ -42,6 +41,10 @@ ENV_A_STEPS = 120_000
 STAGE2_STEPS = 120_000
 #: Stage 2 of each branch: the change, or the nominal value of the same parameter (the same appended column)
 BRANCHES: dict[str, dict[str, float]] = {"switched": {"leg_motor_scale": -1.0}, "control": {"leg_motor_scale": 1.0}}
+#: the screen's readings: last-LAST means, SAME_EPISODES seeded episodes per agent, collections in parts of PART steps
+LAST = 5
+SAME_EPISODES = 10
+PART = 20_000
 #: fresh seeds (the screen used 0-3, the pipeline study 10-17), started in this order until FIVE learnt Env-A
 SEEDS = tuple(range(30, 42))
 LEARNT_SEEDS_WANTED = 5
@@ -53,26 +56,22 @@ FORGETS = 0.8  # K2: the screen's threshold
 SAME_GROWTH = 15.0  # K3: the equivalence margin of the overestimation growth's difference (Q units)
 
 
+def _print(message: str) -> None:
+    print(message, flush=True)
+
+
 @functools.cache
-def screen() -> Any:
-    """The forgetting screen's script: its collector, parts, Stage-1 rule and measurements are this study's."""
-    spec = importlib.util.spec_from_file_location("forgetting_screen_script", SCREEN_FILE)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def presets() -> dict[str, Any]:
+    from sb3_lifelong.experiments.presets import load_presets
+
+    return load_presets(PRESETS_FILE)
 
 
 def preset(branch: str) -> Any:
     """The collection of one branch: the screen's collector and candidate, with this study's stages and budgets."""
     if branch not in BRANCHES:
         raise ValueError(f"no branch {branch!r}: one of {sorted(BRANCHES)}")
-    return dataclasses.replace(
-        screen().preset(CANDIDATE),
-        stages=({}, dict(BRANCHES[branch])),
-        stage_steps=(ENV_A_STEPS, STAGE2_STEPS),
-        note=f"forgetting control, {branch} (benchmarks/studies/forgetting_control/README.md)",
-    )
+    return dataclasses.replace(presets()[f"control_{branch}"], stage_steps=(ENV_A_STEPS, STAGE2_STEPS))
 
 
 def stage1_dir(runs: pathlib.Path, seed: int) -> pathlib.Path:
@@ -85,14 +84,18 @@ def branch_dir(runs: pathlib.Path, branch: str, seed: int) -> pathlib.Path:
 
 def run_stage1(seed: int, runs: pathlib.Path, results: pathlib.Path) -> dict[str, Any]:
     """MPO learns Env-A (either branch's preset: Env-A is the same), then the screen's reading, kept in ``results``."""
-    rules = screen()
+    from sb3_lifelong.experiments.collection import collect_in_parts
+    from sb3_lifelong.experiments.scores import switch_reading
+
     out = results / "stage1" / f"seed_{seed}.json"
     if out.exists():
         return json.loads(out.read_text())
     run_dir = stage1_dir(runs, seed)
+    settings = preset("switched")
     if not (run_dir / "collect" / "stage1.zip").exists():
-        rules.collect_in_parts(preset("switched"), seed, run_dir, ENV_A_STEPS)
-    reading = rules.stage1_reading(run_dir / "collect" / "eval.csv", ENV_A_STEPS, rules.ROBOTS["cheetah"].threshold)
+        collect_in_parts(settings, seed, run_dir, ENV_A_STEPS, PART, log=_print)
+    eval_csv = run_dir / "collect" / "eval.csv"
+    reading = switch_reading(eval_csv, ENV_A_STEPS, settings.env_a_learnt, settings.max_switch_spread, LAST)
     record = dict(seed=seed, **reading)
     out.parent.mkdir(parents=True, exist_ok=True)
     (out.parent / f"seed_{seed}_eval.csv").write_text((run_dir / "collect" / "eval.csv").read_text())
@@ -106,20 +109,20 @@ def measure(branch: str, seed: int, run_dir: pathlib.Path) -> dict[str, Any]:
     """One branch's measurements at its end (README, "Per seed"): the screen's, on this study's budgets."""
     from sb3_lifelong import LifelongReplayBuffer
     from sb3_lifelong.experiments.branching import measure_agent
+    from sb3_lifelong.experiments.scores import last_evaluations, overestimation_at
 
-    rules = screen()
     settings = preset(branch)
     switch, end = settings.stage_steps[0], sum(settings.stage_steps)
     eval_csv, q_csv = run_dir / "collect" / "eval.csv", run_dir / "collect" / "q_sources.csv"
-    end_a = rules.last_evaluations(eval_csv, "Env-A", None)
+    end_a = last_evaluations(eval_csv, "Env-A", None, LAST)
     out: dict[str, Any] = dict(
         branch=branch, seed=seed, switch=switch, end=end, end_evals_env_a=end_a, end_env_a=float(np.mean(end_a)),
-        overestimation_env_a_switch=rules.overestimation_at(q_csv, "Env-A", switch),
-        overestimation_env_a_end=rules.overestimation_at(q_csv, "Env-A", end),
+        overestimation_env_a_switch=overestimation_at(q_csv, "Env-A", switch),
+        overestimation_env_a_end=overestimation_at(q_csv, "Env-A", end),
     )  # fmt: skip
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as buffer:
         for name in ("stage1", "final"):
-            out.update(measure_agent(name, run_dir, buffer, settings, seed, rules.SAME_EPISODES))
+            out.update(measure_agent(name, run_dir, buffer, settings, seed, SAME_EPISODES))
     return out
 
 
@@ -136,8 +139,10 @@ def run_branch(branch: str, seed: int, runs: pathlib.Path, results: pathlib.Path
         adopt_stage1(settings, stage1_dir(runs, seed), run_dir)
     if not (run_dir / "adopted.json").exists():  # adopt_stage1 writes it last: a stopped adoption left a partial copy
         raise SystemExit(f"{run_dir} holds an unfinished adoption of the Stage-1 (no adopted.json): move it away, run again")
+    from sb3_lifelong.experiments.collection import collect_in_parts
+
     start = time.perf_counter()
-    screen().collect_in_parts(settings, seed, run_dir, sum(settings.stage_steps))
+    collect_in_parts(settings, seed, run_dir, sum(settings.stage_steps), PART, log=_print)
     measured = measure(branch, seed, run_dir)
     measured["seconds"] = time.perf_counter() - start
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -163,13 +168,14 @@ def queue(args: argparse.Namespace) -> None:
 
 def progress(args: argparse.Namespace) -> list[str]:
     """Where each seed stands."""
-    rules = screen()
+    from sb3_lifelong.experiments.collection import paused_at
+
     runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
     lines = []
     for seed in SEEDS:
         stage1 = results / "stage1" / f"seed_{seed}.json"
         if not stage1.exists():
-            at = rules.paused_at(stage1_dir(runs, seed))
+            at = paused_at(stage1_dir(runs, seed))
             lines.append(f"seed {seed}: Stage 1 " + (f"paused at {at:,}" if at else "not started"))
             continue
         if not json.loads(stage1.read_text())["learnt"]:
@@ -180,7 +186,7 @@ def progress(args: argparse.Namespace) -> list[str]:
             if (results / branch / f"seed_{seed}" / "measure.json").exists():
                 states.append(f"{branch} measured")
             else:
-                at = rules.paused_at(branch_dir(runs, branch, seed)) if branch_dir(runs, branch, seed).exists() else 0
+                at = paused_at(branch_dir(runs, branch, seed)) if branch_dir(runs, branch, seed).exists() else 0
                 states.append(f"{branch} " + (f"paused at {at:,}" if at else "not started"))
         lines.append(f"seed {seed}: " + ", ".join(states))
     print("\n".join(lines))

@@ -31,6 +31,8 @@ from typing import Any, Optional
 
 import numpy as np
 
+from sb3_lifelong.experiments import collection, scores
+
 STUDY = pathlib.Path(__file__).resolve().parent
 RESULTS = STUDY / "results"
 
@@ -109,25 +111,9 @@ def first_candidate(robot: str) -> str:
     return next(name for name, (r, _) in CANDIDATES.items() if r == robot)
 
 
-def paused_at(run_dir: pathlib.Path) -> int:
-    """:return: the timestep a collection paused at (0: not started)"""
-    record = run_dir / "collect" / "paused.json"
-    return int(json.loads(record.read_text())["timesteps"]) if record.exists() else 0
-
-
 def collect_in_parts(settings: Any, seed: int, run_dir: pathlib.Path, stop: int) -> None:
-    """Collect to ``stop`` steps in parts of ``PART``; each part ends with a checkpoint that the next continues."""
-    from sb3_lifelong.experiments.collection import collect
-
-    done = paused_at(run_dir)
-    while done < stop:
-        start = time.perf_counter()
-        until = min(stop, (done // PART + 1) * PART)
-        finished = collect(settings, seed, run_dir, log=print, until=until)
-        print(f"{run_dir}: to step {until:,} in {time.perf_counter() - start:.0f} s", flush=True)
-        if finished:
-            return
-        done = paused_at(run_dir)
+    """Collect to ``stop`` steps in parts of ``PART`` (the runner's ``collect_in_parts``)."""
+    collection.collect_in_parts(settings, seed, run_dir, stop, PART, log=lambda message: print(message, flush=True))
 
 
 def stage1_dir(runs: pathlib.Path, robot: str, seed: int) -> pathlib.Path:
@@ -169,11 +155,7 @@ def run_candidate(candidate: str, seed: int, runs: pathlib.Path, results: pathli
 
 def last_evaluations(eval_csv: pathlib.Path, env: str, upto: Optional[int], count: int = LAST) -> list[float]:
     """:return: the mean returns of the last ``count`` evaluations in ``env`` at timesteps <= ``upto``"""
-    with open(eval_csv, newline="") as handle:
-        rows = [row for row in csv.DictReader(handle) if row["env"] == env]
-    rows = [row for row in rows if upto is None or int(row["timesteps"]) <= upto]
-    rows.sort(key=lambda row: int(row["timesteps"]))
-    return [float(row["mean_reward"]) for row in rows[-count:]]
+    return scores.last_evaluations(eval_csv, env, upto, count)
 
 
 def stage1_level(evals: Sequence[float], threshold: float) -> tuple[float, float, bool]:
@@ -183,31 +165,17 @@ def stage1_level(evals: Sequence[float], threshold: float) -> tuple[float, float
     :return: their mean, their spread (sd / mean), and whether Env-A was learnt (README: at least the threshold, a
         spread of at most ``MAX_SPREAD``)
     """
-    mean = float(np.mean(evals))
-    spread = float(np.std(evals, ddof=1) / abs(mean)) if mean else math.inf
-    return mean, spread, bool(mean >= threshold and spread <= MAX_SPREAD)
+    return scores.learnt_level(evals, threshold, MAX_SPREAD)
 
 
 def stage1_reading(eval_csv: pathlib.Path, switch: int, threshold: float) -> dict[str, Any]:
     """
-    Whether Env-A was learnt at the switch, by the screen's rule: the mean of the last ``LAST`` Env-A evaluations up to
-    ``switch`` at least ``threshold``, their spread at most ``MAX_SPREAD``, and ``LAST`` evaluations there at all.
+    Whether Env-A was learnt at the switch, by the screen's rule (the runner's ``switch_reading``): the mean of the
+    last ``LAST`` Env-A evaluations up to ``switch`` at least ``threshold``, their spread at most ``MAX_SPREAD``.
 
     :return: ``evals``, ``mean``, ``spread``, ``threshold``, ``max_spread``, ``learnt``
     """
-    evals = last_evaluations(eval_csv, "Env-A", switch)
-    mean, spread, learnt = stage1_level(evals, threshold)
-    return dict(evals=evals, mean=mean, spread=spread, threshold=threshold, max_spread=MAX_SPREAD,
-                learnt=learnt and len(evals) == LAST)  # fmt: skip
-
-
-def overestimation_at(q_csv: pathlib.Path, name: str, timesteps: int) -> float:
-    """:return: the critic's overestimation of source ``name`` logged at ``timesteps`` (NaN when not logged)"""
-    with open(q_csv, newline="") as handle:
-        for row in csv.DictReader(handle):
-            if row["name"] == name and int(row["timesteps"]) == timesteps and row.get("overestimation"):
-                return float(row["overestimation"])
-    return math.nan
+    return scores.switch_reading(eval_csv, switch, threshold, MAX_SPREAD, LAST)
 
 
 def measure(candidate: str, seed: int, run_dir: pathlib.Path) -> dict[str, Any]:
@@ -238,8 +206,8 @@ def measure(candidate: str, seed: int, run_dir: pathlib.Path) -> dict[str, Any]:
     out["same_episode_ratio"] = out["final_same_episodes_Env-A"] / out["stage1_same_episodes_Env-A"]
     out["zero_shot_env_b"] = out["stage1_same_episodes_Env-B"]
     q_csv = run_dir / "collect" / "q_sources.csv"
-    out["overestimation_env_a_switch"] = overestimation_at(q_csv, "Env-A", switch)
-    out["overestimation_env_a_end"] = overestimation_at(q_csv, "Env-A", end)
+    out["overestimation_env_a_switch"] = scores.overestimation_at(q_csv, "Env-A", switch)
+    out["overestimation_env_a_end"] = scores.overestimation_at(q_csv, "Env-A", end)
     return out
 
 
@@ -262,7 +230,7 @@ def progress(args: argparse.Namespace) -> list[str]:
             else:
                 run_dir = runs / "forgetting_screen" / candidate / f"seed_{seed}"
                 robot = CANDIDATES[candidate][0]
-                at = paused_at(run_dir) if run_dir.exists() else paused_at(stage1_dir(runs, robot, seed))
+                at = collection.paused_at(run_dir) if run_dir.exists() else collection.paused_at(stage1_dir(runs, robot, seed))
                 state = f"paused at {at:,}" if at else "not started"
             lines.append(f"{candidate:28s} seed {seed}: {state}")
     print("\n".join(lines))

@@ -33,10 +33,14 @@ import sys
 import time
 from typing import Any
 
+from sb3_lifelong.experiments.collection import collect_in_parts, paused_at
+
 STUDY = pathlib.Path(__file__).resolve().parent
 RESULTS = STUDY / "results"
 PRESETS_FILE = STUDY / "presets.py"
-SCREEN_FILE = STUDY.parent / "forgetting_screen" / "screen.py"
+#: the screen's readings and parts: last-LAST means, collections in parts of PART steps
+LAST = 5
+PART = 20_000
 
 #: the seeds, in the order they are started: fresh (the screen used 0-3); a seed continues past Env-A only when it
 #: learnt Env-A, and seeds are added in this order until FIVE have (README)
@@ -53,6 +57,7 @@ REST_JOBS = (
 
 
 def _load(path: pathlib.Path, name: str) -> Any:
+    """This study's own claims file, as a module (its thresholds and readings beside its claims)."""
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
@@ -60,10 +65,8 @@ def _load(path: pathlib.Path, name: str) -> Any:
     return module
 
 
-@functools.cache
-def screen() -> Any:
-    """The forgetting screen's script (its collector, parts and Stage-1 rule are this study's)."""
-    return _load(SCREEN_FILE, "forgetting_screen_script")
+def _print(message: str) -> None:
+    print(message, flush=True)
 
 
 @functools.cache
@@ -90,19 +93,23 @@ def study_dir(runs: pathlib.Path, candidate: str) -> pathlib.Path:
 
 
 def stage1_reading(eval_csv: pathlib.Path, switch: int) -> dict[str, Any]:
-    """Whether Env-A was learnt at the switch, by the screen's rule (``screen.stage1_reading``, HalfCheetah's 1500)."""
-    rules = screen()
-    return rules.stage1_reading(eval_csv, switch, rules.ROBOTS["cheetah"].threshold)
+    """
+    Whether Env-A was learnt at the switch, by the screen's rule (the runner's ``switch_reading``: the last 5 Env-A
+    evaluations' mean at least the preset's ``env_a_learnt``, HalfCheetah's 1500, their spread at most 0.2).
+    """
+    from sb3_lifelong.experiments.scores import switch_reading
+
+    settings = study_preset("cheetah_back_reversed")  # the thresholds: the same for every candidate
+    return switch_reading(eval_csv, switch, settings.env_a_learnt, settings.max_switch_spread, LAST)
 
 
 def run_stage1(args: argparse.Namespace) -> dict[str, Any]:
     """Stage 1 of a seed (any candidate's preset: Env-A is the same), then its reading, written to ``results/``."""
-    rules = screen()
     settings = study_preset("cheetah_back_reversed")  # Env-A and its collector: the same for every candidate
     switch = settings.stage_steps[0]
     run_dir = stage1_dir(pathlib.Path(args.runs), args.seed)
     if not (run_dir / "collect" / "stage1.zip").exists():
-        rules.collect_in_parts(settings, args.seed, run_dir, switch)
+        collect_in_parts(settings, args.seed, run_dir, switch, PART, log=_print)
     reading = dict(seed=args.seed, **stage1_reading(run_dir / "collect" / "eval.csv", switch))
     out = pathlib.Path(args.results) / "stage1" / f"seed_{args.seed}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -136,7 +143,7 @@ def run_env_b(args: argparse.Namespace) -> None:
         adopt_stage1(settings, stage1_dir(pathlib.Path(args.runs), args.seed), run_dir)
     start = time.perf_counter()
     if not finished_collection(settings, run_dir):
-        screen().collect_in_parts(settings, args.seed, run_dir, sum(settings.stage_steps))
+        collect_in_parts(settings, args.seed, run_dir, sum(settings.stage_steps), PART, log=_print)
     mark_collection_done(settings, args.seed, run_dir, time.perf_counter() - start)
 
 
@@ -179,20 +186,19 @@ def run_rest(args: argparse.Namespace) -> int:
 def progress(args: argparse.Namespace) -> list[str]:
     """Where each seed stands."""
     runs, results = pathlib.Path(args.runs), pathlib.Path(args.results)
-    rules = screen()
     lines = []
     for seed in SEEDS:
         record = results / "stage1" / f"seed_{seed}.json"
         if record.exists():
             state = "Env-A learnt" if json.loads(record.read_text())["learnt"] else "Env-A not learnt (stops here)"
         else:
-            at = rules.paused_at(stage1_dir(runs, seed))
+            at = paused_at(stage1_dir(runs, seed))
             state = f"Stage 1 paused at {at:,}" if at else "not started"
         for candidate in sorted(n.removeprefix("pipeline_") for n in presets()):
             seed_dir = study_dir(runs, candidate) / f"seed_{seed}"
             if seed_dir.exists():
                 done = sorted(p.parent.name for p in seed_dir.glob("*/done.json"))
-                at = rules.paused_at(seed_dir)
+                at = paused_at(seed_dir)
                 collection = (
                     "collected" if "collect" in done else f"collection paused at {at:,}" if at else "collection not started"
                 )
