@@ -433,8 +433,9 @@ def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
     for ax, (env, key, label) in zip(axes[0], panels):
         for algo in ("mpo", "sac"):
             mine = [run for run in runs if run["env"] == env and run["algo"] == algo]
-            for run in mine if len(mine) > 1 else []:  # every seed thin, beside their mean
-                ax.plot(run["curve"]["timesteps"], run["curve"][key], color=colors[algo], lw=0.7, alpha=0.45)
+            for index, run in enumerate(mine if len(mine) > 1 else []):  # every seed thin, beside their mean
+                thin = f"{algo.upper()}, each seed" if index == 0 else None
+                ax.plot(run["curve"]["timesteps"], run["curve"][key], color=colors[algo], lw=0.7, alpha=0.45, label=thin)
             if mine:
                 length = min(len(run["curve"][key]) for run in mine)
                 mean = np.mean([run["curve"][key][:length] for run in mine], axis=0)
@@ -444,7 +445,7 @@ def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
                     color=colors[algo],
                     lw=2.0,
                     label=(
-                        f"{algo.upper()} (mean of {len(mine)} seeds)"
+                        f"{algo.upper()} (mean of {len(mine)} seeds, to the shortest)"
                         if len(mine) > 1
                         else f"{algo.upper()} (seed {mine[0]['seed']})"
                     ),
