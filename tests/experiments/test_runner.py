@@ -6,8 +6,12 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
+import torch as th
+from testkit import flat_params
 
+from sb3_lifelong import BC, CRR, LifelongReplayBuffer
 from sb3_lifelong.experiments import PRESETS
 from sb3_lifelong.experiments.runner import job_graph, run_study
 
@@ -67,7 +71,7 @@ def test_bad_arguments(tmp_path):
         run_study(TINY, [0], str(tmp_path), workers=0)
 
 
-def test_ray_local_two_workers(tmp_path, monkeypatch):
+def test_ray_local_two_workers(tmp_path, monkeypatch, study):
     # about 30 s beside two training runs on 2 cores (412 s while Ray's workers ran at niceness 15)
     pytest.importorskip("ray", reason='Ray is not installed (pip install "sb3_lifelong[cluster]")')
     monkeypatch.delenv("RAY_worker_niceness", raising=False)
@@ -76,8 +80,18 @@ def test_ray_local_two_workers(tmp_path, monkeypatch):
     results = run_study(TINY, [0], str(tmp_path), workers=2, backend="ray", jobs=JOBS, log=lines.append)
     assert all(r["ran"] and r["error"] is None for r in results.values()) and len(results) == 3
     assert any("Ray on this machine, 2 worker(s)" in line for line in lines)
-    assert (tmp_path / "seed_0" / "distill_BC" / "done.json").exists()
     assert os.environ["RAY_worker_niceness"] == "0"  # the jobs ran at normal priority
+    # what Ray's workers computed is what one process computes for the same seed (the session's sequential study):
+    # the same transitions, and students with the same weights
+    sequential = study[0] / "seed_0"
+    with LifelongReplayBuffer.open(tmp_path / "seed_0" / "buffer", read_only=True) as ours:
+        with LifelongReplayBuffer.open(sequential / "buffer", read_only=True) as theirs:
+            assert ours.size() == theirs.size() == sum(TINY.stage_steps)
+            for name in ("observations", "actions", "rewards", "sources"):
+                np.testing.assert_array_equal(ours.read_range(name, 0, ours.size()), theirs.read_range(name, 0, theirs.size()))
+    for job, algorithm in (("distill_CRR_exp_beta1", CRR), ("distill_BC", BC)):
+        mine, theirs = (algorithm.load(root / job / "student.zip") for root in (tmp_path / "seed_0", sequential))
+        th.testing.assert_close(flat_params(mine), flat_params(theirs), rtol=0, atol=0, msg=job)
 
 
 def _free_port() -> int:
