@@ -39,7 +39,17 @@ def test_student_spread_on_one_buffer(study, tmp_path):
     text = spread.report(runs, output)
     assert "CRR_exp_beta1 - CRR_indicator" in text
     ratio = float(text.split("ratio ")[1].split(":")[0])
-    assert np.isfinite(ratio) and ratio >= 0
+
+    # by hand: the sd over student seeds of (exp - indicator) on buffer 0, over the sd of the same difference across
+    # the study's seeds (its scores.csv, Env-A)
+    def pick(frame, student):
+        return frame[frame["student"] == student].set_index("student_seed")["score"].sort_index()
+
+    within = np.std((pick(data, "CRR_exp_beta1") - pick(data, "CRR_indicator")).to_numpy(), ddof=1)
+    finals = pd.read_csv(output / "scores.csv")
+    finals = finals[finals["env"] == "Env-A"].pivot_table(index="seed", columns="method", values="score")
+    across = np.std((finals["CRR_exp_beta1"] - finals["CRR_indicator"]).to_numpy(), ddof=1)
+    assert ratio == pytest.approx(within / across, abs=0.005)  # printed with 2 decimals
     reverse = spread.report(runs, output, pair=("CRR_indicator", "CRR_exp_beta1"))  # the pair names the order
     assert "CRR_indicator - CRR_exp_beta1" in reverse and float(reverse.split("ratio ")[1].split(":")[0]) == ratio
     one_seed = tmp_path / "one_seed"  # a reference study of one seed has no between-seed spread: a clear error
