@@ -43,6 +43,11 @@ TAIL_PREALLOCATION = 64 * 1024 * 1024
 _WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictionary()
 
 
+def writer_of(path: str) -> Optional[RowStore]:
+    """:return: the store of this process that holds ``path`` open for writing (its directory's lock), or None"""
+    return _WRITERS.get(path)
+
+
 class ForkedWriterError(RuntimeError):
     """
     A directory buffer opened for writing in one process was used to write (``add``, ``flush``, ``close``, a commit)
