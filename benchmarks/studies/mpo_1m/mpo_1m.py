@@ -423,6 +423,8 @@ def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
     from sb3_lifelong.experiments.style import pyplot, save
 
     plt = pyplot()
+    from matplotlib.ticker import FuncFormatter  # after pyplot(): it chooses the backend
+
     envs = sorted({run["env"] for run in runs}, key=lambda env: TASKS.index(env) if env in TASKS else len(TASKS))
     panels = [(env, "mean_return", "return (10 deterministic episodes)") for env in envs]
     if any("x_position" in env or "OP3" in env for env in envs):
@@ -454,6 +456,7 @@ def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
             ax.axhline(ZOO_SAC[env], color="gray", ls="--", lw=1, label="rl-zoo3 SAC at 1M (ratio 1)")
         ax.set_title(f"{env.split('/')[-1]}: {label.split(' (')[0]}", fontsize=10)
         ax.set_xlabel("environment steps")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1e6:g}M" if x >= 1e6 else f"{x / 1e3:g}k"))
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, frameon=False)
