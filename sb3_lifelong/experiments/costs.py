@@ -18,7 +18,7 @@ import statistics
 from collections.abc import Sequence
 from typing import Any, Optional
 
-from sb3_lifelong.numerics.hardware import cpu_matrix_flags
+from sb3_lifelong.numerics.hardware import cpu_matrix_flags, cpu_model
 
 #: the environment variable naming the cost log (empty: none)
 COSTS_VARIABLE = "SB3_LIFELONG_COSTS"
@@ -34,14 +34,8 @@ def costs_file() -> Optional[pathlib.Path]:
 
 def cpu_kind() -> str:
     """:return: this CPU's model name and the flags that decide its speed (how the costs of two machines are told apart)"""
-    model = "unknown CPU"
-    try:
-        text = pathlib.Path("/proc/cpuinfo").read_text()
-        model = next((line.partition(":")[2].strip() for line in text.splitlines() if line.startswith("model name")), model)
-    except OSError:
-        pass
     flags = [flag for flag in cpu_matrix_flags() if flag.startswith(("amx", "avx512_bf16"))]
-    return model + (f" ({', '.join(flags)})" if flags else "")
+    return cpu_model() + (f" ({', '.join(flags)})" if flags else "")
 
 
 def fingerprint(settings: dict[str, Any]) -> str:

@@ -255,7 +255,9 @@ def last_evaluations(eval_csv: pathlib.Path, env: str, upto: Optional[int], coun
     :param env: the environment's name
     :param upto: the last timestep counted (None: every evaluation)
     :param count: how many
-    :return: the mean returns of the last ``count`` evaluations in ``env`` at timesteps <= ``upto``, oldest first
+    :return: the mean returns of the last ``count`` evaluations in ``env`` at timesteps <= ``upto``, oldest first;
+        each value as Python's ``float`` parses it (the studies' recorded readings hold these values; a frame read by
+        :func:`read_log` and :func:`last_returns` holds pandas' parse, which may differ in the last digit)
     """
     with open(eval_csv, newline="") as handle:
         rows = [row for row in csv.DictReader(handle) if row["env"] == env]

@@ -123,19 +123,23 @@ def fused_products_supported(dtype: th.dtype) -> bool:
     return bool(out.shape == (4, 8) and th.all(out == 8))
 
 
-def machine_description() -> str:
-    """:return: one line for a benchmark's results: CPU, its matrix flags, the bf16 kernel, torch and its threads"""
+def cpu_model() -> str:
+    """:return: the CPU's model name (Linux ``/proc/cpuinfo``; elsewhere what ``platform`` knows)"""
     import platform
 
-    model = "unknown CPU"
     try:
-        model = next(
+        return next(
             line.partition(":")[2].strip()
             for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines()
             if line.startswith("model name")
         )
     except (OSError, StopIteration):
-        model = platform.processor() or platform.machine()
+        return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def machine_description() -> str:
+    """:return: one line for a benchmark's results: CPU, its matrix flags, the bf16 kernel, torch and its threads"""
+    model = cpu_model()
     flags = ", ".join(cpu_matrix_flags()) or "none of " + "/".join(MATRIX_FLAGS)
     return (
         f"{model}; matrix flags: {flags}; oneDNN bf16 kernel: {onednn_bf16_kernel()}; "
