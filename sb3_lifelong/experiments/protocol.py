@@ -613,11 +613,7 @@ def run_seed(
     todo = [job for job in planned if not (run_dir / job / "done.json").exists()]
     skipped = [job for job in planned if job not in todo]
     settings = preset.describe()
-    times = costs.measured(settings)  # earlier runs of these settings on this kind of CPU, and this seed's jobs
-    for job in skipped:
-        seconds = _done_seconds(run_dir / job)
-        if seconds is not None:
-            times.setdefault(costs.job_key(job), []).append(seconds)
+    times = costs.measured(settings)  # earlier runs of these settings on this kind of CPU, then this run's jobs
     if skipped:
         log(f"seed {seed}: {len(skipped)} of {len(planned)} job(s) already done, skipped: {', '.join(skipped)}")
     if todo:
@@ -681,12 +677,3 @@ def run_seed(
             log(f"seed {seed}: job {job} done in {costs.minutes(seconds)}" + (f"; {left}" if left else "; the seed is done"))
             ran.append(job)
     return ran
-
-
-def _done_seconds(directory: pathlib.Path) -> Optional[float]:
-    """:return: the seconds a finished job's ``done.json`` records (None: unreadable)"""
-    try:
-        seconds = json.loads((directory / "done.json").read_text()).get("seconds")
-    except (OSError, ValueError, AttributeError):
-        return None
-    return float(seconds) if isinstance(seconds, (int, float)) and not isinstance(seconds, bool) else None
