@@ -56,8 +56,8 @@ def test_compiled_student_matches_eager_on_cuda():
     # a clip that binds at every step keeps rounding differences from growing through Adam's normalisation
     common = dict(env=None, action_space=space, seed=0, max_grad_norm=1e-3, **STUDENT)
     # each built and trained before the next is built: both draw the same noise from the seeded global generator
-    eager = CRR.from_offline_data(data, compile_losses=False, **common).learn_offline(12, log_interval=0)
-    compiled = CRR.from_offline_data(data, compile_losses=True, **common).learn_offline(12, log_interval=0)
+    eager = CRR.from_offline_data(data, compute=dict(compile_losses=False), **common).learn_offline(12, log_interval=0)
+    compiled = CRR.from_offline_data(data, compute=dict(compile_losses=True), **common).learn_offline(12, log_interval=0)
     assert compiled._forward.compiled is not None and not compiled._forward.failed
     difference = (flat_params(compiled) - flat_params(eager)).abs().max()
     assert difference <= 1e-4, float(difference)

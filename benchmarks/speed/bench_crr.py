@@ -75,8 +75,7 @@ def make_ours(data: dict, env_id: str, seed: int, compile_losses: bool = False, 
         policy_kwargs=dict(net_arch=HIDDEN, n_critics=1),
         seed=seed,
         device="cpu",  # as d3rlpy's: the CPU even where a GPU is present
-        compile_losses=compile_losses,
-        train_dtype=train_dtype,
+        compute=dict(compile_losses=compile_losses, train_dtype=train_dtype),
     )
 
 

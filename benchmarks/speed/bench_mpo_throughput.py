@@ -48,9 +48,7 @@ def make(
         env_id,
         policy_kwargs=dict(net_arch=[256, 256], layer_norm=layer_norm),
         num_samples=num_samples,
-        scoring_dtype=scoring_dtype,
-        compile_losses=compiled,
-        train_dtype=train_dtype,
+        compute=dict(scoring_dtype=scoring_dtype, compile_losses=compiled, train_dtype=train_dtype),
         **common,
     )
 

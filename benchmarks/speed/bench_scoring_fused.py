@@ -54,7 +54,7 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(1)
     kwargs = dict(net_arch=[256, 256], layer_norm=args.layer_norm == "on")
-    model = MPO("MlpPolicy", args.env, policy_kwargs=kwargs, scoring_dtype="float32", device="cpu", seed=0)
+    model = MPO("MlpPolicy", args.env, policy_kwargs=kwargs, compute=dict(scoring_dtype="float32"), device="cpu", seed=0)
     critic = model.critic_target
     obs_dim = model.observation_space.shape[0]  # type: ignore[index]
     obs = th.randn(args.batch_size, obs_dim, generator=th.Generator().manual_seed(0))

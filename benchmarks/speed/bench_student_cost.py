@@ -59,10 +59,10 @@ def make_students(scoring_dtype: str, compile_losses: bool = False, train_dtype:
             batch_size=256,
             seed=0,
             device="cpu",  # the CPU even where a GPU is present
-            scoring_dtype=scoring_dtype,
+            compute=dict(
+                scoring_dtype=scoring_dtype, compile_losses=True if compile_losses else "auto", train_dtype=train_dtype
+            ),
             **kw,
-            **(dict(compile_losses=True) if compile_losses else {}),
-            **(dict(train_dtype=train_dtype) if train_dtype != "float32" else {}),  # (a peer tree may predate it)
         )
         for name, kw in VARIANTS.items()
     }

@@ -4,12 +4,13 @@ streams of training and of the environment's resets are saved with the model and
 """
 
 import contextvars
+import dataclasses
 import inspect
 import io
 import pathlib
 import warnings
-from collections.abc import Iterable
-from typing import Any, Optional, TypeVar, Union, cast
+from collections.abc import Iterable, Mapping
+from typing import Any, ClassVar, Optional, TypeVar, Union, cast
 
 import gymnasium as gym
 import numpy as np
@@ -30,6 +31,7 @@ from sb3_lifelong.common.updates import UpdateMechanics
 from sb3_lifelong.core.atomic import atomic_write
 from sb3_lifelong.core.contract import SYNC_TIMESTEP_METHOD
 from sb3_lifelong.core.safe_load import safe_custom_objects, saved_data, saved_policy_class
+from sb3_lifelong.core.settings import Settings
 
 SelfLifelongAlgorithm = TypeVar("SelfLifelongAlgorithm", bound="LifelongOffPolicyAlgorithm")
 
@@ -109,7 +111,14 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
     share: an optimizer step, the target networks' update, the critics' scoring copies, the check of the losses.
     """
 
+    #: the algorithm's grouped settings: argument -> their class (e.g. MPO's ``policy_loss`` and ``compute``)
+    settings_groups: ClassVar[dict[str, type[Settings]]] = {}
+
     def _setup_model(self) -> None:
+        # a load may pass grouped settings as dicts (merged into the saved ones, see load), and a zip saved before
+        # they were grouped holds them as attributes of their own
+        for name, group in self.settings_groups.items():
+            setattr(self, name, group.settled(self.__dict__, name))
         loading = _LOADING_SAVED_BUFFER_KWARGS.get()
         saved = None
         if loading is not None and self.replay_buffer is None:
@@ -396,6 +405,10 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         records = self._env_rng_records()
         if records is not None:
             self._env_rng = records
+        # grouped settings (MPO's policy_loss, compute) are saved as plain dicts: readable in the zip, loadable with
+        # safe=True, and made settings again by the algorithm's setup
+        grouped = {name: value for name, value in self.__dict__.items() if isinstance(value, Settings)}
+        self.__dict__.update({name: dataclasses.asdict(value) for name, value in grouped.items()})
         try:
             if isinstance(path, (str, pathlib.Path)):
                 target = _with_suffix(path, "zip")
@@ -405,6 +418,7 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
             else:
                 super().save(path, exclude=exclude, include=include)
         finally:
+            self.__dict__.update(grouped)
             del self._rng_state
             if pending is None:
                 self.__dict__.pop("_env_rng", None)
@@ -451,11 +465,16 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
             schedules, and references to policy, buffer, module and optimizer classes; anything else (a function
             pickled by value, any other global) raises ``pickle.UnpicklingError`` naming the entry and the global,
             before it runs (see :mod:`sb3_lifelong.core.safe_load`)
-        :param kwargs: As for SB3 (e.g. ``replay_buffer_kwargs``)
+        :param kwargs: As for SB3 (e.g. ``replay_buffer_kwargs``); a grouped setting given as a dict (e.g.
+            ``compute=dict(compile_losses=False)``) changes the settings it names and keeps the saved others
         :return: The model
         """
         data = saved_data(path)
         _check_saved_algorithm(cls, path, data)
+        for name in cls.settings_groups:  # a dict of some settings changes those, the saved ones stay
+            saved_settings = (data or {}).get(name)
+            if isinstance(kwargs.get(name), Mapping) and isinstance(saved_settings, dict):
+                kwargs[name] = {**saved_settings, **kwargs[name]}
         given = "replay_buffer_kwargs" in kwargs or "replay_buffer_kwargs" in (custom_objects or {})
         if safe:
             if data is None:

@@ -6,7 +6,7 @@ the stop on a loss that is not finite (:class:`UpdateMechanics`, a part of
 """
 
 from collections.abc import Sequence
-from typing import Any, Optional, Union
+from typing import Any, Optional
 
 import torch as th
 from stable_baselines3.common.policies import BaseModel
@@ -17,6 +17,7 @@ from sb3_lifelong.numerics.compiling import CHECK_TOLERANCE, LOW_PRECISION_CHECK
 from sb3_lifelong.numerics.fast_ops import HiddenLinear
 from sb3_lifelong.numerics.hardware import SIMULATED_BFLOAT16, resolve_train_dtype
 from sb3_lifelong.numerics.scoring import LowPrecisionCopy, resolve_scoring_dtype, runs_no_grad_pass
+from sb3_lifelong.numerics.settings import ComputeSettings
 
 
 def optimized_parameters(module: BaseModel) -> list[th.Tensor]:
@@ -49,7 +50,9 @@ class UpdateMechanics:
     #: the update's forward pass, compiled when ``compile_losses`` asks for it (:meth:`_compiles_now`); None for an
     #: algorithm without one
     _forward: Optional[LazyCompiled] = None
-    compile_losses: Union[bool, str] = False
+    #: the precision and compilation of the updates (MPO's and CRR's ``compute``); an algorithm without the argument
+    #: (BC) updates eagerly in float32
+    compute: ComputeSettings = ComputeSettings(scoring_dtype="float32", compile_losses=False)
 
     def _raise_if_not_finite(self, **values: th.Tensor) -> None:
         """
@@ -102,11 +105,11 @@ class UpdateMechanics:
             optimizer.step()
 
     def _compiles_now(self) -> bool:
-        """:return: whether this ``train`` call runs the compiled forward pass (see the algorithm's ``compile_losses``)"""
-        if self._forward is None or getattr(self, "train_dtype", None) == SIMULATED_BFLOAT16:
+        """:return: whether this ``train`` call runs the compiled forward pass (see ``compute.compile_losses``)"""
+        if self._forward is None or self.compute.train_dtype == SIMULATED_BFLOAT16:
             return False  # a compiled graph fuses the simulation's roundings away (HiddenLinear)
         to_go = getattr(self, "_total_timesteps", 0) - self.num_timesteps
-        return self._forward.wanted(self.compile_losses, to_go, self.device)
+        return self._forward.wanted(self.compute.compile_losses, to_go, self.device)
 
     def _update_targets(self) -> None:
         """
@@ -119,44 +122,29 @@ class UpdateMechanics:
         if self._target_scoring_copy is not None:
             self._target_scoring_copy.sync()
 
-    def _make_scoring_copy(self, critic: th.nn.Module, scoring_dtype: str) -> Optional[LowPrecisionCopy]:
+    def _make_scoring_copy(self, critic: th.nn.Module) -> Optional[LowPrecisionCopy]:
         """
-        A low-precision copy of ``critic`` for the no-grad scoring passes, when ``scoring_dtype`` asks for one
+        A low-precision copy of ``critic`` for the no-grad scoring passes, when ``compute.scoring_dtype`` asks for one
         (see :func:`sb3_lifelong.numerics.scoring.resolve_scoring_dtype`); it is synchronised by
         :meth:`_sync_scoring_copies` after loads and by the algorithm after its updates.
 
         :return: the copy, or None to score in the critic's own precision (always for a critic that the scoring
             engine does not run, :func:`~sb3_lifelong.numerics.scoring.runs_no_grad_pass`: it is scored by calling it)
         """
-        dtype = resolve_scoring_dtype(scoring_dtype, critic, self.device)
+        dtype = resolve_scoring_dtype(self.compute.scoring_dtype, critic, self.device)
         if dtype == th.float32 or not runs_no_grad_pass(critic):
             return None
         copy = LowPrecisionCopy(critic, dtype)
         self.__dict__.setdefault("_scoring_copies", []).append(copy)
         return copy
 
-    def _refuse_compiled_simulation(self, train_dtype: str) -> None:
-        """
-        :param train_dtype: the algorithm's ``train_dtype``
-        :raises ValueError: ``train_dtype="simulated_bfloat16"`` with ``compile_losses=True``: the simulation runs
-            eagerly, because a compiled graph fuses its roundings away (``"auto"`` then stays eager)
-        """
-        if train_dtype == SIMULATED_BFLOAT16 and self.compile_losses is True:
-            raise ValueError(
-                f"train_dtype={train_dtype!r} runs eagerly (a compiled graph fuses its roundings away): pass "
-                "compile_losses=False or 'auto' (which then stays eager)"
-            )
-
-    def _apply_train_dtype(self, train_dtype: str) -> None:
+    def _apply_train_dtype(self) -> None:
         """
         Set the precision of the policy's hidden-to-hidden products in the passes that record gradients
-        (:class:`~sb3_lifelong.numerics.fast_ops.HiddenLinear`), from ``train_dtype`` (see
+        (:class:`~sb3_lifelong.numerics.fast_ops.HiddenLinear`), from ``compute.train_dtype`` (see
         :func:`~sb3_lifelong.numerics.hardware.resolve_train_dtype`). Called at every setup, loads included.
-
-        :param train_dtype: the algorithm's ``train_dtype``
-        :raises ValueError: what :meth:`_refuse_compiled_simulation` refuses (for a load with ``compile_losses=True``)
         """
-        self._refuse_compiled_simulation(train_dtype)
+        train_dtype = self.compute.train_dtype
         dtype = resolve_train_dtype(train_dtype, self.device)
         for module in self.policy.modules():
             if isinstance(module, HiddenLinear):

@@ -17,6 +17,7 @@ from sb3_lifelong.common.arguments import check_sizes_of
 from sb3_lifelong.common.losses import bootstrap_discount
 from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian
+from sb3_lifelong.core.settings import Settings
 from sb3_lifelong.crr.distributional import CategoricalCritic, CriticLoss
 from sb3_lifelong.crr.losses import (
     ADVANTAGE_BASELINES,
@@ -28,9 +29,9 @@ from sb3_lifelong.crr.losses import (
 )
 from sb3_lifelong.crr.policies import CnnPolicy, CRRPolicy, MlpPolicy, MultiInputPolicy, PerSourceActor, actor_distribution
 from sb3_lifelong.crr.targets import critic_loss, critic_td_target, target_actions
-from sb3_lifelong.numerics.compiling import COMPILE_CHOICES, LazyCompiled
-from sb3_lifelong.numerics.hardware import TRAIN_DTYPES
-from sb3_lifelong.numerics.scoring import SCORING_DTYPES, score_actions
+from sb3_lifelong.numerics.compiling import LazyCompiled
+from sb3_lifelong.numerics.scoring import score_actions
+from sb3_lifelong.numerics.settings import ComputeSettings
 
 SelfCRR = TypeVar("SelfCRR", bound="CRR")
 
@@ -123,21 +124,8 @@ class CRR(LifelongOfflineAlgorithm):
     :param actor_averaging: Polyak coefficient of an exponential moving average of the actor's weights, updated
         after every actor update (e.g. ``1e-3``: an average over about the last 1,000 updates); ``predict`` and
         evaluation then use the averaged actor (``policy.actor_average``), while training is unchanged. None: off
-    :param scoring_dtype: precision of the no-grad critic passes over sampled actions (advantage baseline, TD
-        target): ``"float32"``, ``"bfloat16"`` or ``"auto"`` (see :class:`sb3_lifelong.MPO`; a categorical critic's
-        hidden layers too, its logits and their softmax stay float32)
-    :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
-        (the critic's loss, the policy's): ``"float32"`` (the default), ``"bfloat16"``, ``"simulated_bfloat16"`` or
-        ``"auto"`` (see :class:`sb3_lifelong.MPO`)
-    :param compile_losses: compile the update's forward pass (TD target, critic loss, policy, advantage baseline)
-        with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` / ``learn_offline`` call under
-        way has at least 50,000 steps to go (updates offline) and inductor can compile here (a C++ compiler on a
-        CPU). Measured on a study student: 1.2-1.3x faster updates after about 30 s of compiling once per process
-        (:mod:`sb3_lifelong.numerics.compiling`). The sampling noise is drawn outside the compiled graph, from the same
-        generator as the eager update; the arithmetic differs from eager's by rounding. The bf16 scoring copies' LayerNorm
-        and tanh run as one compiled kernel then (:class:`~sb3_lifelong.numerics.scoring.LowPrecisionCopy`). With one actor
-        per source it stays eager. A compilation that fails warns once and leaves the update eager. With
-        ``train_dtype="simulated_bfloat16"`` it is always eager (``True`` is refused)
+    :param compute: the updates' precision and compilation: a :class:`~sb3_lifelong.numerics.ComputeSettings` or a
+        dict of some of its settings (None: its defaults). With one actor per source the update stays eager
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (e.g. ``net_arch``,
@@ -148,6 +136,7 @@ class CRR(LifelongOfflineAlgorithm):
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
+    settings_groups: ClassVar[dict[str, type[Settings]]] = {"compute": ComputeSettings}
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
@@ -190,9 +179,7 @@ class CRR(LifelongOfflineAlgorithm):
         actor_per_source: bool = False,
         max_grad_norm: Optional[float] = None,
         actor_averaging: Optional[float] = None,
-        scoring_dtype: str = "auto",
-        train_dtype: str = "float32",
-        compile_losses: Union[bool, str] = "auto",
+        compute: Optional[Union[ComputeSettings, dict[str, Any]]] = None,
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[dict[str, Any]] = None,
@@ -250,9 +237,7 @@ class CRR(LifelongOfflineAlgorithm):
         self._head_of_source: Optional[np.ndarray] = None
         self.max_grad_norm = max_grad_norm
         self.actor_averaging = actor_averaging
-        self.scoring_dtype = scoring_dtype
-        self.train_dtype = train_dtype
-        self.compile_losses = compile_losses
+        self.compute = ComputeSettings.of(compute, "compute")
         self._check_hyperparameters()
         if _init_setup_model:
             self._setup_model()
@@ -271,10 +256,7 @@ class CRR(LifelongOfflineAlgorithm):
             "tau": 0.0 < self.tau <= 1.0,
             "max_grad_norm": self.max_grad_norm is None or self.max_grad_norm > 0,
             "actor_averaging": self.actor_averaging is None or 0.0 < self.actor_averaging <= 1.0,
-            "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
-            "train_dtype": self.train_dtype in TRAIN_DTYPES,
             "target_ess": self.target_ess is None or 0.0 < self.target_ess < 1.0,
-            "compile_losses": isinstance(self.compile_losses, bool) or self.compile_losses == "auto",
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
@@ -284,10 +266,8 @@ class CRR(LifelongOfflineAlgorithm):
                 f"Invalid CRR hyperparameters: {values} (num_samples, n_target_samples and target_update_interval must "
                 f"be >= 1, beta > 0, max_weight >= 1, tau and actor_averaging in (0, 1], advantage_baseline in "
                 f"{ADVANTAGE_BASELINES}, advantage_transform in {ADVANTAGE_TRANSFORMS}, critic_target in {CRITIC_TARGETS}, "
-                f"scoring_dtype in {SCORING_DTYPES}, train_dtype in {TRAIN_DTYPES}, target_ess None or in (0, 1), "
-                f"compile_losses in {COMPILE_CHOICES})"
+                "target_ess None or in (0, 1))"
             )
-        self._refuse_compiled_simulation(self.train_dtype)
         if self.target_ess is not None and (self.advantage_transform != "exp" or self.normalize_advantages):
             raise ValueError(
                 f"target_ess={self.target_ess!r} sets the temperature of the exp transform from the weights' effective "
@@ -304,10 +284,10 @@ class CRR(LifelongOfflineAlgorithm):
             self.policy_kwargs = {**self.policy_kwargs, "averaged_actor": True}
         super()._setup_model()
         self._create_aliases()
-        self._apply_train_dtype(self.train_dtype)
+        self._apply_train_dtype()
         # low-precision copies of the target critic (TD targets) and the online critic (advantage baselines)
-        self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
-        self._online_scoring_copy = self._make_scoring_copy(self.critic, self.scoring_dtype)
+        self._target_scoring_copy = self._make_scoring_copy(self.critic_target)
+        self._online_scoring_copy = self._make_scoring_copy(self.critic)
         self._forward = LazyCompiled(
             self._forward_pass, "CRR's forward pass", self.policy.named_parameters, self._compiled_check_tolerance()
         )
@@ -455,7 +435,7 @@ class CRR(LifelongOfflineAlgorithm):
         self, replay_data: Any, heads: Optional[th.Tensor], target_noise: th.Tensor, sample_noise: th.Tensor
     ) -> tuple[CriticLoss, th.Tensor, th.Tensor, th.Tensor]:
         """
-        An update's forward pass, up to the advantages' weights: what ``compile_losses`` compiles.
+        An update's forward pass, up to the advantages' weights: what ``compute.compile_losses`` compiles.
 
         :param replay_data: the batch
         :param heads: with one actor per source, the actor of each row

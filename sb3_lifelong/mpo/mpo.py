@@ -15,11 +15,13 @@ from sb3_lifelong.common.arguments import check_sizes_of
 from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.losses import bootstrap_discount, q_regression_loss, td_target
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian, with_fast_optimizer
+from sb3_lifelong.core.settings import Settings
 from sb3_lifelong.mpo.losses import DUAL_RAW_FLOOR, dual_value, e_step, inverse_softplus, m_step_loss, trust_region
 from sb3_lifelong.mpo.policies import CnnPolicy, MlpPolicy, MPOPolicy, MultiInputPolicy
-from sb3_lifelong.numerics.compiling import COMPILE_CHOICES, LazyCompiled
-from sb3_lifelong.numerics.hardware import TRAIN_DTYPES
-from sb3_lifelong.numerics.scoring import SCORING_DTYPES, score_actions
+from sb3_lifelong.mpo.settings import PolicyLossConfig
+from sb3_lifelong.numerics.compiling import LazyCompiled
+from sb3_lifelong.numerics.scoring import score_actions
+from sb3_lifelong.numerics.settings import ComputeSettings
 
 SelfMPO = TypeVar("SelfMPO", bound="MPO")
 
@@ -92,41 +94,18 @@ class MPO(LifelongOffPolicyAlgorithm):
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
     :param n_steps: n-step returns for the critic (SB3's ``NStepReplayBuffer`` when no buffer class is given)
     :param num_samples: number of actions sampled per state in the E-step and for the critic's target
-    :param epsilon: KL bound of the E-step (temperature dual)
-    :param epsilon_mean: per-dimension KL bound on the change of the policy's mean
-    :param epsilon_stddev: per-dimension KL bound on the change of the policy's standard deviation
-    :param init_temperature: initial value of the temperature dual
-    :param init_alpha_mean: initial value of the mean's Lagrange multipliers
-    :param init_alpha_stddev: initial value of the standard deviation's Lagrange multipliers
+    :param policy_loss: the KL bounds of the policy improvement, the duals' initial values and the action penalty:
+        a :class:`~sb3_lifelong.mpo.PolicyLossConfig` or a dict of some of its settings (None: its defaults), e.g.
+        ``policy_loss=dict(epsilon_mean=0.01, action_penalty=True)``
     :param dual_learning_rate: learning rate of the dual variables' own Adam optimizer
-    :param action_penalty: add the Multi-Objective MPO action penalty, a second objective ``-||a - clip(a)||``
-        with its own temperature, which pulls samples (and the mean when it is not squashed) into bounds
-    :param epsilon_penalty: KL bound of the action penalty's E-step
     :param target_update_interval: number of gradient updates between two target network updates
     :param max_grad_norm: maximum norm of the actor's and the critic's gradients
-    :param scoring_dtype: precision of the no-grad pass of the target critic over the ``num_samples`` sampled
-        actions, the largest part of an update: ``"float32"`` (exact), ``"bfloat16"`` (a bf16 copy of the target
-        critic, refreshed at every target update; Q within about 1 % of float32), or ``"auto"``: bfloat16 where
-        the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16) and the critic's
-        layers are at least 128 wide, float32 otherwise
-    :param train_dtype: precision of the products between two hidden layers in the passes that record gradients
-        (the critic's and the actor's losses): ``"float32"`` (the default), ``"bfloat16"`` (mixed precision for
-        those layers: bf16 products; float32 parameters, optimizer and everything else;
-        :class:`~sb3_lifelong.numerics.fast_ops.HiddenLinear`), ``"simulated_bfloat16"`` (the same numbers from float32
-        products, eager: what bf16 does to learning, measured at float32's speed where the hardware has no bf16), or
-        ``"auto"``: bfloat16 where the hardware multiplies it natively (AVX-512 BF16 / AMX CPUs, CUDA GPUs with bf16).
-        The default stays float32 until bf16's learning results are measured on such a CPU
-        (``benchmarks/results/speed/fast_paths.md``)
-    :param compile_losses: compile the update's forward pass (the target, the critic's loss, the E-step, the M-step
-        and the duals' losses) with ``torch.compile``: ``True``, ``False``, or ``"auto"``: when the ``learn`` call under
-        way has at least 50,000 steps to go and inductor can compile here (a C++ compiler on a CPU); see
-        :mod:`sb3_lifelong.numerics.compiling`. The sampling noise is drawn outside the graph, as the eager update draws
-        it; a bf16 scoring pass stays on the engine, eagerly, but for its LayerNorm and tanh, which run as one compiled
-        kernel (:class:`~sb3_lifelong.numerics.scoring.LowPrecisionCopy`). A compilation that fails warns once and leaves the
-        update eager. With ``train_dtype="simulated_bfloat16"`` the update is always eager (``True`` is refused)
     :param policy_on_next_obs: improve the policy on the batch's next observations, so that one target critic
         call serves both the E-step and the critic target; if False the policy is improved on the observations
         (still one call, over both observations and next observations)
+    :param compute: the updates' precision and compilation: a :class:`~sb3_lifelong.numerics.ComputeSettings` or a
+        dict of some of its settings (None: its defaults, ``scoring_dtype="auto"``, ``train_dtype="float32"``,
+        ``compile_losses="auto"``)
     :param stats_window_size: Window size for the rollout logging
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation
@@ -136,6 +115,7 @@ class MPO(LifelongOffPolicyAlgorithm):
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
+    settings_groups: ClassVar[dict[str, type[Settings]]] = {"policy_loss": PolicyLossConfig, "compute": ComputeSettings}
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
@@ -166,21 +146,12 @@ class MPO(LifelongOffPolicyAlgorithm):
         optimize_memory_usage: bool = False,
         n_steps: int = 1,
         num_samples: int = 20,
-        epsilon: float = 0.1,
-        epsilon_mean: float = 2.5e-3,
-        epsilon_stddev: float = 1e-6,
-        init_temperature: float = 1.0,
-        init_alpha_mean: float = 1.0,
-        init_alpha_stddev: float = 10.0,
+        policy_loss: Optional[Union[PolicyLossConfig, dict[str, Any]]] = None,
         dual_learning_rate: float = 1e-2,
-        action_penalty: bool = False,
-        epsilon_penalty: float = 1e-3,
         target_update_interval: int = 100,
         max_grad_norm: float = 40.0,
         policy_on_next_obs: bool = True,
-        scoring_dtype: str = "auto",
-        train_dtype: str = "float32",
-        compile_losses: Union[bool, str] = "auto",
+        compute: Optional[Union[ComputeSettings, dict[str, Any]]] = None,
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[dict[str, Any]] = None,
@@ -216,21 +187,12 @@ class MPO(LifelongOffPolicyAlgorithm):
             support_multi_env=True,
         )
         self.num_samples = num_samples
-        self.epsilon = epsilon
-        self.epsilon_mean = epsilon_mean
-        self.epsilon_stddev = epsilon_stddev
-        self.init_temperature = init_temperature
-        self.init_alpha_mean = init_alpha_mean
-        self.init_alpha_stddev = init_alpha_stddev
+        self.policy_loss = PolicyLossConfig.of(policy_loss, "policy_loss")
         self.dual_learning_rate = dual_learning_rate
-        self.action_penalty = action_penalty
-        self.epsilon_penalty = epsilon_penalty
         self.target_update_interval = target_update_interval
         self.max_grad_norm = max_grad_norm
         self.policy_on_next_obs = policy_on_next_obs
-        self.scoring_dtype = scoring_dtype
-        self.train_dtype = train_dtype
-        self.compile_losses = compile_losses
+        self.compute = ComputeSettings.of(compute, "compute")
         if self._policy_has_torso_choice():
             # the torso is written into policy_kwargs, so that every save says which one it has (see _setup_model)
             self.policy_kwargs = {"layer_norm": True, **self.policy_kwargs}
@@ -242,26 +204,17 @@ class MPO(LifelongOffPolicyAlgorithm):
         check_sizes_of(self)
         checks = {
             "num_samples": self.num_samples >= 1,
-            "epsilon": self.epsilon > 0,
-            "epsilon_mean": self.epsilon_mean > 0,
-            "epsilon_stddev": self.epsilon_stddev > 0,
-            "epsilon_penalty": self.epsilon_penalty > 0,
             "dual_learning_rate": self.dual_learning_rate > 0,
             "target_update_interval": self.target_update_interval >= 1,
             "tau": 0.0 < self.tau <= 1.0,
-            "scoring_dtype": self.scoring_dtype in SCORING_DTYPES,
-            "train_dtype": self.train_dtype in TRAIN_DTYPES,
-            "compile_losses": isinstance(self.compile_losses, bool) or self.compile_losses == "auto",
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
             values = ", ".join(f"{name}={getattr(self, name)!r}" for name in bad)
             raise ValueError(
                 f"Invalid MPO hyperparameters: {values} (num_samples and target_update_interval must be >= 1, "
-                f"epsilons and dual_learning_rate > 0, tau in (0, 1], scoring_dtype in {SCORING_DTYPES}, train_dtype in "
-                f"{TRAIN_DTYPES}, compile_losses in {COMPILE_CHOICES})"
+                "dual_learning_rate > 0, tau in (0, 1])"
             )
-        self._refuse_compiled_simulation(self.train_dtype)
 
     def _policy_has_torso_choice(self) -> bool:
         """:return: whether the policy class is one of MPO's (whose ``layer_norm`` defaults to ``True``)"""
@@ -270,32 +223,34 @@ class MPO(LifelongOffPolicyAlgorithm):
     def _setup_model(self) -> None:
         super()._setup_model()
         self._create_aliases()
+        loss = self.policy_loss
         action_dim = get_action_dim(self.action_space)
         # Dual variables, parametrised through softplus to stay positive, with their own optimizer. The ``log_*``
         # attributes hold the raw (inverse-softplus) parameters, not logarithms: ``dual_value`` gives the variables.
         # They keep these names because saved models store them under them (``_get_torch_save_params``).
-        self.log_temperature = th.full((1,), inverse_softplus(self.init_temperature), device=self.device).requires_grad_(True)
+        self.log_temperature = th.full((1,), inverse_softplus(loss.init_temperature), device=self.device).requires_grad_(True)
         self.log_alpha_mean = th.full(
-            (action_dim,), inverse_softplus(self.init_alpha_mean), device=self.device
+            (action_dim,), inverse_softplus(loss.init_alpha_mean), device=self.device
         ).requires_grad_(True)
         self.log_alpha_stddev = th.full(
-            (action_dim,), inverse_softplus(self.init_alpha_stddev), device=self.device
+            (action_dim,), inverse_softplus(loss.init_alpha_stddev), device=self.device
         ).requires_grad_(True)
         self.log_penalty_temperature = th.full(
-            (1,), inverse_softplus(self.init_temperature), device=self.device
+            (1,), inverse_softplus(loss.init_temperature), device=self.device
         ).requires_grad_(True)
         self.dual_optimizer = th.optim.Adam(
             [dual for _, dual in self._trained_duals()], lr=self.dual_learning_rate, **with_fast_optimizer(th.optim.Adam, None)
         )
-        self._apply_train_dtype(self.train_dtype)
-        self._target_scoring_copy = self._make_scoring_copy(self.critic_target, self.scoring_dtype)
+        self._apply_train_dtype()
+        self._target_scoring_copy = self._make_scoring_copy(self.critic_target)
         self._forward = LazyCompiled(
             self._forward_pass, "MPO's forward pass", self._trained_parameters, self._compiled_check_tolerance()
         )
 
     def _trained_duals(self) -> list[tuple[str, th.Tensor]]:
         """:return: the duals the update trains, named (the action penalty's temperature only with the penalty)"""
-        names = ["log_temperature", "log_alpha_mean", "log_alpha_stddev"] + ["log_penalty_temperature"] * self.action_penalty
+        names = ["log_temperature", "log_alpha_mean", "log_alpha_stddev"]
+        names += ["log_penalty_temperature"] * self.policy_loss.action_penalty
         return [(name, getattr(self, name)) for name in names]
 
     def _trained_parameters(self) -> list[tuple[str, th.Tensor]]:
@@ -370,7 +325,7 @@ class MPO(LifelongOffPolicyAlgorithm):
         self, replay_data: ReplayBufferSamples, noise: th.Tensor
     ) -> tuple[CriticFit, PolicyImprovement, th.Tensor]:
         """
-        An update's forward pass: what ``compile_losses`` compiles.
+        An update's forward pass: what ``compute.compile_losses`` compiles.
 
         :param replay_data: the batch
         :param noise: the target policy's samples' standard normal draws (:meth:`_sampling_noise`)
@@ -428,9 +383,10 @@ class MPO(LifelongOffPolicyAlgorithm):
         """
         # E-step: weights of the sampled actions (one set per objective), temperature duals
         temperature = dual_value(self.log_temperature)
-        penalty_temperature = dual_value(self.log_penalty_temperature) if self.action_penalty else None
+        loss = self.policy_loss
+        penalty_temperature = dual_value(self.log_penalty_temperature) if loss.action_penalty else None
         improved = e_step(
-            targets.q_values, targets.actions, temperature, self.epsilon, penalty_temperature, self.epsilon_penalty
+            targets.q_values, targets.actions, temperature, loss.epsilon, penalty_temperature, loss.epsilon_penalty
         )
 
         # M-step, decoupled, under per-dimension KL constraints
@@ -445,8 +401,8 @@ class MPO(LifelongOffPolicyAlgorithm):
             online_std,
             alpha_mean,
             alpha_stddev,
-            self.epsilon_mean,
-            self.epsilon_stddev,
+            loss.epsilon_mean,
+            loss.epsilon_stddev,
         )
         dual_loss = improved.dual_loss + region.dual_loss
         improvement = PolicyImprovement(

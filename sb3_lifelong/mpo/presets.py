@@ -32,15 +32,17 @@ ACME_MUJOCO: dict[str, Any] = {
     "gamma": 0.99,
     "learning_starts": 1_000,
     "num_samples": 20,
-    "epsilon": 0.1,
-    "epsilon_mean": 0.01,
-    "epsilon_stddev": 1e-6,
-    "init_temperature": 10.0,
-    "init_alpha_mean": 10.0,
-    "init_alpha_stddev": 1000.0,
+    "policy_loss": {
+        "epsilon": 0.1,
+        "epsilon_mean": 0.01,
+        "epsilon_stddev": 1e-6,
+        "init_temperature": 10.0,
+        "init_alpha_mean": 10.0,
+        "init_alpha_stddev": 1000.0,
+        "action_penalty": True,
+        "epsilon_penalty": 1e-3,
+    },
     "dual_learning_rate": 1e-2,
-    "action_penalty": True,
-    "epsilon_penalty": 1e-3,
     "tau": 1.0,
     "target_update_interval": 100,
     "max_grad_norm": 40.0,
@@ -70,15 +72,15 @@ ACME_MUJOCO_SOURCES: dict[str, str] = {
     "gamma": f"{_CONFIG} (discount=0.99)",
     "learning_starts": f"{_CONFIG} (min_replay_size=1000)",
     "num_samples": f"{_CONFIG} (num_samples=20)",
-    "epsilon": f"{_LOSS} (epsilon=0.1)",
-    "epsilon_mean": f"{_RUN_MPO}: GaussianPolicyLossConfig(epsilon_mean=0.01)",
-    "epsilon_stddev": f"{_LOSS} (epsilon_stddev=1e-6)",
-    "init_temperature": f"{_LOSS} (init_log_temperature=10, a raw value through softplus: 10.00005)",
-    "init_alpha_mean": f"{_LOSS} (init_log_alpha_mean=10, through softplus)",
-    "init_alpha_stddev": f"{_LOSS} (init_log_alpha_stddev=1000, through softplus)",
+    "policy_loss.epsilon": f"{_LOSS} (epsilon=0.1)",
+    "policy_loss.epsilon_mean": f"{_RUN_MPO}: GaussianPolicyLossConfig(epsilon_mean=0.01)",
+    "policy_loss.epsilon_stddev": f"{_LOSS} (epsilon_stddev=1e-6)",
+    "policy_loss.init_temperature": f"{_LOSS} (init_log_temperature=10, a raw value through softplus: 10.00005)",
+    "policy_loss.init_alpha_mean": f"{_LOSS} (init_log_alpha_mean=10, through softplus)",
+    "policy_loss.init_alpha_stddev": f"{_LOSS} (init_log_alpha_stddev=1000, through softplus)",
     "dual_learning_rate": f"{_CONFIG} (dual_learning_rate=1e-2)",
-    "action_penalty": f"{_LOSS} (action_penalization=True)",
-    "epsilon_penalty": f"{_LOSS} (epsilon_penalty=0.001)",
+    "policy_loss.action_penalty": f"{_LOSS} (action_penalization=True)",
+    "policy_loss.epsilon_penalty": f"{_LOSS} (epsilon_penalty=0.001)",
     "tau": f"{_CONFIG} (target_update_period=100: hard copies)",
     "target_update_interval": f"{_CONFIG} (target_update_period=100)",
     "max_grad_norm": f"{_CONFIG} (grad_norm_clip=40)",
@@ -102,15 +104,18 @@ def acme_mujoco(**overrides: Any) -> dict[str, Any]:
     give Q-values near 0 at the start). Acme's critic clips the sampled actions to the bounds before scoring them, as
     ours does.
 
-    :param overrides: settings to change (a ``policy_kwargs`` given here is merged into the preset's)
+    :param overrides: settings to change (a ``policy_kwargs`` or ``policy_loss`` dict given here is merged into the
+        preset's)
     :return: the keyword arguments
     """
     kwargs = copy.deepcopy(ACME_MUJOCO)
-    policy_kwargs = overrides.pop("policy_kwargs", None)
+    merged = {name: overrides.pop(name) for name in ("policy_kwargs", "policy_loss") if name in overrides}
     unknown = sorted(set(overrides) - set(inspect.signature(MPO).parameters))
     if unknown:
         raise TypeError(f"acme_mujoco() got settings MPO does not take: {unknown}")
     kwargs.update(overrides)
-    if policy_kwargs is not None:
-        kwargs["policy_kwargs"].update(policy_kwargs)
+    for name, settings in merged.items():
+        if not isinstance(settings, dict):
+            raise TypeError(f"acme_mujoco() merges {name} into the preset's: pass a dict, got {settings!r}")
+        kwargs[name].update(settings)
     return kwargs

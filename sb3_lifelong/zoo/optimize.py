@@ -61,8 +61,7 @@ def convert_mpo_params(params: dict[str, Any]) -> dict[str, Any]:
     return {
         **_common(params),
         "num_samples": int(params["num_samples"]),
-        "epsilon": float(params["epsilon"]),
-        "epsilon_mean": float(params["epsilon_mean"]),
+        "policy_loss": {"epsilon": float(params["epsilon"]), "epsilon_mean": float(params["epsilon_mean"])},
         "target_update_interval": int(params["target_update_interval"]),
     }
 

@@ -49,9 +49,9 @@ def ran_compiled(model, eager_params: th.Tensor, params=flat_params) -> None:
 @pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
 def test_compiled_training_matches_eager_and_saves(data, tmp_path):
     # a gradient clip that binds at every step, so that the joint backward's clipping is compared too
-    eager = student(data, compile_losses=False, max_grad_norm=1e-3).learn_offline(12, log_interval=0)
+    eager = student(data, compute=dict(compile_losses=False), max_grad_norm=1e-3).learn_offline(12, log_interval=0)
     with warnings.catch_warnings(record=True):
-        compiled = student(data, compile_losses=True, max_grad_norm=1e-3).learn_offline(12, log_interval=0)
+        compiled = student(data, compute=dict(compile_losses=True), max_grad_norm=1e-3).learn_offline(12, log_interval=0)
     ran_compiled(compiled, flat_params(eager))
     assert eager._forward.compiled is None
     # the same batches and noise: the parameters differ by rounding only, after 12 updates and 3 target updates
@@ -60,13 +60,13 @@ def test_compiled_training_matches_eager_and_saves(data, tmp_path):
     assert not th.equal(flat_params(compiled), flat_params(student(data)))  # it trained
     compiled.save(tmp_path / "student.zip")
     loaded = CRR.load(tmp_path / "student.zip", device="cpu")
-    assert loaded.compile_losses is True and loaded._forward.compiled is None  # compiled again when it trains
+    assert loaded.compute.compile_losses is True and loaded._forward.compiled is None  # compiled again when it trains
     assert th.equal(flat_params(loaded), flat_params(compiled))
 
 
 def test_auto_compiles_only_a_long_run_where_it_can(data, monkeypatch):
     model = student(data)
-    assert model.compile_losses == "auto"
+    assert model.compute.compile_losses == "auto"
     model._total_timesteps, model.num_timesteps = compiling.AUTO_MIN_UPDATES - 1, 0
     monkeypatch.setattr(compiling, "can_compile", lambda device: True)
     assert not model._compiles_now()  # too short to pay for the compilation
@@ -76,11 +76,11 @@ def test_auto_compiles_only_a_long_run_where_it_can(data, monkeypatch):
     assert not model._compiles_now()  # no compiler here
     model.learn_offline(3, log_interval=0)  # a short run stays eager
     assert model._forward.compiled is None
-    per_source = student(data, compile_losses=True)
+    per_source = student(data, compute=dict(compile_losses=True))
     per_source.actor_per_source = True  # (as if built with one actor per source) stays eager
     assert not per_source._compiles_now()
     with pytest.raises(ValueError, match="compile_losses"):
-        student(data, compile_losses="yes")
+        student(data, compute=dict(compile_losses="yes"))
 
 
 def test_failed_compilation_warns_and_trains_eagerly(data, monkeypatch):
@@ -91,11 +91,11 @@ def test_failed_compilation_warns_and_trains_eagerly(data, monkeypatch):
         return call
 
     monkeypatch.setattr(compiling.th, "compile", broken)
-    model = student(data, compile_losses=True)
+    model = student(data, compute=dict(compile_losses=True))
     with pytest.warns(UserWarning, match="torch.compile of CRR's forward pass failed .*no compiler.*eagerly"):
         model.learn_offline(6, log_interval=0)
     assert model._forward.failed and not model._compiles_now()
-    eager = student(data, compile_losses=False).learn_offline(6, log_interval=0)
+    eager = student(data, compute=dict(compile_losses=False)).learn_offline(6, log_interval=0)
     # the first update took one joint backward, the others the eager steps: the same arithmetic, bit for bit
     assert th.equal(flat_params(model), flat_params(eager))
 
@@ -113,10 +113,10 @@ def test_compiled_training_keeps_the_bf16_scoring_passes(data, monkeypatch):
 
     monkeypatch.setattr(scoring, "eager_network_outputs", counting)
     monkeypatch.setattr(distributional, "eager_network_outputs", counting)
-    eager = student(data, compile_losses=False, scoring_dtype="bfloat16").learn_offline(6, log_interval=0)
+    eager = student(data, compute=dict(compile_losses=False, scoring_dtype="bfloat16")).learn_offline(6, log_interval=0)
     eager_calls = len(calls)
     with warnings.catch_warnings(record=True):
-        compiled = student(data, compile_losses=True, scoring_dtype="bfloat16").learn_offline(6, log_interval=0)
+        compiled = student(data, compute=dict(compile_losses=True, scoring_dtype="bfloat16")).learn_offline(6, log_interval=0)
     ran_compiled(compiled, flat_params(eager))
     # target and baseline, each update, on the engine; and in the first call's check, the eager and the compiled pass
     assert eager_calls == 12 and len(calls) == 24 + 4
@@ -152,7 +152,7 @@ def test_noise_is_drawn_as_the_eager_updates_always_drew_it(data, monkeypatch):
         assert shapes == [(20, rows, 1)]  # the target policy's samples, over next observations (and observations)
 
 
-def mpo(compile_losses, **kwargs) -> MPO:
+def mpo(compile_losses, compute=None, **kwargs) -> MPO:
     return MPO(
         "MlpPolicy",
         "Pendulum-v1",
@@ -160,7 +160,7 @@ def mpo(compile_losses, **kwargs) -> MPO:
         batch_size=32,
         learning_starts=40,
         target_update_interval=5,
-        compile_losses=compile_losses,
+        compute={"compile_losses": compile_losses, **(compute or {})},
         device="cpu",
         seed=0,
         **kwargs,
@@ -174,7 +174,7 @@ def mpo_params(model: MPO) -> th.Tensor:
 @pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
 @pytest.mark.parametrize(
     "kwargs",
-    [{}, dict(policy_on_next_obs=False, action_penalty=True, max_grad_norm=1e-3)],
+    [{}, dict(policy_on_next_obs=False, policy_loss=dict(action_penalty=True), max_grad_norm=1e-3)],
     ids=["defaults", "obs_penalty_clipped"],
 )
 def test_mpo_compiled_training_matches_eager(tmp_path, kwargs):
@@ -340,5 +340,9 @@ def test_the_algorithms_widen_the_check_for_bf16_gradient_passes(algorithm, data
         ("float32", compiling.CHECK_TOLERANCE),
         ("bfloat16", compiling.LOW_PRECISION_CHECK_TOLERANCE),
     ):
-        model = mpo(False, train_dtype=train_dtype) if algorithm == "MPO" else student(data, train_dtype=train_dtype)
+        model = (
+            mpo(False, compute=dict(train_dtype=train_dtype))
+            if algorithm == "MPO"
+            else student(data, compute=dict(train_dtype=train_dtype))
+        )
         assert model._forward.tolerance == tolerance

@@ -30,7 +30,7 @@ def trained_mpo(request):
         "Pendulum-v1",
         policy_kwargs=dict(net_arch=[256, 256], layer_norm=request.param),
         learning_starts=200,
-        scoring_dtype="float32",
+        compute=dict(scoring_dtype="float32"),
         seed=0,
         device="cpu",  # the CPU engine's paths (fused products, compiled kernels), also where a GPU is present
     )
@@ -71,8 +71,8 @@ def test_bf16_scores_within_stated_tolerance(trained_mpo, fused, compile_layer_n
     assert error.mean() <= Q_MEAN_ERROR_OF_SPREAD * spread, (float(error.mean()), float(spread))
     assert error.max() <= Q_MAX_ERROR_OF_SCALE * scale, (float(error.max()), float(scale))
     temperature = dual_value(model.log_temperature)
-    _, w32 = temperature_loss_and_weights(q32, temperature, model.epsilon)
-    _, w16 = temperature_loss_and_weights(q16, temperature, model.epsilon)
+    _, w32 = temperature_loss_and_weights(q32, temperature, model.policy_loss.epsilon)
+    _, w16 = temperature_loss_and_weights(q16, temperature, model.policy_loss.epsilon)
     assert (w16 - w32).abs().max() <= WEIGHT_ERROR
 
 
@@ -114,7 +114,7 @@ def test_mpo_keeps_its_copy_in_sync_through_target_updates_and_loads(tmp_path):
         batch_size=32,
         learning_starts=50,
         target_update_interval=10,
-        scoring_dtype="bfloat16",
+        compute=dict(scoring_dtype="bfloat16"),
         seed=0,
     )
     assert model._target_scoring_copy is not None and _copy_matches(model._target_scoring_copy)
@@ -122,7 +122,7 @@ def test_mpo_keeps_its_copy_in_sync_through_target_updates_and_loads(tmp_path):
     assert _copy_matches(model._target_scoring_copy)
     model.save(tmp_path / "model.zip")
     loaded = MPO.load(tmp_path / "model.zip")
-    assert loaded.scoring_dtype == "bfloat16"
+    assert loaded.compute.scoring_dtype == "bfloat16"
     assert _copy_matches(loaded._target_scoring_copy)
     th.testing.assert_close(
         loaded._target_scoring_copy.weights[id(loaded.critic_target.q_networks[0][0])][0],
@@ -141,7 +141,7 @@ def test_crr_scores_in_bf16_and_trains():
         policy_kwargs=dict(net_arch=[32, 32]),
         batch_size=32,
         learning_starts=50,
-        scoring_dtype="bfloat16",
+        compute=dict(scoring_dtype="bfloat16"),
         target_update_interval=5,
     )
     model.learn(100)
@@ -150,8 +150,8 @@ def test_crr_scores_in_bf16_and_trains():
 
 
 def test_auto_rule(monkeypatch):
-    narrow = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[64, 64]), scoring_dtype="float32")
-    wide = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[256, 256]), scoring_dtype="float32")
+    narrow = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[64, 64]), compute=dict(scoring_dtype="float32"))
+    wide = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[256, 256]), compute=dict(scoring_dtype="float32"))
     cpu = th.device("cpu")
     monkeypatch.setattr(scoring, "cpu_has_fast_bf16", lambda: True)
     assert resolve_scoring_dtype("auto", wide.critic, cpu) == th.bfloat16
@@ -163,7 +163,7 @@ def test_auto_rule(monkeypatch):
     with pytest.raises(ValueError, match="scoring_dtype"):
         resolve_scoring_dtype("float16", wide.critic, cpu)
     with pytest.raises(ValueError, match="scoring_dtype"):
-        MPO("MlpPolicy", "Pendulum-v1", scoring_dtype="half")
+        MPO("MlpPolicy", "Pendulum-v1", compute=dict(scoring_dtype="half"))
 
 
 @pytest.mark.parametrize("dtype", [th.bfloat16, th.float32])
@@ -372,7 +372,7 @@ def test_categorical_critic_in_bf16_within_stated_tolerance():
 
 def test_crr_categorical_student_scores_in_bf16_when_asked_or_native(monkeypatch):
     kwargs = dict(policy_kwargs=dict(net_arch=[128, 128], distributional_critic=True, v_min=-50.0, v_max=50.0))
-    exact = CRR("MlpPolicy", "Pendulum-v1", scoring_dtype="float32", **kwargs)
+    exact = CRR("MlpPolicy", "Pendulum-v1", compute=dict(scoring_dtype="float32"), **kwargs)
     assert exact._online_scoring_copy is None and exact._target_scoring_copy is None
     monkeypatch.setattr(scoring, "cpu_has_fast_bf16", lambda: True)
     native = CRR("MlpPolicy", "Pendulum-v1", **kwargs)  # "auto" on a CPU with native bf16
@@ -380,7 +380,7 @@ def test_crr_categorical_student_scores_in_bf16_when_asked_or_native(monkeypatch
     model = CRR(
         "MlpPolicy",
         "Pendulum-v1",
-        scoring_dtype="bfloat16",
+        compute=dict(scoring_dtype="bfloat16"),
         batch_size=32,
         learning_starts=50,
         target_update_interval=5,

@@ -65,22 +65,25 @@ def test_mlp_layers_are_built_as_before_with_the_hidden_products_marked():
 
 def test_train_dtype_is_resolved_applied_and_kept_through_save_and_load(tmp_path, monkeypatch):
     data = pendulum_data(300)
-    model = student(data, train_dtype="bfloat16")
+    model = student(data, compute=dict(train_dtype="bfloat16"))
     assert len(hidden_layers(model)) == 4  # actor, critic and their targets: one hidden product each
     assert all(layer.compute_dtype == th.bfloat16 for layer in hidden_layers(model))
     model.learn_offline(3, log_interval=0)
     model.save(tmp_path / "student.zip")
     loaded = CRR.load(tmp_path / "student.zip", device="cpu")
-    assert loaded.train_dtype == "bfloat16" and all(layer.compute_dtype == th.bfloat16 for layer in hidden_layers(loaded))
+    assert loaded.compute.train_dtype == "bfloat16"
+    assert all(layer.compute_dtype == th.bfloat16 for layer in hidden_layers(loaded))
     assert th.equal(flat_params(loaded), flat_params(model))
     assert all(layer.compute_dtype is None for layer in hidden_layers(student(data)))  # the default: float32
     for native, expected in ((True, th.bfloat16), (False, None)):
         monkeypatch.setattr(hardware, "cpu_has_fast_bf16", lambda native=native: native)
-        assert all(layer.compute_dtype == expected for layer in hidden_layers(student(data, train_dtype="auto")))
-    mpo = MPO("MlpPolicy", "Pendulum-v1", train_dtype="bfloat16", device="cpu", policy_kwargs=dict(net_arch=[32, 32]))
+        assert all(layer.compute_dtype == expected for layer in hidden_layers(student(data, compute=dict(train_dtype="auto"))))
+    mpo = MPO(
+        "MlpPolicy", "Pendulum-v1", compute=dict(train_dtype="bfloat16"), device="cpu", policy_kwargs=dict(net_arch=[32, 32])
+    )
     assert len(hidden_layers(mpo)) == 4 and all(layer.compute_dtype == th.bfloat16 for layer in hidden_layers(mpo))
     with pytest.raises(ValueError, match="train_dtype='bf16'"):
-        student(data, train_dtype="bf16")
+        student(data, compute=dict(train_dtype="bf16"))
     with pytest.raises(ValueError, match="train_dtype must be one of"):
         hardware.resolve_train_dtype("half", th.device("cpu"))
 
@@ -90,7 +93,7 @@ def test_a_bf16_student_learns_as_the_float32_one():
     data = pendulum_data(600)
     losses = {}
     for train_dtype in ("float32", "bfloat16"):
-        model = student(data, train_dtype=train_dtype)
+        model = student(data, compute=dict(train_dtype=train_dtype))
         model.learn_offline(20, log_interval=0)
         before = model.logger.name_to_value["train/critic_loss"]
         model.learn_offline(400, log_interval=0, reset_num_timesteps=False)
@@ -103,7 +106,9 @@ def test_a_bf16_student_learns_as_the_float32_one():
 
 @pytest.mark.skipif(not compiling.can_compile(th.device("cpu")), reason="inductor needs a C++ compiler")
 def test_a_compiled_bf16_update_passes_its_check():
-    model = student(pendulum_data(300), train_dtype="bfloat16", compile_losses=True).learn_offline(4, log_interval=0)
+    model = student(pendulum_data(300), compute=dict(train_dtype="bfloat16", compile_losses=True)).learn_offline(
+        4, log_interval=0
+    )
     forward = model._forward
     assert forward.compiled is not None and forward.checked and not forward.failed, forward.failure
 
@@ -129,7 +134,7 @@ def test_simulated_bf16_trains_as_bf16_does_eagerly(tmp_path):
     data = pendulum_data(300)
     models = {}
     for name in ("float32", "bfloat16", "simulated_bfloat16"):  # each built then trained: the same random draws
-        models[name] = student(data, train_dtype=name).learn_offline(30, log_interval=0)
+        models[name] = student(data, compute=dict(train_dtype=name)).learn_offline(30, log_interval=0)
     assert all(layer.simulated and layer.compute_dtype == th.bfloat16 for layer in hidden_layers(models["simulated_bfloat16"]))
     assert not any(layer.simulated for layer in hidden_layers(models["bfloat16"]))
     params = {name: flat_params(model) for name, model in models.items()}
@@ -141,7 +146,7 @@ def test_simulated_bf16_trains_as_bf16_does_eagerly(tmp_path):
     model = models["simulated_bfloat16"]
     model.save(tmp_path / "student.zip")
     loaded = CRR.load(tmp_path / "student.zip", device="cpu")
-    assert loaded.train_dtype == "simulated_bfloat16" and all(layer.simulated for layer in hidden_layers(loaded))
+    assert loaded.compute.train_dtype == "simulated_bfloat16" and all(layer.simulated for layer in hidden_layers(loaded))
 
 
 class LinearDtypes(th.overrides.TorchFunctionMode):
@@ -181,11 +186,11 @@ def test_simulated_bf16_is_always_eager(algorithm, monkeypatch):
         return MPO("MlpPolicy", "Pendulum-v1", device="cpu", policy_kwargs=dict(net_arch=[32, 32]), **kwargs)
 
     for train_dtype, compiles in (("simulated_bfloat16", False), ("bfloat16", True)):
-        model = build(train_dtype=train_dtype, compile_losses="auto")
+        model = build(compute=dict(train_dtype=train_dtype, compile_losses="auto"))
         model._total_timesteps = 10 * compiling.AUTO_MIN_UPDATES
         assert model._compiles_now() is compiles, train_dtype
     built = []
     monkeypatch.setattr(type(build()), "_setup_model", lambda self: built.append(self))
     with pytest.raises(ValueError, match="runs eagerly"):
-        build(train_dtype="simulated_bfloat16", compile_losses=True)
+        build(compute=dict(train_dtype="simulated_bfloat16", compile_losses=True))
     assert built == []  # refused before any setup (no buffer made)

@@ -161,7 +161,7 @@ def test_online_multi_env_then_offline_on_own_buffer():
         dict(policy_kwargs=dict(net_arch=[32, 32], distributional_critic=True, v_min=-200.0, v_max=0.0, n_critics=2)),
         dict(critic_target="sarsa", policy_kwargs=dict(net_arch=[32, 32], distributional_critic=True, v_min=-200.0)),
         dict(max_grad_norm=1.0, beta=0.1, max_weight=5.0),
-        dict(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True), scoring_dtype="bfloat16"),
+        dict(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True), compute=dict(scoring_dtype="bfloat16")),
         dict(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True, distributional_critic=True, v_min=-200.0, v_max=0.0)),
     ],
 )

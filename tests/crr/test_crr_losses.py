@@ -240,8 +240,7 @@ def test_crr_update_golden_numbers(critic_target, transform):
         num_samples=3,
         n_target_samples=2,
         gamma=0.9,
-        scoring_dtype="float32",
-        compile_losses=False,
+        compute=dict(scoring_dtype="float32", compile_losses=False),
         seed=3,
         device="cpu",
     )
@@ -337,7 +336,7 @@ def test_crr_picks_the_good_action_where_bc_averages(transform):
     data, space = bandit_data(), spaces.Box(-1, 1, (1,))
     kwargs = dict(policy_kwargs=dict(net_arch=[16]), batch_size=64, learning_rate=1e-2, seed=0, device="cpu")
     crr = CRR.from_offline_data(
-        data, action_space=space, advantage_transform=transform, beta=0.1, compile_losses=False, **kwargs
+        data, action_space=space, advantage_transform=transform, beta=0.1, compute=dict(compile_losses=False), **kwargs
     ).learn_offline(200, log_interval=0)
     bc = BC.from_offline_data(data, action_space=space, **kwargs).learn_offline(200, log_interval=0)
     obs = np.random.default_rng(1).uniform(-1, 1, size=(64, 2)).astype(np.float32)

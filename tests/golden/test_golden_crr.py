@@ -53,8 +53,7 @@ def linear_crr(**kwargs) -> CRR:
         action_space=spaces.Box(-1, 1, (ACTION_DIM,)),
         normalized_actions=True,
         policy_kwargs=dict(net_arch=dict(pi=[], qf=[]), n_critics=2, layer_norm=False, init_std=INIT_STD),
-        scoring_dtype="float32",
-        compile_losses=False,
+        compute=dict(scoring_dtype="float32", compile_losses=False),
         seed=0,
         device="cpu",
         **kwargs,
@@ -190,8 +189,7 @@ def categorical_model() -> CRR:
         ),
         gamma=GAMMA,
         n_target_samples=2,
-        scoring_dtype="float32",
-        compile_losses=False,
+        compute=dict(scoring_dtype="float32", compile_losses=False),
         seed=0,
         device="cpu",
     )
@@ -278,9 +276,10 @@ def test_distill_forwards_zero_seed_verbose_and_gamma(capsys):
     teacher = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), learning_starts=1_000, seed=5, device="cpu")
     teacher.learn(200)  # 200 random-action steps of Pendulum (one time-out), no update
     teacher.verbose = 1  # a student left to the teacher's default would print
-    small = dict(policy_kwargs=dict(net_arch=[8]), batch_size=16, num_samples=2, scoring_dtype="float32")
+    small = dict(policy_kwargs=dict(net_arch=[8]), batch_size=16, num_samples=2)
+    compute = dict(scoring_dtype="float32", compile_losses=False)
     capsys.readouterr()
-    student = teacher.distill(CRR, gradient_steps=3, seed=0, verbose=0, gamma=0.0, compile_losses=False, **small)
+    student = teacher.distill(CRR, gradient_steps=3, seed=0, verbose=0, gamma=0.0, compute=compute, **small)
     assert capsys.readouterr().out == ""
     assert (student.seed, student.verbose, student.gamma) == (0, 0, 0.0)
     # gamma = 0: the TD target is the reward, whatever the next state's value
@@ -296,7 +295,7 @@ def test_distill_forwards_zero_seed_verbose_and_gamma(capsys):
         seed=0,
         verbose=0,
         gamma=0.0,
-        compile_losses=False,
+        compute=compute,
         device="cpu",
         **small,
     ).learn_offline(3, log_interval=1_000)

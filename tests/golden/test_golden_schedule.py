@@ -55,8 +55,7 @@ def test_targets_move_exactly_every_interval_of_updates(algorithm, tau):
         gradient_steps=GRADIENT_STEPS,
         target_update_interval=INTERVAL,
         tau=tau,
-        compile_losses=False,
-        scoring_dtype="float32",
+        compute=dict(compile_losses=False, scoring_dtype="float32"),
         seed=0,
         device="cpu",
     )

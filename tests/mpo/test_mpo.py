@@ -295,11 +295,11 @@ def _line_model(seed: int, **kwargs) -> MPO:
 @pytest.mark.parametrize("scoring_dtype", ["float32", "bfloat16"])
 def test_resume_is_exact(tmp_path, scoring_dtype):
     """save + load + load_replay_buffer + learn continues exactly like an uninterrupted run."""
-    uninterrupted = _line_model(seed=3, scoring_dtype=scoring_dtype, target_update_interval=30)
+    uninterrupted = _line_model(seed=3, compute=dict(scoring_dtype=scoring_dtype), target_update_interval=30)
     uninterrupted.learn(200)
     uninterrupted.learn(200, reset_num_timesteps=False)
 
-    first_half = _line_model(seed=3, scoring_dtype=scoring_dtype, target_update_interval=30)
+    first_half = _line_model(seed=3, compute=dict(scoring_dtype=scoring_dtype), target_update_interval=30)
     first_half.learn(200)  # 4 whole episodes: the environment is at an episode boundary
     first_half.save(tmp_path / "model.zip")
     first_half.save_replay_buffer(tmp_path / "buffer.pkl")
@@ -516,9 +516,9 @@ def test_dict_observations():
     [
         dict(n_steps=3),
         dict(policy_on_next_obs=False),
-        dict(action_penalty=True, policy_kwargs=dict(net_arch=[32, 32], squash_mean=False)),
+        dict(policy_loss=dict(action_penalty=True), policy_kwargs=dict(net_arch=[32, 32], squash_mean=False)),
         dict(tau=0.005, target_update_interval=1, policy_kwargs=dict(net_arch=[32, 32], n_critics=2)),
-        dict(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True, n_critics=2), scoring_dtype="bfloat16"),
+        dict(policy_kwargs=dict(net_arch=[32, 32], layer_norm=True, n_critics=2), compute=dict(scoring_dtype="bfloat16")),
     ],
 )
 def test_variants_train(kwargs, default_run):
@@ -529,7 +529,7 @@ def test_variants_train(kwargs, default_run):
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
     changed = any(not th.equal(a, b) for a, b in zip(before, model.actor_target.parameters()))
     assert changed  # the target networks were updated (every 100 updates, or Polyak every update)
-    if kwargs.get("action_penalty"):
+    if kwargs.get("policy_loss", {}).get("action_penalty"):
         assert "train/penalty_temperature" in model.logger.name_to_value
     if kwargs.get("n_steps"):  # the critic bootstraps after up to 3 rewards: the batch's discounts are gamma^1..3
         discounts = model.replay_buffer.sample(256).discounts.numpy().ravel()
@@ -565,7 +565,7 @@ def test_bad_action_space_and_hyperparameters():
     with pytest.raises(ValueError, match="num_samples"):
         MPO("MlpPolicy", "Pendulum-v1", num_samples=0)
     with pytest.raises(ValueError, match="epsilon_mean"):
-        MPO("MlpPolicy", "Pendulum-v1", epsilon_mean=-1.0)
+        MPO("MlpPolicy", "Pendulum-v1", policy_loss=dict(epsilon_mean=-1.0))
 
 
 @pytest.mark.parametrize("reward_scale", [1e6, -1e6])
@@ -595,7 +595,7 @@ def test_mpo_solves_pendulum(scoring_dtype):
         batch_size=128,
         learning_rate=1e-3,
         policy_kwargs=dict(net_arch=[64, 64]),
-        scoring_dtype=scoring_dtype,
+        compute=dict(scoring_dtype=scoring_dtype),
         seed=0,
     )
     model.learn(7000)
@@ -665,7 +665,7 @@ def test_trust_region_keeps_the_kl_near_its_bound_and_a_broken_dual_does_not(mon
     )
     model.learn(2000)
     settled = float(np.mean(kls[len(kls) // 2 :]))
-    epsilon = model.epsilon_mean
+    epsilon = model.policy_loss.epsilon_mean
     if broken:
         assert settled > 4 * epsilon and alphas[-1] < 0.1, (settled, alphas[-1])
     else:

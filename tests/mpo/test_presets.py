@@ -16,8 +16,9 @@ SMALL = {"learning_starts": 100, "policy_kwargs": {"net_arch": [32, 32]}, "batch
 
 
 def test_every_setting_has_a_source():
-    names = {key for key in ACME_MUJOCO if key != "policy_kwargs"}
-    names |= {f"policy_kwargs.{key}" for key in ACME_MUJOCO["policy_kwargs"]}
+    grouped = ("policy_kwargs", "policy_loss")
+    names = {key for key in ACME_MUJOCO if key not in grouped}
+    names |= {f"{group}.{key}" for group in grouped for key in ACME_MUJOCO[group]}
     assert set(ACME_MUJOCO_SOURCES) == names
     assert all("acme" in source for source in ACME_MUJOCO_SOURCES.values())
 
@@ -30,6 +31,9 @@ def test_overrides_merge_and_copies_are_fresh():
     assert ACME_MUJOCO["policy_kwargs"]["init_std"] == 0.5 and acme_mujoco()["learning_starts"] == 1_000
     with pytest.raises(TypeError, match=r"\['not_an_mpo_setting'\]"):
         acme_mujoco(not_an_mpo_setting=1)
+    kwargs = acme_mujoco(policy_loss={"epsilon_mean": 0.05})
+    assert kwargs["policy_loss"]["epsilon_mean"] == 0.05 and kwargs["policy_loss"]["init_alpha_stddev"] == 1000.0
+    assert ACME_MUJOCO["policy_loss"]["epsilon_mean"] == 0.01
 
 
 def test_builds_acme_networks_duals_and_ratio():
@@ -41,11 +45,11 @@ def test_builds_acme_networks_duals_and_ratio():
     assert kinds[:3] == ["Linear", "LayerNorm", "Tanh"] and kinds.count("ELU") == 2
     critic_kinds = [type(module).__name__ for module in model.critic.q_networks[0]]
     assert critic_kinds.count("LayerNorm") == 1 and critic_kinds.count("ELU") == 2
-    assert not actor.squash_mean and model.action_penalty
+    assert not actor.squash_mean and model.policy_loss.action_penalty
     assert math.isclose(actor._std_scale * math.log(2.0), 0.5)  # the std at a zero pre-activation: the init scale
     assert model.train_freq.frequency == 4 and model.gradient_steps == 1 and model.n_steps == 4
     assert model.replay_buffer.n_steps == 4
-    assert model.epsilon_mean == 0.01 and model.learning_rate == 3e-4 and model.target_update_interval == 100
+    assert model.policy_loss.epsilon_mean == 0.01 and model.learning_rate == 3e-4 and model.target_update_interval == 100
     assert math.isclose(model.temperature, 10.0, rel_tol=1e-4)
     assert np.allclose(model.log_alpha_stddev.detach().numpy(), 1000.0)  # softplus is the identity up there
 

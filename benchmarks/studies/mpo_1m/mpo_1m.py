@@ -74,7 +74,7 @@ def make_model(algo: str, env: gym.Env, seed: int, net_arch: Optional[list[int]]
 
     preset = acme_mujoco(**({"policy_kwargs": {"net_arch": net_arch}} if net_arch else {}))
     if algo == "mpo":
-        return MPO("MlpPolicy", env, seed=seed, compile_losses=False, **preset)
+        return MPO("MlpPolicy", env, seed=seed, compute=dict(compile_losses=False), **preset)
     same = {key: preset[key] for key in ("train_freq", "gradient_steps", "batch_size", "learning_rate", "learning_starts")}
     return SAC("MlpPolicy", env, seed=seed, policy_kwargs={"net_arch": preset["policy_kwargs"]["net_arch"]}, **same)
 

@@ -41,19 +41,22 @@ NOTES_MARK = "## Runs and notes"
 MPO_VARIANTS: dict[str, tuple[dict[str, Any], bool]] = {
     "MPO": ({}, False),
     "MPO_n5": ({"n_steps": 5}, False),
-    "MPO_penalty": ({"action_penalty": True}, False),
-    "MPO_n5_penalty": ({"n_steps": 5, "action_penalty": True}, False),
+    "MPO_penalty": ({"policy_loss": {"action_penalty": True}}, False),
+    "MPO_n5_penalty": ({"n_steps": 5, "policy_loss": {"action_penalty": True}}, False),
     "MPO_obsnorm": ({}, True),
-    "MPO_bf16": ({"train_dtype": "bfloat16"}, False),  # bf16 hidden products in the gradient passes
+    "MPO_bf16": ({"compute": {"train_dtype": "bfloat16"}}, False),  # bf16 hidden products in the gradient passes
     "MPO_layernorm": ({"policy_kwargs": {"layer_norm": True}}, False),
     "MPO_layernorm_obsnorm": ({"policy_kwargs": {"layer_norm": True}}, True),  # MPO's default since 2026-11-25, normalised
     # the default torso with bf16 hidden products in the gradient passes: native (its pair: MPO_layernorm), and
     # simulated from float32 products (the same numbers at float32's speed, always eager; its pair: MPO_layernorm_eager)
-    "MPO_layernorm_bf16": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "bfloat16"}, False),
+    "MPO_layernorm_bf16": ({"policy_kwargs": {"layer_norm": True}, "compute": {"train_dtype": "bfloat16"}}, False),
     # MPO_layernorm_bf16's pair run beside it on the same code and CPU (MPO_layernorm's own files are older code's)
-    "MPO_layernorm_fp32": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "float32"}, False),
-    "MPO_layernorm_bf16sim": ({"policy_kwargs": {"layer_norm": True}, "train_dtype": "simulated_bfloat16"}, False),
-    "MPO_layernorm_eager": ({"policy_kwargs": {"layer_norm": True}, "compile_losses": False}, False),
+    "MPO_layernorm_fp32": ({"policy_kwargs": {"layer_norm": True}, "compute": {"train_dtype": "float32"}}, False),
+    "MPO_layernorm_bf16sim": (
+        {"policy_kwargs": {"layer_norm": True}, "compute": {"train_dtype": "simulated_bfloat16"}},
+        False,
+    ),
+    "MPO_layernorm_eager": ({"policy_kwargs": {"layer_norm": True}, "compute": {"compile_losses": False}}, False),
 }
 CURVES = RESULTS / "quality"
 
