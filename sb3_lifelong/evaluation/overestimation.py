@@ -25,11 +25,17 @@ def monte_carlo_horizon(gamma: float, tolerance: float = 0.01) -> int:
     """
     :param gamma: the discount factor, in ``(0, 1)``
     :param tolerance: the weight ``gamma^h`` below which the rest of an episode is ignored
-    :return: the number of steps ``h`` after which ``gamma^h < tolerance`` (459 for 0.99 and 0.01)
+    :return: the fewest steps ``h`` after which ``gamma^h < tolerance`` (459 for 0.99 and 0.01)
     """
     if not 0.0 < gamma < 1.0 or not 0.0 < tolerance < 1.0:
         raise ValueError(f"gamma and tolerance must be in (0, 1), got {gamma} and {tolerance}")
-    return math.ceil(math.log(tolerance) / math.log(gamma))
+    horizon = math.ceil(math.log(tolerance) / math.log(gamma))
+    # the logarithms' rounding: gamma^h may land on the tolerance (an exact power) or just either side of it
+    while gamma**horizon >= tolerance:
+        horizon += 1
+    while horizon > 1 and gamma ** (horizon - 1) < tolerance:
+        horizon -= 1
+    return horizon
 
 
 class MonteCarloReturns(NamedTuple):
