@@ -28,8 +28,8 @@ full description (format, crash guarantees, read modes) is ``docs/modules/buffer
 from sb3_lifelong.buffers.files import CommitNotDurableError
 from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer
 from sb3_lifelong.buffers.manifest import BufferFormatError
-from sb3_lifelong.buffers.rowstore import ForkedWriterError
 from sb3_lifelong.buffers.views import LifelongBufferView, merge_buffers
+from sb3_lifelong.buffers.writers import ForkedWriterError
 
 __all__ = [
     "BufferFormatError",

@@ -9,6 +9,7 @@ tools can load them in light subprocesses:
 - ``manifest``: the directory format, reading, validating and making the manifest;
 - ``layouts``: where the rows live (``"memory"``, ``"single"``, ``"chunked"``), the data files and the writer lock;
 - ``readers``: how committed rows are read (``"mmap"``, ``"pread"``);
+- ``writers``: the directories this process holds open for writing, and what a forked child may not do;
 - ``rowstore`` (this module): :class:`RowStore`, the commit protocol over a layout and a reader.
 """
 
@@ -16,14 +17,13 @@ from __future__ import annotations
 
 import os
 import warnings
-import weakref
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any, Optional
 
 import numpy as np
 
-from sb3_lifelong.buffers import files
+from sb3_lifelong.buffers import files, writers
 from sb3_lifelong.buffers.layouts import Layout, LayoutState, check_buffer_path, make_layout
 from sb3_lifelong.buffers.manifest import (
     BufferFormatError,
@@ -35,49 +35,10 @@ from sb3_lifelong.buffers.manifest import (
     validated_fields,
 )
 from sb3_lifelong.buffers.readers import Reader, check_read_mode, make_reader
+from sb3_lifelong.buffers.writers import ForkedWriterError
 
 #: the most bytes a directory writer allocates for its pending rows when it opens (they grow up to a chunk as needed)
 TAIL_PREALLOCATION = 64 * 1024 * 1024
-
-# writer stores of this process by directory, so that unpickling can take a directory over from a stale object
-_WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictionary()
-
-
-def writer_of(path: str) -> Optional[RowStore]:
-    """:return: the store of this process that holds ``path`` open for writing (its directory's lock), or None"""
-    return _WRITERS.get(path)
-
-
-class ForkedWriterError(RuntimeError):
-    """
-    A directory buffer opened for writing in one process was used to write (``add``, ``flush``, ``close``, a commit)
-    in another one: a child made by ``os.fork()`` (or a ``multiprocessing`` "fork" worker) holds a copy of the
-    writer, whose pending rows and committed state the parent goes on changing. The child's writes would be
-    overwritten by the parent's next commit, and its exit would commit the parent's pending rows: they are refused.
-    Reading and sampling in the child work as before.
-    """
-
-
-def _forget_writers_in_child() -> None:
-    """
-    ``os.fork()``, in the child: the child's copies of this process's writers do not own their directories. Their
-    lock files are closed without unlocking (``flock`` locks belong to the open file, which the parent keeps locked:
-    the lock is the parent's until the parent releases it, however long the child lives), and they are forgotten as
-    writers of this process.
-    """
-    for store in list(_WRITERS.values()):
-        lock_file = store._state.lock_file
-        store._state.lock_file = None
-        if lock_file is not None:
-            try:
-                lock_file.close()  # close(2) of the child's descriptor only: the parent's lock stays
-            except OSError:  # pragma: no cover
-                pass
-    _WRITERS.clear()
-
-
-if hasattr(os, "register_at_fork"):  # POSIX
-    os.register_at_fork(after_in_child=_forget_writers_in_child)
 
 
 class RowStore(ManifestRecords):
@@ -375,15 +336,15 @@ class RowStore(ManifestRecords):
         locked = self._layout.lock(create)
         if locked is None:
             return False
-        _WRITERS[locked] = self
+        writers.register(locked, self)
         return True
 
     def _release_lock(self) -> None:
         if self.forked():
             return  # a writer's lock is released only by the process that took it
         unlocked = self._layout.unlock()
-        if unlocked is not None and _WRITERS.get(unlocked) is self:
-            del _WRITERS[unlocked]
+        if unlocked is not None:
+            writers.forget(unlocked, self)
 
     def refresh(self) -> int:
         """
@@ -708,7 +669,7 @@ class RowStore(ManifestRecords):
         if "_fields" in state:  # in memory
             self.__dict__.update(state)
             return
-        previous = _WRITERS.get(state["path"])
+        previous = writers.writer_of(state["path"])
         if previous is not None and not state["read_only"] and not previous.forked():
             # e.g. SB3's load() built a buffer on this directory before load_replay_buffer(): hand it over
             previous.close()

@@ -36,7 +36,7 @@ import warnings
 from dataclasses import dataclass
 from typing import Any, Optional
 
-from sb3_lifelong.buffers import rowstore
+from sb3_lifelong.buffers import writers
 from sb3_lifelong.buffers.lifelong import LifelongReplayBuffer
 from sb3_lifelong.buffers.manifest import ID_PATTERN, BufferFormatError, buffer_id_of, read_manifest
 
@@ -225,7 +225,7 @@ def _take_over(path: str) -> None:
     the loaded one), as unpickling a buffer does: its pending transitions are committed first, and it refuses to add
     from then on. A writer in another process is left alone (reopening then raises ``RuntimeError``).
     """
-    stale = rowstore.writer_of(path)  # writers of this process, by directory
+    stale = writers.writer_of(path)  # writers of this process, by directory
     if stale is None or stale.read_only:
         return
     stale.close()  # flushes first: if that fails, the error goes through and nothing is taken over
