@@ -153,7 +153,7 @@ def distill_pipeline(tmp: pathlib.Path) -> dict[str, str]:
     teacher = MPO("MlpPolicy", "Pendulum-v1", learning_starts=100, batch_size=32, num_samples=4, seed=6,
                   policy_kwargs=dict(net_arch=[16]))  # fmt: skip
     teacher.learn(300)
-    student = teacher.distill(CRR, gradient_steps=100, batch_size=32, seed=7, policy_kwargs=dict(net_arch=[16]))
+    student = teacher.distill(CRR, total_updates=100, batch_size=32, seed=7, policy_kwargs=dict(net_arch=[16]))
     return {"policy": _digest(student.policy.state_dict()), "updates": str(student._n_updates)}
 
 

@@ -67,7 +67,7 @@ def main() -> None:
         mpo.learn(lifetime, callback=callbacks, tb_log_name=f"MPO_s{seed}")
         rows += [dict(seed=seed, method="MPO", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
         callbacks = eval_callbacks(run_dir / "distilled", eval_envs, config, offline=True, seed=seed)
-        mpo.distill(CRR, gradient_steps=config["distill_steps"], callback=callbacks, beta=1.0, **algo_kwargs(config, seed))
+        mpo.distill(CRR, total_updates=config["distill_steps"], callback=callbacks, beta=1.0, **algo_kwargs(config, seed))
         rows += [dict(seed=seed, method="distilled", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
         # one source: the whole drifting life
         lifetime_data = {

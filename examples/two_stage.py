@@ -93,7 +93,7 @@ def main() -> None:
     # 4. distil the whole lifetime buffer, offline, with no task boundaries (the paper's choice under imbalance:
     #    the exponential advantage transform with beta = 1)
     distilling = MultiEnvEvalCallback(eval_envs, eval_freq=max(args.updates // 10, 1), n_eval_episodes=args.episodes)
-    student = model.distill(CRR, gradient_steps=args.updates, advantage_transform="exp", beta=1.0, callback=distilling)
+    student = model.distill(CRR, total_updates=args.updates, advantage_transform="exp", beta=1.0, callback=distilling)
     student.save(output / "student")
     distilled = evaluate(student, eval_envs, args.episodes, episode_seed)
 

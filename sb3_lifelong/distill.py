@@ -21,7 +21,7 @@ __all__ = ["DistillSource", "distill"]
 def distill(
     source: DistillSource,
     student_class: Optional[type] = None,
-    gradient_steps: int = 100_000,
+    total_updates: int = 100_000,
     policy: Any = None,
     eval_env: Optional[Any] = None,
     eval_freq: int = 10_000,
@@ -58,7 +58,8 @@ def distill(
         process), a d4rl-style dict / ``.npz`` path, or a Minari dataset (id or object)
     :param student_class: the offline algorithm (default :class:`~sb3_lifelong.CRR`; :class:`~sb3_lifelong.BC` for
         behaviour cloning)
-    :param gradient_steps: number of offline gradient updates
+    :param total_updates: number of offline gradient updates (``gradient_steps``, the constructors' updates after
+        each rollout, is refused: an offline student makes none)
     :param policy: the student's policy (``"MlpPolicy"``, ``"CnnPolicy"``, ``"MultiInputPolicy"``, a class); None:
         when ``source`` is a model, the policy of the same name as the model's (a ``CnnPolicy`` teacher, MPO's or SAC's,
         gets a ``CnnPolicy`` student; the network settings are the student's own, ``policy_kwargs``), else the one the
@@ -106,7 +107,7 @@ def distill(
     return pipeline(
         source,
         CRR if student_class is None else student_class,
-        gradient_steps=gradient_steps,
+        total_updates=total_updates,
         policy=policy,
         eval_env=eval_env,
         eval_freq=eval_freq,

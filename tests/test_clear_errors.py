@@ -74,7 +74,7 @@ def test_distill_eval_sources_are_checked_before_training():
         distill(
             buffer,
             student_class=CRR,
-            gradient_steps=50,
+            total_updates=50,
             eval_env={"Env-A": "Pendulum-v1", "Env-B": "Pendulum-v1"},
             eval_freq=40,
             eval_sources={"Env-A": 0, "Env-B": 7},

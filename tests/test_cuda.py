@@ -90,8 +90,8 @@ def test_distill_follows_the_teacher_and_the_teacher_keeps_learning():
     buffer to the teacher, which samples on the GPU again when it learns on."""
     teacher = MPO("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=64, batch_size=32, device="cuda", seed=0)
     teacher.learn(128)
-    assert teacher.distill(CRR, gradient_steps=10, batch_size=32).device == CUDA
-    assert teacher.distill(CRR, gradient_steps=10, batch_size=32, device="cpu").device == th.device("cpu")
+    assert teacher.distill(CRR, total_updates=10, batch_size=32).device == CUDA
+    assert teacher.distill(CRR, total_updates=10, batch_size=32, device="cpu").device == th.device("cpu")
     teacher.learn(64, reset_num_timesteps=False)
     assert teacher.replay_buffer.device == CUDA
 

@@ -25,7 +25,7 @@ def test_distill_from_mpo_logs_into_the_same_run(tmp_path):
     model.tensorboard_log = str(tmp_path)
     model.learn(250, tb_log_name="life")
     envs = {"env_a": gym.make("Pendulum-v1"), "env_b": gym.make("Pendulum-v1", g=5.0)}
-    student = model.distill(CRR, gradient_steps=120, eval_env=envs, eval_freq=60, n_eval_episodes=1, **student_kwargs())
+    student = model.distill(CRR, total_updates=120, eval_env=envs, eval_freq=60, n_eval_episodes=1, **student_kwargs())
     assert isinstance(student, CRR)
     assert student.num_timesteps == 120
     assert student.replay_buffer is model.replay_buffer  # no copy of the lifetime buffer
@@ -41,7 +41,7 @@ def test_distill_from_sac_with_bc_and_a_callback():
     model = SAC("MlpPolicy", "Pendulum-v1", policy_kwargs=net(), batch_size=32, learning_starts=50, seed=0)
     model.learn(150)
     callback = MultiEnvEvalCallback({"pendulum": gym.make("Pendulum-v1")}, eval_freq=40, n_eval_episodes=1)
-    student = distill(model, BC, gradient_steps=80, callback=callback, **student_kwargs())
+    student = distill(model, BC, total_updates=80, callback=callback, **student_kwargs())
     assert isinstance(student, BC)
     assert [row["timesteps"] for row in callback.results] == [40, 80]
 
@@ -61,7 +61,7 @@ def test_distill_from_a_buffer_directory(tmp_path):
     )
     model.learn(200)
     model.replay_buffer.flush()
-    student = distill(str(path), gradient_steps=50, **student_kwargs())
+    student = distill(str(path), total_updates=50, **student_kwargs())
     assert student.replay_buffer.size() == 200
     assert student.action_space.high[0] == pytest.approx(2.0)
 
@@ -69,14 +69,14 @@ def test_distill_from_a_buffer_directory(tmp_path):
 def test_distill_needs_data():
     model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net())
     with pytest.raises(ValueError, match="no data"):
-        model.distill(CRR, gradient_steps=10)
+        model.distill(CRR, total_updates=10)
 
 
 def test_model_distill_names_its_student():
     model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net(), learning_starts=10, batch_size=8, num_samples=4)
     model.learn(20)
     with pytest.raises(TypeError, match="offline algorithm class"):
-        model.distill("CRR", gradient_steps=1)
+        model.distill("CRR", total_updates=1)
 
 
 def two_source_data(n: int = 256, seed: int = 0) -> dict:
@@ -122,7 +122,7 @@ def test_distill_leaves_a_two_source_buffer_byte_identical_and_learns_both(tmp_p
     assert len(before) > 1
     student = distill(
         str(path),
-        gradient_steps=300,
+        total_updates=300,
         policy_kwargs=dict(net_arch=[16]),
         learning_rate=3e-3,
         **{k: v for k, v in student_kwargs().items() if k != "policy_kwargs"},
@@ -143,7 +143,7 @@ def test_distill_from_a_dict_leaves_it_alone():
     data["actions"][0] = 1.2  # outside the bounds: clipped in the student's copy
     copy = {key: value.copy() for key, value in data.items()}
     with pytest.warns(UserWarning, match="1 of 64 actions lie outside"):
-        distill(data, BC, gradient_steps=20, action_space=spaces.Box(-1, 1, (1,)), **student_kwargs())
+        distill(data, BC, total_updates=20, action_space=spaces.Box(-1, 1, (1,)), **student_kwargs())
     for key, value in copy.items():
         np.testing.assert_array_equal(data[key], value, err_msg=key)
 
@@ -182,22 +182,31 @@ def test_model_distill_leaves_none_to_the_student():
     """A named argument left at None takes the student's default, through the method as through the function."""
     model = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=net(), learning_starts=10, batch_size=8, num_samples=4)
     model.learn(20)
-    student = model.distill(BC, gradient_steps=2, beta=None, batch_size=None, seed=0, policy_kwargs=net())
+    student = model.distill(BC, total_updates=2, beta=None, batch_size=None, seed=0, policy_kwargs=net())
     assert isinstance(student, BC) and student.batch_size == BC("MlpPolicy", "Pendulum-v1").batch_size
 
 
 def test_distill_forwards_the_named_arguments_and_refuses_foreign_ones():
     data, spaces = pendulum_data(200), dict(action_space=gym.make("Pendulum-v1").action_space)
     student = distill(
-        data, CRR, gradient_steps=2, beta=3.0, max_weight=5.0, batch_size=16, seed=0, policy_kwargs=net(), **spaces
+        data, CRR, total_updates=2, beta=3.0, max_weight=5.0, batch_size=16, seed=0, policy_kwargs=net(), **spaces
     )
     assert (student.beta, student.max_weight, student.batch_size) == (3.0, 5.0, 16)
-    student = distill(data, BC, gradient_steps=2, loss="mse", batch_size=16, seed=0, policy_kwargs=net(), **spaces)
+    student = distill(data, BC, total_updates=2, loss="mse", batch_size=16, seed=0, policy_kwargs=net(), **spaces)
     assert student.loss == "mse"
     with pytest.raises(TypeError, match="BC takes no argument 'beta'"):
-        distill(data, BC, gradient_steps=2, beta=3.0)
+        distill(data, BC, total_updates=2, beta=3.0)
     with pytest.raises(TypeError, match="CRR takes no argument 'betta'"):
-        distill(data, CRR, gradient_steps=2, betta=3.0)
+        distill(data, CRR, total_updates=2, betta=3.0)
+    # the constructors' gradient_steps (updates after each rollout) is not the distillation's number of updates
+    with pytest.raises(TypeError, match=r"total_updates gradient updates \(got gradient_steps=500000"):
+        distill(data, CRR, gradient_steps=500_000, **spaces)
+    teacher = MPO("MlpPolicy", "Pendulum-v1", learning_starts=1_000, policy_kwargs=net())
+    teacher.learn(20)
+    with pytest.raises(TypeError, match="pass total_updates=... instead"):
+        teacher.distill(CRR, gradient_steps=10)
+    with pytest.raises(TypeError, match="'gradient_steps'"):
+        CRR.from_offline_data(data, **spaces).learn_offline(gradient_steps=2)  # type: ignore[call-arg]
 
 
 def test_the_student_sees_what_the_teacher_saw():
@@ -226,15 +235,15 @@ def test_the_student_sees_what_the_teacher_saw():
         replay_buffer_class=LifelongReplayBuffer,
     )
     teacher.learn(50)
-    student = teacher.distill(CRR, gradient_steps=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
+    student = teacher.distill(CRR, total_updates=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
     assert type(student.policy) is CRRCnnPolicy and isinstance(student.actor.features_extractor, NatureCNN)
     assert student.observation_space == teacher.observation_space  # channel-first, as the teacher's buffer holds it
-    student = teacher.distill(BC, gradient_steps=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
+    student = teacher.distill(BC, total_updates=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
     assert type(student.policy) is BCCnnPolicy
-    named = teacher.distill(CRR, policy="MlpPolicy", gradient_steps=2, batch_size=8, seed=0, policy_kwargs=net())
+    named = teacher.distill(CRR, policy="MlpPolicy", total_updates=2, batch_size=8, seed=0, policy_kwargs=net())
     assert type(named.policy) is CRRMlpPolicy and isinstance(named.actor.features_extractor, FlattenExtractor)
     # the buffer alone: its channel-first uint8 images call for a CNN
-    from_data = distill(teacher.replay_buffer, BC, gradient_steps=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
+    from_data = distill(teacher.replay_buffer, BC, total_updates=2, batch_size=8, seed=0, policy_kwargs=small_cnn)
     assert type(from_data.policy) is BCCnnPolicy
 
     assert teacher_policy_alias(SAC("CnnPolicy", env, buffer_size=10), CRR) == "CnnPolicy"

@@ -23,7 +23,7 @@ class BC(LifelongOfflineAlgorithm):
     Behaviour cloning: maximum likelihood of the data's actions under a Gaussian policy (``loss="nll"``), or
     regression of the policy's mean on them (``loss="mse"``). The paper's BC baseline.
 
-    Train it offline: ``BC.from_offline_data(data).learn_offline(gradient_steps)``. It is an SB3
+    Train it offline: ``BC.from_offline_data(data).learn_offline(total_updates)``. It is an SB3
     ``OffPolicyAlgorithm`` like CRR, so ``learn(...)`` online also runs, cloning the policy's own rollouts,
     which is only useful to test a pipeline.
 

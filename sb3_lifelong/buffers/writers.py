@@ -4,17 +4,15 @@ each, the holder of the directory's writer lock), and what a child made by ``os.
 of them it inherits (:class:`ForkedWriterError`). Like the rest of the store, it imports only the standard library.
 """
 
-from __future__ import annotations
-
 import os
 import weakref
-from typing import TYPE_CHECKING, Optional
+from typing import Any, Optional
 
-if TYPE_CHECKING:  # pragma: no cover
-    from sb3_lifelong.buffers.rowstore import RowStore
+#: a RowStore (not imported: the store imports this module)
+RowStore = Any
 
 # writer stores of this process by directory, so that unpickling can take a directory over from a stale object
-_WRITERS: weakref.WeakValueDictionary[str, RowStore] = weakref.WeakValueDictionary()
+_WRITERS: "weakref.WeakValueDictionary[str, RowStore]" = weakref.WeakValueDictionary()
 
 
 def writer_of(path: str) -> Optional[RowStore]:

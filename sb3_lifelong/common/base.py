@@ -200,7 +200,7 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
         :param student_class: the offline algorithm (:class:`~sb3_lifelong.CRR`; :class:`~sb3_lifelong.BC` for
             behaviour cloning)
         :param kwargs: the arguments of :func:`sb3_lifelong.distill.distill`, by name and with its defaults
-            (``gradient_steps``, ``eval_env``, ``beta``, ``batch_size``, ...; any other argument of the student's
+            (``total_updates``, ``eval_env``, ``beta``, ``batch_size``, ...; any other argument of the student's
             constructor)
         :return: the trained student, ready for ``predict`` and ``save``
         """

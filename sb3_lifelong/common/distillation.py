@@ -97,7 +97,17 @@ _FROM_OFFLINE_DATA = {"observation_space", "action_space", "normalized_actions",
 
 
 def _check_student_arguments(student_class: type, student_kwargs: dict[str, Any]) -> None:
-    """Refuse, naming it, an argument that the student's constructor does not take (``beta`` for BC)."""
+    """
+    Refuse, naming it, an argument that the student's constructor does not take (``beta`` for BC), and
+    ``gradient_steps``: the constructors' updates after each rollout, which an offline student never makes; the
+    distillation's number of updates is ``total_updates``.
+    """
+    if "gradient_steps" in student_kwargs:
+        raise TypeError(
+            f"distill() trains for total_updates gradient updates (got gradient_steps={student_kwargs['gradient_steps']!r}, "
+            "the constructors' updates after each rollout, which an offline student never makes): pass "
+            "total_updates=... instead"
+        )
     parameters = inspect.signature(student_class).parameters  # the constructor's
     if any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters.values()):
         return
@@ -133,7 +143,7 @@ def distill(
     source: DistillSource,
     student_class: type,
     *,
-    gradient_steps: int = 100_000,
+    total_updates: int = 100_000,
     policy: Any = None,
     eval_env: Optional[Any] = None,
     eval_freq: int = 10_000,
@@ -186,11 +196,11 @@ def distill(
     if student.verbose >= 1:
         where = logger.get_dir() if logger is not None else student.tensorboard_log
         print(
-            f"Distilling {_describe(student.replay_buffer)} into {type(student).__name__}: {gradient_steps:,} gradient "
+            f"Distilling {_describe(student.replay_buffer)} into {type(student).__name__}: {total_updates:,} gradient "
             f"updates" + (f", logging to {where}" if where else "")
         )
     student.learn_offline(
-        gradient_steps,
+        total_updates,
         callback=callback,
         eval_env=eval_env,
         eval_freq=eval_freq,

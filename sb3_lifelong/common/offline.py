@@ -7,7 +7,7 @@ three methods to this package's off-policy algorithm (:class:`~sb3_lifelong.comm
 - ``Algo.from_offline_data(data, policy="MlpPolicy", **hyperparameters)``: build a model from data, taking the
   observation and action spaces from the data (or ``env=`` / ``observation_space=`` / ``action_space=``);
 - ``model.set_offline_data(data)``: (re)attach data, e.g. after ``Algo.load(path)``;
-- ``model.learn_offline(gradient_steps, ...)``: gradient updates on the data, where ``num_timesteps`` counts
+- ``model.learn_offline(total_updates, ...)``: gradient updates on the data, where ``num_timesteps`` counts
   updates, so that SB3 callbacks, ``progress_bar=True``, tensorboard logging and ``reset_num_timesteps=False``
   resumption all work in update units.
 
@@ -161,7 +161,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
 
     def learn_offline(
         self: SelfOffline,
-        gradient_steps: int,
+        total_updates: int,
         callback: MaybeCallback = None,
         eval_env: Optional[EvalEnvs] = None,
         eval_freq: int = 10_000,
@@ -173,13 +173,14 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
         eval_sources: Optional[Mapping[str, int]] = None,
     ) -> SelfOffline:
         """
-        Train on the replay buffer's data for ``gradient_steps`` gradient updates, with no environment interaction.
+        Train on the replay buffer's data for ``total_updates`` gradient updates, with no environment interaction.
 
         ``num_timesteps`` counts gradient updates here: callbacks are called once per update (``EvalCallback`` and
         ``CheckpointCallback`` frequencies are in updates), and tensorboard curves are against updates.
 
-        :param gradient_steps: number of gradient updates (added to the current count when
-            ``reset_num_timesteps=False``)
+        :param total_updates: number of gradient updates (added to the current count when
+            ``reset_num_timesteps=False``). Named apart from the constructors' ``gradient_steps``, which is the number of
+            updates after each rollout when the model collects online
         :param callback: callback(s) called after every update
         :param eval_env: environment(s) to evaluate on every ``eval_freq`` updates: an env, a gym id, a list
             (named after the gym ids) or a dict name -> env; logs ``eval/<name>/mean_reward``
@@ -199,8 +200,8 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
                 "No offline data: build the model with from_offline_data(...), or call set_offline_data(...) or "
                 "load_replay_buffer(...) first"
             )
-        if gradient_steps < 0:
-            raise ValueError(f"gradient_steps must be >= 0, got {gradient_steps}")
+        if total_updates < 0:
+            raise ValueError(f"total_updates must be >= 0, got {total_updates}")
         self._check_eval_sources(eval_sources)  # before training, not at the first evaluation
         self._prepare_offline_buffer()
         self._sample_on_model_device()
@@ -211,7 +212,7 @@ class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
         if reset_num_timesteps:
             self.num_timesteps = 0
             self._episode_num = 0
-        total_timesteps = gradient_steps + self.num_timesteps
+        total_timesteps = total_updates + self.num_timesteps
         self._total_timesteps = total_timesteps
         self._num_timesteps_at_start = self.num_timesteps
         if not self._custom_logger:

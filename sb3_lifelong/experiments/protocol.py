@@ -347,7 +347,7 @@ def distill_student(
         model = distill(
             data,
             student_class=algorithm,
-            gradient_steps=preset.distill_steps,
+            total_updates=preset.distill_steps,
             batch_size=preset.student_batch_size,
             learning_rate=preset.student_learning_rate,
             tensorboard_log=tensorboard_dir(directory),

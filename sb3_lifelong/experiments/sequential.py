@@ -497,7 +497,7 @@ def run_sequential(
             callbacks = eval_callbacks(run_dir / method, eval_envs, config, sources=sources, offline=True, seed=seed)
             mpo.distill(
                 CRR,
-                gradient_steps=config["distill_steps"],
+                total_updates=config["distill_steps"],
                 callback=callbacks,
                 tb_log_name=method,
                 **algo_kwargs(config, seed),

@@ -171,7 +171,7 @@ def run_sharing(
                 limit = episode_limit(config.get("max_episode_steps"))
                 eval_envs = stage_envs(config["env_id"], list(stages), NAMES, limit, append_params=True)
                 callbacks = eval_callbacks(run_dir / method, eval_envs, config, source_q=True, offline=True, seed=seed)
-                distill(data, CRR, gradient_steps=config["distill_steps"], callback=callbacks,
+                distill(data, CRR, total_updates=config["distill_steps"], callback=callbacks,
                         tensorboard_log=tensorboard_log, tb_log_name=f"{method}_s{seed}",
                         observation_space=opened[0].observation_space, action_space=opened[0].action_space,
                         **algo_kwargs(config, seed), **kwargs)  # fmt: skip

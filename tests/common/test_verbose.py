@@ -24,7 +24,7 @@ def test_verbose_one_prints_evaluations_not_tables(verbose, capsys):
     envs = {"Env-A": short(), "Env-B": short(g=5.0)}
     callback = MultiEnvEvalCallback(envs, eval_freq=20, n_eval_episodes=1, verbose=1)
     model.learn(80, log_interval=1, callback=callback)  # four 20-step episodes: four dumps of the training values
-    student = model.distill(CRR, gradient_steps=20, eval_env=envs, eval_freq=10, n_eval_episodes=1, log_interval=5)
+    student = model.distill(CRR, total_updates=20, eval_env=envs, eval_freq=10, n_eval_episodes=1, log_interval=5)
     out = capsys.readouterr().out
     evaluations = [line for line in out.splitlines() if line.startswith("Eval at ")]
     assert len(evaluations) == 4 + 2  # one line per evaluation: 4 online, 2 of the student

@@ -43,7 +43,7 @@ def test_from_offline_data_opens_a_buffer_directory(tmp_path):
     assert model.action_space.high[0] == pytest.approx(2.0)
     model.learn_offline(20, log_interval=0)
     assert model.num_timesteps == 20
-    student = distill(tmp_path / "buffer", gradient_steps=10, **SMALL)  # a PathLike too
+    student = distill(tmp_path / "buffer", total_updates=10, **SMALL)  # a PathLike too
     assert student.replay_buffer.source_counts() == counts
 
 
@@ -53,7 +53,7 @@ def test_a_mistyped_path_names_the_path(tmp_path):
     with pytest.raises(FileNotFoundError, match=f"no offline data at '{mistyped}': no such file or directory"):
         CRR.from_offline_data(mistyped)
     with pytest.raises(FileNotFoundError, match="bufer"):
-        distill(mistyped, gradient_steps=10)
+        distill(mistyped, total_updates=10)
     (tmp_path / "empty").mkdir()
     with pytest.raises(OfflineDataError, match=r"empty'? is a directory, but not a LifelongReplayBuffer"):
         CRR.from_offline_data(tmp_path / "empty")
@@ -162,7 +162,7 @@ def test_distill_follows_a_logger_given_with_set_logger(tmp_path, capsys):
     model.set_logger(configure(str(tmp_path / "run"), ["stdout", "csv"]))  # no tensorboard_log
     model.learn(100)
     envs = {"Env-A": gym.make("Pendulum-v1")}
-    student = model.distill(CRR, gradient_steps=40, eval_env=envs, eval_freq=20, n_eval_episodes=1, log_interval=20)
+    student = model.distill(CRR, total_updates=40, eval_env=envs, eval_freq=20, n_eval_episodes=1, log_interval=20)
     assert student.logger.get_dir() == str(tmp_path / "run" / "distill")
     progress = (tmp_path / "run" / "distill" / "progress.csv").read_text()
     assert "eval/Env-A/mean_reward" in progress and "train/critic_loss" in progress

@@ -279,7 +279,7 @@ def test_distill_forwards_zero_seed_verbose_and_gamma(capsys):
     small = dict(policy_kwargs=dict(net_arch=[8]), batch_size=16, num_samples=2)
     compute = dict(scoring_dtype="float32", compile_losses=False)
     capsys.readouterr()
-    student = teacher.distill(CRR, gradient_steps=3, seed=0, verbose=0, gamma=0.0, compute=compute, **small)
+    student = teacher.distill(CRR, total_updates=3, seed=0, verbose=0, gamma=0.0, compute=compute, **small)
     assert capsys.readouterr().out == ""
     assert (student.seed, student.verbose, student.gamma) == (0, 0, 0.0)
     # gamma = 0: the TD target is the reward, whatever the next state's value

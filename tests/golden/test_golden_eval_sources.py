@@ -161,7 +161,7 @@ def test_distill_evaluates_each_env_with_its_sources_actor(evaluations: list[dic
     student = distill(
         two_source_buffer(),
         CRR,
-        gradient_steps=UPDATES,
+        total_updates=UPDATES,
         eval_env=envs,
         eval_freq=EVAL_FREQ,
         n_eval_episodes=EPISODES,
