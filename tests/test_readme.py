@@ -64,7 +64,7 @@ def test_users_day_states_how_long_its_budget_takes():
     """The time stated under the snippet is the time of the snippet's budget (change both together)."""
     code, text = readme_snippet(), README.read_text()
     steps = [int(n.replace("_", "")) for n in re.findall(r"model\.learn\(([\d_]+)", code)]
-    updates = int(re.search(r"gradient_steps=([\d_]+)", code).group(1).replace("_", ""))
+    updates = int(re.search(r"total_updates=([\d_]+)", code).group(1).replace("_", ""))
     stated = re.search(r"\*\*How long it takes\.\*\* This budget \(([\d,]+) environment steps, ([\d,]+) updates\)", text)
     assert stated, "the README says how long the user's day takes, right after the snippet"
     assert (int(stated.group(1).replace(",", "")), int(stated.group(2).replace(",", ""))) == (sum(steps), updates)
