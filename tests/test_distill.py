@@ -203,7 +203,7 @@ def test_distill_forwards_the_named_arguments_and_refuses_foreign_ones():
         distill(data, CRR, gradient_steps=500_000, **spaces)
     teacher = MPO("MlpPolicy", "Pendulum-v1", learning_starts=1_000, policy_kwargs=net())
     teacher.learn(20)
-    with pytest.raises(TypeError, match="pass total_updates=... instead"):
+    with pytest.raises(TypeError, match=r"pass total_updates=\.\.\. instead"):
         teacher.distill(CRR, gradient_steps=10)
     with pytest.raises(TypeError, match="'gradient_steps'"):
         CRR.from_offline_data(data, **spaces).learn_offline(gradient_steps=2)  # type: ignore[call-arg]

@@ -407,7 +407,7 @@ class LifelongOffPolicyAlgorithm(ExactResume, UpdateMechanics, OffPolicyAlgorith
             self._env_rng = records
         # grouped settings (MPO's policy_loss, compute) are saved as plain dicts: readable in the zip, loadable with
         # safe=True, and made settings again by the algorithm's setup
-        grouped = {name: value for name, value in self.__dict__.items() if isinstance(value, Settings)}
+        grouped = {name: getattr(self, name) for name in self.settings_groups}
         self.__dict__.update({name: dataclasses.asdict(value) for name, value in grouped.items()})
         try:
             if isinstance(path, (str, pathlib.Path)):

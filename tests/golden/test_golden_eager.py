@@ -206,33 +206,38 @@ MPO_NOISE = np.array(
 RAW_TEMPERATURE, RAW_ALPHA_MEAN, RAW_ALPHA_STD = 0.3, np.array([0.2, -0.5]), np.array([1.0, 0.4])
 
 
+def linear_settings(max_grad_norm: float) -> dict:
+    """What MPO's and CRR's models share here: linear networks stepped by SGD, one target update per update, eager float32."""
+    return dict(
+        learning_rate=LR,
+        tau=TAU,
+        gamma=GAMMA,
+        target_update_interval=1,
+        max_grad_norm=max_grad_norm,
+        policy_kwargs=dict(
+            net_arch=dict(pi=[], qf=[]),
+            n_critics=2,
+            layer_norm=False,
+            init_std=INIT_STD,
+            min_std=MIN_STD,
+            optimizer_class=th.optim.SGD,
+        ),
+        compute=dict(scoring_dtype="float32", compile_losses=False),
+        seed=0,
+        device="cpu",
+    )
+
+
 def mpo_model(max_grad_norm: float) -> MPO:
     model = MPO(
         "MlpPolicy",
         BoxEnv(),
-        **dict(
-            learning_rate=LR,
-            buffer_size=100,
-            tau=TAU,
-            gamma=GAMMA,
-            num_samples=MPO_SAMPLES,
-            policy_loss=dict(epsilon=EPSILON, epsilon_mean=EPSILON_MEAN, epsilon_stddev=EPSILON_STD),
-            dual_learning_rate=DUAL_LR,
-            target_update_interval=1,
-            max_grad_norm=max_grad_norm,
-            policy_on_next_obs=True,
-            policy_kwargs=dict(
-                net_arch=dict(pi=[], qf=[]),
-                n_critics=2,
-                layer_norm=False,
-                init_std=INIT_STD,
-                min_std=MIN_STD,
-                optimizer_class=th.optim.SGD,
-            ),
-            compute=dict(scoring_dtype="float32", compile_losses=False),
-            seed=0,
-            device="cpu",
-        ),
+        buffer_size=100,
+        num_samples=MPO_SAMPLES,
+        policy_loss=dict(epsilon=EPSILON, epsilon_mean=EPSILON_MEAN, epsilon_stddev=EPSILON_STD),
+        dual_learning_rate=DUAL_LR,
+        policy_on_next_obs=True,
+        **linear_settings(max_grad_norm),
     )
     set_networks(model)
     with th.no_grad():
@@ -367,30 +372,13 @@ def crr_model(max_grad_norm: float) -> CRR:
         data,
         action_space=spaces.Box(-1, 1, (ACTION_DIM,)),
         normalized_actions=True,
-        **dict(
-            learning_rate=LR,
-            tau=TAU,
-            gamma=GAMMA,
-            num_samples=CRR_SAMPLES,
-            n_target_samples=CRR_TARGET_SAMPLES,
-            advantage_baseline="mean",
-            advantage_transform="exp",
-            beta=BETA,
-            max_weight=MAX_WEIGHT,
-            target_update_interval=1,
-            max_grad_norm=max_grad_norm,
-            policy_kwargs=dict(
-                net_arch=dict(pi=[], qf=[]),
-                n_critics=2,
-                layer_norm=False,
-                init_std=INIT_STD,
-                min_std=MIN_STD,
-                optimizer_class=th.optim.SGD,
-            ),
-            compute=dict(scoring_dtype="float32", compile_losses=False),
-            seed=0,
-            device="cpu",
-        ),
+        num_samples=CRR_SAMPLES,
+        n_target_samples=CRR_TARGET_SAMPLES,
+        advantage_baseline="mean",
+        advantage_transform="exp",
+        beta=BETA,
+        max_weight=MAX_WEIGHT,
+        **linear_settings(max_grad_norm),
     )
     set_networks(model)
     return model
