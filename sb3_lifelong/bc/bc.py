@@ -10,7 +10,8 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 
 from sb3_lifelong.bc.policies import BCPolicy, CnnPolicy, MlpPolicy, MultiInputPolicy
 from sb3_lifelong.common.arguments import check_sizes_of
-from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
+from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
+from sb3_lifelong.common.offline import OfflineLearning
 from sb3_lifelong.common.policies import GaussianActor, gaussian_log_prob
 
 SelfBC = TypeVar("SelfBC", bound="BC")
@@ -18,7 +19,7 @@ SelfBC = TypeVar("SelfBC", bound="BC")
 BC_LOSSES = ("nll", "mse")
 
 
-class BC(LifelongOfflineAlgorithm):
+class BC(OfflineLearning, LifelongOffPolicyAlgorithm):
     """
     Behaviour cloning: maximum likelihood of the data's actions under a Gaussian policy (``loss="nll"``), or
     regression of the policy's mean on them (``loss="mse"``). The paper's BC baseline.

@@ -1,8 +1,9 @@
 """
 Learning from data with no environment: the offline path shared by CRR, BC (and policy distillation).
 
-:class:`LifelongOfflineAlgorithm`, the base class of the algorithms that can learn from data alone (CRR, BC), adds
-three methods to this package's off-policy algorithm (:class:`~sb3_lifelong.common.base.LifelongOffPolicyAlgorithm`):
+:class:`OfflineLearning`, the part of the algorithms that can learn from data alone (CRR, BC), mixed in before this
+package's off-policy algorithm (``class CRR(OfflineLearning, LifelongOffPolicyAlgorithm)``, with
+:class:`~sb3_lifelong.common.base.LifelongOffPolicyAlgorithm`), adds three methods to it:
 
 - ``Algo.from_offline_data(data, policy="MlpPolicy", **hyperparameters)``: build a model from data, taking the
   observation and action spaces from the data (or ``env=`` / ``observation_space=`` / ``action_space=``);
@@ -18,7 +19,7 @@ the path of a ``.npz`` file holding one, or a Minari dataset (id or object; need
 import time
 from collections import deque
 from collections.abc import Mapping
-from typing import Any, Callable, Optional, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Optional, TypeVar
 
 import gymnasium as gym
 from gymnasium import spaces
@@ -36,9 +37,9 @@ from sb3_lifelong.core.datasets import (
 )
 from sb3_lifelong.evaluation.callbacks import EvalEnvs, MultiEnvEvalCallback
 
-__all__ = ["LifelongOfflineAlgorithm", "NoEnvironment", "OfflineProgressBarCallback"]
+__all__ = ["NoEnvironment", "OfflineLearning", "OfflineProgressBarCallback"]
 
-SelfOffline = TypeVar("SelfOffline", bound="LifelongOfflineAlgorithm")
+SelfOffline = TypeVar("SelfOffline", bound="OfflineLearning")
 
 
 class NoEnvironment(gym.Env):
@@ -69,13 +70,21 @@ class OfflineProgressBarCallback(ProgressBarCallback):
         return True
 
 
-class LifelongOfflineAlgorithm(LifelongOffPolicyAlgorithm):
-    """
-    An off-policy algorithm that can also learn from data alone. Its ``train(gradient_steps, batch_size)`` is
-    reused unchanged: offline training is its training step run on a fixed buffer, with no rollouts. Online
-    ``learn`` works as for any off-policy algorithm.
+if TYPE_CHECKING:
+    # the part is checked as the algorithm it is mixed into; at run time it is a plain mixin
+    _Algorithm = LifelongOffPolicyAlgorithm
+else:
+    _Algorithm = object
 
-    A subclass's ``__init__`` must accept ``env=None``.
+
+class OfflineLearning(_Algorithm):
+    """
+    Learning from data alone, mixed into an off-policy algorithm before its base class
+    (``class CRR(OfflineLearning, LifelongOffPolicyAlgorithm)``). The algorithm's ``train(gradient_steps,
+    batch_size)`` is reused unchanged: offline training is its training step run on a fixed buffer, with no
+    rollouts. Online ``learn`` works as for any off-policy algorithm.
+
+    The algorithm's ``__init__`` must accept ``env=None``.
     """
 
     @classmethod

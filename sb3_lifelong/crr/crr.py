@@ -14,8 +14,9 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_lifelong.buffers.loading import as_lifelong_data
 from sb3_lifelong.common.arguments import check_sizes_of
+from sb3_lifelong.common.base import LifelongOffPolicyAlgorithm
 from sb3_lifelong.common.losses import bootstrap_discount
-from sb3_lifelong.common.offline import LifelongOfflineAlgorithm
+from sb3_lifelong.common.offline import OfflineLearning
 from sb3_lifelong.common.policies import GaussianActor, sample_gaussian
 from sb3_lifelong.core.settings import Settings
 from sb3_lifelong.crr.distributional import CategoricalCritic, CriticLoss
@@ -66,7 +67,7 @@ class CRRStepStats(NamedTuple):
         )
 
 
-class CRR(LifelongOfflineAlgorithm):
+class CRR(OfflineLearning, LifelongOffPolicyAlgorithm):
     """
     Critic Regularized Regression (CRR), usable online (``learn``) and offline (``from_offline_data`` +
     ``learn_offline``).
