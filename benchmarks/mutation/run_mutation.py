@@ -88,6 +88,27 @@ MODULES: dict[str, list[str]] = {
         "tests/experiments/test_study.py::test_claims_pair_the_compared_series_by_seed",
     ],
     "benchmarks/studies/paper_cpu/claims.py": ["tests/experiments/test_claims_both_ways.py"],
+    # the numbers a user relies on beyond the losses (issue 66): targets, the update loop, sampling, views, the
+    # dynamics changes, evaluation, distillation and the study scores, each with its golden and targeted tests
+    "sb3_lifelong/crr/targets.py": ["tests/golden/test_golden_crr.py", "tests/crr/test_crr_losses.py"],
+    "sb3_lifelong/crr/distributional.py": ["tests/golden/test_golden_crr.py", "tests/crr/test_crr_losses.py"],
+    "sb3_lifelong/mpo/mpo.py": ["tests/golden/test_golden_mpo.py", "tests/golden/test_golden_eager.py"],
+    "sb3_lifelong/buffers/sampling.py": [
+        "tests/golden/test_golden_views.py",
+        "tests/golden/test_golden_student_rows.py",
+        "tests/buffers/test_buffers.py",
+    ],
+    "sb3_lifelong/buffers/views.py": ["tests/golden/test_golden_views.py", "tests/buffers/test_buffers.py"],
+    "sb3_lifelong/envs/perturbations.py": ["tests/golden/test_golden_schedule.py", "tests/envs/test_perturbations.py"],
+    "sb3_lifelong/envs/schedule.py": ["tests/golden/test_golden_schedule.py", "tests/envs/test_schedule.py"],
+    "sb3_lifelong/evaluation/overestimation.py": [
+        "tests/golden/test_golden_overestimation.py",
+        "tests/evaluation/test_overestimation.py",
+    ],
+    "sb3_lifelong/evaluation/callbacks.py": ["tests/golden/test_golden_eval_sources.py", "tests/evaluation/test_callbacks.py"],
+    "sb3_lifelong/common/distillation.py": ["tests/golden/test_golden_student_rows.py", "tests/test_distill.py"],
+    "sb3_lifelong/common/offline.py": ["tests/golden/test_golden_eval_sources.py", "tests/common/test_offline_learning.py"],
+    "sb3_lifelong/experiments/scores.py": ["tests/experiments/test_study_readings.py", "tests/experiments/test_study.py"],
     # the buffer's commit and recovery path (its scope below): rows written, committed, recovered after a crash
     "sb3_lifelong/buffers/rowstore.py": [
         "tests/buffers/test_buffer_crash_prefix.py",
