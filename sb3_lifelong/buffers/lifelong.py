@@ -106,8 +106,8 @@ class LifelongReplayBuffer(LifelongSampler):
         are always checked). A damaged chunk makes opening raise in every mode: :meth:`check_directory` lists the
         damaged chunks and :meth:`salvage` copies the intact ones into a new directory
     :param source: Initial source id of transitions whose ``info`` has no ``"stage"``
-    :param max_resident_bytes: With a path and ``read_mode="mmap"``: remap the files after random reads may have
-        made about this many bytes of them resident, to bound the RSS of sampling a buffer larger than RAM (None: never)
+    :param max_resident_bytes: Replaced by ``read_mode="pread"`` (the one way to bound the RSS): any value but None
+        reads with ``read_mode="pread"`` and warns (``FutureWarning``); kept so that models saved with it still load
     :param capacity: Keep only the most recent ``capacity`` transitions (counted over all envs, like SB3's
         ``buffer_size``): adding to a full buffer evicts the oldest ones (FIFO). None (default): keep everything.
         A directory stores its chunks in separate files, deleted once every row of the chunk is evicted. When

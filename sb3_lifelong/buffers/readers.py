@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import mmap
 import os
+import warnings
 from collections.abc import Mapping
 from typing import Any, Optional, Protocol, Union
 
@@ -27,20 +28,24 @@ PREAD_MERGE_GAP = 4096
 def check_read_mode(read_mode: Any, max_resident_bytes: Optional[int] = None) -> str:
     """
     :param read_mode: How committed rows are read: ``"mmap"`` or ``"pread"``
-    :param max_resident_bytes: The remap limit asked for with it (only meaningful with ``"mmap"``)
+    :param max_resident_bytes: The remap limit of earlier releases (``read_mode="mmap"`` only): replaced by
+        ``read_mode="pread"``, the one way to bound the RSS; any value but None maps onto it, with a ``FutureWarning``
     :return: The read mode
-    :raises ValueError: for another value, for ``"pread"`` with ``max_resident_bytes``, or for ``"pread"`` where the
-        OS has no ``pread``
+    :raises ValueError: for another value, or for ``"pread"`` where the OS has no ``pread``
     """
     if not isinstance(read_mode, str) or read_mode not in READ_MODES:
         raise ValueError(f"read_mode must be one of {list(READ_MODES)}, got {read_mode!r}")
-    if read_mode == "pread":
-        if max_resident_bytes is not None:
-            raise ValueError(
-                "max_resident_bytes bounds the pages mapped by read_mode='mmap'; read_mode='pread' maps none: leave it None"
-            )
-        if not hasattr(os, "pread"):  # pragma: no cover (Windows)
-            raise ValueError("read_mode='pread' needs os.pread, which this OS does not have: use read_mode='mmap'")
+    if max_resident_bytes is not None:
+        warnings.warn(
+            f"max_resident_bytes={max_resident_bytes!r} is replaced by read_mode='pread', which reads rows with positioned "
+            "reads and maps no file page, so the RSS stays at the process's own memory: reading with read_mode='pread'. "
+            "Pass read_mode='pread' (and no max_resident_bytes) instead",
+            FutureWarning,
+            stacklevel=4,
+        )
+        read_mode = "pread"
+    if read_mode == "pread" and not hasattr(os, "pread"):  # pragma: no cover (Windows)
+        raise ValueError("read_mode='pread' needs os.pread, which this OS does not have: use read_mode='mmap'")
     return read_mode
 
 
@@ -84,9 +89,6 @@ class _RowFormat:
 class Reader(Protocol):
     """How a directory store reads its committed rows (``read_mode``): memory maps or positioned reads."""
 
-    #: how many times the maps were made again to bound the RSS (``max_resident_bytes``; always 0 with ``"pread"``)
-    remaps: int
-
     def sync(self, segments: list[Segment], fresh: bool = False, eager: bool = True) -> None:
         """Follow the committed segments after a commit, an eviction or a refresh."""
 
@@ -103,26 +105,17 @@ class Reader(Protocol):
 class MappedReader(_RowFormat):
     """
     ``read_mode="mmap"``: each segment's data files are memory-mapped read-only, its fields are arrays over the
-    maps. A sync maps the new segments and keeps the maps of those unchanged; ``fresh=True`` maps everything again,
-    which drops the pages touched so far from this process's RSS.
+    maps. A sync maps the new segments and keeps the maps of those unchanged; ``fresh=True`` maps everything again.
 
     :param dtypes: field name -> dtype of its rows
     :param shapes: field name -> shape of its rows
-    :param max_resident_bytes: Map everything again (before a gather) once random reads may have touched about this
-        many bytes of file pages, which drops them from this process's RSS (they stay in the OS page cache). None: never
     """
 
-    def __init__(
-        self, dtypes: Mapping[str, np.dtype], shapes: Mapping[str, tuple[int, ...]], max_resident_bytes: Optional[int] = None
-    ) -> None:
+    def __init__(self, dtypes: Mapping[str, np.dtype], shapes: Mapping[str, tuple[int, ...]]) -> None:
         super().__init__(dtypes, shapes)
         self._segments: list[Segment] = []
         self._arrays: list[dict[str, np.ndarray]] = []  # one dict per segment: field -> its committed rows
         self._starts = np.zeros(0, dtype=np.int64)
-        self.max_resident_bytes = max_resident_bytes
-        self.remaps = 0
-        # file-backed pages mapped before this reader (python, numpy, torch libraries)
-        self._baseline_file_bytes = (_mapped_file_bytes() or 0) if max_resident_bytes is not None else 0
 
     def sync(self, segments: list[Segment], fresh: bool = False, eager: bool = True) -> None:
         known = {} if fresh else {(s.start, s.rows): arrays for s, arrays in zip(self._segments, self._arrays)}
@@ -142,18 +135,7 @@ class MappedReader(_RowFormat):
             arrays[name] = array.reshape(segment.rows, *self.shapes[name])
         return arrays
 
-    def _limit_resident(self) -> None:
-        # random reads map file pages into this process (with the kernel's fault-around, 64 KiB per touched row);
-        # they count in its RSS although the kernel can drop them at will. Past the limit, remap to unmap them.
-        mapped = _mapped_file_bytes()
-        assert self.max_resident_bytes is not None
-        if mapped is not None and mapped > self.max_resident_bytes + self._baseline_file_bytes:
-            self.sync(self._segments, fresh=True)
-            self.remaps += 1
-
     def gather(self, names: tuple[str, ...], rows: np.ndarray) -> dict[str, np.ndarray]:
-        if self.max_resident_bytes is not None:
-            self._limit_resident()
         if len(rows) == 0:
             return self.empty(names)
         if len(self._arrays) == 1:  # e.g. layout "single"
@@ -203,8 +185,6 @@ class PositionedReader(_RowFormat):
     positioned reads into fresh arrays (one call per run of nearby rows): no page of the files is mapped. Closing
     closes the files; the next read opens them again.
     """
-
-    remaps = 0  # nothing to remap
 
     def __init__(self, dtypes: Mapping[str, np.dtype], shapes: Mapping[str, tuple[int, ...]]) -> None:
         super().__init__(dtypes, shapes)
@@ -302,27 +282,16 @@ def make_reader(
     read_mode: str,
     dtypes: Mapping[str, np.dtype],
     shapes: Mapping[str, tuple[int, ...]],
-    max_resident_bytes: Optional[int] = None,
 ) -> Reader:
     """
     :param read_mode: ``"mmap"`` or ``"pread"`` (see :func:`check_read_mode`)
     :param dtypes: field name -> dtype of its rows
     :param shapes: field name -> shape of its rows
-    :param max_resident_bytes: The RSS bound of ``"mmap"`` (see :class:`MappedReader`)
     :return: A reader of those fields, following no segment yet
     """
     if read_mode == "pread":
         return PositionedReader(dtypes, shapes)
-    return MappedReader(dtypes, shapes, max_resident_bytes)
-
-
-def _mapped_file_bytes() -> Optional[int]:
-    """The bytes of file-backed pages resident in this process (None where ``/proc`` cannot tell: not Linux)."""
-    try:
-        with open("/proc/self/statm", "rb") as file:
-            return int(file.read().split()[2]) * mmap.PAGESIZE
-    except (OSError, ValueError, IndexError):  # pragma: no cover (not Linux)
-        return None
+    return MappedReader(dtypes, shapes)
 
 
 def _map_file(file_name: str, length: int) -> Union[mmap.mmap, bytes]:

@@ -74,9 +74,8 @@ class RowStore(ManifestRecords):
     :param chunk_size: Rows per flushed chunk
     :param verify: Checksums to verify when opening: "all", "last" (only the last chunk: corrupted bytes in an
         earlier chunk are not detected and are served as they are) or "none"
-    :param max_resident_bytes: Remap the files after random reads may have touched about this many bytes of
-        pages, which drops them from this process's RSS (they stay in the OS page cache). None: never. Only with
-        ``read_mode="mmap"``
+    :param max_resident_bytes: Replaced by ``read_mode="pread"``: a value other than None reads with positioned reads
+        (``FutureWarning``), see :func:`~sb3_lifelong.buffers.readers.check_read_mode`
     :param capacity: Keep only the most recent ``capacity`` rows (None: keep everything). For an existing
         directory, None keeps its stored capacity
     :param read_mode: How committed rows are read: ``"mmap"`` (memory maps: fastest when the rows sampled are
@@ -109,7 +108,7 @@ class RowStore(ManifestRecords):
         evict: bool = False,
         allow_foreign_files: bool = False,
     ) -> None:
-        check_read_mode(read_mode, max_resident_bytes)
+        read_mode = check_read_mode(read_mode, max_resident_bytes)
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         if verify not in ("all", "last", "none"):
@@ -143,7 +142,6 @@ class RowStore(ManifestRecords):
         # previous manifest, which lists them, may be the one a power loss leaves)
         self._undeleted: list[str] = []
         self.read_mode = read_mode
-        self.max_resident_bytes = max_resident_bytes
         #: the process that opened this writer: only it may write, commit or release the directory (see
         #: :class:`ForkedWriterError`); None for stores that never write a directory (in memory, read-only)
         self._owner_pid: Optional[int] = None if self.path is None or read_only else os.getpid()
@@ -290,11 +288,6 @@ class RowStore(ManifestRecords):
         """The number of most recent rows kept, or None when every row is kept."""
         return self._state.capacity
 
-    @property
-    def remaps(self) -> int:
-        """How many times the files were mapped again to bound the RSS (``max_resident_bytes``)."""
-        return self._reader.remaps
-
     # ------------------------------------------------------------------ opening / recovery
     def _set_row_format(self, fields: dict[str, tuple[str, tuple[int, ...]]]) -> None:
         """The fields (validated), their dtypes and row sizes, and the reader of the committed rows."""
@@ -302,7 +295,7 @@ class RowStore(ManifestRecords):
         self._fields = self._state.fields
         self._dtypes = self._state.dtypes
         self.row_bytes = self._state.row_bytes
-        self._reader: Reader = make_reader(self.read_mode, self._dtypes, self._state.shapes, self.max_resident_bytes)
+        self._reader: Reader = make_reader(self.read_mode, self._dtypes, self._state.shapes)
 
     def _load_manifest(self, manifest: dict[str, Any]) -> None:
         self.chunks = manifest["chunks"]
@@ -661,7 +654,6 @@ class RowStore(ManifestRecords):
             "path": self.path,
             "read_only": self.read_only,
             "chunk_size": self.chunk_size,
-            "max_resident_bytes": self.max_resident_bytes,
             "read_mode": self.read_mode,
         }
 
@@ -686,7 +678,7 @@ class RowStore(ManifestRecords):
             path=state["path"],
             read_only=state["read_only"],
             chunk_size=state["chunk_size"],
-            max_resident_bytes=state["max_resident_bytes"],
+            max_resident_bytes=state.get("max_resident_bytes"),  # pickled by earlier releases (None, or "pread")
             read_mode=state["read_mode"],
         )
 

@@ -5,6 +5,7 @@ import pickle
 import subprocess
 import sys
 import time
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -147,6 +148,56 @@ def mapped_files(path):
 
 
 # ---------------------------------------------------------------------------------------------------------------- API
+@pytest.mark.parametrize("read_mode", ["mmap", "pread"])
+def test_max_resident_bytes_maps_onto_pread(tmp_path, read_mode):
+    """The remap limit of earlier releases is replaced by read_mode="pread", the one way to bound the RSS."""
+    with pytest.warns(FutureWarning, match=r"max_resident_bytes=1048576 is replaced by read_mode='pread'"):
+        writer = LifelongReplayBuffer(0, OBS, ACT, path=tmp_path / "b", read_mode=read_mode, max_resident_bytes=1 << 20)
+    assert writer.store.read_mode == "pread"
+    fill([writer], 30, 2, seed=0)
+    writer.store.flush()
+    assert mapped_files(tmp_path / "b") == []  # nothing of the directory is mapped
+    assert len(writer.sample(8).rewards) == 8
+    # a store pickled by an earlier release records max_resident_bytes (None by default): it reopens as it was read
+    for limit, expected in ((None, "mmap"), (1 << 20, "pread")):
+        state = {"path": str(tmp_path / "b"), "read_only": True, "chunk_size": 10_000, "read_mode": "mmap"}
+        copy = RowStore.__new__(RowStore)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            copy.__setstate__(dict(state, max_resident_bytes=limit))
+        assert copy.read_mode == expected and len(copy) == 60
+        assert [w.category for w in caught] == ([] if limit is None else [FutureWarning])
+        copy.close()
+    writer.close()
+
+
+def test_a_model_saved_with_max_resident_bytes_still_loads(tmp_path):
+    """A zip of an earlier release whose replay_buffer_kwargs name max_resident_bytes loads, reads and resumes."""
+    from sb3_lifelong import MPO
+
+    kwargs = dict(path=str(tmp_path / "life"), chunk_size=5, max_resident_bytes=256 << 20)
+    with pytest.warns(FutureWarning, match="max_resident_bytes"):
+        model = MPO(
+            "MlpPolicy", "Pendulum-v1", num_samples=2, replay_buffer_class=LifelongReplayBuffer,
+            replay_buffer_kwargs=kwargs, policy_kwargs=dict(net_arch=[8]), learning_starts=10, batch_size=8, seed=0,
+        )  # fmt: skip
+        model.learn(12)
+    model.save(tmp_path / "mpo.zip")
+    model.replay_buffer.close()
+    del model
+    for safe in (True, False):
+        with pytest.warns(FutureWarning, match="max_resident_bytes"):
+            loaded = MPO.load(tmp_path / "mpo.zip", safe=safe, env=gym.make("Pendulum-v1"))
+        buffer = loaded.replay_buffer
+        assert isinstance(buffer, LifelongReplayBuffer) and buffer.store.path == kwargs["path"]
+        assert buffer.store.read_only and buffer.store.read_mode == "pread" and buffer.size() == 12
+        assert len(buffer.sample(4).rewards) == 4
+    with pytest.warns(FutureWarning, match="max_resident_bytes"):
+        loaded.learn(4, reset_num_timesteps=False)  # reattached for writing, read as before
+    assert loaded.replay_buffer.size() == 16 and loaded.replay_buffer.store.read_mode == "pread"
+    loaded.replay_buffer.close()
+
+
 def test_bad_read_mode(tmp_path):
     for bad in ("mmap2", "PREAD", None, 1):
         with pytest.raises(ValueError, match="read_mode must be one of"):
@@ -154,8 +205,6 @@ def test_bad_read_mode(tmp_path):
         with pytest.raises(ValueError, match="read_mode must be one of"):
             RowStore({"rewards": ("<f4", ())}, read_mode=bad)
     assert not os.path.exists(tmp_path / "bad")  # refused before creating anything
-    with pytest.raises(ValueError, match="max_resident_bytes"):
-        LifelongReplayBuffer(0, OBS, ACT, path=tmp_path / "bad", read_mode="pread", max_resident_bytes=1 << 20)
     buffer = LifelongReplayBuffer(0, OBS, ACT, path=tmp_path / "ok")
     fill([buffer], 3, 1, seed=0)
     buffer.close()
