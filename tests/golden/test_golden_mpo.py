@@ -189,3 +189,62 @@ def test_one_eager_update_regresses_the_critic_on_the_hand_computed_target(polic
     assert model.logger.name_to_value["train/critic_loss"] == pytest.approx(want, rel=1e-5)
     assert model.logger.name_to_value["train/q_mean"] == pytest.approx(q[0].mean(), rel=1e-5, abs=1e-6)
     assert any(not th.equal(before[name], after[name]) for name in before)  # and the critic took its step
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# What ``train`` logs over several updates, and the defaults a user gets (mutation survivors of ``mpo/mpo.py``)
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def test_train_logs_the_mean_of_its_updates_for_every_statistic():
+    """With several updates per call, each ``train/<statistic>`` is the mean over the updates (not their sum)."""
+    from stable_baselines3.common.logger import configure
+
+    model = make_model(
+        policy_on_next_obs=True, learning_starts=0, batch_size=TRAIN_BATCH, policy_loss=dict(action_penalty=True)
+    )
+    model.learn(40)
+    model.set_logger(configure(None, []))
+    steps = []
+
+    class Recording:
+        """the update's forward pass, recording what each update returns"""
+
+        def __init__(self, forward):
+            self.forward = forward
+
+        def __getattr__(self, name):
+            return getattr(self.forward, name)
+
+        def __call__(self, *args, **kwargs):
+            out = self.forward(*args, **kwargs)
+            steps.append((out[0], out[1]))
+            return out
+
+    model._forward = Recording(model._forward)  # type: ignore[assignment]
+    model.train(gradient_steps=3, batch_size=TRAIN_BATCH)
+    assert len(steps) == 3
+    logged = model.logger.name_to_value
+    for fields in ([fit for fit, _ in steps], [improvement for _, improvement in steps]):
+        for key in fields[0]._fields:
+            values = [float(getattr(step, key)) for step in fields]
+            assert logged[f"train/{key}"] == pytest.approx(np.mean(values), rel=1e-6, abs=1e-9), key
+            if len(set(values)) > 1:  # a sum would differ from the mean
+                assert logged[f"train/{key}"] != pytest.approx(np.sum(values), rel=1e-6)
+    assert logged["train/n_updates"] == model._n_updates
+
+
+def test_the_defaults_a_user_gets():
+    """The defaults a user gets without arguments (a change of one is a change of behaviour: a CHANGELOG line)."""
+    import inspect
+
+    defaults = {name: p.default for name, p in inspect.signature(MPO.__init__).parameters.items() if p.default is not p.empty}
+    assert defaults["learning_rate"] == 3e-4
+    assert defaults["num_samples"] == 20
+    assert defaults["batch_size"] == 256
+    assert defaults["n_steps"] == 1
+    assert defaults["gamma"] == 0.99
+    assert defaults["policy_on_next_obs"] is True
+    assert (defaults["tau"], defaults["target_update_interval"]) == (1.0, 100)  # Acme's periodic hard target update
+    model = MPO("MlpPolicy", BoxEnv(), device="cpu", seed=0)
+    assert (model.learning_rate, model.num_samples, model.batch_size) == (3e-4, 20, 256)
