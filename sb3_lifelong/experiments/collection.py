@@ -4,23 +4,24 @@ than a session (a pause is a checkpoint that the next part continues; a part tha
 to its pause, keeping everything it wrote beside it).
 """
 
-import csv
 import json
 import os
 import pathlib
 import shutil
-import sys
 import time
 from typing import Any, Callable, Optional
 
-if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skipped elsewhere
-    pass
-
-
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
+from sb3_lifelong.core.atomic import write_json_atomic
 from sb3_lifelong.experiments.jobs import job_callbacks, make_env, model_kwargs, tensorboard_dir
-from sb3_lifelong.experiments.ownership import OWNED_MARKER, NotOwnedError, claim_directory, remove_unfinished
+from sb3_lifelong.experiments.lifecycle import (
+    OWNED_MARKER,
+    NotOwnedError,
+    claim_directory,
+    drop_rows_after,
+    remove_unfinished,
+    set_aside,
+)
 from sb3_lifelong.experiments.presets import (
     Preset,
     describe_stage,
@@ -136,7 +137,7 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
         # stopped without pausing, so it is not this collection's (the resumed one makes them again)
         for stage1 in (directory / "stage1.zip", run_dir / "buffer_stage1"):
             if stage1.exists() and not stage1.is_symlink():
-                _set_aside(stage1, record["transitions"])
+                set_aside(stage1, record["transitions"])
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as held:
         transitions = held.size()
     if record is not None and transitions > record["transitions"] and not (run_dir / "buffer").is_symlink():
@@ -155,7 +156,7 @@ def _resume_collection(preset: Preset, run_dir: pathlib.Path, log: Callable) -> 
             f"{run_dir / 'buffer'} and {run_dir / 'buffer_stage1'}"
         )
     for name in ("eval.csv", "q_sources.csv", "train.csv"):  # a killed part may have logged past the pause
-        _drop_rows_after(directory / name, record["timesteps"])
+        drop_rows_after(directory / name, record["timesteps"])
     log(f"  continuing the paused collection at step {record['timesteps']:,}")
     return MPO.load(
         directory / PAUSED_MODEL,
@@ -194,7 +195,7 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
             )
         write_json_atomic(marker, dict(staging=REWIND_STAGING, paused=paused, held=held))  # the copy is ours to delete
         merge_buffers([whole], path=staging, stops=[paused]).close()
-    aside = _set_aside(buffer, paused)
+    aside = set_aside(buffer, paused)
     os.replace(staging, buffer)
     marker.unlink(missing_ok=True)
     log(
@@ -203,56 +204,12 @@ def _rewind_to_pause(run_dir: pathlib.Path, paused: int, held: int, log: Callabl
     )
 
 
-def aside_name(path: pathlib.Path, paused: int) -> pathlib.Path:
-    """:return: ``<stem>.after_pause_<paused>[.k]<suffix>`` beside ``path``, the first such name that is free"""
-    for attempt in range(1000):
-        tag = f".after_pause_{paused}" + (f".{attempt}" if attempt else "")
-        aside = path.with_name(f"{path.stem}{tag}{path.suffix}")
-        if not aside.exists():
-            return aside
-    raise FileExistsError(f"no free name to set {path} aside")
-
-
-def _set_aside(path: pathlib.Path, paused: int) -> pathlib.Path:
-    """Rename ``path`` to :func:`aside_name`'s name and return it."""
-    aside = aside_name(path, paused)
-    os.replace(path, aside)
-    return aside
-
-
 def _finish_rewind(run_dir: pathlib.Path) -> None:
     """Complete a :func:`_rewind_to_pause` that stopped between its two renames (the copy is then complete)."""
     buffer, staging = run_dir / "buffer", run_dir / REWIND_STAGING
     if not buffer.exists() and staging.exists():
         os.replace(staging, buffer)
         (run_dir / REWIND_MARKER).unlink(missing_ok=True)
-
-
-def _drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
-    """
-    Keep the rows of a job's CSV log (a ``timesteps`` column) up to ``timesteps``; the file is replaced atomically,
-    and the whole log is kept beside it first (``<stem>.after_pause_<timesteps>[.k].csv``). A row cut short (a stop
-    in the middle of writing it: too few fields, or a ``timesteps`` that is not a number) is past the pause.
-    """
-    if not path.is_file():
-        return
-    with open(path, newline="") as handle:
-        rows = list(csv.reader(handle))
-    if not rows or "timesteps" not in rows[0]:
-        return
-    column = rows[0].index("timesteps")
-
-    def before_pause(row: list[str]) -> bool:
-        try:
-            return len(row) == len(rows[0]) and int(float(row[column])) <= timesteps
-        except ValueError:
-            return False
-
-    kept = [rows[0], *(row for row in rows[1:] if before_pause(row))]
-    if len(kept) < len(rows):
-        shutil.copy2(path, aside_name(path, timesteps))  # the whole log first: a stop in between leaves it twice
-        with atomic_write(path, "w", newline="") as rewritten:
-            csv.writer(rewritten).writerows(kept)
 
 
 #: the directories of a seed that its collection creates beside ``collect`` (the lifetime and the Stage-1 buffers)
@@ -287,7 +244,7 @@ def finished_collection(preset: Preset, run_dir: pathlib.Path) -> list[str]:
 def remove_unfinished_collection(preset: Preset, run_dir: pathlib.Path, log: Callable = print) -> None:
     """
     Delete what an unfinished collection attempt of ``run_dir`` wrote (``collect`` and the buffers beside it, which
-    its marker names, :mod:`~sb3_lifelong.experiments.ownership`), so that a new attempt starts from nothing. Links
+    its marker names, :mod:`~sb3_lifelong.experiments.lifecycle`), so that a new attempt starts from nothing. Links
     to another study's buffers (an unfinished :func:`~sb3_lifelong.experiments.protocol.adopt_collection`) are
     unlinked, never followed.
 

@@ -7,15 +7,10 @@ students, the online baselines, one seed).
 """
 
 import pathlib
-import sys
 from collections.abc import Sequence
 from typing import Any, Optional
 
 import gymnasium as gym
-
-if sys.platform != "win32":  # POSIX: the job locks are advisory and simply skipped elsewhere
-    pass
-
 
 from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback

@@ -16,7 +16,7 @@ A seed's jobs, in the order they depend on each other:
 Every job evaluates its policy on every environment periodically (``eval.csv``) and, when it has a critic, the
 average Q-value per source (``q_sources.csv``); a finished job writes ``done.json`` and is skipped when the command
 is run again, so a crashed or stopped seed continues where it was; a job that another process is running is
-skipped (:func:`job_lock`). What a study runs (its preset, students and job names) is
+skipped (:func:`~sb3_lifelong.experiments.lifecycle.job_lock`). What a study runs (its preset, students and job names) is
 :mod:`sb3_lifelong.experiments.presets`; this module runs it.
 
 Layout of ``<output>/seed_<k>/``::
@@ -33,34 +33,24 @@ Layout of ``<output>/seed_<k>/``::
                                 data in the lifetime buffer too, ``source_rows``)
 """
 
-import contextlib
-import csv
 import dataclasses
 import json
-import math
 import pathlib
 import re
 import shutil
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Callable, Optional
 
-from filelock import FileLock, Timeout
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
+from sb3_lifelong.core.atomic import write_json_atomic
 from sb3_lifelong.crr import CRR
 from sb3_lifelong.distill import distill
 from sb3_lifelong.experiments import costs
-from sb3_lifelong.experiments.collection import (
-    COLLECTED_BUFFERS,
-    PAUSED_MODEL,
-    aside_name,
-    collect,
-    remove_unfinished_collection,
-)
+from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, PAUSED_MODEL, collect, remove_unfinished_collection
 from sb3_lifelong.experiments.jobs import (
     job_callbacks,
     make_env,
@@ -68,7 +58,14 @@ from sb3_lifelong.experiments.jobs import (
     tensorboard_dir,
     value_support,
 )
-from sb3_lifelong.experiments.ownership import OWNED_MARKER, claim_directory, release_directory, remove_unfinished
+from sb3_lifelong.experiments.lifecycle import (
+    OWNED_MARKER,
+    cut_logs_back,
+    finish_job,
+    job_lock,
+    release_directory,
+    start_job,
+)
 from sb3_lifelong.experiments.presets import (
     LATER_SETTINGS,
     NOT_IDENTITY,
@@ -93,12 +90,11 @@ def online(
 ) -> None:
     """
     A conservative online baseline continuing from the Stage-1 agent (its weights and its buffer) through Stage 2.
-    An unfinished attempt's directory is deleted first (:func:`~sb3_lifelong.experiments.ownership.remove_unfinished`:
+    An unfinished attempt's directory is deleted first (:func:`~sb3_lifelong.experiments.lifecycle.start_job`:
     only one this job wrote; anything else is refused).
     """
     directory = run_dir / f"online_{name}"
-    remove_unfinished(directory, directory.name, log)
-    claim_directory(directory, directory.name)
+    start_job(directory, directory.name, log)
     # the agent only: its saved buffer settings point at the lifetime buffer, which other jobs may be reading
     stage1 = MPO.load(run_dir / "collect" / "stage1.zip", device=preset.device, custom_objects={"replay_buffer_kwargs": {}})
     start = int(stage1.num_timesteps)
@@ -142,40 +138,6 @@ def sampling_weights(ratio: tuple[float, float], counts: Mapping[int, int]) -> d
 #: a paused student (``distill_student(..., pause_every=...)``), in the student's directory: what the pause recorded
 #: (updates, the student's settings, its checkpoint ``paused_<updates>.zip``, which holds the random streams too)
 PAUSED_STUDENT_RECORD = "paused.json"
-
-
-def _rows_up_to(directory: pathlib.Path, updates: int, log: Callable[[str], None]) -> None:
-    """
-    Cut the logs (``*.csv`` with a ``timesteps`` column) of a paused student back to the rows of its first
-    ``updates`` updates: rows past the pause were written by a part that stopped without pausing again. Nothing is
-    deleted: a log that had such rows is kept whole beside it as ``<stem>.after_pause_<updates>[.k].csv``.
-    """
-    for path in sorted(directory.glob("*.csv")):
-        if ".after_pause_" in path.name:
-            continue
-        with open(path, newline="") as handle:
-            reader = csv.DictReader(handle)
-            fields, rows = reader.fieldnames, list(reader)
-        if not fields or "timesteps" not in fields:
-            continue
-        kept = [row for row in rows if _timesteps(row) <= updates]
-        if len(kept) == len(rows):
-            continue
-        aside = aside_name(path, updates)
-        shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
-        with atomic_write(path, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(kept)
-        log(f"  {path.name}: {len(rows) - len(kept)} rows past the pause at {updates:,} updates (all kept in {aside.name})")
-
-
-def _timesteps(row: Mapping[str, Any]) -> float:
-    """:return: a log row's ``timesteps``; infinity for a row cut short (a stop in the middle of writing it)"""
-    try:
-        return float(row["timesteps"])
-    except (TypeError, ValueError):
-        return math.inf
 
 
 def _paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Optional[dict[str, Any]]:
@@ -307,10 +269,9 @@ def distill_student(
     settings = dict(student=dataclasses.asdict(student), seed=seed, updates=preset.distill_steps, preset=preset.describe())
     paused = _paused_student(directory, settings)
     if paused is None:  # a new student: an unfinished attempt's directory goes (only one it wrote: others are refused)
-        remove_unfinished(directory, directory.name, log)
-        claim_directory(directory, directory.name)
+        start_job(directory, directory.name, log)
     else:
-        _rows_up_to(directory, paused["updates"], log)
+        cut_logs_back(directory, paused["updates"], log)
         log(f"  continuing the student from its checkpoint at {paused['updates']:,} of {preset.distill_steps:,} updates")
     data = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)
     everything = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)  # unweighted, for Q per source
@@ -427,8 +388,7 @@ def distill_on_study(
         done: dict[str, Any] = dict(seconds=seconds, buffer_seed=seed)
         done.update(student_seed=seed if student_seed is None else student_seed, settings=dataclasses.asdict(student))
         done.update(about or {})
-        write_json_atomic(run_dir / f"distill_{name}" / "done.json", done)
-        release_directory(run_dir / f"distill_{name}")
+        finish_job(run_dir / f"distill_{name}", done)
         log(f"buffer {seed}: {name} done in {seconds / 60:.1f} min")
         trained.append(name)
     return trained
@@ -517,8 +477,7 @@ def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pa
         # an unfinished collection of this study's own goes first: only what it wrote (a finished one is refused)
         remove_unfinished_collection(preset, run_dir, log)
         staging = run_dir / ".collect.adopting"
-        remove_unfinished(staging, "collect (reused)", log)  # an adoption that stopped before its rename
-        claim_directory(staging, "collect (reused)")
+        start_job(staging, "collect (reused)", log)  # an adoption that stopped before its rename goes first
         ignored = shutil.ignore_patterns("done.json", OWNED_MARKER)
         shutil.copytree(origin / "collect", staging, ignore=ignored, dirs_exist_ok=True)
         done = {**json.loads((origin / "collect" / "done.json").read_text()), "adopted_from": str(origin)}
@@ -546,30 +505,6 @@ def check_linked_buffers(run_dir: pathlib.Path) -> None:
             )
 
 
-@contextlib.contextmanager
-def job_lock(run_dir: pathlib.Path, job: str) -> Iterator[bool]:
-    """
-    Hold a seed's job for this process, so that two commands of the same seed (two terminals, a runner beside a
-    command) never run one job at once: the second would delete the first one's directory and mix their files.
-
-    :param run_dir: the seed's directory
-    :param job: the job's name
-    :return: (as a context manager) True if this process holds the job, False if another process does
-    """
-    # filelock: an OS lock (flock on POSIX, LockFileEx on Windows) on a file beside the job's directory, which a job
-    # deletes first; the OS releases it when the process ends, however it ends
-    lock = FileLock(run_dir / f".{job}.lock", timeout=0, thread_local=False)
-    try:
-        lock.acquire()
-    except Timeout:
-        yield False
-        return
-    try:
-        yield True
-    finally:
-        lock.release()
-
-
 def run_seed(
     preset: Preset,
     seed: int,
@@ -582,7 +517,8 @@ def run_seed(
 ) -> list[str]:
     """
     Run the jobs of one seed that have not finished yet (each writes ``done.json`` when it finishes). A job that
-    another process is running (see :func:`job_lock`) is skipped; ``collect``, which the other jobs need, raises.
+    another process is running (see :func:`~sb3_lifelong.experiments.lifecycle.job_lock`) is skipped; ``collect``,
+    which the other jobs need, raises.
 
     :param preset: the protocol's settings
     :param seed: the seed
@@ -668,8 +604,7 @@ def run_seed(
                     done[SOURCE_ROWS_RECORD] = count_source_rows(run_dir / "buffer")
                 except (OSError, ValueError, RuntimeError) as error:  # never lose a finished collection over a record
                     log(f"seed {seed}: the rows per source of the buffer were not recorded ({error})")
-            write_json_atomic(run_dir / job / "done.json", done)  # never a half-written "done"
-            release_directory(run_dir / job)  # finished: no later attempt deletes it
+            finish_job(run_dir / job, done)  # never a half-written "done"; no later attempt deletes it
             if not resumed:
                 costs.record(settings, job, seconds)
                 times.setdefault(costs.job_key(job), []).append(seconds)

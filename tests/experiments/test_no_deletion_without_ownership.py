@@ -17,7 +17,7 @@ from sb3_lifelong.experiments.collection import (
     _rewind_to_pause,
     remove_unfinished_collection,
 )
-from sb3_lifelong.experiments.ownership import OWNED_MARKER, NotOwnedError, claim_directory, remove_unfinished
+from sb3_lifelong.experiments.lifecycle import OWNED_MARKER, NotOwnedError, claim_directory, remove_unfinished
 from sb3_lifelong.experiments.protocol import adopt_collection, distill_student, online
 
 SMALL = small_preset()
