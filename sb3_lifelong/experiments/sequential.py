@@ -43,7 +43,7 @@ from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
 from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
-from sb3_lifelong.experiments.plots import source_labels
+from sb3_lifelong.experiments.figures import source_labels
 
 Stage = Union[str, Mapping[str, float]]
 
@@ -422,7 +422,7 @@ def finish(output: pathlib.Path, rows: list[dict[str, Any]], config: dict[str, A
     """Write and print the summary table (with earlier seeds of the same directory), then the figures."""
     print(write_summary(output, merge_previous_seeds(output, rows), config, elapsed))
     if plots:
-        from sb3_lifelong.experiments.plots import plot_experiment
+        from sb3_lifelong.experiments.figures import plot_experiment
 
         for path in plot_experiment(output):
             print("wrote", path)

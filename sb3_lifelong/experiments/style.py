@@ -1,8 +1,7 @@
 """
 One look for every figure of the package: one name and one colour per method, one colour per environment, and the
-drawing helpers (curves over seeds, a labelled change of environment, grouped bars, saving) that the study figures
-(:mod:`sb3_lifelong.experiments.figures`), the sequential examples' figures (:mod:`sb3_lifelong.experiments.plots`)
-and the benchmarks share.
+drawing helpers (curves over seeds, a labelled change of environment, grouped bars, saving) that the figures of the
+studies and of the sequential examples (:mod:`sb3_lifelong.experiments.figures`) and the benchmarks share.
 
 A method is known by its key in the protocol (:data:`sb3_lifelong.experiments.protocol.STUDENTS`, ``"MPO"`` for the
 collector, ``"online <name>"`` for the online baselines); the sequential examples' directory names are mapped onto

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from sb3_lifelong.experiments.plots import draw_figure, experiment_figures, load_experiment, plot_experiment
+from sb3_lifelong.experiments.figures import draw_figure, experiment_figures, load_experiment, plot_experiment
 from sb3_lifelong.experiments.sequential import EXAMPLE_CONFIGS, add_common_arguments, resolve_config, write_layout
 
 ENVS = ["Env-A", "Env-B"]
