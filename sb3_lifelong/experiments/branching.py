@@ -20,7 +20,7 @@ from sb3_lifelong.envs import stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
 from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
 from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, PAUSED_MODEL, PAUSED_RECORD
-from sb3_lifelong.experiments.lifecycle import claim_directory
+from sb3_lifelong.experiments.jobs import claim_directory
 from sb3_lifelong.experiments.presets import Preset, describe_stage
 from sb3_lifelong.mpo import MPO
 

@@ -13,14 +13,17 @@ from typing import Any, Callable, Optional
 
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.core.atomic import write_json_atomic
-from sb3_lifelong.experiments.jobs import job_callbacks, make_env, model_kwargs, tensorboard_dir
-from sb3_lifelong.experiments.lifecycle import (
+from sb3_lifelong.experiments.jobs import (
     OWNED_MARKER,
     NotOwnedError,
     claim_directory,
     drop_rows_after,
+    job_callbacks,
+    make_env,
+    model_kwargs,
     remove_unfinished,
     set_aside,
+    tensorboard_dir,
 )
 from sb3_lifelong.experiments.presets import (
     Preset,
@@ -244,7 +247,7 @@ def finished_collection(preset: Preset, run_dir: pathlib.Path) -> list[str]:
 def remove_unfinished_collection(preset: Preset, run_dir: pathlib.Path, log: Callable = print) -> None:
     """
     Delete what an unfinished collection attempt of ``run_dir`` wrote (``collect`` and the buffers beside it, which
-    its marker names, :mod:`~sb3_lifelong.experiments.lifecycle`), so that a new attempt starts from nothing. Links
+    its marker names, :mod:`~sb3_lifelong.experiments.jobs`), so that a new attempt starts from nothing. Links
     to another study's buffers (an unfinished :func:`~sb3_lifelong.experiments.protocol.adopt_collection`) are
     unlinked, never followed.
 

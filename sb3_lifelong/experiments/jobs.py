@@ -1,22 +1,268 @@
 """
-What every job of a study shares: the robot through its stages (:func:`make_env`), what every model is built with
-(:func:`model_kwargs`: the preset's network and ``device``), a job's callbacks and logs (:func:`job_callbacks`,
-:func:`tensorboard_dir`), and the value support of a bounded critic (:func:`value_support`). The jobs themselves:
-:mod:`~sb3_lifelong.experiments.collection` (MPO through the stages) and :mod:`~sb3_lifelong.experiments.protocol` (the
-students, the online baselines, one seed).
+A job of a study, the same for every job of a seed: its directory from start to finish, and what every job is built
+with. A job claims a new directory (``start_job``), runs while it holds its lock (:func:`job_lock`), may pause and
+resume (a pause's logs cut back to it, everything cut kept beside it: ``aside_name``, ``drop_rows_after``,
+``cut_logs_back``), and is done once its ``done.json`` is written (``finish_job``). Every job acts in the robot through
+its stages (``make_env``), builds its models with the preset's network and device (``model_kwargs``), logs through
+the same callbacks (``job_callbacks``, ``tensorboard_dir``), and a bounded critic has its value support
+(:func:`value_support`). What the jobs run and what their pauses record are ``collection`` (the ``collect`` job) and
+:mod:`~sb3_lifelong.experiments.protocol` (the students, the online baselines, one seed).
+
+What a job may delete: only what it wrote itself. A job that creates its directory writes a marker of its own into it
+(:data:`OWNED_MARKER`, naming the job and, for the collection, the buffer directories it creates beside it) and
+removes the marker when it has finished (once its ``done.json`` is written). A later attempt deletes an unfinished
+attempt's directory only when that marker is there; a directory without it (a finished job whose ``done.json`` was
+lost, files put there by hand, a directory of an older version of this package) is refused with a message saying
+what was found, and nothing is deleted. ``done.json`` only says that a job can be skipped: it never decides a deletion.
 """
 
+import contextlib
+import csv
+import json
+import math
+import os
 import pathlib
-from collections.abc import Sequence
-from typing import Any, Optional
+import shutil
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any, Callable, Optional
 
 import gymnasium as gym
+from filelock import FileLock, Timeout
 
+from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback
-from sb3_lifelong.experiments.presets import (
-    Preset,
-)
+from sb3_lifelong.experiments.presets import Preset
+
+# ------------------------------------------------------------------------------------------------- a job's directory
+#: the marker of a directory that a job created and has not finished: everything in it is the job's to delete
+OWNED_MARKER = ".sb3_lifelong_owned.json"
+
+
+class NotOwnedError(FileExistsError):
+    """A job would have deleted a directory it did not write (or a finished one): nothing was deleted."""
+
+
+def claim_directory(directory: pathlib.Path, job: str, beside: Sequence[str] = ()) -> None:
+    """
+    Create a job's directory with its marker, before the job writes anything.
+
+    :param directory: the job's directory (it must not exist, or be empty)
+    :param job: the job's name, for the record
+    :param beside: names of directories beside ``directory`` that the job creates too (the collection's buffers):
+        an unfinished attempt's are deleted with it
+    :raises FileExistsError: ``directory`` holds files
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    if any(directory.iterdir()):
+        raise FileExistsError(f"{directory} is not empty: a job starts in a new directory")
+    record = dict(job=job, beside=list(beside), pid=os.getpid(), started=time.strftime("%Y-%m-%d %H:%M:%S %Z"))
+    write_json_atomic(directory / OWNED_MARKER, record)
+
+
+def owner_record(directory: pathlib.Path) -> Optional[dict[str, Any]]:
+    """:return: the marker of an unfinished job in ``directory`` (None when there is none, or it is unreadable)"""
+    try:
+        record = json.loads((directory / OWNED_MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def release_directory(directory: pathlib.Path) -> None:
+    """A job has finished (its ``done.json`` is written): its directory is no longer deleted by a later attempt."""
+    (directory / OWNED_MARKER).unlink(missing_ok=True)
+
+
+def _listing(directory: pathlib.Path, limit: int = 5) -> str:
+    """:return: a few of the entries of ``directory``, for messages"""
+    names = sorted(path.name for path in directory.iterdir())
+    shown = ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
+    return shown or "nothing"
+
+
+def remove_unfinished(
+    directory: pathlib.Path, job: str, log: Callable[[str], None] = print, finished: Sequence[str] = ("done.json",)
+) -> None:
+    """
+    Delete an unfinished attempt of ``job`` before it starts again: ``directory`` (and the directories its marker
+    names beside it) when the attempt's marker is there. A missing directory, or an empty one, is fine; a symbolic
+    link is unlinked (what it points to is not touched).
+
+    :param directory: the job's directory
+    :param job: the job's name, for messages
+    :param log: where the deletion is reported
+    :param finished: files whose presence means the job has finished: such a directory is never deleted
+    :raises NotOwnedError: ``directory`` holds a finished job (a file of ``finished``), or files without the marker
+        (not written by an unfinished attempt of this job); nothing was deleted
+    """
+    if directory.is_symlink():
+        directory.unlink()
+        log(f"  {job}: removed the link {directory} (an unfinished attempt's; what it pointed to is untouched)")
+        return
+    if not directory.exists():
+        return
+    if not directory.is_dir():
+        raise NotOwnedError(f"{directory} is a file, not the directory of job {job}: nothing was deleted; move it away")
+    done = [name for name in finished if (directory / name).exists()]
+    if done:
+        raise NotOwnedError(
+            f"{directory} holds a finished {job} job ({', '.join(done)}): nothing was deleted. Move the directory away "
+            "to run the job again"
+        )
+    if not any(directory.iterdir()):
+        directory.rmdir()
+        return
+    record = owner_record(directory)
+    if record is None:
+        raise NotOwnedError(
+            f"{directory} holds files ({_listing(directory)}) but no record that an unfinished attempt of this job wrote "
+            f"them ({OWNED_MARKER}): a finished job whose done.json was lost, files put there by hand, or a directory of "
+            f"an older version of sb3_lifelong. Nothing was deleted: move {directory} away (or delete it) to run the "
+            f"{job} job again"
+        )
+    beside = [directory.parent / name for name in record.get("beside", []) if isinstance(name, str) and name]
+    for path in beside:
+        if path.parent != directory.parent:  # a marker names directories beside its own only
+            raise NotOwnedError(f"{directory / OWNED_MARKER} names {path}, which is not beside it: nothing was deleted")
+    for path in beside:
+        if path.is_symlink():
+            path.unlink()
+        elif path.exists():
+            shutil.rmtree(path)
+    shutil.rmtree(directory)
+    removed = ", ".join(str(path) for path in [directory, *beside])
+    log(f"  {job}: removed the unfinished attempt started {record.get('started', '?')} ({removed}) to start again")
+
+
+def start_job(directory: pathlib.Path, job: str, log: Callable[[str], None] = print, beside: Sequence[str] = ()) -> None:
+    """
+    Start a job anew in ``directory``: an unfinished attempt's directory is deleted first (:func:`remove_unfinished`:
+    only one this job wrote; anything else is refused), then the directory is claimed (:func:`claim_directory`).
+
+    :param directory: the job's directory
+    :param job: the job's name, for the record and messages
+    :param log: where a deletion is reported
+    :param beside: directories beside ``directory`` that the job creates too (see :func:`claim_directory`)
+    """
+    remove_unfinished(directory, job, log)
+    claim_directory(directory, job, beside=beside)
+
+
+def finish_job(directory: pathlib.Path, done: Mapping[str, Any]) -> None:
+    """
+    A job has finished: its ``done.json`` (written atomically: never a half-written "done"), then its marker goes, so
+    that no later attempt deletes the directory.
+
+    :param directory: the job's directory
+    :param done: what ``done.json`` records
+    """
+    write_json_atomic(directory / "done.json", dict(done))
+    release_directory(directory)
+
+
+@contextlib.contextmanager
+def job_lock(run_dir: pathlib.Path, job: str) -> Iterator[bool]:
+    """
+    Hold a seed's job for this process, so that two commands of the same seed (two terminals, a runner beside a
+    command) never run one job at once: the second would delete the first one's directory and mix their files.
+
+    :param run_dir: the seed's directory
+    :param job: the job's name
+    :return: (as a context manager) True if this process holds the job, False if another process does
+    """
+    # filelock: an OS lock (flock on POSIX, LockFileEx on Windows) on a file beside the job's directory, which a job
+    # deletes first; the OS releases it when the process ends, however it ends
+    lock = FileLock(run_dir / f".{job}.lock", timeout=0, thread_local=False)
+    try:
+        lock.acquire()
+    except Timeout:
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        lock.release()
+
+
+# ------------------------------------------------------------------------------------------------- pause and resume
+def aside_name(path: pathlib.Path, paused: int) -> pathlib.Path:
+    """:return: ``<stem>.after_pause_<paused>[.k]<suffix>`` beside ``path``, the first such name that is free"""
+    for attempt in range(1000):
+        tag = f".after_pause_{paused}" + (f".{attempt}" if attempt else "")
+        aside = path.with_name(f"{path.stem}{tag}{path.suffix}")
+        if not aside.exists():
+            return aside
+    raise FileExistsError(f"no free name to set {path} aside")
+
+
+def set_aside(path: pathlib.Path, paused: int) -> pathlib.Path:
+    """Rename ``path`` to :func:`aside_name`'s name and return it."""
+    aside = aside_name(path, paused)
+    os.replace(path, aside)
+    return aside
+
+
+def drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
+    """
+    Keep the rows of a job's CSV log (a ``timesteps`` column) up to ``timesteps``; the file is replaced atomically,
+    and the whole log is kept beside it first (``<stem>.after_pause_<timesteps>[.k].csv``). A row cut short (a stop
+    in the middle of writing it: too few fields, or a ``timesteps`` that is not a number) is past the pause.
+    """
+    if not path.is_file():
+        return
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    if not rows or "timesteps" not in rows[0]:
+        return
+    column = rows[0].index("timesteps")
+
+    def before_pause(row: list[str]) -> bool:
+        try:
+            return len(row) == len(rows[0]) and int(float(row[column])) <= timesteps
+        except ValueError:
+            return False
+
+    kept = [rows[0], *(row for row in rows[1:] if before_pause(row))]
+    if len(kept) < len(rows):
+        shutil.copy2(path, aside_name(path, timesteps))  # the whole log first: a stop in between leaves it twice
+        with atomic_write(path, "w", newline="") as rewritten:
+            csv.writer(rewritten).writerows(kept)
+
+
+def cut_logs_back(directory: pathlib.Path, updates: int, log: Callable[[str], None]) -> None:
+    """
+    Cut the logs (``*.csv`` with a ``timesteps`` column) of a paused student back to the rows of its first
+    ``updates`` updates: rows past the pause were written by a part that stopped without pausing again. Nothing is
+    deleted: a log that had such rows is kept whole beside it as ``<stem>.after_pause_<updates>[.k].csv``.
+    """
+    for path in sorted(directory.glob("*.csv")):
+        if ".after_pause_" in path.name:
+            continue
+        with open(path, newline="") as handle:
+            reader = csv.DictReader(handle)
+            fields, rows = reader.fieldnames, list(reader)
+        if not fields or "timesteps" not in fields:
+            continue
+        kept = [row for row in rows if _timesteps(row) <= updates]
+        if len(kept) == len(rows):
+            continue
+        aside = aside_name(path, updates)
+        shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
+        with atomic_write(path, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(kept)
+        log(f"  {path.name}: {len(rows) - len(kept)} rows past the pause at {updates:,} updates (all kept in {aside.name})")
+
+
+def _timesteps(row: Mapping[str, Any]) -> float:
+    """:return: a log row's ``timesteps``; infinity for a row cut short (a stop in the middle of writing it)"""
+    try:
+        return float(row["timesteps"])
+    except (TypeError, ValueError):
+        return math.inf
 
 
 # ------------------------------------------------------------------------------------------------- environments

@@ -16,7 +16,7 @@ A seed's jobs, in the order they depend on each other:
 Every job evaluates its policy on every environment periodically (``eval.csv``) and, when it has a critic, the
 average Q-value per source (``q_sources.csv``); a finished job writes ``done.json`` and is skipped when the command
 is run again, so a crashed or stopped seed continues where it was; a job that another process is running is
-skipped (:func:`~sb3_lifelong.experiments.lifecycle.job_lock`). What a study runs (its preset, students and job names) is
+skipped (:func:`~sb3_lifelong.experiments.jobs.job_lock`). What a study runs (its preset, students and job names) is
 :mod:`sb3_lifelong.experiments.presets`; this module runs it.
 
 Layout of ``<output>/seed_<k>/``::
@@ -52,19 +52,17 @@ from sb3_lifelong.distill import distill
 from sb3_lifelong.experiments import costs
 from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, PAUSED_MODEL, collect, remove_unfinished_collection
 from sb3_lifelong.experiments.jobs import (
-    job_callbacks,
-    make_env,
-    model_kwargs,
-    tensorboard_dir,
-    value_support,
-)
-from sb3_lifelong.experiments.lifecycle import (
     OWNED_MARKER,
     cut_logs_back,
     finish_job,
+    job_callbacks,
     job_lock,
+    make_env,
+    model_kwargs,
     release_directory,
     start_job,
+    tensorboard_dir,
+    value_support,
 )
 from sb3_lifelong.experiments.presets import (
     LATER_SETTINGS,
@@ -90,7 +88,7 @@ def online(
 ) -> None:
     """
     A conservative online baseline continuing from the Stage-1 agent (its weights and its buffer) through Stage 2.
-    An unfinished attempt's directory is deleted first (:func:`~sb3_lifelong.experiments.lifecycle.start_job`:
+    An unfinished attempt's directory is deleted first (:func:`~sb3_lifelong.experiments.jobs.start_job`:
     only one this job wrote; anything else is refused).
     """
     directory = run_dir / f"online_{name}"
@@ -517,7 +515,7 @@ def run_seed(
 ) -> list[str]:
     """
     Run the jobs of one seed that have not finished yet (each writes ``done.json`` when it finishes). A job that
-    another process is running (see :func:`~sb3_lifelong.experiments.lifecycle.job_lock`) is skipped; ``collect``,
+    another process is running (see :func:`~sb3_lifelong.experiments.jobs.job_lock`) is skipped; ``collect``,
     which the other jobs need, raises.
 
     :param preset: the protocol's settings

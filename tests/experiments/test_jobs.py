@@ -43,10 +43,10 @@ def test_a_job_lock_holds_against_another_process_and_is_freed_after(tmp_path):
     import subprocess
     import sys
 
-    from sb3_lifelong.experiments.lifecycle import job_lock
+    from sb3_lifelong.experiments.jobs import job_lock
 
     probe = (
-        "import pathlib\nfrom sb3_lifelong.experiments.lifecycle import job_lock\n"
+        "import pathlib\nfrom sb3_lifelong.experiments.jobs import job_lock\n"
         f"with job_lock(pathlib.Path({str(tmp_path)!r}), 'collect') as held: print(held)"
     )
     with job_lock(tmp_path, "collect") as ours:

@@ -17,7 +17,14 @@ from sb3_lifelong.experiments.collection import (
     _rewind_to_pause,
     remove_unfinished_collection,
 )
-from sb3_lifelong.experiments.lifecycle import OWNED_MARKER, NotOwnedError, claim_directory, remove_unfinished
+from sb3_lifelong.experiments.jobs import (
+    OWNED_MARKER,
+    NotOwnedError,
+    claim_directory,
+    finish_job,
+    remove_unfinished,
+    start_job,
+)
 from sb3_lifelong.experiments.protocol import adopt_collection, distill_student, online
 
 SMALL = small_preset()
@@ -150,3 +157,23 @@ def test_a_rewind_deletes_only_its_own_partial_copy(tmp_path):
     assert not (tmp_path / REWIND_MARKER).exists()
     with LifelongReplayBuffer.open(tmp_path / "buffer", read_only=True) as head:
         assert head.size() == 25
+
+
+def test_a_job_started_then_finished_is_never_deleted_by_a_later_attempt(tmp_path):
+    """start_job claims a new directory (an unfinished attempt's goes first); finish_job writes done.json, then the marker."""
+    directory = tmp_path / "distill_BC"
+    start_job(directory, "distill_BC", log=lambda m: None)
+    (directory / "eval.csv").write_text("timesteps\n1\n")
+    start_job(directory, "distill_BC", log=lambda m: None)  # an unfinished attempt of its own: deleted, claimed again
+    assert sorted(path.name for path in directory.iterdir()) == [OWNED_MARKER]
+    (directory / "eval.csv").write_text("timesteps\n1\n")
+    finish_job(directory, dict(job="distill_BC", seconds=1.0))
+    assert json.loads((directory / "done.json").read_text()) == dict(job="distill_BC", seconds=1.0)
+    assert not (directory / OWNED_MARKER).exists()
+    before = snapshot(tmp_path)
+    with pytest.raises(NotOwnedError, match="holds a finished distill_BC job"):
+        start_job(directory, "distill_BC", log=lambda m: None)
+    (directory / "done.json").unlink()  # a finished job whose done.json was lost: no marker either, refused too
+    with pytest.raises(NotOwnedError, match="no record that an unfinished attempt"):
+        start_job(directory, "distill_BC", log=lambda m: None)
+    assert snapshot(tmp_path) == {key: value for key, value in before.items() if key != "distill_BC/done.json"}

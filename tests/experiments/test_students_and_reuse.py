@@ -13,7 +13,7 @@ from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import PRESETS, job_names, load_claims, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
 from sb3_lifelong.experiments.claims import evaluate_claims
-from sb3_lifelong.experiments.lifecycle import NotOwnedError
+from sb3_lifelong.experiments.jobs import NotOwnedError
 from sb3_lifelong.experiments.presets import load_presets
 
 

@@ -15,7 +15,7 @@ from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import PRESETS, STUDENTS, job_names, load_claims, load_study, run_seed, write_report
 from sb3_lifelong.experiments.__main__ import main
 from sb3_lifelong.experiments.claims import evaluate_claims
-from sb3_lifelong.experiments.lifecycle import job_lock
+from sb3_lifelong.experiments.jobs import job_lock
 from sb3_lifelong.experiments.protocol import sampling_weights
 from sb3_lifelong.experiments.statistics import bootstrap_ci
 

@@ -158,7 +158,7 @@ def mark_collection_done(settings: Any, seed: int, run_dir: pathlib.Path, second
     """
     from sb3_lifelong.core.atomic import write_json_atomic
     from sb3_lifelong.experiments.collection import finished_collection
-    from sb3_lifelong.experiments.lifecycle import release_directory
+    from sb3_lifelong.experiments.jobs import release_directory
 
     evidence = finished_collection(settings, run_dir)
     if not evidence:
