@@ -30,8 +30,11 @@ BACKENDS = ("auto", "ray", "process")
 
 
 @dataclass(frozen=True)
-class Job:
-    """One job of a study: ``name`` of seed ``seed``, to run after the jobs in ``after``."""
+class Task:
+    """
+    One job of a study as the runner schedules it: the job ``name`` (a :class:`~sb3_lifelong.experiments.presets.Job`'s
+    name) of seed ``seed``, to run after the tasks in ``after`` (their keys).
+    """
 
     seed: int
     name: str
@@ -42,7 +45,7 @@ class Job:
         return f"seed_{self.seed}/{self.name}"
 
 
-def job_graph(preset: Preset, seeds: Sequence[int], jobs: Optional[Sequence[str]] = None) -> list[Job]:
+def job_graph(preset: Preset, seeds: Sequence[int], jobs: Optional[Sequence[str]] = None) -> list[Task]:
     """
     :param preset: the protocol's settings
     :param seeds: the seeds of the study
@@ -52,8 +55,8 @@ def job_graph(preset: Preset, seeds: Sequence[int], jobs: Optional[Sequence[str]
     names = list(jobs) if jobs is not None else preset.jobs()
     graph = []
     for seed in seeds:
-        graph.append(Job(seed, "collect"))
-        graph += [Job(seed, name, after=(f"seed_{seed}/collect",)) for name in names if name != "collect"]
+        graph.append(Task(seed, "collect"))
+        graph += [Task(seed, name, after=(f"seed_{seed}/collect",)) for name in names if name != "collect"]
     return graph
 
 
@@ -134,7 +137,7 @@ def run_study(
 
 
 class _Progress:
-    def __init__(self, graph: list[Job], log: Callable[[str], None], preset: Preset, workers: int) -> None:
+    def __init__(self, graph: list[Task], log: Callable[[str], None], preset: Preset, workers: int) -> None:
         self.total = len(graph)
         self.log = log
         self.results: dict[str, dict[str, Any]] = {}
@@ -155,7 +158,7 @@ class _Progress:
             f", {unmeasured} job(s) not measured yet" if unmeasured else ""
         )
 
-    def started(self, job: Job) -> None:
+    def started(self, job: Task) -> None:
         self.log(f"[start] {job.key}")
 
     def finished(self, result: dict[str, Any]) -> None:
@@ -170,7 +173,7 @@ class _Progress:
         else:
             self.log(f"[skip] {result['key']}: done earlier ({left})")
 
-    def blocked(self, job: Job, reason: str) -> None:
+    def blocked(self, job: Task, reason: str) -> None:
         self.results[job.key] = dict(key=job.key, ran=False, seconds=0.0, error=f"not run: {reason}")
         self.log(f"[not run] {job.key}: {reason} ({self._left()})")
 
@@ -178,10 +181,10 @@ class _Progress:
         return bool(self.results.get(key, {}).get("error"))
 
 
-def _run_pool(preset: Preset, graph: list[Job], output: str, workers: int, log: Callable[[str], None]) -> dict[str, Any]:
+def _run_pool(preset: Preset, graph: list[Task], output: str, workers: int, log: Callable[[str], None]) -> dict[str, Any]:
     progress = _Progress(graph, log, preset, workers)
     waiting = list(graph)
-    running: dict[Future, Job] = {}
+    running: dict[Future, Task] = {}
     with ProcessPoolExecutor(max_workers=workers, mp_context=_process_context()) as pool:
         while waiting or running:
             for job in list(waiting):
@@ -202,7 +205,7 @@ def _run_pool(preset: Preset, graph: list[Job], output: str, workers: int, log: 
 
 
 def _run_ray(
-    preset: Preset, graph: list[Job], output: str, workers: int, address: Optional[str], log: Callable[[str], None]
+    preset: Preset, graph: list[Task], output: str, workers: int, address: Optional[str], log: Callable[[str], None]
 ) -> dict[str, Any]:
     import ray
 
@@ -210,7 +213,7 @@ def _run_ray(
         remote_job = ray.remote(num_cpus=1, max_retries=0)(_after(run_job))
         progress = _Progress(graph, log, preset, 0 if address else workers)  # a cluster's size is its own
         refs: dict[str, Any] = {}
-        pending: dict[Any, Job] = {}
+        pending: dict[Any, Task] = {}
         for job in graph:  # submitted at once: Ray runs a job when the results it is given are ready
             dependencies = [refs[dep] for dep in job.after]
             # the dependencies go in as top-level arguments: Ray passes them resolved, once they are ready
