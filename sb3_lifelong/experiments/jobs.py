@@ -1,11 +1,12 @@
 """
 A job of a study, the same for every job of a seed: its directory from start to finish, and what every job is built
 with. A job claims a new directory (``start_job``), runs while it holds its lock (:func:`job_lock`), may pause and
-resume (a pause's logs cut back to it, everything cut kept beside it: ``aside_name``, ``drop_rows_after``,
-``cut_logs_back``), and is done once its ``done.json`` is written (``finish_job``). Every job acts in the robot through
-its stages (``make_env``), builds its models with the preset's network and device (``model_kwargs``), logs through
-the same callbacks (``job_callbacks``, ``tensorboard_dir``), and a bounded critic has its value support
-(:func:`value_support`). What the jobs run and what their pauses record are ``collection`` (the ``collect`` job) and
+resume (a student's checkpoint and the record that names it: ``StudentPauses``, ``paused_student``; a pause's logs
+cut back to it, everything cut kept beside it: ``aside_name``, ``drop_rows_after``, ``cut_logs_back``), and is done
+once its ``done.json`` is written (``finish_job``). Every job acts in the robot through its stages (``make_env``),
+builds its models with the preset's network and device (``model_kwargs``), logs through the same callbacks
+(``job_callbacks``, ``tensorboard_dir``), and a bounded critic has its value support (:func:`value_support`). What
+the jobs run and what their pauses record are ``collection`` (the ``collect`` job) and
 :mod:`~sb3_lifelong.experiments.protocol` (the students, the online baselines, one seed).
 
 What a job may delete: only what it wrote itself. A job that creates its directory writes a marker of its own into it
@@ -22,6 +23,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import shutil
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -29,10 +31,12 @@ from typing import Any, Callable, Optional
 
 import gymnasium as gym
 from filelock import FileLock, Timeout
+from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.envs import DynamicsSchedule, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback
+from sb3_lifelong.experiments import costs
 from sb3_lifelong.experiments.presets import Preset
 
 # ------------------------------------------------------------------------------------------------- a job's directory
@@ -265,6 +269,100 @@ def _timesteps(row: Mapping[str, Any]) -> float:
         return math.inf
 
 
+#: a paused student (``distill_student(..., pause_every=...)``), in the student's directory: what the pause recorded
+#: (updates, the student's settings, its checkpoint ``paused_<updates>.zip``, which holds the random streams too)
+PAUSED_STUDENT_RECORD = "paused.json"
+
+
+def paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Optional[dict[str, Any]]:
+    """
+    :return: the pause record of the student in ``directory``, or None when it has none (a new student)
+    :raises ValueError: the pause was recorded for other settings (the directory is left as it is)
+    :raises FileNotFoundError: the checkpoint the record names is missing (the directory is left as it is)
+    """
+    record_path = directory / PAUSED_STUDENT_RECORD
+    if not record_path.exists() or (directory / "done.json").exists():
+        return None
+    record = json.loads(record_path.read_text())
+    recorded, expected = record.get("settings"), json.loads(json.dumps(settings))
+    if isinstance(recorded, dict) and "preset" not in recorded:  # recorded before the preset was
+        expected.pop("preset", None)
+    if recorded != expected:
+        raise ValueError(
+            f"{directory} holds a student checkpoint at {record.get('updates', 0):,} updates with other settings "
+            f"({recorded}) than these ({dict(settings)}): move it away to train this one"
+        )
+    if not (directory / record["model"]).exists():
+        raise FileNotFoundError(
+            f"{directory / PAUSED_STUDENT_RECORD} records a pause at {record.get('updates', 0):,} updates whose "
+            f"checkpoint {record['model']} is missing: move the directory away to train this student anew"
+        )
+    return record
+
+
+def pause_checkpoints(directory: pathlib.Path) -> list[pathlib.Path]:
+    """:return: the checkpoints that pauses of a student wrote in ``directory`` (``paused_<updates>.zip``)"""
+    return [path for path in directory.glob("paused_*.zip") if re.fullmatch(r"paused_\d+\.zip", path.name)]
+
+
+class StudentPauses(BaseCallback):
+    """
+    Pause a student every ``every`` updates before its last: its checkpoint ``paused_<updates>.zip``, then the record
+    that names it (:data:`PAUSED_STUDENT_RECORD`), then the older checkpoints go. Called after the student's other
+    callbacks, so that the pause's evaluation is in its logs.
+
+    :param directory: the student's directory
+    :param every: the pause period, in updates (None: never)
+    :param total: the student's updates in all
+    :param settings: what the record must match to be continued
+    :param paused: the record continued from (None: a new student)
+    :param log: where each pause is reported
+    """
+
+    def __init__(
+        self,
+        directory: pathlib.Path,
+        every: Optional[int],
+        total: int,
+        settings: Mapping[str, Any],
+        paused: Optional[Mapping[str, Any]],
+        log: Callable[[str], None] = print,
+    ) -> None:
+        super().__init__()
+        self.directory, self.every, self.total, self.settings, self.log = directory, every, total, settings, log
+        self.earlier = 0.0 if paused is None else float(paused.get("seconds", 0.0))
+        self.start = time.perf_counter()
+
+    def seconds(self) -> float:
+        """:return: the student's training seconds so far, its earlier parts' included"""
+        return self.earlier + time.perf_counter() - self.start
+
+    def record(self, updates: int, checkpoint: str) -> float:
+        """Write the record of a pause at ``updates`` whose checkpoint is ``checkpoint``. :return: the seconds so far"""
+        seconds = self.seconds()
+        forward = getattr(self.model, "_forward", None)
+        compiled = forward is not None and forward.compiled is not None  # continued compiled too, as if never stopped
+        record = dict(updates=updates, model=checkpoint, settings=self.settings, seconds=seconds, compiled=compiled)
+        write_json_atomic(self.directory / PAUSED_STUDENT_RECORD, record)
+        return seconds
+
+    def _on_step(self) -> bool:
+        updates = self.model.num_timesteps
+        if self.every is None or updates % self.every or updates >= self.total:
+            return True
+        checkpoint = f"paused_{updates}.zip"
+        self.model.save(self.directory / checkpoint)
+        seconds = self.record(updates, checkpoint)
+        for older in pause_checkpoints(self.directory):
+            if older.name != checkpoint:
+                older.unlink()
+        self.log(
+            f"  {self.directory.name}: checkpoint at {updates:,} of {self.total:,} updates ({costs.minutes(seconds)} so far); "
+            "a stopped run continues from here"
+        )
+        return True
+
+
 # ------------------------------------------------------------------------------------------------- environments
 def make_env(preset: Preset, switch_at: Optional[Sequence[int]] = None, start_timestep: int = 0) -> DynamicsSchedule:
     """The robot through its stages, with the true physical parameters appended to the observation (as the paper)."""
@@ -277,7 +375,7 @@ def make_env(preset: Preset, switch_at: Optional[Sequence[int]] = None, start_ti
     )
 
 
-# ------------------------------------------------------------------------------------------------- the jobs
+# ---------------------------------------------------------------------------------------------- what every job is built with
 def tensorboard_dir(directory: pathlib.Path) -> Optional[str]:
     """
     :param directory: a job's directory

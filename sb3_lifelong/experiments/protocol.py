@@ -36,13 +36,10 @@ Layout of ``<output>/seed_<k>/``::
 import dataclasses
 import json
 import pathlib
-import re
 import shutil
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any, Callable, Optional
-
-from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_lifelong.bc import BC
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
@@ -53,12 +50,15 @@ from sb3_lifelong.experiments import costs
 from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, PAUSED_MODEL, collect, remove_unfinished_collection
 from sb3_lifelong.experiments.jobs import (
     OWNED_MARKER,
+    StudentPauses,
     cut_logs_back,
     finish_job,
     job_callbacks,
     job_lock,
     make_env,
     model_kwargs,
+    pause_checkpoints,
+    paused_student,
     release_directory,
     start_job,
     tensorboard_dir,
@@ -133,100 +133,6 @@ def sampling_weights(ratio: tuple[float, float], counts: Mapping[int, int]) -> d
     return {0: a / n_a if n_a else 0.0, 1: b / n_b if n_b else 0.0}
 
 
-#: a paused student (``distill_student(..., pause_every=...)``), in the student's directory: what the pause recorded
-#: (updates, the student's settings, its checkpoint ``paused_<updates>.zip``, which holds the random streams too)
-PAUSED_STUDENT_RECORD = "paused.json"
-
-
-def _paused_student(directory: pathlib.Path, settings: Mapping[str, Any]) -> Optional[dict[str, Any]]:
-    """
-    :return: the pause record of the student in ``directory``, or None when it has none (a new student)
-    :raises ValueError: the pause was recorded for other settings (the directory is left as it is)
-    :raises FileNotFoundError: the checkpoint the record names is missing (the directory is left as it is)
-    """
-    record_path = directory / PAUSED_STUDENT_RECORD
-    if not record_path.exists() or (directory / "done.json").exists():
-        return None
-    record = json.loads(record_path.read_text())
-    recorded, expected = record.get("settings"), json.loads(json.dumps(settings))
-    if isinstance(recorded, dict) and "preset" not in recorded:  # recorded before the preset was
-        expected.pop("preset", None)
-    if recorded != expected:
-        raise ValueError(
-            f"{directory} holds a student checkpoint at {record.get('updates', 0):,} updates with other settings "
-            f"({recorded}) than these ({dict(settings)}): move it away to train this one"
-        )
-    if not (directory / record["model"]).exists():
-        raise FileNotFoundError(
-            f"{directory / PAUSED_STUDENT_RECORD} records a pause at {record.get('updates', 0):,} updates whose "
-            f"checkpoint {record['model']} is missing: move the directory away to train this student anew"
-        )
-    return record
-
-
-def _pause_checkpoints(directory: pathlib.Path) -> list[pathlib.Path]:
-    """:return: the checkpoints that pauses of a student wrote in ``directory`` (``paused_<updates>.zip``)"""
-    return [path for path in directory.glob("paused_*.zip") if re.fullmatch(r"paused_\d+\.zip", path.name)]
-
-
-class _StudentPauses(BaseCallback):
-    """
-    Pause a student every ``every`` updates before its last: its checkpoint ``paused_<updates>.zip``, then the record
-    that names it (:data:`PAUSED_STUDENT_RECORD`), then the older checkpoints go. Called after the student's other
-    callbacks, so that the pause's evaluation is in its logs.
-
-    :param directory: the student's directory
-    :param every: the pause period, in updates (None: never)
-    :param total: the student's updates in all
-    :param settings: what the record must match to be continued
-    :param paused: the record continued from (None: a new student)
-    :param log: where each pause is reported
-    """
-
-    def __init__(
-        self,
-        directory: pathlib.Path,
-        every: Optional[int],
-        total: int,
-        settings: Mapping[str, Any],
-        paused: Optional[Mapping[str, Any]],
-        log: Callable[[str], None] = print,
-    ) -> None:
-        super().__init__()
-        self.directory, self.every, self.total, self.settings, self.log = directory, every, total, settings, log
-        self.earlier = 0.0 if paused is None else float(paused.get("seconds", 0.0))
-        self.start = time.perf_counter()
-
-    def seconds(self) -> float:
-        """:return: the student's training seconds so far, its earlier parts' included"""
-        return self.earlier + time.perf_counter() - self.start
-
-    def record(self, updates: int, checkpoint: str) -> float:
-        """Write the record of a pause at ``updates`` whose checkpoint is ``checkpoint``. :return: the seconds so far"""
-        seconds = self.seconds()
-        forward = getattr(self.model, "_forward", None)
-        compiled = forward is not None and forward.compiled is not None  # continued compiled too, as if never stopped
-        record = dict(updates=updates, model=checkpoint, settings=self.settings, seconds=seconds, compiled=compiled)
-        write_json_atomic(self.directory / PAUSED_STUDENT_RECORD, record)
-        return seconds
-
-    def _on_step(self) -> bool:
-        updates = self.model.num_timesteps
-        if self.every is None or updates % self.every or updates >= self.total:
-            return True
-        checkpoint = f"paused_{updates}.zip"
-        self.model.save(self.directory / checkpoint)
-        seconds = self.record(updates, checkpoint)
-        for older in _pause_checkpoints(self.directory):
-            if older.name != checkpoint:
-                older.unlink()
-        self.log(
-            f"  {self.directory.name}: checkpoint at {updates:,} of {self.total:,} updates ({costs.minutes(seconds)} so far); "
-            "a stopped run continues from here"
-        )
-        return True
-
-
 def distill_student(
     name: str,
     preset: Preset,
@@ -265,7 +171,7 @@ def distill_student(
     seed = seed if student_seed is None else student_seed
     directory = run_dir / f"distill_{name}"
     settings = dict(student=dataclasses.asdict(student), seed=seed, updates=preset.distill_steps, preset=preset.describe())
-    paused = _paused_student(directory, settings)
+    paused = paused_student(directory, settings)
     if paused is None:  # a new student: an unfinished attempt's directory goes (only one it wrote: others are refused)
         start_job(directory, directory.name, log)
     else:
@@ -300,7 +206,7 @@ def distill_student(
         sources=sources,
     )
     done = 0 if paused is None else int(paused["updates"])
-    pauses = _StudentPauses(directory, pause_every, preset.distill_steps, settings, paused, log)
+    pauses = StudentPauses(directory, pause_every, preset.distill_steps, settings, paused, log)
     learning: dict[str, Any] = dict(callback=[*callbacks, pauses], progress_bar=progress_bar, tb_log_name=algorithm.__name__)
     if paused is None:
         model = distill(
@@ -325,7 +231,7 @@ def distill_student(
     model.save(directory / "student.zip")
     # the finished student's record: a stop before the caller writes done.json continues with nothing left to train
     seconds = pauses.record(preset.distill_steps, "student.zip")
-    for pause in _pause_checkpoints(directory):
+    for pause in pause_checkpoints(directory):
         pause.unlink()
     data.close()
     everything.close()

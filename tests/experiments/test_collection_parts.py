@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import os
+import pathlib
 
 import numpy as np
 import pandas as pd
@@ -178,7 +179,7 @@ def test_a_paused_collection_whose_buffer_lost_rows_is_not_deleted(tmp_path):
 def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path, monkeypatch):
     """A student pauses at each evaluation; stopped after a pause, it continues from there as if never stopped."""
 
-    from sb3_lifelong.experiments import protocol
+    from sb3_lifelong.experiments import jobs
     from sb3_lifelong.experiments.protocol import distill_on_study
 
     output, _ = study
@@ -186,19 +187,20 @@ def test_a_stopped_student_continues_from_its_last_pause_exactly(study, tmp_path
     student = {"ind": STUDENTS["CRR_indicator"]}
     distill_on_study(output, 0, tmp_path / "whole", student, preset, log=lambda _: None)
 
-    recorded = protocol.write_json_atomic
+    recorded = jobs.write_json_atomic
     calls = []
 
     def stop_at_the_second_pause(path: str, data: dict) -> None:
-        calls.append(1)
-        if len(calls) == 2:  # its checkpoint is written, its record is not: the first pause's record still holds
-            raise KeyboardInterrupt
+        if pathlib.Path(path).name == "paused.json":  # the pause records (not the directory's marker)
+            calls.append(1)
+            if len(calls) == 2:  # its checkpoint is written, its record is not: the first pause's record still holds
+                raise KeyboardInterrupt
         recorded(path, data)
 
-    monkeypatch.setattr(protocol, "write_json_atomic", stop_at_the_second_pause)
+    monkeypatch.setattr(jobs, "write_json_atomic", stop_at_the_second_pause)
     with pytest.raises(KeyboardInterrupt):
         distill_on_study(output, 0, tmp_path / "parts", student, preset, log=lambda _: None)
-    monkeypatch.setattr(protocol, "write_json_atomic", recorded)
+    monkeypatch.setattr(jobs, "write_json_atomic", recorded)
     directory = tmp_path / "parts" / "seed_0" / "distill_ind"
     assert json.loads((directory / "paused.json").read_text())["updates"] == 50
     assert sorted(p.name for p in directory.glob("paused_*.zip")) == ["paused_100.zip", "paused_50.zip"]
