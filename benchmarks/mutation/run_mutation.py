@@ -94,11 +94,16 @@ MODULES: dict[str, list[str]] = {
     "sb3_lifelong/crr/distributional.py": ["tests/golden/test_golden_crr.py", "tests/crr/test_crr_losses.py"],
     "sb3_lifelong/mpo/mpo.py": ["tests/golden/test_golden_mpo.py", "tests/golden/test_golden_eager.py"],
     "sb3_lifelong/buffers/sampling.py": [
+        "tests/golden/test_golden_sampling.py",
         "tests/golden/test_golden_views.py",
         "tests/golden/test_golden_student_rows.py",
         "tests/buffers/test_buffers.py",
     ],
-    "sb3_lifelong/buffers/views.py": ["tests/golden/test_golden_views.py", "tests/buffers/test_buffers.py"],
+    "sb3_lifelong/buffers/views.py": [
+        "tests/golden/test_golden_views.py",
+        "tests/golden/test_golden_sampling.py",
+        "tests/buffers/test_buffers.py",
+    ],
     "sb3_lifelong/envs/perturbations.py": ["tests/golden/test_golden_schedule.py", "tests/envs/test_perturbations.py"],
     "sb3_lifelong/envs/schedule.py": ["tests/golden/test_golden_schedule.py", "tests/envs/test_schedule.py"],
     "sb3_lifelong/evaluation/overestimation.py": [
