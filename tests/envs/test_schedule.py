@@ -360,3 +360,15 @@ def test_one_name_per_environment():
             buffer.add(obs[None], next_obs[None], action[None], np.array([reward]), np.array([terminated]), [info])
             obs = next_obs
     assert list(buffer.source_counts(by_name=True)) == list(stage_envs("Hopper-v5", stages)) == ["Env-A", "Env-B"]
+
+
+def test_a_saw_wave_of_no_half_period_is_refused():
+    from sb3_lifelong.envs import SawWave
+
+    with pytest.raises(ValueError, match="half_period must be >= 1"):
+        DynamicsSchedule(gym.make("HalfCheetah-v5"), schedules={"mass_scale": SawWave(0.5, 1.5, half_period=0)})
+
+
+def test_switch_at_of_the_wrong_length_says_how_many_it_needs():
+    with pytest.raises(ValueError, match=r"2 values for 3 stages, got 1"):
+        DynamicsSchedule(gym.make("HalfCheetah-v5"), stages=[{}, {"mass_scale": 1.5}, {"mass_scale": 2.0}], switch_at=[100])

@@ -200,3 +200,38 @@ def test_default_horizon_is_monte_carlo_horizon_on_a_long_truncated_episode(hori
     assert result.mc_return == pytest.approx(np.mean(kept), rel=1e-12)
     assert result.overestimation == pytest.approx(0.0, abs=1e-9)
     assert math.isclose(result.q_mean, result.mc_return, rel_tol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The horizon at exact powers, the probe's arguments and the units of the actions it scores (mutation survivors)
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("gamma, tolerance, horizon", [(0.5, 0.25, 3), (0.5, 0.125, 4), (0.25, 0.0625, 3), (0.9, 0.9, 2)])
+def test_the_horizon_at_an_exact_power_is_the_first_below_the_tolerance(gamma, tolerance, horizon) -> None:
+    """``gamma ** h < tolerance <= gamma ** (h - 1)``, also where a power equals the tolerance exactly."""
+    assert monte_carlo_horizon(gamma, tolerance) == horizon
+    assert gamma**horizon < tolerance <= gamma ** (horizon - 1)
+
+
+def test_a_probe_of_no_rows_per_source_is_refused() -> None:
+    with pytest.raises(ValueError, match="per_source must be >= 1, got 0"):
+        MonteCarloProbe(two_env_buffer(), GAMMA, per_source=0)
+
+
+class ActionCritic(th.nn.Module):
+    """``Q(s, a)`` = the action it is given (its first entry)."""
+
+    def forward(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
+        return (actions[:, :1].double(),)
+
+
+def test_the_probe_scores_the_actions_in_the_critics_units() -> None:
+    """The critic sees the stored actions as they are stored, normalised to [-1, 1] (as SB3 stores them and trains on
+    them), not turned back into the env's units (0.75 is 1.5 of [-2, 2])."""
+    buffer = LifelongReplayBuffer(0, OBS_SPACE, gym.spaces.Box(-2.0, 2.0, (1,), np.float32), device="cpu")
+    for t in range(6):
+        obs = np.array([[code(0, t), 0.0]], dtype=np.float32)
+        buffer.add(obs, obs, np.array([[0.75]], np.float32), np.array([1.0]), np.array([t == 5]), [{}])
+    got = MonteCarloProbe(buffer, GAMMA, per_source=10, horizon=HORIZON).measure(ActionCritic())[0]
+    assert got.n == 6 and got.q_mean == pytest.approx(0.75, abs=1e-7)
