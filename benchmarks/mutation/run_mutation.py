@@ -110,7 +110,11 @@ MODULES: dict[str, list[str]] = {
         "tests/golden/test_golden_overestimation.py",
         "tests/evaluation/test_overestimation.py",
     ],
-    "sb3_lifelong/evaluation/callbacks.py": ["tests/golden/test_golden_eval_sources.py", "tests/evaluation/test_callbacks.py"],
+    "sb3_lifelong/evaluation/callbacks.py": [
+        "tests/golden/test_golden_eval_sources.py",
+        "tests/evaluation/test_callbacks.py",
+        "tests/evaluation/test_eval_callback_parity.py",
+    ],
     "sb3_lifelong/common/distillation.py": ["tests/golden/test_golden_student_rows.py", "tests/test_distill.py"],
     "sb3_lifelong/common/offline.py": ["tests/golden/test_golden_eval_sources.py", "tests/common/test_offline_learning.py"],
     "sb3_lifelong/experiments/scores.py": ["tests/experiments/test_study_readings.py", "tests/experiments/test_study.py"],

@@ -154,3 +154,32 @@ def test_source_q_callback_needs_source_tags():
     model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
     with pytest.raises(TypeError, match="source tags"):
         model.learn(60, callback=SourceQCallback(log_freq=10))
+
+
+def test_an_older_q_log_is_widened_and_keeps_its_rows(tmp_path):
+    """A q.csv of an earlier version (without the Monte-Carlo columns) gains them, its rows kept and padded empty."""
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.evaluation.callbacks import Q_CSV_FIELDS, SourceQCallback
+
+    log = tmp_path / "q.csv"
+    old = [["100", "0", "env_a", "-1.25", "64"], ["100", "1", "env_b", "-2.5", "64"]]
+    with open(log, "w", newline="") as handle:
+        csv.writer(handle).writerows([Q_CSV_FIELDS[:5], *old])
+    model = MPO("MlpPolicy", "Pendulum-v1", replay_buffer_class=LifelongReplayBuffer, seed=0, **SMALL)
+    model.replay_buffer.set_source(0, name="env_a")
+    model.learn(60, callback=SourceQCallback(log_freq=50, batch_size=64, log_path=log))
+    with open(log, newline="") as handle:
+        rows = list(csv.reader(handle))
+    assert rows[0] == Q_CSV_FIELDS
+    assert rows[1:3] == [row + [""] * (len(Q_CSV_FIELDS) - 5) for row in old]
+    assert len(rows) == 4 and len(rows[3]) == len(Q_CSV_FIELDS)  # the new measurement, every column
+
+
+def test_the_best_model_folder_may_be_nested(tmp_path):
+    """``best_model_save_path`` is created with its parents, as SB3's ``EvalCallback`` does."""
+    folder = tmp_path / "runs" / "seed_0" / "best"
+    callback = MultiEnvEvalCallback(
+        {"env": gym.make("Pendulum-v1")}, eval_freq=50, n_eval_episodes=1, best_model_save_path=folder
+    )
+    MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL).learn(60, callback=callback)
+    assert (folder / "best_model.zip").is_file()
