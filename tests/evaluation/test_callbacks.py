@@ -89,7 +89,8 @@ def test_protocol_evaluations_play_the_same_episodes(tmp_path):
 
     evaluation = job_callbacks(PRESETS["tiny"], tmp_path, eval_freq=100, seed=3)[1]
     assert isinstance(evaluation, MultiEnvEvalCallback)
-    assert evaluation.same_episodes and evaluation.seed == EVAL_SEED_OFFSET + 3
+    # 10_000 + s: the reset seeds every committed study was evaluated on (their READMEs: 10000..10009 for seed 0)
+    assert evaluation.same_episodes and evaluation.seed == EVAL_SEED_OFFSET + 3 == 10_003
 
 
 def test_experiment_callbacks_seed_their_evaluations(tmp_path):
@@ -99,7 +100,7 @@ def test_experiment_callbacks_seed_their_evaluations(tmp_path):
 
     config = dict(eval_freq=100, eval_episodes=1)
     envs = {"Env-A": gym.make("Pendulum-v1")}
-    assert eval_callbacks(tmp_path / "a", envs, config, seed=3)[0].seed == EVAL_SEED_OFFSET + 3
+    assert eval_callbacks(tmp_path / "a", envs, config, seed=3)[0].seed == EVAL_SEED_OFFSET + 3 == 10_003
     assert eval_callbacks(tmp_path / "b", envs, config)[0].seed is None
 
 

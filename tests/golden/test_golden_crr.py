@@ -282,6 +282,8 @@ def test_distill_forwards_zero_seed_verbose_and_gamma(capsys):
     student = teacher.distill(CRR, total_updates=3, seed=0, verbose=0, gamma=0.0, compute=compute, **small)
     assert capsys.readouterr().out == ""
     assert (student.seed, student.verbose, student.gamma) == (0, 0, 0.0)
+    teacher.distill(CRR, total_updates=1, seed=0, verbose=1, compute=compute, **small)  # verbose 1 says what it does
+    assert "Distilling 200 transitions into CRR: 1 gradient updates" in capsys.readouterr().out
     # gamma = 0: the TD target is the reward, whatever the next state's value
     batch = student.replay_buffer.sample(16)
     assert (batch.dones == 0).all()
