@@ -116,7 +116,11 @@ MODULES: dict[str, list[str]] = {
         "tests/evaluation/test_eval_callback_parity.py",
     ],
     "sb3_lifelong/common/distillation.py": ["tests/golden/test_golden_student_rows.py", "tests/test_distill.py"],
-    "sb3_lifelong/common/offline.py": ["tests/golden/test_golden_eval_sources.py", "tests/common/test_offline_learning.py"],
+    "sb3_lifelong/common/offline.py": [
+        "tests/golden/test_golden_eval_sources.py",
+        "tests/common/test_offline_data.py",
+        "tests/common/test_offline_learning.py",
+    ],
     "sb3_lifelong/experiments/scores.py": ["tests/experiments/test_study_readings.py", "tests/experiments/test_study.py"],
     # the buffer's commit and recovery path (its scope below): rows written, committed, recovered after a crash
     "sb3_lifelong/buffers/rowstore.py": [

@@ -328,3 +328,25 @@ def test_eval_env_names():
     assert list(envs) == ["a", "b"]
     envs = make_eval_envs(["Pendulum-v1", gym.make("Pendulum-v1")])
     assert list(envs) == ["Pendulum-v1", "Pendulum-v1_1"]
+
+
+def test_learn_offline_keeps_the_env_it_has_and_lends_callbacks_a_stand_in_otherwise():
+    """A model built with an env keeps it through ``learn_offline``; one without gets a stand-in for the callbacks
+    (which cannot be stepped) and has no env again afterwards."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from sb3_lifelong.common.offline import NoEnvironment
+
+    class Seen(BaseCallback):
+        def _on_step(self) -> bool:
+            self.seen = self.training_env.envs[0].unwrapped
+            return True
+
+    pendulum = gym.make("Pendulum-v1")
+    with_env = CRR.from_offline_data(make_data(), env=pendulum, **SMALL)
+    before, seen = with_env.get_env(), Seen()
+    with_env.learn_offline(2, log_interval=0, callback=seen)
+    assert with_env.get_env() is before and seen.seen is pendulum.unwrapped
+    alone, seen = CRR.from_offline_data(make_data(), observation_space=pendulum.observation_space, **SMALL), Seen()
+    alone.learn_offline(2, log_interval=0, callback=seen)
+    assert isinstance(seen.seen, NoEnvironment) and alone.get_env() is None
