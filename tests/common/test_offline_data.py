@@ -350,3 +350,17 @@ def test_learn_offline_keeps_the_env_it_has_and_lends_callbacks_a_stand_in_other
     alone, seen = CRR.from_offline_data(make_data(), observation_space=pendulum.observation_space, **SMALL), Seen()
     alone.learn_offline(2, log_interval=0, callback=seen)
     assert isinstance(seen.seen, NoEnvironment) and alone.get_env() is None
+
+
+@pytest.mark.parametrize("updates, dumps", [(7, [5, 7]), (10, [5, 10])])
+def test_learn_offline_dumps_every_log_interval_and_once_at_the_end(tmp_path, updates, dumps):
+    """The logs are written every ``log_interval`` updates and after the last update, never twice for one update."""
+    import csv as csv_module
+
+    from stable_baselines3.common.logger import configure
+
+    model = CRR.from_offline_data(make_data(), env=gym.make("Pendulum-v1"), **SMALL)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn_offline(updates, log_interval=5)
+    with open(tmp_path / "progress.csv", newline="") as handle:
+        assert [int(row["time/updates"]) for row in csv_module.DictReader(handle)] == dumps
