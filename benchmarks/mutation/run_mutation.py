@@ -121,7 +121,11 @@ MODULES: dict[str, list[str]] = {
         "tests/common/test_offline_data.py",
         "tests/common/test_offline_learning.py",
     ],
-    "sb3_lifelong/experiments/scores.py": ["tests/experiments/test_study_readings.py", "tests/experiments/test_study.py"],
+    "sb3_lifelong/experiments/scores.py": [
+        "tests/experiments/test_report_inputs.py",
+        "tests/experiments/test_study_readings.py",
+        "tests/experiments/test_study.py",
+    ],
     # the buffer's commit and recovery path (its scope below): rows written, committed, recovered after a crash
     "sb3_lifelong/buffers/rowstore.py": [
         "tests/buffers/test_buffer_crash_prefix.py",

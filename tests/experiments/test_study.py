@@ -634,3 +634,20 @@ def test_the_report_gives_the_field_metrics_from_each_run_and_measures_the_rando
     assert record["returns"] == real(data.preset)  # seeded: the same measurement every time
     write_report(output, plots=False)
     assert len(measured) == 1  # read back, not measured again
+
+
+def test_an_online_final_is_the_mean_of_its_last_three_evaluations_by_hand(study):
+    """MPO's final score in each environment: the mean of its last three evaluations there, read from ``eval.csv``
+    with the csv module (the reading every committed study's tables and claims use)."""
+    import csv
+
+    output, _ = study
+    finals = load_study(output).finals
+    for seed in (0, 1):
+        with open(output / f"seed_{seed}" / "collect" / "eval.csv", newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        for env in {row["env"] for row in rows}:
+            returns = [float(row["mean_reward"]) for row in rows if row["env"] == env]
+            assert len(returns) > 3  # more evaluations than the three read, so the count matters
+            got = finals[(finals["seed"] == seed) & (finals["method"] == "MPO") & (finals["env"] == env)]["score"]
+            assert got.item() == pytest.approx(sum(returns[-3:]) / 3, rel=1e-12)
