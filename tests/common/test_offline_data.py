@@ -363,4 +363,6 @@ def test_learn_offline_dumps_every_log_interval_and_once_at_the_end(tmp_path, up
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn_offline(updates, log_interval=5)
     with open(tmp_path / "progress.csv", newline="") as handle:
-        assert [int(row["time/updates"]) for row in csv_module.DictReader(handle)] == dumps
+        rows = list(csv_module.DictReader(handle))
+    assert [int(row["time/updates"]) for row in rows] == dumps
+    assert all(0 <= int(row["time/time_elapsed"]) < 600 for row in rows)  # seconds since this call began
