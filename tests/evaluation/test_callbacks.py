@@ -184,3 +184,10 @@ def test_the_best_model_folder_may_be_nested(tmp_path):
     )
     MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL).learn(60, callback=callback)
     assert (folder / "best_model.zip").is_file()
+
+
+def test_a_train_log_of_no_frequency_is_refused(tmp_path):
+    from sb3_lifelong.evaluation.callbacks import TrainLogCallback
+
+    with pytest.raises(ValueError, match="log_freq must be >= 1, got 0"):
+        TrainLogCallback(tmp_path / "train.csv", log_freq=0)

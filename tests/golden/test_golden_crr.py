@@ -303,3 +303,20 @@ def test_distill_forwards_zero_seed_verbose_and_gamma(capsys):
     ).learn_offline(3, log_interval=1_000)
     for (name, got), want in zip(student.policy.state_dict().items(), reference.policy.state_dict().values()):
         assert th.equal(got, want), name
+
+
+def test_the_student_logs_beside_a_teacher_with_a_logger_of_its_own(tmp_path):
+    """A teacher given a logger with ``set_logger`` (no ``tensorboard_log``): the student writes its CSV in
+    ``<that logger's folder>/<tb_log_name>``, the teacher's formats."""
+    from stable_baselines3.common.logger import configure
+
+    from sb3_lifelong import MPO
+
+    teacher = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), learning_starts=1_000, seed=5, device="cpu")
+    teacher.set_logger(configure(str(tmp_path), ["csv"]))
+    teacher.learn(200)
+    compute = dict(scoring_dtype="float32", compile_losses=False)
+    teacher.distill(CRR, total_updates=4, tb_log_name="student", verbose=0, compute=compute, log_interval=2,
+                    policy_kwargs=dict(net_arch=[8]), batch_size=16, num_samples=2)  # fmt: skip
+    progress = tmp_path / "student" / "progress.csv"
+    assert progress.is_file() and "time/updates" in progress.read_text().splitlines()[0]
