@@ -115,11 +115,17 @@ MODULES: dict[str, list[str]] = {
         "tests/evaluation/test_callbacks.py",
         "tests/evaluation/test_eval_callback_parity.py",
     ],
-    "sb3_lifelong/common/distillation.py": ["tests/golden/test_golden_student_rows.py", "tests/test_distill.py"],
+    "sb3_lifelong/common/distillation.py": [
+        "tests/golden/test_golden_student_rows.py",
+        "tests/test_distill.py",
+        "tests/golden/test_golden_crr.py",
+        "tests/common/test_verbose.py",
+    ],
     "sb3_lifelong/common/offline.py": [
         "tests/golden/test_golden_eval_sources.py",
         "tests/common/test_offline_data.py",
         "tests/common/test_offline_learning.py",
+        "tests/crr/test_crr.py::test_the_offline_progress_bar_counts_updates",
     ],
     "sb3_lifelong/experiments/scores.py": [
         "tests/experiments/test_report_inputs.py",

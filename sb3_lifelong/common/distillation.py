@@ -11,6 +11,7 @@ the model as the source. It needs no algorithm of the package: the student class
 
 import inspect
 import os
+import sys
 from typing import Any, Optional, Union
 
 from stable_baselines3.common.buffers import ReplayBuffer
@@ -60,7 +61,7 @@ def _logger_beside(teacher: OffPolicyAlgorithm, tb_log_name: str, verbose: int) 
         formats.add("stdout")
     teacher_dir = teacher.logger.get_dir()
     if teacher_dir is None:  # a logger with no folder (stdout only): the student prints, as the teacher does
-        return Logger(None, [make_output_format("stdout", "")] if "stdout" in formats else [])
+        return Logger(None, [HumanOutputFormat(sys.stdout)] if "stdout" in formats else [])
     folder = os.path.join(teacher_dir, tb_log_name)
     os.makedirs(folder, exist_ok=True)
     return Logger(folder, [make_output_format(name, folder) for name in sorted(formats)])

@@ -249,6 +249,26 @@ def switch_spread(frame: pd.DataFrame, env: str, start: int, end: int) -> float:
     return relative_spread(returns)
 
 
+def switch_metrics(seed: int, frame: pd.DataFrame, envs: Sequence[str], ends: Sequence[int]) -> list[dict[str, Any]]:
+    """
+    MPO's return when it leaves each environment but the last (``MPO|switch|<env>``: the mean of its last
+    ``ONLINE_LAST_STAGE1`` evaluations there up to the end of that environment's stage) and how steadily it left it
+    (``MPO|switch_spread|<env>``, :func:`switch_spread` over that stage alone).
+
+    :param seed: the seed, for the rows
+    :param frame: the collector's evaluations
+    :param envs: the environments in the order of their stages
+    :param ends: the timestep at which each stage ends (:func:`~sb3_lifelong.experiments.presets.stage_ends`)
+    :return: two rows (seed, metric, value) per environment left
+    """
+    rows = []
+    for env, start, end in zip(envs[:-1], [0, *ends[:-2]], ends[:-1]):
+        value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
+        rows.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
+        rows.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=switch_spread(frame, env, start, end)))
+    return rows
+
+
 def last_evaluations(eval_csv: pathlib.Path, env: str, upto: Optional[int], count: int) -> list[float]:
     """
     :param eval_csv: a collection's ``eval.csv`` (``timesteps``, ``env``, ``mean_reward``)
@@ -502,12 +522,8 @@ def load_study(
                     extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
                 # an online method's rows start after the Stage 1 it shares with MPO
                 extras += return_matrix(seed, method, frame, envs, ends, first=0 if job == "collect" else 1)
-                if job == "collect":  # each environment's return when MPO leaves it (the end of its stage)
-                    for env, start, end in zip(envs[:-1], [0, *ends[:-2]], ends[:-1]):
-                        value = last_mean(frame, env, ONLINE_LAST_STAGE1, until=end)
-                        extras.append(dict(seed=seed, metric=f"MPO|switch|{env}", value=value))
-                        spread = switch_spread(frame, env, start, end)
-                        extras.append(dict(seed=seed, metric=f"MPO|switch_spread|{env}", value=spread))
+                if job == "collect":
+                    extras += switch_metrics(seed, frame, envs, ends)
                     extras += data_values(seed, job_dir / "q_sources.csv", [])  # (its problems: counted once, below)
                     extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs, ends, problems)
                     extras += [

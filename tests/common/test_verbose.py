@@ -41,3 +41,19 @@ def test_a_logger_given_by_the_user_keeps_its_stdout(capsys):
     model.set_logger(configure(None, ["stdout"]))
     model.learn(40, log_interval=1)
     assert table_lines(capsys.readouterr().out)
+
+
+def test_a_teacher_that_prints_only_has_a_student_that_prints(capsys):
+    """A teacher whose logger has no folder (stdout only): the student prints its tables too, and writes no files."""
+    import sys
+
+    from stable_baselines3.common.logger import HumanOutputFormat, Logger
+
+    model = MPO("MlpPolicy", short(), **SMALL)
+    model.set_logger(Logger(None, [HumanOutputFormat(sys.stdout)]))
+    model.learn(40, log_interval=1)
+    capsys.readouterr()
+    student = model.distill(CRR, total_updates=10, log_interval=5, verbose=2)
+    assert student.logger.get_dir() is None
+    assert [type(f) for f in student.logger.output_formats] == [HumanOutputFormat]
+    assert any("train/" in line for line in table_lines(capsys.readouterr().out))

@@ -356,3 +356,20 @@ def test_sarsa_next_actions_row_by_row():
     for k in range(2):
         assert th.equal(out[k, 0], data[0]) and th.equal(out[k, 2], data[2])  # shown in the data: the data's
         assert th.equal(out[k, 1], sampled[k, 1])  # not shown (an episode's last stored step): the policy's sample
+
+
+def test_the_offline_progress_bar_counts_updates(data, monkeypatch):
+    pytest.importorskip("tqdm")
+    pytest.importorskip("rich")
+    from sb3_lifelong.common.offline import OfflineProgressBarCallback
+
+    seen = []
+    original = OfflineProgressBarCallback._on_training_end
+
+    def record(self):
+        seen.append((self.pbar.n, self.pbar.total))
+        original(self)
+
+    monkeypatch.setattr(OfflineProgressBarCallback, "_on_training_end", record)
+    offline_model(data).learn_offline(30, log_interval=0, progress_bar=True)
+    assert seen == [(30, 30)]

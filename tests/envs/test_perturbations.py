@@ -347,3 +347,39 @@ def test_import_without_a_gl_backend_needs_none() -> None:
     env.update(MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa")
     named = subprocess.run([sys.executable, "-c", "import sb3_lifelong.envs"], env=env, capture_output=True, text=True)
     assert named.returncode == 0 or "Unset MUJOCO_GL" in named.stderr, named.stderr  # osmesa may be installed
+
+
+@pytest.mark.parametrize("nominal, expected", [([0.3, 0.0, -0.4], [1.2, 0.0, -1.6]), ([0.0, 0.0, 0.0], [0.0, 0.0, -2.0])])
+def test_gravity_keeps_the_nominal_direction_of_any_magnitude(nominal, expected):
+    """A gravity of 2 points where the robot's own gravity points (a weak, tilted one too; straight down if it has none)."""
+    base = gym.make("Hopper-v5")
+    base.unwrapped.model.opt.gravity[:] = nominal
+    env = DynamicsSchedule(base)
+    env.set_params({"gravity": 2.0}, immediate=True)
+    np.testing.assert_allclose(env.unwrapped.model.opt.gravity, expected)
+    env.set_params({}, immediate=True)
+    np.testing.assert_allclose(env.unwrapped.model.opt.gravity, nominal)
+
+
+def test_unlimited_position_servos_scale_their_stiffness():
+    """A position servo of no force limit (force = kp ctrl - kp q): strength and a leg's scale multiply kp in both terms;
+    reversing the leg negates only the commanded angle."""
+    base = gym.make("Walker2d-v5")
+    model = base.unwrapped.model
+    kp = 50.0
+    model.actuator_biastype[:] = mujoco.mjtBias.mjBIAS_AFFINE
+    model.actuator_gainprm[:, 0] = kp
+    model.actuator_biasprm[:, :3] = [0.0, -kp, 0.0]
+    model.actuator_forcelimited[:] = 0
+    env = DynamicsSchedule(base)
+    leg = env.editor._leg_actuators
+    others = [a for a in range(model.nu) if a not in leg]
+    assert leg and others
+    env.set_params({"leg_motor_scale": -0.5}, immediate=True)
+    np.testing.assert_allclose(model.actuator_gainprm[leg, 0], -0.5 * kp)
+    np.testing.assert_allclose(model.actuator_biasprm[leg, 1], -0.5 * kp)
+    np.testing.assert_allclose(model.actuator_gainprm[others, 0], kp)
+    np.testing.assert_allclose(model.actuator_biasprm[others, 1], -kp)
+    env.set_params({"actuator_strength": 0.5}, immediate=True)
+    np.testing.assert_allclose(model.actuator_gainprm[:, 0], 0.5 * kp)
+    np.testing.assert_allclose(model.actuator_biasprm[:, 1], -0.5 * kp)

@@ -75,3 +75,35 @@ def test_overestimation_at_reads_one_logged_value(tmp_path):
     assert overestimation_at(path, "Env-A", 100) == 3.5 and overestimation_at(path, "Env-B", 100) == -1.0
     assert math.isnan(overestimation_at(path, "Env-A", 200)) and math.isnan(overestimation_at(path, "Env-A", 300))
     assert json.dumps(overestimation_at(path, "Env-B", 100)) == "-1.0"
+
+
+def test_a_level_exactly_at_the_threshold_is_learnt():
+    assert learnt_level([1500.0, 1500.0, 1500.0], 1500.0, 0.2) == (1500.0, 0.0, True)
+    assert learnt_level([1499.0, 1499.0], 1500.0, 0.2)[2] is False
+    assert learnt_level([1000.0, 2000.0], 1500.0, math.sqrt(2) / 3)[2] is True  # spread exactly at its bound
+
+
+def test_the_switch_metrics_of_three_stages_by_hand():
+    """Each environment left (Env-A at 100, Env-B at 200) has its return and its spread over its own stage."""
+    import pandas as pd
+
+    from sb3_lifelong.experiments.scores import switch_metrics
+
+    values = {"Env-A": [10, 20, 30, 40, 50, 60, 70, 80, 90, 100], "Env-B": [1, 2, 3, 4, 5, 6, 7, 8, 9, 10]}
+    rows = []
+    for k in range(1, 31):  # an evaluation every 10 steps of three 100-step stages
+        rows.append(dict(timesteps=10 * k, env="Env-A", mean_reward=float(values["Env-A"][(k - 1) % 10] + 1000 * (k > 10))))
+        rows.append(dict(timesteps=10 * k, env="Env-B", mean_reward=float(values["Env-B"][(k - 1) % 10] * (1 + (k > 10)))))
+        rows.append(dict(timesteps=10 * k, env="Env-C", mean_reward=0.0))
+    frame = pd.DataFrame(rows)
+    got = {row["metric"]: row["value"] for row in switch_metrics(7, frame, ["Env-A", "Env-B", "Env-C"], [100, 200, 300])}
+    assert sorted(got) == ["MPO|switch_spread|Env-A", "MPO|switch_spread|Env-B", "MPO|switch|Env-A", "MPO|switch|Env-B"]
+    assert got["MPO|switch|Env-A"] == (90 + 100) / 2  # the last two evaluations up to 100
+    assert got["MPO|switch|Env-B"] == (18 + 20) / 2  # the last two up to 200 (Env-B doubled after 100)
+
+    def spread(xs):
+        mean = sum(xs) / len(xs)
+        return math.sqrt(sum((x - mean) ** 2 for x in xs) / (len(xs) - 1)) / mean
+
+    assert got["MPO|switch_spread|Env-A"] == pytest.approx(spread([80, 90, 100]))  # the second half of (0, 100]
+    assert got["MPO|switch_spread|Env-B"] == pytest.approx(spread([16, 18, 20]))  # the second half of (100, 200]
