@@ -20,7 +20,6 @@ what was found, and nothing is deleted. ``done.json`` only says that a job can b
 import contextlib
 import csv
 import json
-import math
 import os
 import pathlib
 import re
@@ -208,65 +207,52 @@ def set_aside(path: pathlib.Path, paused: int) -> pathlib.Path:
     return aside
 
 
-def drop_rows_after(path: pathlib.Path, timesteps: int) -> None:
+def drop_rows_after(path: pathlib.Path, timesteps: int) -> Optional[tuple[int, pathlib.Path]]:
     """
     Keep the rows of a job's CSV log (a ``timesteps`` column) up to ``timesteps``; the file is replaced atomically,
     and the whole log is kept beside it first (``<stem>.after_pause_<timesteps>[.k].csv``). A row cut short (a stop
     in the middle of writing it: too few fields, or a ``timesteps`` that is not a number) is past the pause.
+
+    :return: how many rows were cut and where the whole log is kept; None when nothing was cut (or ``path`` is not a
+        log with a ``timesteps`` column)
     """
     if not path.is_file():
-        return
+        return None
     with open(path, newline="") as handle:
         rows = list(csv.reader(handle))
     if not rows or "timesteps" not in rows[0]:
-        return
+        return None
     column = rows[0].index("timesteps")
 
     def before_pause(row: list[str]) -> bool:
         try:
-            return len(row) == len(rows[0]) and int(float(row[column])) <= timesteps
+            return len(row) == len(rows[0]) and float(row[column]) <= timesteps
         except ValueError:
             return False
 
     kept = [rows[0], *(row for row in rows[1:] if before_pause(row))]
-    if len(kept) < len(rows):
-        shutil.copy2(path, aside_name(path, timesteps))  # the whole log first: a stop in between leaves it twice
-        with atomic_write(path, "w", newline="") as rewritten:
-            csv.writer(rewritten).writerows(kept)
+    if len(kept) == len(rows):
+        return None
+    aside = aside_name(path, timesteps)
+    shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
+    with atomic_write(path, "w", newline="") as rewritten:
+        csv.writer(rewritten).writerows(kept)
+    return len(rows) - len(kept), aside
 
 
 def cut_logs_back(directory: pathlib.Path, updates: int, log: Callable[[str], None]) -> None:
     """
     Cut the logs (``*.csv`` with a ``timesteps`` column) of a paused student back to the rows of its first
-    ``updates`` updates: rows past the pause were written by a part that stopped without pausing again. Nothing is
-    deleted: a log that had such rows is kept whole beside it as ``<stem>.after_pause_<updates>[.k].csv``.
+    ``updates`` updates (:func:`drop_rows_after`): rows past the pause were written by a part that stopped without
+    pausing again. Nothing is deleted: a log that had such rows is kept whole beside it as
+    ``<stem>.after_pause_<updates>[.k].csv``.
     """
     for path in sorted(directory.glob("*.csv")):
         if ".after_pause_" in path.name:
             continue
-        with open(path, newline="") as handle:
-            reader = csv.DictReader(handle)
-            fields, rows = reader.fieldnames, list(reader)
-        if not fields or "timesteps" not in fields:
-            continue
-        kept = [row for row in rows if _timesteps(row) <= updates]
-        if len(kept) == len(rows):
-            continue
-        aside = aside_name(path, updates)
-        shutil.copy2(path, aside)  # the whole log first: a stop in between leaves it twice, never lost
-        with atomic_write(path, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(kept)
-        log(f"  {path.name}: {len(rows) - len(kept)} rows past the pause at {updates:,} updates (all kept in {aside.name})")
-
-
-def _timesteps(row: Mapping[str, Any]) -> float:
-    """:return: a log row's ``timesteps``; infinity for a row cut short (a stop in the middle of writing it)"""
-    try:
-        return float(row["timesteps"])
-    except (TypeError, ValueError):
-        return math.inf
+        cut = drop_rows_after(path, updates)
+        if cut is not None:
+            log(f"  {path.name}: {cut[0]} rows past the pause at {updates:,} updates (all kept in {cut[1].name})")
 
 
 #: a paused student (``distill_student(..., pause_every=...)``), in the student's directory: what the pause recorded

@@ -57,3 +57,23 @@ def test_a_job_lock_holds_against_another_process_and_is_freed_after(tmp_path):
             assert another_job
     other = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
     assert other.stdout.strip() == "True", other.stderr
+
+
+def test_a_paused_students_logs_are_cut_back_with_the_collections_rule(tmp_path):
+    """``cut_logs_back`` keeps the rows up to the pause; a row cut short (a stop while writing it) is past the pause, as
+    for a collection's logs; the whole log is kept beside it, and a log with nothing to cut is left as it is."""
+    from sb3_lifelong.experiments.jobs import cut_logs_back
+
+    train = tmp_path / "train.csv"
+    train.write_text("timesteps,loss\n10,0.5\n20,0.4\n30,0.3\n40\n")
+    other = tmp_path / "eval.csv"
+    other.write_text("timesteps,mean_reward\n10,1.0\n20,2.0\n")
+    notes = tmp_path / "notes.csv"
+    notes.write_text("name,value\na,1\n")
+    lines: list[str] = []
+    cut_logs_back(tmp_path, 20, lines.append)
+    assert train.read_text().splitlines() == ["timesteps,loss", "10,0.5", "20,0.4"]
+    assert (tmp_path / "train.after_pause_20.csv").read_text() == "timesteps,loss\n10,0.5\n20,0.4\n30,0.3\n40\n"
+    assert other.read_text() == "timesteps,mean_reward\n10,1.0\n20,2.0\n" and notes.read_text() == "name,value\na,1\n"
+    assert lines == ["  train.csv: 2 rows past the pause at 20 updates (all kept in train.after_pause_20.csv)"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval.csv", "notes.csv", "train.after_pause_20.csv", "train.csv"]
