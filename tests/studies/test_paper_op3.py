@@ -203,6 +203,8 @@ def test_a_killed_stage1_resumes_from_its_checkpoint_and_drops_later_rows(paper,
     before = rows(csv_path)
     assert [int(r["timesteps"]) for r in before] == [0, 200, 400, 600]
     monkeypatch.setattr(paper, "evaluate", real)
+    with pytest.raises(SystemExit, match="checkpoint ran with --max-steps 1200, not 1400"):  # the rule stays
+        paper.main(["stage1", *common[:-1], "1400"])
     paper.main(["stage1", *common])
     after = rows(csv_path)
     assert [int(r["timesteps"]) for r in after] == [0, 200, 400, 600, 800, 1000, 1200]  # 600 evaluated again

@@ -306,9 +306,9 @@ def load_checkpoint(algo_class: type, folder: pathlib.Path, env: gym.Env, name: 
 
 
 def check_run(record: dict[str, Any], args: argparse.Namespace, what: str) -> None:
-    """:raises SystemExit: a job continued with another env, parameter or network than it started with"""
-    for key in ("env", "param", "net_arch"):
-        if key in record and record[key] != getattr(args, key):
+    """:raises SystemExit: a job continued with another env, parameter, network or Stage-1 rule than it started with"""
+    for key in ("env", "param", "net_arch", "min_steps", "max_steps"):
+        if key in record and hasattr(args, key) and record[key] != getattr(args, key):
             raise SystemExit(f"{what} ran with --{key.replace('_', '-')} {record[key]}, not {getattr(args, key)}")
 
 
@@ -388,7 +388,7 @@ def run_stage1(args: argparse.Namespace) -> dict[str, Any]:
     meta.update({"settings": settings_of(model), "command": " ".join(sys.argv)})
     meta["machines"].append({"from_timesteps": done, **machine()})
     write_json(meta_path, meta)
-    state = {"env": args.env, "param": args.param, "net_arch": args.net_arch}
+    state = {key: getattr(args, key) for key in ("env", "param", "net_arch", "min_steps", "max_steps")}
     switch = switch_step(rows, args.min_steps, args.max_steps)
     while switch is None:
         start = time.perf_counter()
