@@ -120,6 +120,7 @@ MODULES: dict[str, list[str]] = {
         "tests/test_distill.py",
         "tests/golden/test_golden_crr.py",
         "tests/common/test_verbose.py",
+        "tests/core/test_one_way_in.py::test_distill_follows_a_logger_given_with_set_logger",
     ],
     "sb3_lifelong/common/offline.py": [
         "tests/golden/test_golden_eval_sources.py",

@@ -52,7 +52,8 @@ def _logger_beside(teacher: OffPolicyAlgorithm, tb_log_name: str, verbose: int) 
     too, and stdout when ``verbose >= 2``), when the teacher logs somewhere: to ``tensorboard_log``, or to a logger
     the user gave it with ``set_logger``. None when the teacher has no logger of its own to follow.
     """
-    if teacher._logger is None or (teacher.tensorboard_log is None and not teacher._custom_logger):
+    # a teacher that never learnt (a loaded model and buffer, a buffer filled by hand) has no logger yet
+    if getattr(teacher, "_logger", None) is None or (teacher.tensorboard_log is None and not teacher._custom_logger):
         return None
     formats = _format_names(teacher.logger)
     if teacher.tensorboard_log is not None:

@@ -57,3 +57,31 @@ def test_a_teacher_that_prints_only_has_a_student_that_prints(capsys):
     assert student.logger.get_dir() is None
     assert [type(f) for f in student.logger.output_formats] == [HumanOutputFormat]
     assert any("train/" in line for line in table_lines(capsys.readouterr().out))
+
+
+def test_verbose_two_prints_the_students_tables_beside_its_files(tmp_path, capsys):
+    """A teacher logging to ``tensorboard_log``: the student writes beside it, and prints SB3's tables at verbose=2
+    only; a second student of the same name writes into the same folder."""
+    model = MPO("MlpPolicy", short(), tensorboard_log=str(tmp_path), **SMALL)
+    model.learn(40, log_interval=1)
+    capsys.readouterr()
+    for verbose, tables in ((1, False), (2, True)):
+        student = model.distill(CRR, total_updates=10, log_interval=5, verbose=verbose, tb_log_name="student")
+        assert student.logger.get_dir() == str(tmp_path / "MPO_1" / "student")
+        assert any("train/" in line for line in table_lines(capsys.readouterr().out)) is tables, verbose
+
+
+def test_a_teacher_that_never_learnt_leaves_the_student_its_own_logs(tmp_path):
+    """A teacher with a ``tensorboard_log`` but no logger yet (it never called learn) has no folder to follow: the
+    student logs into the tensorboard folder on its own, as a model given that folder does."""
+    model = MPO("MlpPolicy", short(), tensorboard_log=str(tmp_path), **SMALL)
+    env = short()
+    obs, _ = env.reset(seed=0)
+    for _ in range(40):
+        action = env.action_space.sample()
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        model.replay_buffer.add(obs[None], next_obs[None], action[None], [reward], [terminated], [{}])
+        obs = next_obs if not (terminated or truncated) else env.reset()[0]
+    assert getattr(model, "_logger", None) is None
+    student = model.distill(CRR, total_updates=10, log_interval=5, tb_log_name="student")
+    assert student.logger.get_dir() == str(tmp_path / "student_1")
