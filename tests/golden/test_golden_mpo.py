@@ -248,3 +248,60 @@ def test_the_defaults_a_user_gets():
     assert (defaults["tau"], defaults["target_update_interval"]) == (1.0, 100)  # Acme's periodic hard target update
     model = MPO("MlpPolicy", BoxEnv(), device="cpu", seed=0)
     assert (model.learning_rate, model.num_samples, model.batch_size) == (3e-4, 20, 256)
+
+
+def test_every_constructor_default_of_mpo_and_crr():
+    """Every default of the two constructors, written out (the docs' parameter tables say the same): a change of one is
+    a change of behaviour, with a CHANGELOG line and a change here."""
+    import inspect
+
+    from sb3_lifelong import CRR
+
+    def defaults(cls: type) -> dict:
+        return {n: p.default for n, p in inspect.signature(cls.__init__).parameters.items() if p.default is not p.empty}
+
+    shared = dict(
+        learning_rate=3e-4,
+        buffer_size=1_000_000,
+        learning_starts=100,
+        batch_size=256,
+        tau=1.0,
+        gamma=0.99,
+        train_freq=1,
+        gradient_steps=1,
+        action_noise=None,
+        replay_buffer_class=None,
+        replay_buffer_kwargs=None,
+        optimize_memory_usage=False,
+        n_steps=1,
+        target_update_interval=100,
+        compute=None,
+        stats_window_size=100,
+        tensorboard_log=None,
+        policy_kwargs=None,
+        verbose=0,
+        seed=None,
+        device="auto",
+        _init_setup_model=True,
+    )
+    assert defaults(MPO) == dict(
+        shared, num_samples=20, policy_loss=None, dual_learning_rate=0.01, max_grad_norm=40.0, policy_on_next_obs=True
+    )
+    assert defaults(CRR) == dict(
+        shared,
+        env=None,
+        num_samples=4,
+        advantage_baseline="mean",
+        advantage_transform="exp",
+        beta=1.0,
+        max_weight=20.0,
+        normalize_advantages=False,
+        target_ess=None,
+        critic_target="policy",
+        n_target_samples=1,
+        actor_per_source=False,
+        max_grad_norm=None,
+        actor_averaging=None,
+    )
+    for name, value in shared.items():  # the same value is the same type: 1.0 is not 1, 0 is not False
+        assert type(defaults(MPO)[name]) is type(value) and type(defaults(CRR)[name]) is type(value), name
