@@ -305,3 +305,16 @@ def test_every_constructor_default_of_mpo_and_crr():
     )
     for name, value in shared.items():  # the same value is the same type: 1.0 is not 1, 0 is not False
         assert type(defaults(MPO)[name]) is type(value) and type(defaults(CRR)[name]) is type(value), name
+
+
+def test_the_hyperparameters_at_the_edges_of_their_ranges():
+    """num_samples and target_update_interval from 1, tau in (0, 1], dual_learning_rate above 0: the edges by hand."""
+    import pytest
+
+    small = dict(policy_kwargs=dict(net_arch=[8]), device="cpu")
+    MPO("MlpPolicy", BoxEnv(), num_samples=1, target_update_interval=1, tau=1.0, dual_learning_rate=1e-9, **small)
+    for bad in (dict(num_samples=0), dict(target_update_interval=0), dict(tau=0.0), dict(tau=1.0 + 1e-9),
+                dict(dual_learning_rate=0.0)):  # fmt: skip
+        name = next(iter(bad))
+        with pytest.raises(ValueError, match=f"Invalid MPO hyperparameters: {name}="):
+            MPO("MlpPolicy", BoxEnv(), **bad, **small)
