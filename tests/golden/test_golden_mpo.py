@@ -318,3 +318,57 @@ def test_the_hyperparameters_at_the_edges_of_their_ranges():
         name = next(iter(bad))
         with pytest.raises(ValueError, match=f"Invalid MPO hyperparameters: {name}="):
             MPO("MlpPolicy", BoxEnv(), **bad, **small)
+
+
+def test_each_update_logs_the_duals_it_used_and_counts_itself():
+    """Each update's logged duals are the duals before its step (the temperatures, and the mean over the action's
+    dimensions of the per-dimension alphas); ``_n_updates`` grows by one an update; every dual is trained (the action
+    penalty's temperature too); and ``learn``'s defaults are SB3's."""
+    import inspect
+
+    from stable_baselines3.common.logger import configure
+
+    from sb3_lifelong.mpo.losses import dual_value
+
+    model = make_model(
+        policy_on_next_obs=True, learning_starts=0, batch_size=TRAIN_BATCH, policy_loss=dict(action_penalty=True)
+    )
+    model.learn(40)
+    model.set_logger(configure(None, []))
+    raws = ("log_temperature", "log_alpha_mean", "log_alpha_stddev", "log_penalty_temperature")
+    seen = []
+
+    class Recording:
+        """the update's forward pass, recording the duals it starts from and what it returns"""
+
+        def __init__(self, forward):
+            self.forward = forward
+
+        def __getattr__(self, name):
+            return getattr(self.forward, name)
+
+        def __call__(self, *args, **kwargs):
+            duals = {name: dual_value(getattr(model, name)).detach().clone() for name in raws}
+            with th.no_grad():  # the policy's std on the batch's next observations (policy_on_next_obs=True)
+                duals["std"] = model.actor.distribution_params(args[1].next_observations)[1].clone()
+            out = self.forward(*args, **kwargs)
+            seen.append((duals, out[1], model._n_updates))
+            return out
+
+    model._forward = Recording(model._forward)  # type: ignore[assignment]
+    before = {name: getattr(model, name).detach().clone() for name in raws}
+    start = model._n_updates
+    model.train(gradient_steps=3, batch_size=TRAIN_BATCH)
+    assert [n for _, _, n in seen] == [start + 1, start + 2, start + 3] and model._n_updates == start + 3
+    for duals, improvement, _ in seen:
+        assert duals["log_alpha_mean"].numel() == ACTION_DIM > 1
+        assert float(improvement.temperature) == pytest.approx(float(duals["log_temperature"]))
+        assert float(improvement.alpha_mean) == pytest.approx(float(duals["log_alpha_mean"].mean()))
+        assert float(improvement.alpha_stddev) == pytest.approx(float(duals["log_alpha_stddev"].mean()))
+        assert float(improvement.penalty_temperature) == pytest.approx(float(duals["log_penalty_temperature"]))
+        assert float(improvement.std_min) == pytest.approx(float(duals["std"].min()))
+        assert float(improvement.std_max) == pytest.approx(float(duals["std"].max()))
+    for name in raws:
+        assert not th.equal(getattr(model, name).detach(), before[name]), f"{name} was not trained"
+    defaults = {n: p.default for n, p in inspect.signature(MPO.learn).parameters.items() if p.default is not p.empty}
+    assert defaults == dict(callback=None, log_interval=4, tb_log_name="MPO", reset_num_timesteps=True, progress_bar=False)
