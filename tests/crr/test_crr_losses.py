@@ -161,13 +161,14 @@ def test_sarsa_next_actions_against_numpy_with_random_masks():
     np.testing.assert_array_equal(got, want)
 
 
-def test_categorical_projection_against_numpy():
+@pytest.mark.parametrize("v_min, v_max", [(-3.0, 5.0), (-12.0, 20.0), (-0.6, 1.0)])  # atoms 1, 4 and 0.2 apart
+def test_categorical_projection_against_numpy(v_min, v_max):
     rng = np.random.default_rng(6)
-    support = np.linspace(-3.0, 5.0, 9)
+    support = np.linspace(v_min, v_max, 9)
     probs = rng.dirichlet(np.ones(9), size=12)
-    rewards = rng.uniform(-4.0, 4.0, size=12)
+    rewards = rng.uniform(-4.0, 4.0, size=12) * (v_max - v_min) / 8.0
     discounts = rng.choice([0.0, 0.5, 0.9, 1.0], size=12)
-    rewards[0], discounts[0] = 1.0, 1.0  # every atom lands exactly on an atom
+    rewards[0], discounts[0] = support[1] - support[0], 1.0  # every atom lands exactly on an atom
     got = categorical_projection(t64(probs), t64(rewards[:, None]), t64(discounts[:, None]), t64(support)).numpy()
     np.testing.assert_allclose(got, np_projection(probs, rewards, discounts, support), rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(got.sum(axis=1), 1.0, rtol=1e-12)  # no mass lost
@@ -350,3 +351,23 @@ def test_ess_temperature_of_equal_advantages_is_infinite_whatever_their_value():
     assert th.full((8,), -3.3).std().item() > 0  # the float32 mean of equal values is not always the value
     for value in (0.932944, 0.01, -3.3, 1e6):
         assert ess_temperature(th.full((8,), value, dtype=th.float64), 0.5).item() == math.inf
+
+
+def test_the_categorical_critic_needs_two_atoms_and_an_increasing_support():
+    """The edges by hand: 2 atoms are a support; 1 atom, or v_min at or above v_max, is not."""
+    import gymnasium as gym
+
+    from sb3_lifelong import CRR
+
+    def critic(**support):
+        kwargs = dict(net_arch=[4], distributional_critic=True, **support)
+        return CRR("MlpPolicy", gym.make("Pendulum-v1"), policy_kwargs=kwargs, device="cpu").critic
+
+    np.testing.assert_array_equal(critic(n_atoms=2, v_min=-1.0, v_max=-0.5).support.numpy(), [-1.0, -0.5])
+    for bad in (
+        dict(n_atoms=1, v_min=-1.0, v_max=1.0),
+        dict(n_atoms=5, v_min=1.0, v_max=1.0),
+        dict(n_atoms=5, v_min=2.0, v_max=1.0),
+    ):
+        with pytest.raises(ValueError, match="need n_atoms >= 2 and v_min < v_max"):
+            critic(**bad)
