@@ -207,7 +207,14 @@ def test_default_horizon_is_monte_carlo_horizon_on_a_long_truncated_episode(hori
 # ---------------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("gamma, tolerance, horizon", [(0.5, 0.25, 3), (0.5, 0.125, 4), (0.25, 0.0625, 3), (0.9, 0.9, 2)])
+#: a tolerance one float above 0.95 ** 98, where the logarithms' estimate (99) is one step too far
+JUST_ABOVE = math.nextafter(0.95**98, 1.0)
+
+
+@pytest.mark.parametrize(
+    "gamma, tolerance, horizon",
+    [(0.5, 0.25, 3), (0.5, 0.125, 4), (0.25, 0.0625, 3), (0.9, 0.9, 2), (0.95, JUST_ABOVE, 98), (0.99, 0.01, 459)],
+)
 def test_the_horizon_at_an_exact_power_is_the_first_below_the_tolerance(gamma, tolerance, horizon) -> None:
     """``gamma ** h < tolerance <= gamma ** (h - 1)``, also where a power equals the tolerance exactly."""
     assert monte_carlo_horizon(gamma, tolerance) == horizon
@@ -235,3 +242,9 @@ def test_the_probe_scores_the_actions_in_the_critics_units() -> None:
         buffer.add(obs, obs, np.array([[0.75]], np.float32), np.array([1.0]), np.array([t == 5]), [{}])
     got = MonteCarloProbe(buffer, GAMMA, per_source=10, horizon=HORIZON).measure(ActionCritic())[0]
     assert got.n == 6 and got.q_mean == pytest.approx(0.75, abs=1e-7)
+
+
+@pytest.mark.parametrize("gamma, tolerance", [(0.0, 0.01), (1.0, 0.01), (0.99, 0.0), (0.99, 1.0)])
+def test_the_horizon_needs_gamma_and_tolerance_strictly_inside_0_1(gamma, tolerance) -> None:
+    with pytest.raises(ValueError, match="gamma and tolerance must be in"):
+        monte_carlo_horizon(gamma, tolerance)
