@@ -32,7 +32,6 @@ import csv
 import json
 import os
 import pathlib
-import platform
 import subprocess
 import sys
 import time
@@ -227,20 +226,18 @@ def settings_of(model: Any) -> dict[str, Any]:
 
 
 def machine() -> dict[str, Any]:
-    """:return: what a run's cost depends on: the CPU and its AMX / BF16 flags, torch threads, versions, the commit"""
-    cpuinfo = pathlib.Path("/proc/cpuinfo")
-    text = cpuinfo.read_text() if cpuinfo.exists() else ""
-    cpu = next((line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith("model name")), "")
-    flags = sorted({flag for flag in text.split() if flag.startswith("amx") or flag == "avx512_bf16"})
+    """:return: what a run's cost depends on: the CPU and its matrix flags (AMX, BF16, ...), torch threads, versions,
+    the commit"""
     import sb3_lifelong
+    from sb3_lifelong.numerics.hardware import cpu_matrix_flags, cpu_model
 
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=STUDY, capture_output=True, text=True).stdout
     except OSError:
         commit = ""
     return {
-        "cpu": cpu or platform.processor(),
-        "cpu_flags": flags,
+        "cpu": cpu_model(),
+        "cpu_flags": cpu_matrix_flags(),
         "torch_threads": th.get_num_threads(),
         "torch": th.__version__,
         "sb3_lifelong": sb3_lifelong.__version__,
