@@ -196,6 +196,25 @@ def test_one_eager_update_regresses_the_critic_on_the_hand_computed_target(polic
 # ---------------------------------------------------------------------------------------------------------------------
 
 
+class Recording:
+    """An update's forward pass (``model._forward``), calling ``record(args, out[, before(args)])`` after each call."""
+
+    def __init__(self, forward, record, before=None):
+        self.forward, self.record, self.before = forward, record, before
+
+    def __getattr__(self, name):
+        return getattr(self.forward, name)
+
+    def __call__(self, *args, **kwargs):
+        seen = None if self.before is None else self.before(args)
+        out = self.forward(*args, **kwargs)
+        if self.before is None:
+            self.record(args, out)
+        else:
+            self.record(args, out, seen)
+        return out
+
+
 def test_train_logs_the_mean_of_its_updates_for_every_statistic():
     """With several updates per call, each ``train/<statistic>`` is the mean over the updates (not their sum)."""
     from stable_baselines3.common.logger import configure
@@ -206,22 +225,7 @@ def test_train_logs_the_mean_of_its_updates_for_every_statistic():
     model.learn(40)
     model.set_logger(configure(None, []))
     steps = []
-
-    class Recording:
-        """the update's forward pass, recording what each update returns"""
-
-        def __init__(self, forward):
-            self.forward = forward
-
-        def __getattr__(self, name):
-            return getattr(self.forward, name)
-
-        def __call__(self, *args, **kwargs):
-            out = self.forward(*args, **kwargs)
-            steps.append((out[0], out[1]))
-            return out
-
-    model._forward = Recording(model._forward)  # type: ignore[assignment]
+    model._forward = Recording(model._forward, lambda args, out: steps.append((out[0], out[1])))  # type: ignore[assignment]
     model.train(gradient_steps=3, batch_size=TRAIN_BATCH)
     assert len(steps) == 3
     logged = model.logger.name_to_value
@@ -338,24 +342,15 @@ def test_each_update_logs_the_duals_it_used_and_counts_itself():
     raws = ("log_temperature", "log_alpha_mean", "log_alpha_stddev", "log_penalty_temperature")
     seen = []
 
-    class Recording:
-        """the update's forward pass, recording the duals it starts from and what it returns"""
+    def before(args):
+        duals = {name: dual_value(getattr(model, name)).detach().clone() for name in raws}
+        with th.no_grad():  # the policy's std on the batch's next observations (policy_on_next_obs=True)
+            duals["std"] = model.actor.distribution_params(args[1].next_observations)[1].clone()
+        return duals
 
-        def __init__(self, forward):
-            self.forward = forward
-
-        def __getattr__(self, name):
-            return getattr(self.forward, name)
-
-        def __call__(self, *args, **kwargs):
-            duals = {name: dual_value(getattr(model, name)).detach().clone() for name in raws}
-            with th.no_grad():  # the policy's std on the batch's next observations (policy_on_next_obs=True)
-                duals["std"] = model.actor.distribution_params(args[1].next_observations)[1].clone()
-            out = self.forward(*args, **kwargs)
-            seen.append((duals, out[1], model._n_updates))
-            return out
-
-    model._forward = Recording(model._forward)  # type: ignore[assignment]
+    model._forward = Recording(  # type: ignore[assignment]
+        model._forward, lambda args, out, duals: seen.append((duals, out[1], model._n_updates)), before=before
+    )
     before = {name: getattr(model, name).detach().clone() for name in raws}
     start = model._n_updates
     model.train(gradient_steps=3, batch_size=TRAIN_BATCH)
