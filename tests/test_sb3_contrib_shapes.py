@@ -339,22 +339,25 @@ def dict_kwargs(model_class, **policy_kwargs) -> dict:
     )
 
 
-@pytest.mark.parametrize("model_class", MODEL_LIST)
-def test_consistency(model_class):
+@pytest.mark.parametrize(
+    "model_class, extra", [(model_class, {}) for model_class in MODEL_LIST] + [(MPO, dict(policy_on_next_obs=False))]
+)
+def test_consistency(model_class, extra):
     """
     Dict observations with a vector only and the flattened observations give the same networks, hence the same
-    actions, before and after learning (exactly: the same computations).
+    actions, before and after learning (exactly: the same computations). MPO also with ``policy_on_next_obs=False``,
+    whose target pass joins the observations and the next observations of a Dict batch key by key.
     """
     dict_env = gym.wrappers.TimeLimit(DummyDictEnv(vec_only=True), 100)
     env = gym.wrappers.FlattenObservation(dict_env)
     obs, _ = dict_env.reset(seed=10)
 
-    dict_model = model_class("MultiInputPolicy", dict_env, gamma=0.5, **dict_kwargs(model_class))
+    dict_model = model_class("MultiInputPolicy", dict_env, gamma=0.5, **dict_kwargs(model_class), **extra)
     assert isinstance(dict_model.policy.actor.features_extractor, CombinedExtractor)
     action_before_learning_1, _ = dict_model.predict(obs, deterministic=True)
     dict_model.learn(total_timesteps=160)
 
-    normal_model = model_class("MlpPolicy", env, gamma=0.5, **dict_kwargs(model_class))
+    normal_model = model_class("MlpPolicy", env, gamma=0.5, **dict_kwargs(model_class), **extra)
     action_before_learning_2, _ = normal_model.predict(obs["vec"], deterministic=True)
     normal_model.learn(total_timesteps=160)
     assert dict_model._n_updates == normal_model._n_updates == 8  # after each rollout of 8 steps past 100: 104, ..., 160

@@ -91,8 +91,16 @@ MODULES: dict[str, list[str]] = {
     # the numbers a user relies on beyond the losses (issue 66): targets, the update loop, sampling, views, the
     # dynamics changes, evaluation, distillation and the study scores, each with its golden and targeted tests
     "sb3_lifelong/crr/targets.py": ["tests/golden/test_golden_crr.py", "tests/crr/test_crr_losses.py"],
-    "sb3_lifelong/crr/distributional.py": ["tests/golden/test_golden_crr.py", "tests/crr/test_crr_losses.py"],
-    "sb3_lifelong/mpo/mpo.py": ["tests/golden/test_golden_mpo.py", "tests/golden/test_golden_eager.py"],
+    "sb3_lifelong/crr/distributional.py": [
+        "tests/golden/test_golden_crr.py",
+        "tests/golden/test_golden_categorical.py",
+        "tests/crr/test_crr_losses.py",
+    ],
+    "sb3_lifelong/mpo/mpo.py": [
+        "tests/golden/test_golden_mpo.py",
+        "tests/golden/test_golden_eager.py",
+        "tests/test_sb3_contrib_shapes.py::test_consistency",
+    ],
     "sb3_lifelong/buffers/sampling.py": [
         "tests/golden/test_golden_sampling.py",
         "tests/golden/test_golden_views.py",

@@ -248,3 +248,37 @@ def test_the_probe_scores_the_actions_in_the_critics_units() -> None:
 def test_the_horizon_needs_gamma_and_tolerance_strictly_inside_0_1(gamma, tolerance) -> None:
     with pytest.raises(ValueError, match="gamma and tolerance must be in"):
         monte_carlo_horizon(gamma, tolerance)
+
+
+class CodeCritic(th.nn.Module):
+    """``Q(s, a)`` = the code of the row ``s`` (its first observation entry)."""
+
+    def forward(self, obs: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, ...]:
+        return (obs[:, :1].double(),)
+
+
+def test_a_source_with_one_valid_row_and_a_buffer_of_one_row_are_measured() -> None:
+    """The probe measures data of a single row, and a source whose only valid row is one (edges of the size checks)."""
+    single = LifelongReplayBuffer(0, OBS_SPACE, ACTION_SPACE, device="cpu")
+    fill(single, {0: [([3.0], "terminated")]})
+    got = MonteCarloProbe(single, GAMMA, horizon=HORIZON).measure(CodeCritic())
+    assert list(got) == [0] and got[0].n == 1 and got[0].mc_return == 3.0 and got[0].q_mean == code(0, 0)
+    # env 1: a terminated one-step episode (valid), then one step still running (under the horizon: not valid)
+    two = LifelongReplayBuffer(0, OBS_SPACE, ACTION_SPACE, device="cpu")
+    fill(two, {0: [([1.0, 2.0], "terminated")], 1: [([5.0], "terminated"), ([1.0], "running")]})
+    got = MonteCarloProbe(two, GAMMA, horizon=HORIZON).measure(CodeCritic())
+    assert (got[0].n, got[0].mc_return) == (2, (2.0 + 2.0) / 2)  # 1 + 2/2 and 2
+    assert (got[1].n, got[1].mc_return, got[1].q_mean) == (1, 5.0, code(1, 0))
+
+
+def test_the_probes_default_sample_is_2048_rows_of_a_source_drawn_with_seed_0() -> None:
+    """2,100 one-step episodes, each row's reward its index: the default sample is 2,048 of them, the rows NumPy's
+    generator of seed 0 picks (so its mean return is theirs)."""
+    n = 2_100
+    buffer = LifelongReplayBuffer(0, OBS_SPACE, ACTION_SPACE, device="cpu")
+    fill(buffer, {0: [([float(i)], "terminated") for i in range(n)]})
+    got = MonteCarloProbe(buffer, GAMMA).measure(CodeCritic())[0]
+    picked = np.random.default_rng(0).choice(np.arange(n), size=2_048, replace=False)
+    assert got.n == 2_048
+    assert got.mc_return == pytest.approx(picked.mean(), rel=1e-12) and got.q_mean == pytest.approx(picked.mean(), rel=1e-6)
+    assert abs(np.random.default_rng(1).choice(np.arange(n), size=2_048, replace=False).mean() - picked.mean()) > 0.01
