@@ -459,11 +459,17 @@ def test_a_3x_support_is_three_times_as_wide(paper):
     assert paper.scaled_support((1.0, 5.0), 3)["v_min"] == 0.0  # the support holds 0 (value_support)
 
 
-def test_a_registered_student_refuses_without_support_json(lifetime, tmp_path):
+def test_a_registered_student_refuses_without_support_json(lifetime, tmp_path, monkeypatch):
     paper, _, root, _ = lifetime
     copy_seed(root, 0, tmp_path)
     common = [*SMALL, "--seed", "0", "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")]
     support = tmp_path / "res" / "support.json"
+    real = paper.load_lifetime_buffer
+
+    def started(args):
+        raise AssertionError("a 500k-update student started without a registered support.json")
+
+    monkeypatch.setattr(paper, "load_lifetime_buffer", started)  # a refusal that fails ends here, not in 500k updates
     with pytest.raises(SystemExit, match=re.escape(f"support sweep has not fixed the support ({support} does not exist)")):
         paper.main(["student", *common, "--student", "exp_combined"])  # 500k updates by default
     with pytest.raises(SystemExit, match=r"support\.json does not exist"):
@@ -472,6 +478,7 @@ def test_a_registered_student_refuses_without_support_json(lifetime, tmp_path):
     support.write_text(json.dumps({"choice": 3, "registered": False, "why_not_registered": "100 updates, not 100000"}))
     with pytest.raises(SystemExit, match="is not the registered sweep \\(100 updates, not 100000\\)"):
         paper.main(["student", *common, "--student", "exp_combined"])
+    monkeypatch.setattr(paper, "load_lifetime_buffer", real)
     record = paper.main(["student", *common, *STUDENT, "--student", "exp_combined"])  # a small check reads it
     assert record["support"]["scale"] == 3 and record["support"]["from"] == str(support)
 
