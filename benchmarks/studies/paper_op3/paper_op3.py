@@ -1,29 +1,38 @@
 """
-The paper's two-stage experiment on OP3 (``README.md``, Design and Amendment 3): Stage 1 and the four Env-B runs of a
-seed, each one resumable job (one command) whose checkpoints live in ``--runs`` and whose small results (CSV, JSON)
-go to ``--results``::
+The paper's two-stage experiment on OP3 (``README.md``, Design and Amendment 3): Stage 1, the four Env-B runs, the
+three offline students of a seed, the support sweep and the claims report, each one resumable job (one command) whose
+checkpoints live in ``--runs`` and whose small results (CSV, JSON) go to ``--results``::
 
     OMP_NUM_THREADS=1 python benchmarks/studies/paper_op3/paper_op3.py stage1 --seed 0 --runs /work/runs/paper_op3
     OMP_NUM_THREADS=1 python benchmarks/studies/paper_op3/paper_op3.py env_b --seed 0 --method mpo --runs ...
+    OMP_NUM_THREADS=1 python benchmarks/studies/paper_op3/paper_op3.py sweep --runs ...
+    OMP_NUM_THREADS=1 python benchmarks/studies/paper_op3/paper_op3.py student --seed 0 --student exp_combined --runs ...
+    python benchmarks/studies/paper_op3/paper_op3.py report
     python benchmarks/studies/paper_op3/paper_op3.py status
 
 ``stage1``: MPO at Acme's MuJoCo baseline in Env-A (the hip's deformation appended to the observation at its
 nominal value), until Amendment 3's switch rule ends it, then the registered gate on the frozen agent.
 ``env_b --method``: ``mpo`` (the same agent, buffer, optimisers and duals, now in Env-B), ``mpo_a`` (the same, left
 in Env-A: the no-change control of C1), ``online_crr_indicator`` and ``online_crr_exp`` (a CRR given the Stage-1
-policy's weights and a copy of its buffer, online in Env-B at the same update ratio). ``RUNNING.md`` has the commands.
-
-**Not in this script yet (the next part):** the three offline students (CRR exp beta=1 and CRR indicator on the
-lifetime buffer of ``mpo``, ``<runs>/seed_<S>/env_b_mpo/replay.pkl``, whose ``sources`` column tells Env-A rows (0)
-from Env-B rows (1); CRR indicator on the Env-A rows only), the support sweep (``../shared/DESIGN.md``), and the
-claims report, which will read ``stage1.json`` (L, the gate, the frozen agent's end scores) and every
-``env_b_<method>.json`` (end scores on 20 episodes per environment) in ``--results/seed_<S>/``.
+policy's weights and a copy of its buffer, online in Env-B at the same update ratio).
+``student --student``: an offline CRR (categorical critic, 51 atoms, batch 256, 500k updates) on MPO's lifetime buffer
+``<runs>/seed_<S>/env_b_mpo/replay.pkl`` (its ``sources``: 0 Env-A rows, 1 Env-B rows), no task boundaries:
+``exp_combined`` (exp, beta = 1) and ``indicator_combined`` on the whole buffer, ``indicator_a_only`` on its Env-A
+rows alone (:data:`STUDENTS`). Each records the rows it drew per source and C4b's instrument, its critic's mean Q on
+1,024 fixed Env-A rows (:func:`q_rows`). Its support is the experiments' ``value_support`` times the sweep's choice:
+without ``support.json`` a student refuses to start, unless ``--support-scale`` is given for a small check.
+``sweep``: the exp student at 100k updates with the support at 1x and 3x its width on the first three testable seeds'
+buffers (:func:`sweep_seeds`), then ``--results/support.json`` (:func:`support_record`).
+``report``: ``--results/claims.md`` and ``claims.json``: C1..C5 read by the README's rules (:data:`CLAIMS`,
+:func:`read_interval`, :func:`read_claim`) on the testable seeds. ``RUNNING.md`` has the commands in order.
 
 Files of a seed (``--results/seed_<S>/``): ``stage1.csv`` (one row per evaluation, :data:`STAGE1_FIELDS`),
 ``stage1.json`` (see :func:`stage1_record`), ``stage1_runs.json`` (Stage 1's settings, and the machine of each start
 or resume), ``env_b_<method>.csv`` (one row per evaluation and environment,
-:data:`ENV_B_FIELDS`), ``env_b_<method>.json`` (see :func:`run_env_b`). Checkpoints (``--runs/seed_<S>/<job>/``):
-``model.zip``, ``replay.pkl`` (the whole buffer, a pickle of a ``LifelongReplayBuffer`` in memory) and
+:data:`ENV_B_FIELDS`), ``env_b_<method>.json`` (see :func:`run_env_b`), ``student_<student>.csv`` and
+``sweep_exp_combined_<k>x.csv`` (one row per evaluation and environment, :data:`STUDENT_FIELDS`) and their JSON
+files (see :func:`run_student`). Checkpoints (``--runs/seed_<S>/<job>/``): ``model.zip``, ``replay.pkl`` (the whole
+buffer, a pickle of a ``LifelongReplayBuffer`` in memory; not for students, which read ``env_b_mpo``'s) and
 ``state.json``; Stage 1's final agent is ``stage1/agent.zip`` with its buffer ``stage1/replay.pkl``.
 """
 
