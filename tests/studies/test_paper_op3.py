@@ -585,5 +585,14 @@ def test_the_report_names_missing_jobs_and_never_crashes(lifetime, tmp_path):
     assert "- seed 0: env_b_mpo_a (running), env_b_online_crr_exp (missing)" in text
     assert all(c["reading"] in ("not testable", "reported, not read") for c in report["claims"])
     assert "| 0 | 1200 | 1200 | 400 | 1:0.33 | testable |" in text and "Support: not fixed yet" in text
+    # a small student is read, and named as not the registered one
+    paper.main(["student", *SMALL, "--seed", "0", "--runs", str(tmp_path / "runs"), "--results", str(res), *STUDENT,
+                "--student", "indicator_a_only", "--support-scale", "1"])  # fmt: skip
+    report = paper.main(["report", "--results", str(res)])
+    assert report["unregistered"] == {"seed 0: student_indicator_a_only": "200 updates, support from --support-scale"}
+    assert "- seed 0: student_indicator_a_only: 200 updates" in (res / "claims.md").read_text()
+    assert "student_indicator_a_only" not in report["missing"][0]
+    empty = paper.main(["report", "--results", str(tmp_path / "none")])  # no seed at all: every claim not testable
+    assert empty["testable"] == [] and {c["reading"] for c in empty["claims"]} == {"not testable", "reported, not read"}
     lines = paper.main(["status", "--results", str(res)])
     assert lines[-1] == "support: not swept"

@@ -756,6 +756,8 @@ def run_student(args: argparse.Namespace, job: Optional[str] = None) -> dict[str
     if json_path.exists() and json.loads(json_path.read_text()).get("finished"):
         record = json.loads(json_path.read_text())
         check_run(record, args, job)
+        if record["updates"] != args.updates:
+            raise SystemExit(f"{job} of seed {args.seed} has finished at {record['updates']} updates, not {args.updates}")
         print(f"{job} of seed {args.seed} has finished")
         return record
     lifetime = lifetime_record(args)
@@ -1122,7 +1124,8 @@ def claims_from(seeds: dict[int, dict[str, Any]], unfinished: dict[int, list[str
     :param unfinished: per seed, the jobs started but not finished
     :return: what ``claims.json`` holds: ``testable`` seeds, ``excluded`` (seed -> why), ``seeds`` (L and the rows
         per environment), ``claims`` (see :func:`read_claim`), ``c2_trade_off``, ``missing`` (seed -> the jobs the
-        claims lack there, each ``missing`` or ``running``)
+        claims lack there, each ``missing`` or ``running``), ``unregistered`` (the students read that are not the
+        registered ones: another number of updates, or the support given by ``--support-scale``)
     """
     testable, excluded = {}, {}
     for seed, records in sorted(seeds.items()):
@@ -1145,7 +1148,15 @@ def claims_from(seeds: dict[int, dict[str, Any]], unfinished: dict[int, list[str
             for job in jobs:
                 missing.setdefault(seed, {})[job] = "running" if job in unfinished.get(seed, []) else "missing"
     trade_off = claims["C2a"]["reading"] == "holds" and claims["C2b"]["reading"] == "holds"
+    unregistered = {
+        f"seed {seed}: {job}": f"{record.get('updates')} updates, support from {record.get('support', {}).get('from')}"
+        for seed, records in sorted(testable.items())
+        for job, record in sorted(records.items())
+        if job.startswith("student_")
+        and (record.get("updates") != STUDENT_UPDATES or record.get("support", {}).get("from") == "--support-scale")
+    }
     return {
+        "unregistered": unregistered,
         "testable": sorted(testable),
         "excluded": excluded,
         "seeds": [seed_rows(seed, records) for seed, records in sorted(seeds.items())],
@@ -1211,6 +1222,9 @@ def claims_markdown(report: dict[str, Any], support: Optional[dict[str, Any]]) -
     if report["excluded"]:
         lines += ["", "## Seeds excluded", ""]
         lines += [f"- seed {seed}: {why}" for seed, why in report["excluded"].items()]
+    if report["unregistered"]:
+        lines += ["", "## Students that are not the registered ones (small checks: their claims are not the study's)", ""]
+        lines += [f"- {job}: {why}" for job, why in report["unregistered"].items()]
     if report["missing"]:
         lines += ["", "## Jobs missing (the claims that read them skip the seed)", ""]
         for seed, jobs in report["missing"].items():
@@ -1221,6 +1235,7 @@ def claims_markdown(report: dict[str, Any], support: Optional[dict[str, Any]]) -
 def run_report(args: argparse.Namespace) -> dict[str, Any]:
     """Read every seed's files in ``--results`` and write ``claims.md`` and ``claims.json`` there."""
     results = pathlib.Path(args.results)
+    results.mkdir(parents=True, exist_ok=True)
     seeds, unfinished = load_seeds(results)
     report = claims_from(seeds, unfinished)
     support_path = results / SUPPORT_FILE
