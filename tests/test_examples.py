@@ -4,6 +4,7 @@ import csv
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 
@@ -25,26 +26,67 @@ def summary_rows(output: pathlib.Path) -> list[dict[str, str]]:
         return list(csv.DictReader(handle))
 
 
+def score_rows(output: pathlib.Path) -> list[dict[str, str]]:
+    with open(output / "scores.csv") as handle:
+        return list(csv.DictReader(handle))
+
+
+THREE_ENVS = {"Env-A", "Env-B", "Env-C"}
+
+
 def test_three_stage_with_baselines_and_plots(tmp_path):
-    stdout = run_example("three_stage.py", tmp_path)
-    rows = summary_rows(tmp_path)
-    methods = {row["method"] for row in rows}
-    assert methods == {"MPO", "CRR_indicator", "CRR_beta1", "distilled", "distilled_indicator"}
-    assert {row["env"] for row in rows} == {"Env-A", "Env-B", "Env-C"}
-    for name in ("curves_Env-A.png", "curves_Env-B.png", "curves_Env-C.png", "final_returns.png", "q_sources.png"):
-        assert (tmp_path / name).stat().st_size > 1000, name
-    assert (tmp_path / "distillation.png").stat().st_size > 1000
-    # what the figures name: the changes of environment and the distilled methods
-    layout = json.loads((tmp_path / "seed_0" / "stages.json").read_text())
-    assert layout["switch_labels"] == ["Env-A -> Env-B", "Env-B -> Env-C"]
-    assert layout["distilled"] == ["distilled", "distilled_indicator"]
-    # the students are evaluated often enough to draw a curve (before the first update, then every tenth)
-    with open(tmp_path / "seed_0" / "distilled" / "eval.csv") as handle:
+    """The protocol's layout: its runner's jobs, its scores, report and figures, for three stages."""
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.experiments.presets import stage_ends
+
+    stdout = run_example("three_stage.py", tmp_path, "--backend", "process")
+    rows = score_rows(tmp_path)
+    online = {"MPO", "online CRR_indicator", "online CRR_exp_beta1"}
+    assert {row["method"] for row in rows} == online | {"CRR_exp_beta1", "CRR_indicator"}
+    for method in {row["method"] for row in rows}:
+        assert {row["env"] for row in rows if row["method"] == method} == THREE_ENVS, method
+    assert {row["kind"] for row in rows if row["method"] in online} == {"online"}
+    for name in ("fig_online.png", "fig_students.png", "fig_q_sources.png"):
+        assert (tmp_path / name).stat().st_size > 10_000, name
+    assert "| MPO | online |" in stdout and (tmp_path / "report.md").read_text().startswith("# 3-stage study")
+    # what the figures name: the environments and their changes
+    preset = json.loads((tmp_path / "preset.json").read_text())
+    assert preset["env_names"] == ["Env-A", "Env-B", "Env-C"] and stage_ends(preset["stage_steps"])[:-1] == [200, 400]
+    # the students are evaluated often enough to draw a curve
+    with open(tmp_path / "seed_0" / "distill_CRR_exp_beta1" / "eval.csv") as handle:
         assert len({row["timesteps"] for row in csv.DictReader(handle) if row["env"] == "Env-A"}) >= 5
-    assert "| MPO |" in stdout
-    # the collector's buffer holds every environment's data, tagged by stage
-    with open(tmp_path / "seed_0" / "MPO" / "q_sources.csv") as handle:
-        assert {row["name"] for row in csv.DictReader(handle)} == {"Env-A", "Env-B", "Env-C"}
+    # the collector's buffer holds every environment's data, tagged by source
+    with LifelongReplayBuffer.open(tmp_path / "seed_0" / "buffer", read_only=True) as buffer:
+        assert buffer.size() == 600 and {v["name"] for v in buffer.sources.values()} == THREE_ENVS
+        assert set(buffer.source_counts()) == {0, 1, 2}
+    with open(tmp_path / "seed_0" / "collect" / "q_sources.csv") as handle:
+        assert {row["name"] for row in csv.DictReader(handle)} == THREE_ENVS
+
+
+def test_three_stage_without_baselines_with_the_per_source_student(tmp_path):
+    extra = ["--no-baselines", "--no-plots", "--per-source-actors", "--seeds", "1", "--backend", "process"]
+    run_example("three_stage.py", tmp_path, *extra)
+    rows = score_rows(tmp_path)
+    assert {row["method"] for row in rows} == {"MPO", "CRR_exp_beta1", "CRR_indicator", "CRR_indicator_two_actors"}
+    assert {row["env"] for row in rows if row["method"] == "CRR_indicator_two_actors"} == THREE_ENVS
+    assert {row["seed"] for row in rows} == {"1"} and not list(tmp_path.glob("*.png"))
+    assert not list((tmp_path / "seed_1").glob("online_*"))
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--stage-steps", "10", "10"], "--stage-steps: expected 3 arguments"),
+        (["--workers", "0"], "--workers: .*must be at least 1"),
+        (["--seeds", "-1"], "--seeds: .*seeds are ints"),
+        (["--device", "gpu"], "--device: device 'gpu' is not a torch device"),
+    ],
+)
+def test_three_stage_refuses_bad_arguments_before_it_runs(tmp_path, extra, message):
+    command = [sys.executable, str(EXAMPLES / "three_stage.py"), "--preset", "tiny", "--output", str(tmp_path / "out")]
+    result = subprocess.run([*command, *extra], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and re.search(message, result.stderr), result.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_examples_are_programs_with_documented_flags():
@@ -65,11 +107,6 @@ def test_examples_are_programs_with_documented_flags():
 @pytest.mark.parametrize(
     "script, extra, envs",
     [
-        (
-            "three_stage.py",
-            ["--no-baselines", "--no-plots", "--per-source-actors", "--seeds", "1"],
-            {"Env-A", "Env-B", "Env-C"},
-        ),
         ("parallel_sharing.py", ["--setup", "copy", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
         ("parallel_sharing.py", ["--setup", "independent", "--backend", "process", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
         ("continuous_drift.py", ["--no-plots"], {"hip_0.00", "hip_0.15", "hip_0.30"}),
@@ -80,10 +117,8 @@ def test_other_examples(tmp_path, script, extra, envs):
     rows = summary_rows(tmp_path)
     assert {row["env"] for row in rows} == envs
     assert any(row["method"] == "distilled" for row in rows)
-    layout = json.loads((tmp_path / ("seed_1" if "--seeds" in extra else "seed_0") / "stages.json").read_text())
+    layout = json.loads((tmp_path / "seed_0" / "stages.json").read_text())
     assert "distilled" in layout["distilled"] and set(layout["names"]) == envs
-    if "--per-source-actors" in extra:
-        assert {row["env"] for row in rows if row["method"] == "distilled_per_source"} == envs
     if script == "parallel_sharing.py":
         # the merged data holds every environment once: Env-A's part of the copied buffer is not duplicated
         assert "900 transitions shared, per source {0: 300, 1: 300, 2: 300}" in stdout

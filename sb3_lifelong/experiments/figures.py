@@ -3,10 +3,10 @@ Every figure of the package's experiments, in its one style (:mod:`sb3_lifelong.
 colour per method in every figure; matplotlib's Agg backend, chosen when a figure is drawn: no display needed).
 
 A study's figures (:func:`plot_study`, from a two-stage or three-stage study read by
-:mod:`~sb3_lifelong.experiments.scores`): every figure's title names the study's set-up (its preset, robot and
-environments), so that the figures of a variant study are not read as another's.
+:mod:`~sb3_lifelong.experiments.scores`, ``examples/three_stage.py``'s included): every figure's title names the
+study's set-up (its preset, robot and environments), so that the figures of a variant study are not read as another's.
 
-The sequential examples' figures (``examples/three_stage.py``, ``parallel_sharing.py``, ``continuous_drift.py``;
+The sequential examples' figures (``examples/parallel_sharing.py``, ``continuous_drift.py``;
 :func:`plot_experiment`, ``python -m sb3_lifelong.plotting <dir>``), from the layout the examples write
 (``<dir>/seed_<k>/<method>/eval.csv`` and ``q_sources.csv``, ``<dir>/seed_<k>/stages.json``): the return in each
 environment against environment steps (``curves_<env>.png``), every method's final return (``final_returns.png``),

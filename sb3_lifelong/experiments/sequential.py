@@ -1,8 +1,8 @@
 """
-The sequential and parallel lifelong experiments of ``examples/`` (three stages, parallel sharing, continuous
-drift): their configurations (:data:`EXAMPLE_CONFIGS`), environment factories, the online stages and the
-distillation. The paper's two-stage protocol, with its diagnostics and claims, is
-:mod:`sb3_lifelong.experiments.protocol` (its study presets: :mod:`sb3_lifelong.experiments.presets`).
+The lifelong experiments of ``examples/parallel_sharing.py`` and ``examples/continuous_drift.py``: their
+configurations (:data:`EXAMPLE_CONFIGS`), environment factories, the collector, its evaluations and the summary.
+The paper's protocol (two stages or more, its runner, report and claims) is :mod:`sb3_lifelong.experiments.protocol`
+(its presets: :mod:`sb3_lifelong.experiments.presets`); ``examples/three_stage.py`` runs on it.
 
 Layout of an experiment's output directory::
 
@@ -17,15 +17,12 @@ Online methods are evaluated every ``eval_freq`` environment steps; the distille
 ``distill_eval_freq`` updates, by default :data:`DISTILL_EVALUATIONS` times per distillation (and before the first
 update), so that every preset draws distillation curves.
 
-Methods: ``MPO`` (the collector across all stages), ``CRR_indicator`` / ``CRR_beta1`` (the conservative
-online baselines, continuing from the same Stage-1 agent), ``distilled`` (CRR, exp transform, beta=1, on the
-collector's whole buffer) and ``distilled_indicator`` (same, indicator transform: the imbalance baseline); with
-``--per-source-actors`` also ``distilled_per_source`` (the diagnostic of one actor per stage with a shared critic,
-each environment evaluated with its own stage's actor).
+Methods: the collectors (``MPO``; ``MPO_agent1``, ``MPO_agent2`` in parallel sharing), ``distilled`` (CRR, exp
+transform, beta=1, on the collected data) and, in parallel sharing, ``distilled_indicator`` (same, indicator
+transform: the imbalance baseline).
 """
 
 import argparse
-import copy
 import csv
 import json
 import pathlib
@@ -39,9 +36,9 @@ import numpy as np
 import torch as th
 
 import sb3_lifelong.envs  # noqa: F401  (registers the OP3 task)
-from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
+from sb3_lifelong import MPO, LifelongReplayBuffer
 from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
-from sb3_lifelong.envs import DynamicsSchedule, stage_envs
+from sb3_lifelong.envs import DynamicsSchedule
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback
 from sb3_lifelong.experiments.figures import source_labels
 
@@ -132,15 +129,6 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_per_source_argument(parser: argparse.ArgumentParser) -> None:
-    """The option of the sequential experiments (their sources are the stages)."""
-    parser.add_argument(
-        "--per-source-actors",
-        action="store_true",
-        help="also distil with one actor per source and a shared critic (the diagnostic 'distilled_per_source')",
-    )
-
-
 def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
     config = dict(EXAMPLE_CONFIGS[args.preset])
     overrides = dict(
@@ -152,7 +140,6 @@ def resolve_config(args: argparse.Namespace) -> dict[str, Any]:
     )
     config.update({key: value for key, value in overrides.items() if value is not None})
     config["distill_eval_freq"] = getattr(args, "distill_eval_freq", None) or distill_eval_freq(config["distill_steps"])
-    config["per_source_actors"] = bool(getattr(args, "per_source_actors", False))
     config["preset"] = args.preset
     return config
 
@@ -327,35 +314,6 @@ def make_collector(
     )
 
 
-def continue_with_crr(
-    policy_state: dict[str, Any],
-    buffer: Any,
-    num_timesteps: int,
-    env: Any,
-    config: dict[str, Any],
-    seed: int,
-    tensorboard_log: str,
-    **crr_kwargs: Any,
-) -> CRR:
-    """
-    An online CRR agent that starts from the Stage-1 agent: same networks (weights copied), a copy of its
-    buffer, and its timestep count, so that its curves continue the Stage-1 curves.
-    """
-    crr = CRR(
-        "MlpPolicy",
-        env,
-        replay_buffer_class=LifelongReplayBuffer,
-        learning_starts=0,
-        tensorboard_log=tensorboard_log,
-        **algo_kwargs(config, seed),
-        **crr_kwargs,
-    )
-    crr.policy.load_state_dict(policy_state)
-    crr.replay_buffer = copy.deepcopy(buffer)
-    crr.num_timesteps = num_timesteps
-    return crr
-
-
 def final_returns(callback: MultiEnvEvalCallback) -> dict[str, float]:
     """:return: the mean reward of the last evaluation, per environment"""
     if not callback.results:
@@ -434,75 +392,3 @@ def set_threads() -> None:
 
 def now() -> float:
     return time.perf_counter()
-
-
-def run_sequential(
-    config: dict[str, Any],
-    stages: Sequence[Stage],
-    env_names: Sequence[str],
-    output: pathlib.Path,
-    baselines: bool = True,
-) -> list[dict[str, Any]]:
-    """
-    The sequential lifelong experiment: MPO collects through every stage (the robot changes at the stage
-    boundaries, counted by the wrapper); the CRR baselines continue from the Stage-1 agent through the later
-    stages; at the end the collector's whole buffer is distilled offline (CRR exp beta=1, and CRR indicator).
-
-    :return: rows ``{seed, method, env, final_return}``
-    """
-    steps = list(config["stage_steps"])
-    if len(steps) != len(stages):
-        raise ValueError(f"{len(stages)} stages need {len(stages)} stage lengths, got {steps}")
-    switch_at = list(np.cumsum(steps)[:-1])
-    tensorboard_log = str(output / "tensorboard")
-    rows: list[dict[str, Any]] = []
-    for seed in config["seeds"]:
-        run_dir = output / f"seed_{seed}"
-        episode_steps = config.get("max_episode_steps")
-        # one copy of the robot per stage, pinned to it, with the training env's observation layout
-        eval_envs = stage_envs(config["env_id"], list(stages), env_names, episode_limit(episode_steps), append_params=True)
-
-        # Online: MPO through every stage, one buffer for the whole life
-        env = make_schedule(config["env_id"], stages, switch_at, episode_steps)
-        mpo = make_collector(env, config, seed, tensorboard_log)
-        mpo_callbacks = eval_callbacks(run_dir / "MPO", eval_envs, config, seed=seed)
-        mpo.learn(steps[0], callback=mpo_callbacks, tb_log_name=f"MPO_s{seed}")
-        stage1_agent = copy.deepcopy(mpo.policy.state_dict()), copy.deepcopy(mpo.replay_buffer), mpo.num_timesteps
-        for stage_steps in steps[1:]:
-            mpo.learn(stage_steps, callback=mpo_callbacks, tb_log_name=f"MPO_s{seed}", reset_num_timesteps=False)
-        rows += [dict(seed=seed, method="MPO", env=k, final_return=v) for k, v in final_returns(mpo_callbacks[0]).items()]
-
-        # Online baselines: conservative CRR continuing from the Stage-1 agent
-        if baselines:
-            for method, crr_kwargs in (
-                ("CRR_indicator", dict(advantage_transform="indicator")),
-                ("CRR_beta1", dict(advantage_transform="exp", beta=1.0)),
-            ):
-                crr_env = make_schedule(config["env_id"], stages, switch_at, episode_steps, start_timestep=steps[0])
-                crr = continue_with_crr(*stage1_agent, crr_env, config, seed, tensorboard_log, **crr_kwargs)
-                callbacks = eval_callbacks(run_dir / method, eval_envs, config, seed=seed)
-                crr.learn(sum(steps[1:]), callback=callbacks, tb_log_name=f"{method}_s{seed}", reset_num_timesteps=False)
-                rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-
-        # Offline: distil the whole lifetime buffer, no task boundaries
-        students: list[tuple[str, dict[str, Any]]] = [
-            ("distilled", dict(advantage_transform="exp", beta=1.0)),
-            ("distilled_indicator", dict(advantage_transform="indicator")),
-        ]
-        if config.get("per_source_actors"):
-            # diagnostic: one actor per stage (source ids are the stage indices), one shared critic
-            students.append(("distilled_per_source", dict(advantage_transform="exp", beta=1.0, actor_per_source=True)))
-        for method, distill_kwargs in students:
-            sources = {name: index for index, name in enumerate(env_names)} if "actor_per_source" in distill_kwargs else None
-            callbacks = eval_callbacks(run_dir / method, eval_envs, config, sources=sources, offline=True, seed=seed)
-            mpo.distill(
-                CRR,
-                total_updates=config["distill_steps"],
-                callback=callbacks,
-                tb_log_name=method,
-                **algo_kwargs(config, seed),
-                **distill_kwargs,
-            )
-            rows += [dict(seed=seed, method=method, env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-        write_layout(run_dir, env_names, [method for method, _ in students], switch_at, stages=stages)
-    return rows
