@@ -186,9 +186,15 @@ class Preset:
         return observed_params(self.stages, self.drift)
 
     def describe(self) -> dict[str, Any]:
-        """:return: the settings as JSON-friendly values"""
+        """
+        :return: the settings as JSON-friendly values; without a drift, no ``drift`` key: the settings of the presets
+            before the field, as their studies recorded them (``preset.json``, a paused student's record, the cost log's
+            fingerprint)
+        """
         data = dataclasses.asdict(self)
         data["stages"] = [describe_stage(stage) for stage in self.stages]
+        if self.drift is None:
+            del data["drift"]
         return data
 
 
@@ -501,7 +507,6 @@ LATER_SETTINGS: dict[str, Any] = {
     "max_switch_spread": None,
     "device": "cpu",
     "toy": False,
-    "drift": None,
 }
 #: settings that do not make two studies different ones: more repeats of the students, the report's precondition
 #: (a study keeps the threshold it recorded, None for those recorded before there was one), and the mark of a toy
