@@ -16,11 +16,10 @@ from stable_baselines3.common.monitor import Monitor
 
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
-from sb3_lifelong.envs import stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
 from sb3_lifelong.evaluation.overestimation import MonteCarloProbe
 from sb3_lifelong.experiments.collection import COLLECTED_BUFFERS, PAUSED_MODEL, PAUSED_RECORD
-from sb3_lifelong.experiments.jobs import claim_directory
+from sb3_lifelong.experiments.jobs import claim_directory, eval_envs
 from sb3_lifelong.experiments.presets import Preset, describe_stage
 from sb3_lifelong.mpo import MPO
 
@@ -85,7 +84,7 @@ def measure_agent(name: str, run_dir: pathlib.Path, buffer: Any, preset: Preset,
     """
     agent = MPO.load(run_dir / "collect" / f"{name}.zip", device=preset.device, custom_objects={"replay_buffer_kwargs": {}})
     out: dict[str, Any] = {}
-    envs = stage_envs(preset.env_id, list(preset.stages), preset.env_names, preset.env_kwargs, append_params=True)
+    envs = eval_envs(preset)
     for env_name, env in envs.items():
         monitored = Monitor(env)
         monitored.reset(seed=EVAL_SEED_OFFSET + seed)

@@ -3,11 +3,12 @@ A job of a study, the same for every job of a seed: its directory from start to 
 with. A job claims a new directory (``start_job``), runs while it holds its lock (:func:`job_lock`), may pause and
 resume (a student's checkpoint and the record that names it: ``StudentPauses``, ``paused_student``; a pause's logs
 cut back to it, everything cut kept beside it: ``aside_name``, ``drop_rows_after``, ``cut_logs_back``), and is done
-once its ``done.json`` is written (``finish_job``). Every job acts in the robot through its stages (``make_env``),
-builds its models with the preset's network and device (``model_kwargs``), logs through the same callbacks
-(``job_callbacks``, ``tensorboard_dir``), and a bounded critic has its value support (:func:`value_support`). What
-the jobs run and what their pauses record are ``collection`` (the ``collect`` job) and
-:mod:`~sb3_lifelong.experiments.protocol` (the students, the online baselines, one seed).
+once its ``done.json`` is written (``finish_job``). Every job acts in the robot through its stages and its drift
+(``make_env``), is evaluated in one copy of it per stage (``eval_envs``), builds its models with the preset's network
+and device (``model_kwargs``), logs through the same callbacks (``job_callbacks``, ``tensorboard_dir``), and a bounded
+critic has its value support (:func:`value_support`). What the jobs run and what their pauses record are
+``collection`` (the ``collect`` job) and :mod:`~sb3_lifelong.experiments.protocol` (the students, the online
+baselines, one seed).
 
 What a job may delete: only what it wrote itself. A job that creates its directory writes a marker of its own into it
 (:data:`OWNED_MARKER`, naming the job and, for the collection, the buffer directories it creates beside it) and
@@ -33,7 +34,7 @@ from filelock import FileLock, Timeout
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
-from sb3_lifelong.envs import DynamicsSchedule, stage_envs
+from sb3_lifelong.envs import DynamicsSchedule, LinearRamp, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback
 from sb3_lifelong.experiments import costs
 from sb3_lifelong.experiments.presets import Preset
@@ -351,13 +352,45 @@ class StudentPauses(BaseCallback):
 
 # ------------------------------------------------------------------------------------------------- environments
 def make_env(preset: Preset, switch_at: Optional[Sequence[int]] = None, start_timestep: int = 0) -> DynamicsSchedule:
-    """The robot through its stages, with the true physical parameters appended to the observation (as the paper)."""
+    """
+    The robot through its stages and its drift, with the true physical parameters appended to the observation (as the
+    paper).
+
+    :param preset: the study's settings: each parameter of its ``drift`` ramps linearly
+        (:class:`~sb3_lifelong.envs.LinearRamp`) from its start at timestep 0 to its end at the end of the life, the sum
+        of ``stage_steps``
+    :param switch_at: the timesteps at which the stages after the first take effect (None: the first stage only)
+    :param start_timestep: the global timestep of the env's first step
+    :return: the env
+    :raises ValueError: naming the parameter, when the robot does not have a drifting parameter, or its range is
+        outside the robot's own
+    """
+    lifetime = sum(preset.stage_steps)
+    ramps = {name: LinearRamp(start, end, begin=0, finish=lifetime) for name, (start, end) in (preset.drift or {}).items()}
     return DynamicsSchedule(
         gym.make(preset.env_id, **preset.env_kwargs),
         stages=list(preset.stages),
         switch_at=switch_at,
+        schedules=ramps or None,
         append_params=True,
         start_timestep=start_timestep,
+    )
+
+
+def eval_envs(preset: Preset) -> dict[str, DynamicsSchedule]:
+    """
+    :param preset: the study's settings
+    :return: one copy of the robot per stage, pinned to it and named by ``env_names``
+        (:func:`~sb3_lifelong.envs.stage_envs`), observing what the collector's robot does (a drifting parameter is
+        at its nominal value there)
+    """
+    return stage_envs(
+        preset.env_id,
+        list(preset.stages),
+        preset.env_names,
+        preset.env_kwargs,
+        append_params=True,
+        observed_params=preset.observed_params,
     )
 
 
@@ -422,7 +455,7 @@ def job_callbacks(
 ) -> list[Any]:
     """
     The callbacks of one job: its ``train/`` values (``train.csv``), its evaluations in one copy of the robot per
-    stage (:func:`~sb3_lifelong.envs.stage_envs`, ``eval.csv``, the same episodes at every evaluation, seeded from
+    stage (:func:`eval_envs`, ``eval.csv``, the same episodes at every evaluation, seeded from
     ``EVAL_SEED_OFFSET + seed``) and, with a
     critic, its average Q per source (``q_sources.csv``).
 
@@ -440,7 +473,7 @@ def job_callbacks(
     callbacks: list[Any] = [
         TrainLogCallback(directory / "train.csv", log_freq=eval_freq),
         MultiEnvEvalCallback(
-            stage_envs(preset.env_id, list(preset.stages), preset.env_names, preset.env_kwargs, append_params=True),
+            eval_envs(preset),
             eval_freq,
             preset.eval_episodes,
             log_path=directory / "eval.csv",

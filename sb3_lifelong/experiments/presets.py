@@ -13,6 +13,7 @@ import dataclasses
 import importlib.util
 import itertools
 import json
+import math
 import os
 import pathlib
 from collections.abc import Mapping, Sequence
@@ -20,6 +21,8 @@ from dataclasses import dataclass, field
 from typing import Any, Optional, Union
 
 Stage = Union[str, Mapping[str, float]]
+#: a drift: parameter -> the values it has at the first and at the last step of the robot's life
+DriftSpec = Mapping[str, tuple[float, float]]
 
 #: the critics a preset's CRR students can have
 STUDENT_CRITICS = ("mse", "categorical")
@@ -110,6 +113,13 @@ class Preset:
     :param toy: a budget too small to learn Env-A (``tiny``, ``demo``): a run shows that the pipeline runs, not the
         paper's findings, and its report says so at its top (``toy_budget``)
     :param note: what a run of this preset can and cannot show (printed with the report)
+    :param drift: parameters that change without boundaries, ``{parameter: (start, end)}``: the collector's robot
+        (:func:`~sb3_lifelong.experiments.jobs.make_env`) moves each linearly from ``start`` at timestep 0 to ``end``
+        at the end of its life (the sum of ``stage_steps``), through every stage, applied at each episode's start. A
+        stage may not set a drifting parameter. Every robot of the study observes the drifting parameters beside those
+        the stages vary (:attr:`observed_params`); the evaluation environments are the stages
+        (:func:`~sb3_lifelong.experiments.jobs.eval_envs`), with the drifting parameters at their nominal values. None:
+        no drift (the presets recorded before the field, unchanged)
     """
 
     env_id: str
@@ -141,6 +151,7 @@ class Preset:
     device: str = "cpu"
     toy: bool = False
     note: str = ""
+    drift: Optional[DriftSpec] = None
 
     def __post_init__(self) -> None:
         if not len(self.stages) == len(self.stage_steps) == len(self.env_names):
@@ -153,6 +164,8 @@ class Preset:
         if self.student_critic not in STUDENT_CRITICS:
             raise ValueError(f"student_critic must be one of {STUDENT_CRITICS}, got {self.student_critic!r}")
         check_device(self.device, here=False)
+        if self.drift is not None:
+            object.__setattr__(self, "drift", check_drift(self.drift, self.stages))
 
     def jobs(self) -> list[str]:
         """:return: the jobs of one seed of this preset, in the order they run"""
@@ -163,10 +176,25 @@ class Preset:
         """The keyword arguments of ``gym.make`` for the robot: its episode length limit, when the preset sets one."""
         return {} if self.max_episode_steps is None else dict(max_episode_steps=self.max_episode_steps)
 
+    @property
+    def observed_params(self) -> Optional[list[str]]:
+        """
+        The parameters appended to the observation of every robot of the study (the collector's, the evaluations'):
+        None without a drift (:class:`~sb3_lifelong.envs.DynamicsSchedule`'s default, those the stages vary), else
+        :func:`observed_params`.
+        """
+        return observed_params(self.stages, self.drift)
+
     def describe(self) -> dict[str, Any]:
-        """:return: the settings as JSON-friendly values"""
+        """
+        :return: the settings as JSON-friendly values; without a drift, no ``drift`` key: the settings of the presets
+            before the field, as their studies recorded them (``preset.json``, a paused student's record, the cost log's
+            fingerprint)
+        """
         data = dataclasses.asdict(self)
         data["stages"] = [describe_stage(stage) for stage in self.stages]
+        if self.drift is None:
+            del data["drift"]
         return data
 
 
@@ -391,7 +419,64 @@ def job_names(students: Optional[Sequence[str]] = None, online: bool = True, stu
     return [str(job) for job in jobs]
 
 
-# ------------------------------------------------------------------------------------------------- stages
+# ------------------------------------------------------------------------------------------------- stages and drift
+def stage_settings(stage: Stage) -> Mapping[str, float]:
+    """:return: a stage's parameter values (a named stage's from :data:`~sb3_lifelong.envs.NAMED_STAGES`; an unknown
+    name gives none here, and is refused where the robot is built)"""
+    if not isinstance(stage, str):
+        return stage
+    from sb3_lifelong.envs.stages import NAMED_STAGES
+
+    return NAMED_STAGES.get(stage, {})
+
+
+def check_drift(drift: Mapping[str, Any], stages: Sequence[Stage]) -> dict[str, tuple[float, float]]:
+    """
+    :param drift: a preset's ``drift``, ``{parameter: (start, end)}``
+    :param stages: the preset's stages
+    :return: the drift as ``{parameter: (start, end)}`` of floats
+    :raises ValueError: naming the parameter, when it is no dynamics parameter
+        (:data:`~sb3_lifelong.envs.PERTURBATIONS`), a stage sets it, or its range is not two distinct finite numbers
+        within the parameter's physical range (a robot may narrow that range: its
+        :class:`~sb3_lifelong.envs.DynamicsSchedule` refuses a drift outside its own)
+    """
+    from sb3_lifelong.envs.perturbations import PERTURBATIONS
+
+    if not isinstance(drift, Mapping) or not drift:
+        raise ValueError(f"drift must be a non-empty dict {{parameter: (start, end)}} (None: no drift), got {drift!r}")
+    checked: dict[str, tuple[float, float]] = {}
+    for name, values in drift.items():
+        if name not in PERTURBATIONS:
+            raise ValueError(f"drift: unknown dynamics parameter {name!r}; the parameters are {sorted(PERTURBATIONS)}")
+        staged = [index for index, stage in enumerate(stages) if name in stage_settings(stage)]
+        if staged:
+            raise ValueError(f"drift: stage(s) {staged} set {name!r}, which the drift moves over the whole life")
+        pair = tuple(values) if isinstance(values, Sequence) and not isinstance(values, str) else (values,)
+        low, high = PERTURBATIONS[name].low, PERTURBATIONS[name].high
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in pair)
+        if len(pair) != 2 or not numbers or pair[0] == pair[1] or not all(low <= v <= high for v in pair):
+            raise ValueError(
+                f"drift[{name!r}] must be (start, end): two different finite numbers in [{low:.4g}, {high:.4g}] "
+                f"({PERTURBATIONS[name].unit}), got {values!r}"
+            )
+        checked[name] = (float(pair[0]), float(pair[1]))
+    return checked
+
+
+def observed_params(stages: Sequence[Stage], drift: Optional[Mapping[str, Any]]) -> Optional[list[str]]:
+    """
+    :param stages: a study's stages
+    :param drift: its drifting parameters (None: no drift)
+    :return: the parameters every robot of the study appends to its observation: None without a drift (the default
+        of :class:`~sb3_lifelong.envs.DynamicsSchedule`: those the stages vary); with one, those the stages vary and
+        the drifting ones, sorted (the collector's default, given to the evaluation environments too, whose stages
+        alone would not name the drifting ones)
+    """
+    if drift is None:
+        return None
+    return sorted({name for stage in stages for name in stage_settings(stage)} | set(drift))
+
+
 def describe_stage(stage: Stage) -> Any:
     """:return: a stage as a JSON-friendly value (a named stage's name, or a dict of parameter values)"""
     return stage if isinstance(stage, str) else dict(stage)

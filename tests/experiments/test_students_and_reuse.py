@@ -162,7 +162,13 @@ def test_recorded_settings_predating_new_preset_fields(tmp_path):
     assert all(recorded[key] is None for key in REPORT_THRESHOLDS)
     record_settings(preset, tmp_path)  # fewer repeats asked: the record keeps 3
     assert json.loads((tmp_path / "preset.json").read_text())["student_repeats"] == 3
-    for changed in (dict(layer_norm=True), dict(distill_steps=7), dict(student_critic="categorical")):
+    changes = (
+        dict(layer_norm=True),
+        dict(distill_steps=7),
+        dict(student_critic="categorical"),
+        dict(drift={"friction": (1, 2)}),
+    )
+    for changed in changes:
         with pytest.raises(ValueError, match="other settings"):
             record_settings(dataclasses.replace(preset, **changed), tmp_path)
 
