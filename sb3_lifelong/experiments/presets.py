@@ -159,6 +159,11 @@ class Preset:
                 f"a preset needs one step count and one name per stage: {len(self.stages)} stages, stage_steps "
                 f"{self.stage_steps}, env_names {self.env_names}"
             )
+        if len(self.stages) < 2:
+            raise ValueError(
+                f"a preset needs at least two stages (its scores and report read the switches between them), got "
+                f"{len(self.stages)}: a drift over one environment's life (drift=...) goes on top of two or more stages"
+            )
         if self.student_repeats < 1:
             raise ValueError(f"student_repeats must be >= 1, got {self.student_repeats}")
         if self.student_critic not in STUDENT_CRITICS:

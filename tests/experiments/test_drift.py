@@ -151,3 +151,10 @@ def test_the_collection_of_a_drifting_preset_holds_the_ramp(tmp_path):
     timesteps = np.arange(600)
     assert np.all(hip <= 0.3 * timesteps / 600 + 1e-6) and np.all(hip >= 0.3 * (timesteps - 49) / 600 - 1e-6)
     assert np.all(np.diff(hip) >= -1e-6) and hip[0] == 0.0 and hip[-1] > 0.25
+
+
+def test_a_preset_of_one_stage_is_refused_before_anything_runs():
+    """The report reads the switches between stages: a one-stage study is refused when its preset is made, not after
+    its jobs have run."""
+    with pytest.raises(ValueError, match=r"at least two stages .* got 1"):
+        dataclasses.replace(PRESETS["tiny"], stages=({},), stage_steps=(200,), env_names=("Env-A",))
