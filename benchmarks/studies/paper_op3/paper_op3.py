@@ -1251,6 +1251,24 @@ def run_report(args: argparse.Namespace) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------ status
+def job_progress(folder: pathlib.Path, job: str, column: str, unit: str, label: Optional[str] = None) -> Optional[str]:
+    """
+    :param folder: a seed's results folder
+    :param job: the job's name (its ``<job>.json`` and ``<job>.csv``)
+    :param column: the CSV column that counts its progress
+    :param unit: what the count is in (printed after it)
+    :param label: the job's name in the line (default ``job``)
+    :return: ``"<label> done"``, ``"<label> at <count><unit>"``, or None when the job has not started
+    """
+    path, label = folder / f"{job}.json", label or job
+    if not path.exists():
+        return None
+    if json.loads(path.read_text()).get("finished"):
+        return f"{label} done"
+    rows = read_rows(folder / f"{job}.csv")
+    return f"{label} at {rows[-1][column] if rows else 0}{unit}"
+
+
 def status(args: argparse.Namespace) -> list[str]:
     """
     :return: (printed) per seed in ``--results``: Stage 1's switch, its gate, the state of each Env-B job and of each
@@ -1270,22 +1288,9 @@ def status(args: argparse.Namespace) -> list[str]:
         else:
             rows = read_rows(folder / "stage1.csv")
             line = f"{folder.name}: stage 1 running ({rows[-1]['timesteps'] if rows else 0} steps evaluated)"
-        jobs = []
-        for method in METHODS:
-            path = folder / f"env_b_{method}.json"
-            if path.exists() and json.loads(path.read_text()).get("finished"):
-                jobs.append(f"{method} done")
-            elif path.exists():
-                rows = read_rows(folder / f"env_b_{method}.csv")
-                jobs.append(f"{method} at {rows[-1]['stage2_steps'] if rows else 0}")
-        students = []
-        for job in [*(f"student_{name}" for name in STUDENTS), *(sweep_job(scale) for scale in SUPPORT_SCALES)]:
-            path = folder / f"{job}.json"
-            if path.exists() and json.loads(path.read_text()).get("finished"):
-                students.append(f"{job} done")
-            elif path.exists():
-                rows = read_rows(folder / f"{job}.csv")
-                students.append(f"{job} at {rows[-1]['updates'] if rows else 0} updates")
+        names = [*(f"student_{name}" for name in STUDENTS), *(sweep_job(scale) for scale in SUPPORT_SCALES)]
+        jobs = [j for j in (job_progress(folder, f"env_b_{m}", "stage2_steps", "", m) for m in METHODS) if j is not None]
+        students = [j for j in (job_progress(folder, job, "updates", " updates") for job in names) if j is not None]
         line += "; env_b: " + ", ".join(jobs) if jobs else "; no env_b job started"
         lines.append(line + ("; students: " + ", ".join(students) if students else ""))
     support = pathlib.Path(args.results) / SUPPORT_FILE
