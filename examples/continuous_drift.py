@@ -1,81 +1,60 @@
 """
-No task boundaries: the robot wears gradually. The right hip deforms linearly from 0 to 0.3 rad over the whole
-life while MPO collects; the lifetime buffer is then distilled. The policies are evaluated on the robot at the
-start, the middle and the end of its life.
+No task boundaries: the robot wears gradually. The right hip deforms linearly from 0 to 0.3 rad over the whole life
+while MPO collects; the lifetime buffer is then distilled, run by the paper's protocol (its runner and its report).
+
+The life is cut into three equal thirds only to read it: the collector's robot changes at every episode, never at a
+third. Each third is evaluated on one robot: the first on the robot of the first step (hip 0), the second on the
+robot of the middle of the life (0.15 rad), the last on the robot of the last step (0.3 rad). So the report's
+"Env-A at the end against at the switch" is the robot's young self, remembered or not.
 
 Usage::
 
-    python examples/continuous_drift.py
-    python examples/continuous_drift.py --paper
+    python examples/continuous_drift.py                 # quick: HalfCheetah, 30k steps of life, on a CPU
+    python examples/continuous_drift.py --paper         # OP3: 1.2M steps (the paper's 200k + 1M), a GPU machine
+    python examples/continuous_drift.py --seeds 0 1 --workers 2
+
+It writes the protocol's layout into ``--output`` (default ``runs/continuous_drift_<preset>``): ``preset.json``, per
+seed ``seed_<k>/buffer`` (the lifetime buffer, its sources the three thirds) and one directory per job (``collect``,
+``distill_<student>``, ``online_<method>``); then ``scores.csv``, ``report.md`` and the figures ``fig_*.png``. Run
+again, it skips the jobs that have finished.
 """
 
-import argparse
-import pathlib
+import dataclasses
+import sys
 
-import gymnasium as gym
+from sb3_lifelong.experiments.example import run_example
+from sb3_lifelong.experiments.presets import PRESETS as PACKAGE_PRESETS
+from sb3_lifelong.experiments.presets import Preset
 
-from sb3_lifelong import CRR
-from sb3_lifelong.envs import DynamicsSchedule, LinearRamp
-from sb3_lifelong.experiments.sequential import (
-    add_common_arguments,
-    algo_kwargs,
-    eval_callbacks,
-    final_returns,
-    finish,
-    make_collector,
-    now,
-    prepare_output,
-    resolve_config,
-    set_threads,
-    write_layout,
-)
+#: the right hip's deformation (rad) at the first and at the last step of the life
+DRIFT = {"hip_deformation": (0.0, 0.3)}
+#: the three thirds of the life, named by the hip of the robot each is evaluated on
+NAMES = ("hip_0.00", "hip_0.15", "hip_0.30")
+#: where each third's evaluation robot is in the life: its first step, its middle, its last step
+EVAL_AT = (0.0, 0.5, 1.0)
+#: the pipeline (CRR exp beta=1) and the imbalance baseline (CRR indicator)
+STUDENTS = ("CRR_exp_beta1", "CRR_indicator")
+DRIFTING = dict(stages=({}, {}, {}), env_names=NAMES, drift=DRIFT, drift_eval_at=EVAL_AT, students=STUDENTS)
 
-END_DEFORMATION = 0.3
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_common_arguments(parser)
-    args = parser.parse_args()
-    set_threads()
-    config = resolve_config(args)
-    lifetime = sum(config["stage_steps"])
-    output = pathlib.Path(args.output or f"runs/continuous_drift_{args.preset}")
-    prepare_output(output, config, args.overwrite)
-    make_kwargs = {} if config.get("max_episode_steps") is None else dict(max_episode_steps=config["max_episode_steps"])
-    observed = ["hip_deformation"]
-
-    def robot(deformation: float) -> DynamicsSchedule:
-        env = DynamicsSchedule(gym.make(config["env_id"], **make_kwargs), append_params=True, observed_params=observed)
-        env.set_params(hip_deformation=deformation, immediate=True)
-        return env
-
-    rows = []
-    start = now()
-    for seed in config["seeds"]:
-        run_dir = output / f"seed_{seed}"
-        eval_envs = {f"hip_{d:.2f}": robot(d) for d in (0.0, END_DEFORMATION / 2, END_DEFORMATION)}
-        ramp = LinearRamp(0.0, END_DEFORMATION, begin=0, finish=lifetime)
-        env = DynamicsSchedule(
-            gym.make(config["env_id"], **make_kwargs),
-            schedules={"hip_deformation": ramp},
-            append_params=True,
-            observed_params=observed,
-        )
-        mpo = make_collector(env, config, seed, str(output / "tensorboard"))
-        callbacks = eval_callbacks(run_dir / "MPO", eval_envs, config, seed=seed)
-        mpo.learn(lifetime, callback=callbacks, tb_log_name=f"MPO_s{seed}")
-        rows += [dict(seed=seed, method="MPO", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-        callbacks = eval_callbacks(run_dir / "distilled", eval_envs, config, offline=True, seed=seed)
-        mpo.distill(CRR, total_updates=config["distill_steps"], callback=callbacks, beta=1.0, **algo_kwargs(config, seed))
-        rows += [dict(seed=seed, method="distilled", env=k, final_return=v) for k, v in final_returns(callbacks[0]).items()]
-        # one source: the whole drifting life
-        lifetime_data = {
-            info["name"]: f"hip 0 -> {END_DEFORMATION} rad (drift)" for info in mpo.replay_buffer.sources.values()
-        }
-        write_layout(run_dir, list(eval_envs), distilled=["distilled"], sources=lifetime_data)
-    finish(output, rows, config, now() - start, plots=not args.no_plots)
+PRESETS: dict[str, Preset] = {
+    "quick": dataclasses.replace(
+        PACKAGE_PRESETS["cpu"],
+        **DRIFTING,
+        stage_steps=(10_000, 10_000, 10_000),
+        distill_steps=10_000,
+        distill_eval_freq=1_000,
+        toy=True,
+        note="30k steps of life: too few to learn HalfCheetah (about 60k), so a run shows the pipeline.",
+    ),
+    "tiny": dataclasses.replace(PACKAGE_PRESETS["tiny"], **DRIFTING, stage_steps=(200, 200, 200), distill_eval_freq=20),
+    "paper": dataclasses.replace(
+        PACKAGE_PRESETS["paper"],
+        **DRIFTING,
+        stage_steps=(400_000, 400_000, 400_000),
+        note="The paper's lifetime (1.2M steps) on OP3, its hip worn gradually: a GPU machine (--device cuda).",
+    ),
+}
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_example(PRESETS, __doc__, "continuous_drift"))

@@ -1,9 +1,10 @@
 """
-The figures of the sequential examples (``examples/parallel_sharing.py``, ``continuous_drift.py``; see
+The figures of the sequential example (``examples/parallel_sharing.py``; see
 :mod:`sb3_lifelong.experiments.sequential`), in the package's one style
 (:mod:`sb3_lifelong.experiments.style`: the methods the examples share with the studies have the studies' names and
-colours, e.g. ``distilled`` is "CRR exp β=1", red, as in every figure). ``examples/three_stage.py`` writes a study of
-the protocol instead, whose figures ``python -m sb3_lifelong.experiments report <dir>`` draws.
+colours, e.g. ``distilled`` is "CRR exp β=1", red, as in every figure). ``examples/three_stage.py`` and
+``continuous_drift.py`` write a study of the protocol instead, whose figures
+``python -m sb3_lifelong.experiments report <dir>`` draws.
 
 Reads the layout the examples write (``<dir>/seed_<k>/<method>/eval.csv`` and ``q_sources.csv``,
 ``<dir>/seed_<k>/stages.json``) and writes into ``<dir>``:
@@ -20,7 +21,7 @@ The methods are read from the directory: the distilled ones are those named in `
 before it named them: the methods whose name starts with ``distilled``), the online ones all the others. A method
 keeps its name and colour in every figure. Usage::
 
-    python -m sb3_lifelong.plotting runs/continuous_drift_quick
+    python -m sb3_lifelong.plotting runs/parallel_copy_quick
 """
 
 # this module is the command line (its docstring is the help); the figures' code is sb3_lifelong.experiments.figures

@@ -51,7 +51,7 @@ def test_the_descriptions_keep_their_words_and_examples(capsys):
     assert "(and its three-stage variant: a study's own presets, --presets\nbenchmarks/" in text
     assert "Run one seed (every job of it that has not finished yet):\n\n    python -m sb3_lifelong.experiments run" in text
     text = help_of(plotting_cli.main, [], capsys)
-    assert "(examples/parallel_sharing.py, continuous_drift.py; see\nsb3_lifelong.experiments.sequential)" in text
+    assert "sequential example (examples/parallel_sharing.py; see\nsb3_lifelong.experiments.sequential)" in text
     assert "keeps its name and colour in every figure. Usage:\n\n    python -m sb3_lifelong.plotting runs/" in text
 
 

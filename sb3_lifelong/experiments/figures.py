@@ -6,8 +6,8 @@ A study's figures (:func:`plot_study`, from a two-stage or three-stage study rea
 :mod:`~sb3_lifelong.experiments.scores`, ``examples/three_stage.py``'s included): every figure's title names the
 study's set-up (its preset, robot and environments), so that the figures of a variant study are not read as another's.
 
-The sequential examples' figures (``examples/parallel_sharing.py``, ``continuous_drift.py``;
-:func:`plot_experiment`, ``python -m sb3_lifelong.plotting <dir>``), from the layout the examples write
+The sequential example's figures (``examples/parallel_sharing.py``; :func:`plot_experiment`,
+``python -m sb3_lifelong.plotting <dir>``), from the layout it writes
 (``<dir>/seed_<k>/<method>/eval.csv`` and ``q_sources.csv``, ``<dir>/seed_<k>/stages.json``): the return in each
 environment against environment steps (``curves_<env>.png``), every method's final return (``final_returns.png``),
 each online method's average Q on each environment's data (``q_sources.png``) and the distilled policies' return
@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from sb3_lifelong.core.contract import stage_name
-from sb3_lifelong.experiments.presets import STUDENTS, Job, preset_name, stage_ends
+from sb3_lifelong.experiments.presets import STUDENTS, Job, evaluation_stages, preset_name, stage_ends
 from sb3_lifelong.experiments.scores import Study, read_log
 from sb3_lifelong.experiments.style import (
     SEQUENTIAL_METHODS,
@@ -75,6 +75,10 @@ def study_title(study: Study) -> str:
     changes = [
         f"{env} = {_stage_text(stage) or 'default'}" for env, stage in zip(preset["env_names"][1:], preset["stages"][1:])
     ]
+    if preset.get("drift"):  # a drift: what moves over the life, and the robots the stages are evaluated on
+        evaluated = evaluation_stages(preset["stages"], preset["drift"], preset.get("drift_eval_at"))
+        changes = [f"{name} {start:g} -> {end:g} over the life" for name, (start, end) in preset["drift"].items()]
+        changes.append("evaluated on " + " | ".join(_stage_text(stage) or "default" for stage in evaluated))
     extras = []
     if preset.get("student_critic", "mse") != "mse":
         extras.append(f"{preset['student_critic']}-critic students")

@@ -37,7 +37,7 @@ from sb3_lifelong.core.atomic import atomic_write, write_json_atomic
 from sb3_lifelong.envs import DynamicsSchedule, LinearRamp, stage_envs
 from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET, MultiEnvEvalCallback, SourceQCallback, TrainLogCallback
 from sb3_lifelong.experiments import costs
-from sb3_lifelong.experiments.presets import Preset
+from sb3_lifelong.experiments.presets import Preset, evaluation_stages
 
 # ------------------------------------------------------------------------------------------------- a job's directory
 #: the marker of a directory that a job created and has not finished: everything in it is the job's to delete
@@ -382,11 +382,12 @@ def eval_envs(preset: Preset) -> dict[str, DynamicsSchedule]:
     :param preset: the study's settings
     :return: one copy of the robot per stage, pinned to it and named by ``env_names``
         (:func:`~sb3_lifelong.envs.stage_envs`), observing what the collector's robot does (a drifting parameter is
-        at its nominal value there)
+        at its nominal value there, or where ``drift_eval_at`` places it:
+        :func:`~sb3_lifelong.experiments.presets.evaluation_stages`)
     """
     return stage_envs(
         preset.env_id,
-        list(preset.stages),
+        evaluation_stages(preset.stages, preset.drift, preset.drift_eval_at),
         preset.env_names,
         preset.env_kwargs,
         append_params=True,

@@ -118,8 +118,13 @@ class Preset:
         at the end of its life (the sum of ``stage_steps``), through every stage, applied at each episode's start. A
         stage may not set a drifting parameter. Every robot of the study observes the drifting parameters beside those
         the stages vary (:attr:`observed_params`); the evaluation environments are the stages
-        (:func:`~sb3_lifelong.experiments.jobs.eval_envs`), with the drifting parameters at their nominal values. None:
-        no drift (the presets recorded before the field, unchanged)
+        (:func:`~sb3_lifelong.experiments.jobs.eval_envs`), with the drifting parameters at their nominal values
+        unless ``drift_eval_at`` places them. None: no drift (the presets recorded before the field, unchanged)
+    :param drift_eval_at: with a drift, where in the life each stage's evaluation robot has the drifting parameters,
+        one fraction per stage (0: their value at the first step, 1: at the last;
+        :func:`~sb3_lifelong.experiments.presets.evaluation_stages`): e.g.
+        ``(0.0, 0.5, 1.0)`` evaluates a three-stage life on the robot of its first, middle and last step. None: the
+        drifting parameters at their nominal values
     """
 
     env_id: str
@@ -152,6 +157,7 @@ class Preset:
     toy: bool = False
     note: str = ""
     drift: Optional[DriftSpec] = None
+    drift_eval_at: Optional[tuple[float, ...]] = None
 
     def __post_init__(self) -> None:
         if not len(self.stages) == len(self.stage_steps) == len(self.env_names):
@@ -171,6 +177,8 @@ class Preset:
         check_device(self.device, here=False)
         if self.drift is not None:
             object.__setattr__(self, "drift", check_drift(self.drift, self.stages))
+        if self.drift_eval_at is not None:
+            object.__setattr__(self, "drift_eval_at", check_drift_eval_at(self.drift_eval_at, self.drift, len(self.stages)))
 
     def jobs(self) -> list[str]:
         """:return: the jobs of one seed of this preset, in the order they run"""
@@ -198,8 +206,9 @@ class Preset:
         """
         data = dataclasses.asdict(self)
         data["stages"] = [describe_stage(stage) for stage in self.stages]
-        if self.drift is None:
-            del data["drift"]
+        for key in ("drift", "drift_eval_at"):  # the presets without them keep the settings they recorded
+            if data[key] is None:
+                del data[key]
         return data
 
 
@@ -466,6 +475,46 @@ def check_drift(drift: Mapping[str, Any], stages: Sequence[Stage]) -> dict[str, 
             )
         checked[name] = (float(pair[0]), float(pair[1]))
     return checked
+
+
+def check_drift_eval_at(eval_at: Any, drift: Optional[Mapping[str, Any]], n_stages: int) -> tuple[float, ...]:
+    """
+    :param eval_at: a preset's ``drift_eval_at``
+    :param drift: its drift (checked)
+    :param n_stages: its number of stages
+    :return: ``eval_at`` as a tuple of floats
+    :raises ValueError: when the preset has no drift, or ``eval_at`` is not one fraction in [0, 1] per stage
+    """
+    if drift is None:
+        raise ValueError(f"drift_eval_at places the drifting parameters, and the preset has no drift, got {eval_at!r}")
+    values = tuple(eval_at) if isinstance(eval_at, Sequence) and not isinstance(eval_at, str) else (eval_at,)
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)
+    if len(values) != n_stages or not numbers or not all(0 <= v <= 1 for v in values):
+        raise ValueError(
+            f"drift_eval_at must be one fraction of the life in [0, 1] per stage ({n_stages} stages), got {eval_at!r}"
+        )
+    return tuple(float(v) for v in values)
+
+
+def evaluation_stages(
+    stages: Sequence[Stage], drift: Optional[Mapping[str, Any]] = None, eval_at: Optional[Sequence[float]] = None
+) -> list[Stage]:
+    """
+    The robot each stage is evaluated on.
+
+    :param stages: a study's stages
+    :param drift: its drift, ``{parameter: (start, end)}`` (None: none)
+    :param eval_at: where in the life each stage's evaluation robot has the drifting parameters, a fraction per stage
+        (None: at their nominal values)
+    :return: the stages as they are without ``eval_at``; with it, each stage's parameter values and the drifting ones
+        at ``start + fraction * (end - start)`` (the collector's ramp at that point of the life)
+    """
+    if eval_at is None or drift is None:
+        return list(stages)
+    return [
+        {**stage_settings(stage), **{name: start + fraction * (end - start) for name, (start, end) in drift.items()}}
+        for stage, fraction in zip(stages, eval_at)
+    ]
 
 
 def observed_params(stages: Sequence[Stage], drift: Optional[Mapping[str, Any]]) -> Optional[list[str]]:

@@ -25,7 +25,7 @@ import pandas as pd
 from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.experiments.claims import Claim, evaluate_claims, load_claims, mean_over_envs, ratio, series_mean
 from sb3_lifelong.experiments.figures import plot_study
-from sb3_lifelong.experiments.presets import STUDENTS, preset_name, toy_budget
+from sb3_lifelong.experiments.presets import STUDENTS, describe_stage, evaluation_stages, preset_name, toy_budget
 from sb3_lifelong.experiments.scores import (
     ONLINE_LAST,
     ONLINE_LAST_STAGE1,
@@ -150,7 +150,7 @@ def measure_random_returns(preset: Mapping[str, Any], episodes: int = RANDOM_EPI
 
     steps = preset.get("max_episode_steps")
     env_kwargs = {} if steps is None else dict(max_episode_steps=steps)
-    envs = stage_envs(preset["env_id"], list(preset["stages"]), preset["env_names"], env_kwargs, append_params=True)
+    envs = stage_envs(preset["env_id"], _evaluated(preset), preset["env_names"], env_kwargs, append_params=True)
     try:
         return random_policy_returns(
             envs,
@@ -163,6 +163,20 @@ def measure_random_returns(preset: Mapping[str, Any], episodes: int = RANDOM_EPI
             env.close()
 
 
+def _evaluated(preset: Mapping[str, Any]) -> list[Any]:
+    """:return: the robot each stage of a study (its ``preset.json``) is evaluated on, as JSON-friendly values"""
+    return [describe_stage(s) for s in evaluation_stages(preset["stages"], preset.get("drift"), preset.get("drift_eval_at"))]
+
+
+def _drift_text(preset: Mapping[str, Any]) -> str:
+    """:return: what drifts over a study's life and where each stage is evaluated ("" without a drift), for the report"""
+    if not preset.get("drift"):
+        return ""
+    ramps = ", ".join(f"{name} {start:g} -> {end:g}" for name, (start, end) in preset["drift"].items())
+    evaluated = "; ".join(f"{env} on {json.dumps(stage)}" for env, stage in zip(preset["env_names"], _evaluated(preset)))
+    return f"drifting over the whole life: {ramps}; evaluated: {evaluated}; "
+
+
 def random_returns(output: pathlib.Path, preset: Mapping[str, Any]) -> dict[str, float]:
     """
     :return: the random policy's return per environment, read from the study's ``random_returns.json``, or measured
@@ -171,11 +185,11 @@ def random_returns(output: pathlib.Path, preset: Mapping[str, Any]) -> dict[str,
     path = output / RANDOM_RETURNS_FILE
     if path.is_file():
         record = json.loads(path.read_text())
-        if record.get("env_names") == list(preset["env_names"]) and record.get("stages") == list(preset["stages"]):
+        if record.get("env_names") == list(preset["env_names"]) and record.get("stages") == _evaluated(preset):
             return {name: float(value) for name, value in record["returns"].items()}
     returns = measure_random_returns(preset)
     record = dict(
-        env_names=list(preset["env_names"]), stages=list(preset["stages"]), episodes=RANDOM_EPISODES,
+        env_names=list(preset["env_names"]), stages=_evaluated(preset), episodes=RANDOM_EPISODES,
         policy="uniform over the action space, seeded", returns=returns,
     )  # fmt: skip
     write_text_atomic(path, json.dumps(record, indent=1) + "\n")
@@ -455,7 +469,8 @@ def write_report(
         + "\n".join(summary_lines(study, verdicts))
         + "\n\n"
         f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
-        f"{study.preset['distill_steps']:,} updates per student"
+        + _drift_text(study.preset)
+        + f"{study.preset['distill_steps']:,} updates per student"
         + (
             f", each student trained {study.preset['student_repeats']} times per seed and scored by the mean.\n\n"
             if study.preset.get("student_repeats", 1) > 1

@@ -1,8 +1,9 @@
 """
-The lifelong experiments of ``examples/parallel_sharing.py`` and ``examples/continuous_drift.py``: their
+The lifelong experiment of ``examples/parallel_sharing.py``: its
 configurations (:data:`EXAMPLE_CONFIGS`), environment factories, the collector, its evaluations and the summary.
 The paper's protocol (two stages or more, its runner, report and claims) is :mod:`sb3_lifelong.experiments.protocol`
-(its presets: :mod:`sb3_lifelong.experiments.presets`); ``examples/three_stage.py`` runs on it.
+(its presets: :mod:`sb3_lifelong.experiments.presets`); ``examples/three_stage.py`` and
+``examples/continuous_drift.py`` run on it (:mod:`sb3_lifelong.experiments.example`).
 
 Layout of an experiment's output directory::
 

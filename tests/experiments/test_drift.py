@@ -13,7 +13,13 @@ from sb3_lifelong import LifelongReplayBuffer
 from sb3_lifelong.experiments import PRESETS, run_seed
 from sb3_lifelong.experiments.costs import fingerprint
 from sb3_lifelong.experiments.jobs import eval_envs, make_env
-from sb3_lifelong.experiments.presets import collection_differences, preset_name, same_settings, switch_points
+from sb3_lifelong.experiments.presets import (
+    collection_differences,
+    evaluation_stages,
+    preset_name,
+    same_settings,
+    switch_points,
+)
 
 STUDIES = pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "studies"
 
@@ -102,6 +108,50 @@ def test_the_evaluation_environments_observe_what_the_collector_observes():
         observation, info = env.reset(seed=0)
         assert info["dynamics_params"]["hip_deformation"] == 0.0 and observation[-1] == 0.0  # the nominal hip
     assert envs["Env-B"].dynamics_params["friction"] == pytest.approx(0.5)
+
+
+def test_drift_eval_at_pins_each_stages_evaluation_robot_where_the_ramp_was():
+    # Env-A on the robot of the life's first step, Env-B on the robot at 3/4 of it: hip 0.3 * 0.75 rad, its friction
+    placed = dataclasses.replace(DRIFTING, drift_eval_at=(0, 0.75))
+    assert placed.drift_eval_at == (0.0, 0.75)
+    collector = make_env(placed)
+    by_hand = {"Env-A": (0.0, NOMINAL_FRICTION), "Env-B": (0.225, 0.5)}
+    envs = eval_envs(placed)
+    assert list(envs) == ["Env-A", "Env-B"]
+    for name, (hip, friction) in by_hand.items():
+        env = envs[name]
+        assert env.observation_space == collector.observation_space and env.observed_params == ["friction", "hip_deformation"]
+        for _ in range(2):  # pinned: every episode on the same robot
+            observation, info = env.reset(seed=0)
+            assert info["dynamics_params"]["hip_deformation"] == pytest.approx(hip), name
+            assert info["dynamics_params"]["friction"] == pytest.approx(friction), name
+            assert observation[-1] == pytest.approx(hip / HIP_OBS_SCALE, abs=1e-6)
+    # the same robots, as plain settings: a named stage's values and the drift's
+    named = dataclasses.replace(PRESETS["tiny"], stages=("default", "foot_1.6"), drift={"friction": (1.0, 3.0)})
+    evaluated = evaluation_stages(named.stages, named.drift, (0.5, 1.0))
+    assert evaluated == [{"friction": 2.0}, {"foot_scale": 1.6, "friction": 3.0}]
+    assert evaluation_stages(named.stages, named.drift, None) == ["default", "foot_1.6"]
+    described = json.loads(json.dumps(placed.describe()))
+    assert described["drift_eval_at"] == [0.0, 0.75] and "drift_eval_at" not in DRIFTING.describe()
+    assert not same_settings(described, json.loads(json.dumps(DRIFTING.describe())))
+
+
+@pytest.mark.parametrize(
+    "eval_at, message",
+    [
+        ((0.0,), "one fraction of the life in"),
+        ((0.0, 0.5, 1.0), "one fraction of the life in"),
+        ((0.0, 1.5), "one fraction of the life in"),
+        ((0.0, float("nan")), "one fraction of the life in"),
+        ((0.0, True), "one fraction of the life in"),
+        ("01", "one fraction of the life in"),
+    ],
+)
+def test_a_drift_eval_at_that_is_no_fraction_per_stage_is_refused(eval_at, message):
+    with pytest.raises(ValueError, match=rf"drift_eval_at must be {message} \[0, 1\] per stage \(2 stages\)"):
+        dataclasses.replace(DRIFTING, drift_eval_at=eval_at)
+    with pytest.raises(ValueError, match="drift_eval_at places the drifting parameters, and the preset has no drift"):
+        dataclasses.replace(PRESETS["tiny"], drift_eval_at=(0.0, 1.0))
 
 
 def test_a_preset_without_a_drift_builds_the_robot_it_did():
