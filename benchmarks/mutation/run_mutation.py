@@ -131,6 +131,7 @@ MODULES: dict[str, list[str]] = {
         "tests/core/test_one_way_in.py::test_distill_follows_a_logger_given_with_set_logger",
     ],
     "sb3_lifelong/common/offline.py": [
+        "tests/golden/test_golden_offline.py",
         "tests/golden/test_golden_eval_sources.py",
         "tests/common/test_offline_data.py",
         "tests/common/test_offline_learning.py",
