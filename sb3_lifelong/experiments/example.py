@@ -4,7 +4,8 @@ The command line of an example that runs a study of its own presets (``examples/
 (``runner.run_study``) and the report (:func:`~sb3_lifelong.experiments.write_report`),
 so that every example writes the protocol's layout and report.
 
-An example defines its presets by name (the same number of stages each) and calls :func:`~sb3_lifelong.experiments.example.run_example`::
+An example defines its presets by name (the same number of stages each) and calls
+:func:`~sb3_lifelong.experiments.example.run_example`::
 
     sys.exit(run_example(PRESETS, __doc__, "three_stage"))
 """

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-
 from testkit import flat_params, pendulum_data
 
 from sb3_lifelong import BC, CRR
