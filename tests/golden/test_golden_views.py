@@ -206,3 +206,60 @@ def test_n_step_returns_stop_at_a_buffers_end_and_at_episode_ends(kind: str) -> 
     np.testing.assert_array_equal(samples.dones.numpy()[:, 0], want_done)
     np.testing.assert_array_equal(samples.observations.numpy(), table["observations"][index])
     assert isinstance(samples.rewards, th.Tensor) and samples.rewards.dtype == th.float32
+
+
+def test_a_view_presents_sb3s_buffer_attributes_and_its_default_discount() -> None:
+    """What code written for SB3's ``ReplayBuffer`` reads of a view: one env, no capacity of its own, no memory
+    optimisation, time-limit truncations not terminal; and n-step returns discounted by 0.99 unless told."""
+    buffers, _ = make_buffers()
+    view = LifelongBufferView(buffers, n_steps=2)
+    assert (view.n_envs, view.buffer_size, view.optimize_memory_usage, view.handle_timeout_termination) == (1, 0, False, True)
+    np.random.seed(0)
+    discounts = {round(float(d), 6) for d in view.sample(400).discounts.numpy().ravel()}
+    assert discounts == {0.99, round(0.99**2, 6)}
+
+
+def test_an_empty_range_of_a_view_reads_no_row() -> None:
+    buffers, table = make_buffers()
+    view = LifelongBufferView(buffers)
+    for start in (0, 5, 8, len(table["rewards"])):  # inside a buffer, at a boundary, at the end
+        rows = view.read_range("rewards", start, start)
+        assert rows.shape == (0,) and rows.dtype == table["rewards"].dtype, start
+
+
+def test_merge_copies_in_blocks_the_rows_asked_and_keeps_each_inputs_streams_apart(monkeypatch) -> None:
+    """Blocks of 3 rows (the module's ``COPY_BLOCK``, set small here) over inputs of 8, 6, 9 and 7 rows, from rows 2,
+    0, 0 and 7 to rows 8, 6, 6 and 7: the merged rows are those rows of the inputs, in order; its capacity is their
+    count; no stream id of one input is another input's (the second input has three env streams, more than the ids the
+    first one used)."""
+    from sb3_lifelong.buffers import views
+
+    monkeypatch.setattr(views, "COPY_BLOCK", 3)
+    buffers, table = make_buffers()
+    extra = LifelongReplayBuffer(0, OBS, ACT, device="cpu", n_envs=3)
+    for i in range(2):
+        obs = np.stack([row_values(3, 3 * i + e, 0)["observations"] for e in range(3)])
+        extra.add(obs, obs, np.zeros((3, 2), np.float32), np.full(3, 3000.0 + i), np.zeros(3), [{}] * 3)
+    inputs = [buffers[0], extra, buffers[1], buffers[2]]
+    starts, stops = [2, 0, 0, 7], [8, 6, 6, 7]
+    merged = merge_buffers(inputs, starts=starts, stops=stops)
+    rewards = table["rewards"]
+    expected = [rewards[2:8], [3000.0] * 3 + [3001.0] * 3, rewards[8 : 8 + 6], rewards[17 + 7 : 17 + 7]]
+    np.testing.assert_array_equal(merged.read_range("rewards", 0, merged.size()), np.concatenate(expected))
+    assert merged.size() == merged.buffer_size == 6 + 6 + 6 + 0
+    streams = merged.read_range("streams", 0, merged.size()).astype(np.int64)
+    owners = [set(part.tolist()) for part in np.split(streams, [6, 12])]
+    assert len(owners[1]) == 3  # the second input's three env streams stay three
+    assert not owners[0] & owners[1] and not owners[0] & owners[2] and not owners[1] & owners[2], owners
+
+
+def test_merge_refuses_starts_that_are_not_one_index_per_buffer_and_takes_a_start_at_the_end() -> None:
+    buffers, _ = make_buffers()
+    with pytest.raises(
+        ValueError, match=r"starts must give one index in \[0, size\] per buffer: got \[0\] for sizes \[8, 9, 7\]"
+    ):
+        merge_buffers(buffers, starts=[0])
+    with pytest.raises(ValueError, match="starts must give one index"):
+        merge_buffers(buffers, starts=[0, 0, 8])
+    merged = merge_buffers(buffers, starts=[8, 0, 7])  # nothing of the first and the last: the ancestor kept once
+    assert merged.size() == 9
