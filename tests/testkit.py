@@ -65,6 +65,13 @@ def pendulum_data(n: int = 400, seed: int = 0) -> dict:
     return record_transitions(gym.make("Pendulum-v1"), lambda obs: rng.uniform(-2, 2, size=1).astype(np.float32), n, seed)
 
 
+def signature_defaults(function) -> dict:
+    """:return: the parameters of ``function`` that have a default, with it"""
+    import inspect
+
+    return {n: p.default for n, p in inspect.signature(function).parameters.items() if p.default is not p.empty}
+
+
 def flat_params(model) -> th.Tensor:
     """:return: every parameter of the model's policy, and MPO's dual variables when it has them, in one vector"""
     tensors = [p.detach().flatten() for p in model.policy.parameters()]

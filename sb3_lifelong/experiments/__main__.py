@@ -31,7 +31,7 @@ import torch as th
 
 from sb3_lifelong.core.cli import plain_text
 from sb3_lifelong.experiments import costs
-from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, Preset, check_device, load_presets
+from sb3_lifelong.experiments.presets import ONLINE, PRESETS, STUDENTS, Job, Preset, check_device, load_presets, resolve_device
 from sb3_lifelong.experiments.protocol import record_settings, run_seed
 from sb3_lifelong.experiments.report import export_results, write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
@@ -182,8 +182,7 @@ def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) 
             parser.error(f"--stage-steps needs one value per stage: preset {args.preset} has {stages}, got {args.stage_steps}")
     if args.command in ("run", "study"):
         _check_counts(parser, args)
-        if args.device == "auto":  # this machine's GPU if torch sees one: the study records the device it chose
-            args.device = "cuda" if th.cuda.is_available() else "cpu"
+        args.device = resolve_device(args.device)  # "auto": this machine's GPU if torch sees one, as the study records
         if args.device is not None:
             try:
                 args.settings = dataclasses.replace(args.settings, device=args.device)

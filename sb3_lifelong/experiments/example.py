@@ -18,7 +18,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any, Optional
 
 from sb3_lifelong.core.cli import plain_text
-from sb3_lifelong.experiments.presets import Preset, check_device
+from sb3_lifelong.experiments.presets import Preset, check_device, resolve_device
 from sb3_lifelong.experiments.report import write_report
 from sb3_lifelong.experiments.runner import BACKENDS, run_study
 
@@ -101,10 +101,7 @@ def example_arguments(
     parser.add_argument("--no-plots", action="store_true", help="write the scores and the report, no figures")
     args = parser.parse_args(argv)
     preset = presets[args.preset]
-    if args.device == "auto":
-        import torch as th
-
-        args.device = "cuda" if th.cuda.is_available() else "cpu"
+    args.device = resolve_device(args.device)
     changes: dict[str, Any] = dict(
         stage_steps=None if args.stage_steps is None else tuple(args.stage_steps),
         distill_steps=args.distill_steps,

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from sb3_lifelong.core.contract import stage_name
-from sb3_lifelong.experiments.presets import STUDENTS, Job, evaluation_stages, preset_name, stage_ends
+from sb3_lifelong.experiments.presets import STUDENTS, Job, drift_text, evaluation_stages, preset_name, stage_ends
 from sb3_lifelong.experiments.scores import Study, read_log
 from sb3_lifelong.experiments.style import (
     SEQUENTIAL_METHODS,
@@ -77,7 +77,7 @@ def study_title(study: Study) -> str:
     ]
     if preset.get("drift"):  # a drift: what moves over the life, and the robots the stages are evaluated on
         evaluated = evaluation_stages(preset["stages"], preset["drift"], preset.get("drift_eval_at"))
-        changes = [f"{name} {start:g} -> {end:g} over the life" for name, (start, end) in preset["drift"].items()]
+        changes = [f"{drift_text(preset['drift'])} over the life"]
         changes.append("evaluated on " + " | ".join(_stage_text(stage) or "default" for stage in evaluated))
     extras = []
     if preset.get("student_critic", "mse") != "mse":

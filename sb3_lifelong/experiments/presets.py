@@ -28,6 +28,15 @@ DriftSpec = Mapping[str, tuple[float, float]]
 STUDENT_CRITICS = ("mse", "categorical")
 
 
+def resolve_device(device: Optional[str]) -> Optional[str]:
+    """:return: ``device``, with ``"auto"`` made this machine's choice: ``"cuda"`` if torch sees a GPU, else ``"cpu"``"""
+    if device != "auto":
+        return device
+    import torch as th
+
+    return "cuda" if th.cuda.is_available() else "cpu"
+
+
 def check_device(device: str, here: bool = True) -> None:
     """
     :param device: a torch device's name
@@ -465,16 +474,29 @@ def check_drift(drift: Mapping[str, Any], stages: Sequence[Stage]) -> dict[str, 
         staged = [index for index, stage in enumerate(stages) if name in stage_settings(stage)]
         if staged:
             raise ValueError(f"drift: stage(s) {staged} set {name!r}, which the drift moves over the whole life")
-        pair = tuple(values) if isinstance(values, Sequence) and not isinstance(values, str) else (values,)
+        pair = finite_numbers(values)
         low, high = PERTURBATIONS[name].low, PERTURBATIONS[name].high
-        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in pair)
-        if len(pair) != 2 or not numbers or pair[0] == pair[1] or not all(low <= v <= high for v in pair):
+        if pair is None or len(pair) != 2 or pair[0] == pair[1] or not all(low <= v <= high for v in pair):
             raise ValueError(
                 f"drift[{name!r}] must be (start, end): two different finite numbers in [{low:.4g}, {high:.4g}] "
                 f"({PERTURBATIONS[name].unit}), got {values!r}"
             )
-        checked[name] = (float(pair[0]), float(pair[1]))
+        checked[name] = (pair[0], pair[1])
     return checked
+
+
+def finite_numbers(values: Any) -> Optional[tuple[float, ...]]:
+    """:return: ``values`` (a sequence, or one value) as floats, or None when one is not a finite int or float (a bool
+    is not a number here)"""
+    items = tuple(values) if isinstance(values, Sequence) and not isinstance(values, str) else (values,)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in items):
+        return None
+    return tuple(float(v) for v in items)
+
+
+def drift_text(drift: Mapping[str, Any]) -> str:
+    """:return: a drift as the report and the figures say it, e.g. ``hip_deformation 0 -> 0.3``"""
+    return ", ".join(f"{name} {start:g} -> {end:g}" for name, (start, end) in drift.items())
 
 
 def check_drift_eval_at(eval_at: Any, drift: Optional[Mapping[str, Any]], n_stages: int) -> tuple[float, ...]:
@@ -487,13 +509,12 @@ def check_drift_eval_at(eval_at: Any, drift: Optional[Mapping[str, Any]], n_stag
     """
     if drift is None:
         raise ValueError(f"drift_eval_at places the drifting parameters, and the preset has no drift, got {eval_at!r}")
-    values = tuple(eval_at) if isinstance(eval_at, Sequence) and not isinstance(eval_at, str) else (eval_at,)
-    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)
-    if len(values) != n_stages or not numbers or not all(0 <= v <= 1 for v in values):
+    values = finite_numbers(eval_at)
+    if values is None or len(values) != n_stages or not all(0 <= v <= 1 for v in values):
         raise ValueError(
             f"drift_eval_at must be one fraction of the life in [0, 1] per stage ({n_stages} stages), got {eval_at!r}"
         )
-    return tuple(float(v) for v in values)
+    return values
 
 
 def evaluation_stages(

@@ -25,7 +25,7 @@ import pandas as pd
 from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.experiments.claims import Claim, evaluate_claims, load_claims, mean_over_envs, ratio, series_mean
 from sb3_lifelong.experiments.figures import plot_study
-from sb3_lifelong.experiments.presets import STUDENTS, describe_stage, evaluation_stages, preset_name, toy_budget
+from sb3_lifelong.experiments.presets import STUDENTS, describe_stage, drift_text, evaluation_stages, preset_name, toy_budget
 from sb3_lifelong.experiments.scores import (
     ONLINE_LAST,
     ONLINE_LAST_STAGE1,
@@ -172,7 +172,7 @@ def _drift_text(preset: Mapping[str, Any]) -> str:
     """:return: what drifts over a study's life and where each stage is evaluated ("" without a drift), for the report"""
     if not preset.get("drift"):
         return ""
-    ramps = ", ".join(f"{name} {start:g} -> {end:g}" for name, (start, end) in preset["drift"].items())
+    ramps = drift_text(preset["drift"])
     evaluated = "; ".join(f"{env} on {json.dumps(stage)}" for env, stage in zip(preset["env_names"], _evaluated(preset)))
     return f"drifting over the whole life: {ramps}; evaluated: {evaluated}; "
 

@@ -257,12 +257,12 @@ def test_the_defaults_a_user_gets():
 def test_every_constructor_default_of_mpo_and_crr():
     """Every default of the two constructors, written out (the docs' parameter tables say the same): a change of one is
     a change of behaviour, with a CHANGELOG line and a change here."""
-    import inspect
+    from testkit import signature_defaults
 
     from sb3_lifelong import CRR
 
     def defaults(cls: type) -> dict:
-        return {n: p.default for n, p in inspect.signature(cls.__init__).parameters.items() if p.default is not p.empty}
+        return signature_defaults(cls.__init__)
 
     shared = dict(
         learning_rate=3e-4,

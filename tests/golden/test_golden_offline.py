@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from testkit import flat_params, pendulum_data
+from testkit import flat_params, pendulum_data, signature_defaults
 
 from sb3_lifelong import BC, CRR
 
@@ -21,8 +21,7 @@ SMALL = dict(policy_kwargs=dict(net_arch=[16, 16]), batch_size=16, seed=0)
 def test_every_default_of_learn_offline():
     """Written out as the docs' parameter list says them: a change of one is a change of behaviour (a CHANGELOG
     line and a change here)."""
-    defaults = {n: p.default for n, p in inspect.signature(CRR.learn_offline).parameters.items() if p.default is not p.empty}
-    assert defaults == dict(
+    assert signature_defaults(CRR.learn_offline) == dict(
         callback=None,
         eval_env=None,
         eval_freq=10_000,
