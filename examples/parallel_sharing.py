@@ -1,62 +1,76 @@
 """
-Parallel data sharing (the paper's appendix set-ups), then one distillation over all the robots' data.
+Parallel data sharing (the paper's appendix set-ups): two robots at the same time, then one distillation over all
+their data, run by the paper's protocol (its runner and its report).
 
-- ``--setup copy``: one agent learns Env-A; it is then copied (policy, critic and replay buffer) into two agents
-  that continue at the same time in Env-B and in Env-C. The buffers are merged, keeping the shared Env-A part once.
-- ``--setup independent``: one agent learns Env-A then Env-B while a second agent learns Env-C from scratch. The
-  two buffers are viewed as one (no copy) for the distillation.
+- ``--setup copy``: one agent learns Env-A; at the switch it is copied (policy, critic and replay buffer), and the
+  two go on at the same time, the first in Env-B and the copy in Env-C. Their buffers are merged, keeping the shared
+  Env-A part once.
+- ``--setup independent``: one agent learns Env-A then Env-B while a second agent learns Env-C from scratch; their
+  buffers are merged.
 
-The two collectors run side by side (``--workers 2``, the default: Ray workers when Ray is installed, a local
-process pool otherwise), each into its own lifetime buffer on disk; ``--workers 1`` runs them one after the other.
+The students (CRR exp beta=1, the pipeline, and CRR indicator, the imbalance baseline) distill the merged buffer and
+are evaluated in all three environments, beside the two collectors. The two collectors run side by side with
+``--workers 2`` (the default: Ray workers when Ray is installed, a local process pool otherwise); ``--workers 1`` runs
+them one after the other.
 
 Usage::
 
     python examples/parallel_sharing.py --setup copy
     python examples/parallel_sharing.py --setup copy --workers 1     # the collectors one after the other
     python examples/parallel_sharing.py --setup independent --paper
+
+It writes the protocol's layout into ``--output`` (default ``runs/parallel_sharing_<setup>_<preset>``):
+``preset.json``, per seed the first collector (``collect``, ``buffer``), the second (``collect_agent2``,
+``buffer_agent2``), the merged buffer (``share``, ``buffer_shared``) and one directory per student
+(``distill_<student>``); then ``scores.csv``, ``report.md`` and the figures ``fig_*.png``. Run again, it skips the
+jobs that have finished.
 """
 
-import argparse
-import pathlib
+import dataclasses
+import sys
 
-from sb3_lifelong.experiments.runner import BACKENDS
-from sb3_lifelong.experiments.sequential import (
-    add_common_arguments,
-    finish,
-    now,
-    prepare_output,
-    resolve_config,
-    set_threads,
-)
-from sb3_lifelong.experiments.sharing import SETUPS, run_sharing
+from sb3_lifelong.experiments.example import run_example
+from sb3_lifelong.experiments.presets import PRESETS as PACKAGE_PRESETS
+from sb3_lifelong.experiments.presets import Preset
 
-STAGES = {
-    "quick": [{}, {"hip_deformation": 0.3}, {"friction": 0.1}],
-    "tiny": [{}, {"hip_deformation": 0.3}, {"friction": 0.1}],
-    "paper": ["default", "hip_0.3", "foot_1.6"],
+NAMES = ("Env-A", "Env-B", "Env-C")
+CPU_STAGES = ({}, {"hip_deformation": 0.3}, {"friction": 0.1})
+#: the pipeline (CRR exp beta=1) and the imbalance baseline (CRR indicator)
+STUDENTS = ("CRR_exp_beta1", "CRR_indicator")
+SHARING = dict(env_names=NAMES, students=STUDENTS, online=False)
+#: the set-ups (``--setup``), each the preset's sharing
+SETUPS = {"copy": dict(sharing="copy"), "independent": dict(sharing="independent")}
+
+PRESETS: dict[str, Preset] = {
+    "quick": dataclasses.replace(
+        PACKAGE_PRESETS["cpu"],
+        **SHARING,
+        stages=CPU_STAGES,
+        stage_steps=(10_000, 20_000, 20_000),
+        distill_steps=10_000,
+        distill_eval_freq=1_000,
+        sharing="copy",
+        toy=True,
+        note="10k steps of Env-A: too few to learn HalfCheetah (about 60k), so a run shows the pipeline.",
+    ),
+    "tiny": dataclasses.replace(
+        PACKAGE_PRESETS["tiny"],
+        **SHARING,
+        stages=CPU_STAGES,
+        stage_steps=(200, 200, 200),
+        distill_eval_freq=20,  # a curve of six evaluations per student
+        sharing="copy",
+    ),
+    "paper": dataclasses.replace(
+        PACKAGE_PRESETS["paper"],
+        **SHARING,
+        stages=("default", "hip_0.3", "foot_1.6"),
+        stage_steps=(200_000, 1_000_000, 1_000_000),
+        sharing="copy",
+        note="The paper's scale, two OP3 robots side by side: a GPU machine (--device cuda), or --workers N for the jobs.",
+    ),
 }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_common_arguments(parser)
-    parser.add_argument(
-        "--setup",
-        choices=SETUPS,
-        default="copy",
-        help="copy: one agent learns Env-A, then two copies learn Env-B and Env-C; independent: A -> B, and C from scratch",
-    )
-    parser.add_argument("--workers", type=int, default=2, help="collectors at a time (1: one after the other)")
-    parser.add_argument("--backend", choices=BACKENDS, default="auto", help="ray, process (a local pool) or auto")
-    args = parser.parse_args()
-    set_threads()
-    config = resolve_config(args)
-    output = pathlib.Path(args.output or f"runs/parallel_{args.setup}_{args.preset}")
-    prepare_output(output, config, args.overwrite, setup=args.setup)
-    start = now()
-    rows = run_sharing(config, args.setup, STAGES[args.preset], output, workers=args.workers, backend=args.backend)
-    finish(output, rows, config, now() - start, plots=not args.no_plots)
-
-
 if __name__ == "__main__":
-    main()
+    sys.exit(run_example(PRESETS, __doc__, "parallel_sharing", setups=SETUPS, workers=2))

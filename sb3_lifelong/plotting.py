@@ -1,9 +1,9 @@
 """
-The figures of the sequential example (``examples/parallel_sharing.py``; see
-:mod:`sb3_lifelong.experiments.sequential`), in the package's one style
+The figures of an experiment in the sequential layout of the package's earlier examples (the committed
+``benchmarks/studies/two_stage_quick`` and ``two_stage_50k``), in the package's one style
 (:mod:`sb3_lifelong.experiments.style`: the methods the examples share with the studies have the studies' names and
-colours, e.g. ``distilled`` is "CRR exp β=1", red, as in every figure). ``examples/three_stage.py`` and
-``continuous_drift.py`` write a study of the protocol instead, whose figures
+colours, e.g. ``distilled`` is "CRR exp β=1", red, as in every figure). The examples (``examples/three_stage.py``,
+``continuous_drift.py``, ``parallel_sharing.py``) write a study of the protocol instead, whose figures
 ``python -m sb3_lifelong.experiments report <dir>`` draws.
 
 Reads the layout the examples write (``<dir>/seed_<k>/<method>/eval.csv`` and ``q_sources.csv``,
@@ -21,7 +21,7 @@ The methods are read from the directory: the distilled ones are those named in `
 before it named them: the methods whose name starts with ``distilled``), the online ones all the others. A method
 keeps its name and colour in every figure. Usage::
 
-    python -m sb3_lifelong.plotting runs/parallel_copy_quick
+    python -m sb3_lifelong.plotting benchmarks/studies/two_stage_quick
 """
 
 # this module is the command line (its docstring is the help); the figures' code is sb3_lifelong.experiments.figures

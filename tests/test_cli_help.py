@@ -51,8 +51,8 @@ def test_the_descriptions_keep_their_words_and_examples(capsys):
     assert "(and its three-stage variant: a study's own presets, --presets\nbenchmarks/" in text
     assert "Run one seed (every job of it that has not finished yet):\n\n    python -m sb3_lifelong.experiments run" in text
     text = help_of(plotting_cli.main, [], capsys)
-    assert "sequential example (examples/parallel_sharing.py; see\nsb3_lifelong.experiments.sequential)" in text
-    assert "keeps its name and colour in every figure. Usage:\n\n    python -m sb3_lifelong.plotting runs/" in text
+    assert "in the sequential layout of the package's earlier examples (the committed\nbenchmarks/studies/" in text
+    assert "keeps its name and colour in every figure. Usage:\n\n    python -m sb3_lifelong.plotting benchmarks/" in text
 
 
 def test_the_zoo_help_is_plain_text(capsys):

@@ -22,11 +22,6 @@ def run_example(script: str, output: pathlib.Path, *extra: str) -> str:
     return result.stdout
 
 
-def summary_rows(output: pathlib.Path) -> list[dict[str, str]]:
-    with open(output / "summary.csv") as handle:
-        return list(csv.DictReader(handle))
-
-
 def score_rows(output: pathlib.Path) -> list[dict[str, str]]:
     with open(output / "scores.csv") as handle:
         return list(csv.DictReader(handle))
@@ -123,25 +118,66 @@ def test_examples_are_programs_with_documented_flags():
             assert helped_here or helped_below, f"{script.name}: {option} has no help text"
 
 
-@pytest.mark.parametrize(
-    "script, extra, envs",
-    [
-        ("parallel_sharing.py", ["--setup", "copy", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
-        ("parallel_sharing.py", ["--setup", "independent", "--backend", "process", "--no-plots"], {"Env-A", "Env-B", "Env-C"}),
-    ],
-)
-def test_other_examples(tmp_path, script, extra, envs):
-    stdout = run_example(script, tmp_path, *extra)
-    rows = summary_rows(tmp_path)
-    assert {row["env"] for row in rows} == envs
-    assert any(row["method"] == "distilled" for row in rows)
-    layout = json.loads((tmp_path / "seed_0" / "stages.json").read_text())
-    assert "distilled" in layout["distilled"] and set(layout["names"]) == envs
-    if script == "parallel_sharing.py":
-        # the merged data holds every environment once: Env-A's part of the copied buffer is not duplicated
-        assert "900 transitions shared, per source {0: 300, 1: 300, 2: 300}" in stdout
-        timing = json.loads((tmp_path / "seed_0" / "collectors.json").read_text())
-        assert timing["workers"] == 2 and len(timing["collector_seconds"]) == 2
+def read_rows(path: pathlib.Path, start: int = 0, stop=None) -> np.ndarray:
+    from sb3_lifelong import LifelongReplayBuffer
+
+    with LifelongReplayBuffer.open(path, read_only=True) as buffer:
+        stop = buffer.size() if stop is None else stop
+        return np.concatenate(
+            [
+                buffer.read_range(field, start, stop).reshape(stop - start, -1)
+                for field in ("observations", "actions", "rewards")
+            ],
+            axis=1,
+        )
+
+
+def test_parallel_sharing_copy_runs_the_copy_beside_the_first_robot_and_shares_env_a_once(tmp_path):
+    """The copy set-up on the protocol's runner: Stage 1, then the two robots side by side, the merge, the students."""
+    from sb3_lifelong import LifelongReplayBuffer
+
+    stdout = run_example("parallel_sharing.py", tmp_path, "--setup", "copy", "--no-plots", "--backend", "process")
+    rows = score_rows(tmp_path)
+    assert {row["method"] for row in rows} == {"MPO", "MPO agent 2", "CRR_exp_beta1", "CRR_indicator"}
+    assert {row["env"] for row in rows} == THREE_ENVS
+    # the collection runs to the switch, then the first robot and its copy start together (two workers)
+    lines = stdout.splitlines()
+    position = {line: i for i, line in enumerate(lines)}
+    first_done = min(
+        i for i, line in enumerate(lines) if line.startswith(("[done] seed_0/collect ", "[done] seed_0/collect_agent2"))
+    )
+    assert position["[start] seed_0/collect@200"] < position["[start] seed_0/collect"] < first_done
+    assert position["[start] seed_0/collect_agent2"] < first_done
+    run = tmp_path / "seed_0"
+    # the copy starts from the first robot's Stage-1 buffer, and its clock from the switch
+    copy, stage1 = read_rows(run / "buffer_agent2", 0, 200), read_rows(run / "buffer_stage1")
+    np.testing.assert_array_equal(copy, stage1)
+    with open(run / "collect_agent2" / "eval.csv") as handle:
+        assert min(int(row["timesteps"]) for row in csv.DictReader(handle)) > 200
+    # the merged buffer: the first robot's 400 transitions, then the copy's own 200 (Env-A once)
+    shared = read_rows(run / "buffer_shared")
+    np.testing.assert_array_equal(shared[:400], read_rows(run / "buffer"))
+    np.testing.assert_array_equal(shared[400:], read_rows(run / "buffer_agent2", 200))
+    with LifelongReplayBuffer.open(run / "buffer_shared", read_only=True) as buffer:
+        assert buffer.source_counts() == {0: 200, 1: 200, 2: 200}
+    assert json.loads((run / "share" / "done.json").read_text())["source_rows"] == {"Env-A": 200, "Env-B": 200, "Env-C": 200}
+    assert "two robots side by side (copy)" in (tmp_path / "report.md").read_text()
+
+
+def test_parallel_sharing_independent_merges_a_second_robot_of_its_own(tmp_path):
+    from sb3_lifelong import LifelongReplayBuffer
+
+    stdout = run_example("parallel_sharing.py", tmp_path, "--setup", "independent", "--workers", "1", "--no-plots")
+    assert "collect@" not in stdout  # no Stage 1 to wait for
+    run = tmp_path / "seed_0"
+    with LifelongReplayBuffer.open(run / "buffer_agent2", read_only=True) as buffer:
+        assert buffer.source_counts() == {2: 200}
+    with open(run / "collect_agent2" / "eval.csv") as handle:
+        assert min(int(row["timesteps"]) for row in csv.DictReader(handle)) <= 200  # its own clock, from 0
+    shared = read_rows(run / "buffer_shared")
+    np.testing.assert_array_equal(shared, np.concatenate([read_rows(run / "buffer"), read_rows(run / "buffer_agent2")]))
+    assert {row["method"] for row in score_rows(tmp_path)} == {"MPO", "MPO agent 2", "CRR_exp_beta1", "CRR_indicator"}
+    assert "a second robot learns Env-C from scratch" in (tmp_path / "report.md").read_text()
 
 
 def test_two_stage_example_reads_top_to_bottom_and_writes_its_results(tmp_path):
@@ -167,37 +203,3 @@ def test_two_stage_example_reads_top_to_bottom_and_writes_its_results(tmp_path):
         [sys.executable, str(EXAMPLES / "two_stage.py"), *args], capture_output=True, text=True, timeout=120
     )
     assert again.returncode == 2 and "not empty" in again.stderr and (out / "returns.csv").read_bytes() == before
-
-
-def test_seeds_of_separate_runs_are_summarised_together(tmp_path):
-    from sb3_lifelong.experiments.sequential import finish
-
-    config = dict(eval_episodes=1)
-    first = [
-        dict(seed=0, method="MPO", env="Env-A", final_return=1.0),
-        dict(seed=1, method="MPO", env="Env-A", final_return=5.0),
-    ]
-    finish(tmp_path, first, config, 1.0, plots=False)
-    # a later run redoes seed 1 and adds seed 2: seed 0 is kept, seed 1 replaced
-    finish(tmp_path, [dict(seed=s, method="MPO", env="Env-A", final_return=3.0) for s in (1, 2)], config, 1.0, plots=False)
-    rows = summary_rows(tmp_path)
-    assert [(row["seed"], float(row["final_return"])) for row in rows] == [("0", 1.0), ("1", 3.0), ("2", 3.0)]
-    assert "seeds [0, 1, 2]" in (tmp_path / "summary.md").read_text()
-    assert "| MPO | 2 +- 1 |" in (tmp_path / "summary.md").read_text()
-
-
-def test_a_rerun_never_mixes_runs_silently(tmp_path):
-    from sb3_lifelong.experiments.sequential import EXAMPLE_CONFIGS, prepare_output
-
-    config = dict(EXAMPLE_CONFIGS["tiny"], seeds=[0], preset="tiny")
-    prepare_output(tmp_path, config)
-    (tmp_path / "seed_0").mkdir()
-    with pytest.raises(FileExistsError, match=r"seed\(s\) \[0\] already in .*--overwrite"):
-        prepare_output(tmp_path, config)
-    prepare_output(tmp_path, {**config, "seeds": [1]})  # another seed, same settings: summarised together
-    with pytest.raises(FileExistsError, match="other settings"):
-        prepare_output(tmp_path, {**config, "seeds": [2], "distill_steps": 7})
-    with pytest.raises(FileExistsError, match="other settings"):
-        prepare_output(tmp_path, {**config, "seeds": [2]}, setup="copy")
-    prepare_output(tmp_path, {**config, "distill_steps": 7}, overwrite=True)
-    assert not (tmp_path / "seed_0").exists() and (tmp_path / "config.json").exists()

@@ -138,6 +138,7 @@ MODULES: dict[str, list[str]] = {
         "tests/crr/test_crr.py::test_the_offline_progress_bar_counts_updates",
     ],
     "sb3_lifelong/experiments/scores.py": [
+        "tests/golden/test_golden_scores.py",
         "tests/experiments/test_report_inputs.py",
         "tests/experiments/test_study_readings.py",
         "tests/experiments/test_study.py",

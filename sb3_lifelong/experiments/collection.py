@@ -105,7 +105,7 @@ def collect(
         model = _new_collection(preset, seed, run_dir, log)
     buffer: Any = model.replay_buffer
     callbacks = job_callbacks(preset, directory, preset.eval_freq, seed)
-    ends = stage_ends(preset.stage_steps)
+    ends = stage_ends(preset.collector_steps)
     for stage, end in enumerate(ends):
         stop = end if until is None else min(end, until)
         if model.num_timesteps < stop:
@@ -232,7 +232,7 @@ def finished_collection(preset: Preset, run_dir: pathlib.Path) -> list[str]:
     final = run_dir / "collect" / "final.zip"
     if final.is_file():
         found.append(f"{final} (the collector's final checkpoint, saved after the last step)")
-    buffer, total = run_dir / "buffer", sum(preset.stage_steps)
+    buffer, total = run_dir / "buffer", sum(preset.collector_steps)
     if not buffer.is_symlink() and (buffer / "manifest.json").is_file():
         try:
             with LifelongReplayBuffer.open(buffer, read_only=True) as held:

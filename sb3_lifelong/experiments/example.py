@@ -1,6 +1,6 @@
 """
 The command line of an example that runs a study of its own presets (``examples/three_stage.py``,
-``examples/continuous_drift.py``): one parser and one ``main`` over the runner
+``examples/continuous_drift.py``, ``examples/parallel_sharing.py``): one parser and one ``main`` over the runner
 (``runner.run_study``) and the report (:func:`~sb3_lifelong.experiments.write_report`),
 so that every example writes the protocol's layout and report.
 
@@ -55,14 +55,20 @@ def example_arguments(
     name: str,
     per_source_student: Optional[str] = None,
     argv: Optional[Sequence[str]] = None,
+    setups: Optional[Mapping[str, Mapping[str, Any]]] = None,
+    workers: int = 1,
 ) -> tuple[argparse.Namespace, Preset]:
     """
     :param presets: the example's presets by name (``quick``, the default; ``paper``, also ``--paper``; ``tiny``, for
         the tests), each with the same number of stages
     :param doc: the example's docstring (its ``--help``)
-    :param name: the example's name: the default output is ``runs/<name>_<preset>``
+    :param name: the example's name: the default output is ``runs/<name>_<preset>`` (``runs/<name>_<setup>_<preset>``
+        with ``setups``)
     :param per_source_student: a student that ``--per-source-actors`` adds to the preset's (None: no such flag)
     :param argv: the arguments (None: the command line's)
+    :param setups: the example's set-ups by name (``--setup``, the first the default), each the preset settings it
+        changes (None: no such flag)
+    :param workers: the default of ``--workers``
     :return: the arguments and the preset they make (exits with a usage error on bad input, before anything runs)
     """
     stage_counts = {len(preset.stages) for preset in presets.values()}
@@ -78,9 +84,12 @@ def example_arguments(
     )
     if "paper" in presets:
         parser.add_argument("--paper", action="store_const", const="paper", dest="preset", help="same as --preset paper")
-    parser.add_argument("--output", default=None, help=f"output directory (default: runs/{name}_<preset>)")
+    if setups:
+        parser.add_argument("--setup", choices=list(setups), default=next(iter(setups)), help="the set-up (see above)")
+    where = f"runs/{name}_<setup>_<preset>" if setups else f"runs/{name}_<preset>"
+    parser.add_argument("--output", default=None, help=f"output directory (default: {where})")
     parser.add_argument("--seeds", type=seed, nargs="+", default=[0], help="the seeds (default: 0)")
-    parser.add_argument("--workers", type=positive, default=1, help="jobs at a time on this machine (one CPU each)")
+    parser.add_argument("--workers", type=positive, default=workers, help="jobs at a time on this machine (one CPU each)")
     parser.add_argument(
         "--backend", choices=BACKENDS, default="auto", help="ray, process (a local pool), or auto: Ray if installed"
     )
@@ -110,6 +119,8 @@ def example_arguments(
         device=args.device,
     )
     changes = {key: value for key, value in changes.items() if value is not None}
+    if setups:
+        changes.update(setups[args.setup])
     if args.no_baselines:
         changes["online"] = False
     if getattr(args, "per_source_actors", False):
@@ -128,6 +139,8 @@ def run_example(
     name: str,
     per_source_student: Optional[str] = None,
     argv: Optional[Sequence[str]] = None,
+    setups: Optional[Mapping[str, Mapping[str, Any]]] = None,
+    workers: int = 1,
 ) -> int:
     """
     Run an example: its preset's jobs for every seed (those already finished are skipped), then the report.
@@ -137,10 +150,13 @@ def run_example(
     :param name: the example's name
     :param per_source_student: a student that ``--per-source-actors`` adds (None: no such flag)
     :param argv: the arguments (None: the command line's)
+    :param setups: the example's set-ups (see :func:`example_arguments`)
+    :param workers: the default of ``--workers``
     :return: the exit status: 0 done, 1 a job failed, 2 the output holds a study of other settings
     """
-    args, preset = example_arguments(presets, doc, name, per_source_student, argv)
-    output = pathlib.Path(args.output or f"runs/{name}_{args.preset}")
+    args, preset = example_arguments(presets, doc, name, per_source_student, argv, setups, workers)
+    default = f"runs/{name}_{args.setup}_{args.preset}" if setups else f"runs/{name}_{args.preset}"
+    output = pathlib.Path(args.output or default)
     try:
         results = run_study(preset, args.seeds, str(output), args.workers, backend=args.backend)
     except ValueError as error:  # e.g. the output holds a study of other settings

@@ -3,11 +3,12 @@ Every figure of the package's experiments, in its one style (:mod:`sb3_lifelong.
 colour per method in every figure; matplotlib's Agg backend, chosen when a figure is drawn: no display needed).
 
 A study's figures (:func:`plot_study`, from a two-stage or three-stage study read by
-:mod:`~sb3_lifelong.experiments.scores`, ``examples/three_stage.py``'s included): every figure's title names the
-study's set-up (its preset, robot and environments), so that the figures of a variant study are not read as another's.
+:mod:`~sb3_lifelong.experiments.scores`, every example's included): every figure's title names the study's set-up
+(its preset, robot and environments), so that the figures of a variant study are not read as another's.
 
-The sequential example's figures (``examples/parallel_sharing.py``; :func:`plot_experiment`,
-``python -m sb3_lifelong.plotting <dir>``), from the layout it writes
+The figures of an experiment in the sequential layout of the package's earlier examples (the committed
+``benchmarks/studies/two_stage_quick`` and ``two_stage_50k``; :func:`plot_experiment`,
+``python -m sb3_lifelong.plotting <dir>``), from that layout
 (``<dir>/seed_<k>/<method>/eval.csv`` and ``q_sources.csv``, ``<dir>/seed_<k>/stages.json``): the return in each
 environment against environment steps (``curves_<env>.png``), every method's final return (``final_returns.png``),
 each online method's average Q on each environment's data (``q_sources.png``) and the distilled policies' return
@@ -90,6 +91,7 @@ def study_title(study: Study) -> str:
 #: the online methods' jobs, by method key
 ONLINE_JOBS = {
     "MPO": "collect",
+    "MPO agent 2": "collect_agent2",
     "online CRR_indicator": "online_CRR_indicator",
     "online CRR_exp_beta1": "online_CRR_exp_beta1",
 }
@@ -100,6 +102,11 @@ def plot_online(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
     plt = pyplot()
     envs = study.preset["env_names"]
     ends = stage_ends(study.preset["stage_steps"])[:-1]  # one switch per change of environment
+    labels = [f"{envs[index]} -> {envs[index + 1]}" for index in range(len(ends))]
+    sharing = study.preset.get("sharing")
+    if sharing:  # two robots side by side: the first changes once; the copy starts there in Env-C, or the second from 0
+        ends = ends[:1]
+        labels = [f"{envs[0]} -> {envs[1]}" + (f"; the copy in {envs[2]}" if sharing == "copy" else "")]
     fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4.4), squeeze=False)
     for ax, env in zip(axes[0], envs):
         for method, job in ONLINE_JOBS.items():
@@ -111,8 +118,8 @@ def plot_online(study: Study, directory: pathlib.Path) -> list[pathlib.Path]:
             if values:
                 label = f"{method_label(method)}, distilled: final (mean, n={len(values)})"
                 ax.axhline(np.mean(values), color=method_color(method), linestyle=":", linewidth=2, label=label)
-        for index, end in enumerate(ends):
-            switch(ax, end, f"{envs[index]} -> {envs[index + 1]}", row=index)
+        for index, (end, label) in enumerate(zip(ends, labels)):
+            switch(ax, end, label, row=index)
         ax.set_title(f"Evaluated in {env}")
         steps_axis(ax, "environment steps")
         ax.set_ylabel("return (deterministic policy)")

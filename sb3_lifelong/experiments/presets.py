@@ -26,6 +26,10 @@ DriftSpec = Mapping[str, tuple[float, float]]
 
 #: the critics a preset's CRR students can have
 STUDENT_CRITICS = ("mse", "categorical")
+#: the parallel data-sharing set-ups of the paper's appendix (:attr:`Preset.sharing`)
+SHARING = ("copy", "independent")
+#: the seed offset of the second collector of a sharing study (its own exploration, evaluated on the seed's episodes)
+AGENT2_SEED_OFFSET = 1000
 
 
 def resolve_device(device: Optional[str]) -> Optional[str]:
@@ -134,6 +138,13 @@ class Preset:
         :func:`~sb3_lifelong.experiments.presets.evaluation_stages`): e.g.
         ``(0.0, 0.5, 1.0)`` evaluates a three-stage life on the robot of its first, middle and last step. None: the
         drifting parameters at their nominal values
+    :param sharing: two robots at the same time, their data shared (the paper's appendix; three stages, Env-A, Env-B,
+        Env-C). The ``collect`` job's agent learns Env-A for ``stage_steps[0]`` steps, then Env-B for
+        ``stage_steps[1]``; the ``collect_agent2`` job's agent learns Env-C for ``stage_steps[2]`` steps, side by side
+        with Env-B: ``"copy"``, a copy of the first agent at the switch (its weights and its Stage-1 buffer), or
+        ``"independent"``, a new agent from the first step. The ``share`` job merges the two lifetime buffers into
+        one (a copy's Env-A once), which the students distill. None: one robot through its stages (the presets
+        recorded before the field, unchanged)
     """
 
     env_id: str
@@ -167,6 +178,7 @@ class Preset:
     note: str = ""
     drift: Optional[DriftSpec] = None
     drift_eval_at: Optional[tuple[float, ...]] = None
+    sharing: Optional[str] = None
 
     def __post_init__(self) -> None:
         if not len(self.stages) == len(self.stage_steps) == len(self.env_names):
@@ -188,10 +200,52 @@ class Preset:
             object.__setattr__(self, "drift", check_drift(self.drift, self.stages))
         if self.drift_eval_at is not None:
             object.__setattr__(self, "drift_eval_at", check_drift_eval_at(self.drift_eval_at, self.drift, len(self.stages)))
+        if self.sharing is not None:
+            check_sharing(self)
 
     def jobs(self) -> list[str]:
         """:return: the jobs of one seed of this preset, in the order they run"""
-        return job_names(self.students, self.online, self.student_repeats)
+        return job_names(self.students, self.online, self.student_repeats, self.sharing is not None)
+
+    def requires(self, job: str) -> tuple[str, ...]:
+        """
+        :param job: one of the preset's job names
+        :return: the jobs that must have finished before ``job`` starts: ``collect`` for every other job; with
+            :attr:`sharing`, ``share`` for the students and both collections for ``share`` (the second collection
+            of the ``"copy"`` set-up starts from the first one's Stage 1, the runner's ``collect`` up to the switch)
+        """
+        if job in ("collect", "collect_agent2"):
+            return ()
+        if self.sharing is None:
+            return ("collect",)
+        return ("collect", "collect_agent2") if job == "share" else ("share",)
+
+    def with_requirements(self, jobs: Sequence[str]) -> list[str]:
+        """
+        :param jobs: some of the preset's job names
+        :return: them and every job they need (:meth:`requires`, and what those need), in the order the jobs run
+            (:meth:`jobs`; names the preset does not run, after them)
+        """
+        wanted, needed = set(jobs), list(jobs)
+        while needed:
+            for required in self.requires(needed.pop()):
+                if required not in wanted:
+                    wanted.add(required)
+                    needed.append(required)
+        order = self.jobs()
+        return [name for name in order if name in wanted] + sorted(wanted - set(order))
+
+    @property
+    def collector_steps(self) -> tuple[int, ...]:
+        """The environment steps of each stage of the ``collect`` job's agent: every stage, or Env-A and Env-B of a
+        sharing study (:attr:`sharing`: Env-C is the second agent's)."""
+        return self.stage_steps[:2] if self.sharing is not None else self.stage_steps
+
+    @property
+    def data_buffer(self) -> str:
+        """The directory, in a seed's, of the buffer the students distill: ``buffer``, or ``buffer_shared`` (the
+        ``share`` job's) in a sharing study."""
+        return "buffer" if self.sharing is None else SHARED_BUFFER
 
     @property
     def env_kwargs(self) -> dict[str, Any]:
@@ -209,13 +263,13 @@ class Preset:
 
     def describe(self) -> dict[str, Any]:
         """
-        :return: the settings as JSON-friendly values; without a drift, no ``drift`` key: the settings of the presets
+        :return: the settings as JSON-friendly values; without a drift (or sharing), no such key: the settings of the presets
             before the field, as their studies recorded them (``preset.json``, a paused student's record, the cost log's
             fingerprint)
         """
         data = dataclasses.asdict(self)
         data["stages"] = [describe_stage(stage) for stage in self.stages]
-        for key in ("drift", "drift_eval_at"):  # the presets without them keep the settings they recorded
+        for key in ("drift", "drift_eval_at", "sharing"):  # the presets without them keep the settings they recorded
             if data[key] is None:
                 del data[key]
         return data
@@ -385,10 +439,11 @@ def split_repeat(student_job: str) -> tuple[str, int]:
 class Job:
     """
     One job of a seed, parsed once from its name (which is also its directory's): ``collect``,
-    ``distill_<student>`` (``distill_<student>__r<k>`` for the student's repeat ``k``) or ``online_<method>``.
+    ``distill_<student>`` (``distill_<student>__r<k>`` for the student's repeat ``k``), ``online_<method>``, or a
+    sharing study's ``collect_agent2`` and ``share`` (:attr:`Preset.sharing`).
 
-    :param kind: ``"collect"``, ``"distill"`` or ``"online"``
-    :param name: the student's name (:data:`STUDENTS`) or the online method's (:data:`ONLINE`); empty for ``collect``
+    :param kind: ``"collect"``, ``"collect_agent2"``, ``"share"``, ``"distill"`` or ``"online"``
+    :param name: the student's name (:data:`STUDENTS`) or the online method's (:data:`ONLINE`); empty for the others
     :param repeat: the student's repeat (0: its first training)
     """
 
@@ -397,7 +452,7 @@ class Job:
     repeat: int = 0
 
     def __post_init__(self) -> None:
-        if self.kind not in JOB_KINDS or (self.kind == "collect") != (self.name == ""):
+        if self.kind not in JOB_KINDS or (self.kind in UNNAMED_JOBS) != (self.name == ""):
             raise ValueError(f"not a job: kind {self.kind!r}, name {self.name!r} (kinds: {JOB_KINDS})")
         if self.repeat < 0 or (self.repeat and self.kind != "distill"):
             raise ValueError(f"only a distillation job has repeats, and they count from 0: {self.kind} {self.repeat}")
@@ -405,14 +460,16 @@ class Job:
     @classmethod
     def parse(cls, text: str) -> "Job":
         """:return: the job named ``text``; a name that is no job raises ``ValueError``"""
-        if text == "collect":
-            return cls("collect")
+        if text in UNNAMED_JOBS:
+            return cls(text)
         for kind in ("distill", "online"):
             prefix = f"{kind}_"
             if text.startswith(prefix) and len(text) > len(prefix):
                 name, repeat = split_repeat(text[len(prefix) :]) if kind == "distill" else (text[len(prefix) :], 0)
                 return cls(kind, name, repeat)
-        raise ValueError(f"not a job name: {text!r} (collect, distill_<student>[{REPEAT_MARK}<k>], online_<method>)")
+        raise ValueError(
+            f"not a job name: {text!r} (collect, distill_<student>[{REPEAT_MARK}<k>], online_<method>, collect_agent2, share)"
+        )
 
     @property
     def student_job(self) -> str:
@@ -420,23 +477,28 @@ class Job:
         return self.name + (f"{REPEAT_MARK}{self.repeat}" if self.repeat else "")
 
     def __str__(self) -> str:
-        return "collect" if self.kind == "collect" else f"{self.kind}_{self.student_job}"
+        return self.kind if self.kind in UNNAMED_JOBS else f"{self.kind}_{self.student_job}"
 
 
-JOB_KINDS = ("collect", "distill", "online")
+#: the jobs without a name of their own: the collection, and a sharing study's second collection and merge
+UNNAMED_JOBS = ("collect", "collect_agent2", "share")
+JOB_KINDS = (*UNNAMED_JOBS, "distill", "online")
 
 
-def job_names(students: Optional[Sequence[str]] = None, online: bool = True, student_repeats: int = 1) -> list[str]:
+def job_names(
+    students: Optional[Sequence[str]] = None, online: bool = True, student_repeats: int = 1, sharing: bool = False
+) -> list[str]:
     """
     :param students: the students (default: every one of :data:`STUDENTS`)
     :param online: with the online CRR baselines
     :param student_repeats: how many times each student is trained on the seed's buffer
+    :param sharing: a sharing study's (:attr:`Preset.sharing`): its second collection and the merge of the two
     :return: the jobs of one seed, in the order they run (a student's repeats after all the first trainings)
     """
     if student_repeats < 1:
         raise ValueError(f"student_repeats must be >= 1, got {student_repeats}")
     names = list(students if students is not None else STUDENTS)
-    jobs = [Job("collect")]
+    jobs = [Job("collect")] + ([Job("collect_agent2"), Job("share")] if sharing else [])
     jobs += [Job("distill", name, k) for k in range(student_repeats) for name in names]
     jobs += [Job("online", name) for name in ONLINE] if online else []
     return [str(job) for job in jobs]
@@ -568,6 +630,61 @@ def stage_ends(stage_steps: Sequence[int]) -> list[int]:
 def switch_points(preset: Preset) -> list[int]:
     """:return: the timesteps at which the collector's environment changes"""
     return stage_ends(preset.stage_steps)[:-1]
+
+
+#: a sharing study's merged buffer, in a seed's directory (:attr:`Preset.data_buffer`)
+SHARED_BUFFER = "buffer_shared"
+
+
+def check_sharing(preset: Preset) -> None:
+    """
+    :param preset: a preset with :attr:`Preset.sharing`
+    :raises ValueError: naming the problem: an unknown set-up, not three stages, a drift (one robot's life), or the
+        online baselines (they continue one robot's Stage 1 through its later stages)
+    """
+    if preset.sharing not in SHARING:
+        raise ValueError(f"sharing must be one of {SHARING} or None, got {preset.sharing!r}")
+    if len(preset.stages) != 3:
+        raise ValueError(
+            f"a sharing study has three stages (Env-A, then Env-B for the first robot and Env-C for the second), got "
+            f"{len(preset.stages)}"
+        )
+    if preset.drift is not None:
+        raise ValueError("a sharing study has no drift: a drift is one robot's life, and its robots live side by side")
+    if preset.online:
+        raise ValueError("a sharing study has no online baselines (online=False): they continue one robot's stages")
+
+
+def left_environments(preset: Mapping[str, Any]) -> list[str]:
+    """
+    :param preset: a study's settings (:meth:`Preset.describe`, or its ``preset.json``)
+    :return: the environments the ``collect`` job's agent leaves, in stage order: every one but the last, or Env-A
+        alone in a sharing study (its first robot goes from Env-A to Env-B; Env-C is the second robot's)
+    """
+    envs = list(preset["env_names"])
+    return envs[:1] if preset.get("sharing") is not None else envs[:-1]
+
+
+def sharing_text(preset: Mapping[str, Any]) -> str:
+    """:return: a sharing study's two robots in words, for the report's settings line ("" without sharing)"""
+    sharing = preset.get("sharing")
+    if sharing is None:
+        return ""
+    a, b, c = preset["env_names"]
+    second = f"its copy at the switch learns {c}" if sharing == "copy" else f"a second robot learns {c} from scratch"
+    return f"two robots side by side ({sharing}): the first learns {a} then {b}, {second}; their buffers merged; "
+
+
+def study_ends(preset: Mapping[str, Any]) -> list[int]:
+    """
+    :param preset: a study's settings (:meth:`Preset.describe`, or its ``preset.json``)
+    :return: the timestep at which each stage ends on the ``collect`` job's clock (:func:`stage_ends`); in a sharing
+        study, Env-C's stage ends with Env-B's: the two robots live side by side
+    """
+    ends = stage_ends(preset["stage_steps"])
+    if preset.get("sharing") is not None:
+        ends[2] = ends[1]
+    return ends
 
 
 # ------------------------------------------------------------------------------------------------- recorded settings

@@ -80,6 +80,7 @@ from sb3_lifelong.experiments.presets import (
     switch_points,
 )
 from sb3_lifelong.experiments.scores import SOURCE_ROWS_RECORD, count_source_rows
+from sb3_lifelong.experiments.sharing import collect_agent2, share
 from sb3_lifelong.mpo import MPO
 
 
@@ -155,7 +156,7 @@ def distill_student(
     :param name: the student's name (its settings are ``STUDENTS[name]`` unless ``student`` is given)
     :param preset: the protocol's settings
     :param seed: the seed
-    :param run_dir: the seed's directory (holds ``buffer``)
+    :param run_dir: the seed's directory (holds ``buffer``, or a sharing study's ``buffer_shared``)
     :param progress_bar: show a progress bar
     :param student: settings of a student that is not in :data:`STUDENTS` (e.g. a benchmark's variant)
     :param student_seed: the seed of the student's own training and of its evaluation environments (default:
@@ -177,8 +178,11 @@ def distill_student(
     else:
         cut_logs_back(directory, paused["updates"], log)
         log(f"  continuing the student from its checkpoint at {paused['updates']:,} of {preset.distill_steps:,} updates")
-    data = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)
-    everything = LifelongReplayBuffer.open(run_dir / "buffer", read_only=True)  # unweighted, for Q per source
+    if not (run_dir / preset.data_buffer / "manifest.json").is_file():
+        raise FileNotFoundError(f"{run_dir / preset.data_buffer} is not there: the students distill it (run {run_dir.name}'s "
+                                f"{' and '.join(preset.requires(f'distill_{name}'))} job first)")  # fmt: skip
+    data = LifelongReplayBuffer.open(run_dir / preset.data_buffer, read_only=True)
+    everything = LifelongReplayBuffer.open(run_dir / preset.data_buffer, read_only=True)  # unweighted, for Q per source
     if student.ratio is not None:
         data.set_sampling_weights(sampling_weights(student.ratio, data.source_counts()))
     if student.reward_scale is not None:
@@ -427,7 +431,8 @@ def run_seed(
     :param preset: the protocol's settings
     :param seed: the seed
     :param output: the experiment directory (``seed_<k>`` is created inside)
-    :param jobs: the jobs to run (default: the preset's, :meth:`Preset.jobs`), always after ``collect``
+    :param jobs: the jobs to run (default: the preset's, :meth:`Preset.jobs`), after those they need that have not
+        finished (:meth:`Preset.requires`: ``collect``; a sharing study's students, ``share`` and both collections)
     :param progress_bar: show a progress bar per job
     :param log: where the one-line messages go
     :param collection_from: another study whose collection of this seed to reuse (:func:`adopt_collection`)
@@ -442,12 +447,11 @@ def run_seed(
         adopt_collection(preset, seed, collection_from, output, log)
     check_linked_buffers(run_dir)
     wanted = list(jobs) if jobs is not None else preset.jobs()
-    known = job_names(student_repeats=preset.student_repeats)
+    known = job_names(student_repeats=preset.student_repeats, sharing=preset.sharing is not None)
     unknown = sorted(set(wanted) - set(known))
     if unknown:
         raise ValueError(f"unknown jobs {unknown}; the jobs are {known}")
-    if "collect" not in wanted:  # the others need it: run first, or counted as done
-        wanted.insert(0, "collect")
+    wanted = preset.with_requirements(wanted)  # the jobs they need run first, or are counted as done
     ran: list[str] = []
     planned = [job for job in known if job in wanted]  # the order they run in; numbered "job k/n" over all of them
     todo = [job for job in planned if not (run_dir / job / "done.json").exists()]
@@ -478,6 +482,7 @@ def run_seed(
             resumed = job == "collect" and (run_dir / "collect" / PAUSED_MODEL).exists()  # its earlier parts not timed
             start = time.perf_counter()
             trained: Optional[float] = None  # a student's training seconds, its earlier parts' included
+            recorded: dict[str, Any] = {}  # what the job records beside its time
             parsed = Job.parse(job)
             if parsed.kind == "collect":
                 if not collect(preset, seed, run_dir, progress_bar, log, until=until):
@@ -485,6 +490,10 @@ def run_seed(
                     return ran
             elif parsed.kind == "online":
                 online(parsed.name, preset, seed, run_dir, progress_bar, log)
+            elif parsed.kind == "collect_agent2":
+                collect_agent2(preset, seed, run_dir, progress_bar, log)
+            elif parsed.kind == "share":
+                recorded[SOURCE_ROWS_RECORD] = share(preset, run_dir, log)
             else:
                 name, repeat = parsed.name, parsed.repeat
                 student_seed = seed + repeat * REPEAT_SEED_STRIDE
@@ -503,7 +512,8 @@ def run_seed(
             done = dict(job=job, seed=seed, seconds=seconds, preset=preset.describe())
             if parsed.kind == "distill":
                 done.update(student=dataclasses.asdict(STUDENTS[name]), repeat=repeat, student_seed=student_seed)
-            if parsed.kind == "collect":  # the share of each environment's data, for the report without the buffer
+            done.update(recorded)
+            if parsed.kind == "collect" and preset.sharing is None:  # each environment's rows, for the report
                 try:
                     done[SOURCE_ROWS_RECORD] = count_source_rows(run_dir / "buffer")
                 except (OSError, ValueError, RuntimeError) as error:  # never lose a finished collection over a record

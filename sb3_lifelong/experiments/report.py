@@ -25,7 +25,16 @@ import pandas as pd
 from sb3_lifelong.core.atomic import atomic_write, write_text_atomic
 from sb3_lifelong.experiments.claims import Claim, evaluate_claims, load_claims, mean_over_envs, ratio, series_mean
 from sb3_lifelong.experiments.figures import plot_study
-from sb3_lifelong.experiments.presets import STUDENTS, describe_stage, drift_text, evaluation_stages, preset_name, toy_budget
+from sb3_lifelong.experiments.presets import (
+    STUDENTS,
+    describe_stage,
+    drift_text,
+    evaluation_stages,
+    left_environments,
+    preset_name,
+    sharing_text,
+    toy_budget,
+)
 from sb3_lifelong.experiments.scores import (
     ONLINE_LAST,
     ONLINE_LAST_STAGE1,
@@ -50,7 +59,7 @@ def score_table(study: Study) -> str:
     header = "| method | kind | " + " | ".join(envs) + " | mean over envs | seeds |"
     lines = [header, "|" + " --- |" * (len(envs) + 4)]
     order = list(dict.fromkeys(study.finals["method"])) if len(study.finals) else []
-    order.sort(key=lambda m: (0 if m == "MPO" else 1 if m.startswith("online") else 2))
+    order.sort(key=lambda m: (0 if m.startswith("MPO") else 1 if m.startswith("online") else 2))
     for method in order:
         kind = study.finals[study.finals["method"] == method]["kind"].iloc[0]
         cells = [_cell(list(study.score(method, env).values()), len(study.seeds)) for env in envs]
@@ -98,7 +107,7 @@ def forgetting_table(study: Study) -> str:
         collector's overestimation of that environment's data when it left and at the end (a source whose
         overestimation grows is being forgotten); "" without MPO scores
     """
-    envs = study.preset["env_names"][:-1]
+    envs = left_environments(study.preset)
     if not any(study.extra(f"MPO|switch|{env}") for env in envs):
         return ""
     lines = [
@@ -373,7 +382,7 @@ def summary_lines(study: Study, verdicts: Sequence[Mapping[str, Any]]) -> list[s
             f"- **{who}** ({student}, {study.preset['distill_steps']:,} updates): {returns(student)}; against {mpo} ({seeds})."
         )
     kept = []
-    for env in envs[:-1]:
+    for env in left_environments(study.preset):
         switch, end = study.extra(f"MPO|switch|{env}"), study.score("MPO", env)
         if switch and end:
             kept_share = list(ratio(end, switch).values())
@@ -469,6 +478,7 @@ def write_report(
         + "\n".join(summary_lines(study, verdicts))
         + "\n\n"
         f"Stages: {json.dumps(study.preset['stages'])}; steps {study.preset['stage_steps']}; "
+        + sharing_text(study.preset)
         + _drift_text(study.preset)
         + f"{study.preset['distill_steps']:,} updates per student"
         + (

@@ -2,9 +2,10 @@
 A study (several seeds of the two-stage protocol) as a graph of jobs, run in parallel.
 
 Every seed's ``collect`` job comes first; its students and online baselines then run in any order, in parallel;
-the report waits for all. Each job is :func:`run_job`: one process-safe call that reads and writes only its seed's
-directory and skips itself when its ``done.json`` exists, so a crashed or cancelled job is re-run alone and
-finished ones are skipped.
+the report waits for all (a sharing study's two collections run side by side, then their merge, then the students:
+:meth:`~sb3_lifelong.experiments.presets.Preset.requires`). Each job is :func:`run_job`: one process-safe call that
+reads and writes only its seed's directory and skips itself when its ``done.json`` exists, so a crashed or cancelled
+job is re-run alone and finished ones are skipped.
 
 Backends: `Ray <https://www.ray.io>`_ (``pip install "sb3_lifelong[cluster]"``), started locally with ``workers``
 CPUs or joined at ``address`` (``HOST:PORT``, or ``RAY_ADDRESS``); without Ray a local process pool runs the same
@@ -33,47 +34,64 @@ BACKENDS = ("auto", "ray", "process")
 class Task:
     """
     One job of a study as the runner schedules it: the job ``name`` (a :class:`~sb3_lifelong.experiments.presets.Job`'s
-    name) of seed ``seed``, to run after the tasks in ``after`` (their keys).
+    name) of seed ``seed``, to run after the tasks in ``after`` (their keys); with ``until``, the collection's part up
+    to that step (it pauses there, and the task ``collect`` continues it).
     """
 
     seed: int
     name: str
     after: tuple[str, ...] = ()
+    until: Optional[int] = None
 
     @property
     def key(self) -> str:
-        return f"seed_{self.seed}/{self.name}"
+        return f"seed_{self.seed}/{self.name}" + ("" if self.until is None else f"@{self.until}")
 
 
 def job_graph(preset: Preset, seeds: Sequence[int], jobs: Optional[Sequence[str]] = None) -> list[Task]:
     """
     :param preset: the protocol's settings
     :param seeds: the seeds of the study
-    :param jobs: the jobs of each seed (default: the preset's)
-    :return: every job, each seed's ``collect`` before the jobs that read its buffer
+    :param jobs: the jobs of each seed (default: the preset's); the jobs they need are added
+        (:meth:`~sb3_lifelong.experiments.presets.Preset.requires`)
+    :return: every job after the jobs it needs: each seed's ``collect`` before the jobs that read its buffer; in a
+        sharing study's ``"copy"`` set-up, ``collect`` up to the switch before the two collections go on side by side
     """
-    names = list(jobs) if jobs is not None else preset.jobs()
+    order = preset.with_requirements(list(jobs) if jobs is not None else preset.jobs())
     graph = []
     for seed in seeds:
-        graph.append(Task(seed, "collect"))
-        graph += [Task(seed, name, after=(f"seed_{seed}/collect",)) for name in names if name != "collect"]
+        keys = {name: f"seed_{seed}/{name}" for name in order}
+        stage1: tuple[str, ...] = ()
+        if preset.sharing == "copy" and "collect_agent2" in order:
+            part = Task(seed, "collect", until=preset.stage_steps[0])
+            graph.append(part)
+            stage1 = (part.key,)
+        for name in order:
+            after = tuple(keys[required] for required in preset.requires(name))
+            graph.append(Task(seed, name, after=after + stage1 if name in ("collect", "collect_agent2") else after))
     return graph
 
 
-def run_job(preset: Preset, output: str, seed: int, name: str, threads: int = 1) -> dict[str, Any]:
+def run_job(
+    preset: Preset, output: str, seed: int, name: str, threads: int = 1, until: Optional[int] = None
+) -> dict[str, Any]:
     """
     Run one job in this process (a no-op when it is done already).
 
+    :param until: (``collect``) pause the collection at this step (the part of a :class:`Task` with ``until``)
     :return: ``{"key", "ran", "seconds", "error"}`` (``error``: the traceback, or None)
     """
     import torch as th
 
     th.set_num_threads(threads)
     start = time.perf_counter()
-    key = f"seed_{seed}/{name}"
+    key = Task(seed, name, until=until).key
     try:
-        ran = run_seed(preset, seed, pathlib.Path(output), jobs=[name], log=lambda message: None)
-        return dict(key=key, ran=name in ran, seconds=time.perf_counter() - start, error=None)
+        ran = run_seed(preset, seed, pathlib.Path(output), jobs=[name], log=lambda message: None, until=until)
+        # a part that paused ran; one whose collection had finished did not
+        finished = (pathlib.Path(output) / f"seed_{seed}" / name / "done.json").exists()
+        ran_now = name in ran or (until is not None and not finished)
+        return dict(key=key, ran=ran_now, seconds=time.perf_counter() - start, error=None)
     except Exception:
         return dict(key=key, ran=False, seconds=time.perf_counter() - start, error=traceback.format_exc())
 
@@ -194,7 +212,7 @@ def _run_pool(preset: Preset, graph: list[Task], output: str, workers: int, log:
                 elif all(dep in progress.results for dep in job.after) and len(running) < workers:
                     waiting.remove(job)
                     progress.started(job)
-                    running[pool.submit(run_job, preset, output, job.seed, job.name)] = job
+                    running[pool.submit(run_job, preset, output, job.seed, job.name, 1, job.until)] = job
             if not running:
                 continue
             done, _ = wait(list(running), return_when=FIRST_COMPLETED)
@@ -217,7 +235,7 @@ def _run_ray(
         for job in graph:  # submitted at once: Ray runs a job when the results it is given are ready
             dependencies = [refs[dep] for dep in job.after]
             # the dependencies go in as top-level arguments: Ray passes them resolved, once they are ready
-            refs[job.key] = remote_job.remote(preset, output, job.seed, job.name, *dependencies)
+            refs[job.key] = remote_job.remote(preset, output, job.seed, job.name, job.until, *dependencies)
             pending[refs[job.key]] = job
             if not job.after:
                 progress.started(job)
@@ -229,9 +247,9 @@ def _run_ray(
                 progress.blocked(job, result["blocked"])
                 continue
             progress.finished(result)
-            if job.name == "collect" and not result["error"]:
+            if not result["error"]:
                 for other in graph:
-                    if job.key in other.after:
+                    if job.key in other.after and all(dep in progress.results for dep in other.after):
                         progress.started(other)
         return progress.results
 
@@ -316,10 +334,12 @@ def _call(function: Callable[..., Any], kwargs: dict[str, Any]) -> Any:
 def _after(function: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
     """``function`` run only when the results it depends on have no error (Ray passes them resolved)."""
 
-    def job(preset: Preset, output: str, seed: int, name: str, *dependencies: dict[str, Any]) -> dict[str, Any]:
+    def job(
+        preset: Preset, output: str, seed: int, name: str, until: Optional[int], *dependencies: dict[str, Any]
+    ) -> dict[str, Any]:
         failed = [d["key"] for d in dependencies if d.get("error") or d.get("blocked")]
         if failed:
             return dict(blocked=f"{' and '.join(failed)} failed")
-        return function(preset, output, seed, name)
+        return function(preset, output, seed, name, 1, until)
 
     return job

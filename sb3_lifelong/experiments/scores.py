@@ -41,7 +41,7 @@ from typing import Any, Literal, NamedTuple, Optional
 import numpy as np
 import pandas as pd
 
-from sb3_lifelong.experiments.presets import Job, stage_ends
+from sb3_lifelong.experiments.presets import Job, left_environments, study_ends
 
 ONLINE_LAST = 3
 ONLINE_LAST_STAGE1 = 2
@@ -382,8 +382,11 @@ def collector_overestimation(
     return extras
 
 
-#: the ``collect`` job's record (its ``done.json``) of the rows of each source in the seed's lifetime buffer
+#: the ``collect`` job's record (its ``done.json``; a sharing study's ``share`` job's) of the rows of each source in
+#: the seed's lifetime buffer
 SOURCE_ROWS_RECORD = "source_rows"
+#: the method of a sharing study's second collector (its ``collect_agent2`` job) in the report
+AGENT2_METHOD = "MPO agent 2"
 
 
 def count_source_rows(buffer: pathlib.Path) -> dict[str, int]:
@@ -397,14 +400,18 @@ def count_source_rows(buffer: pathlib.Path) -> dict[str, int]:
         return {str(name): int(count) for name, count in data.source_counts(by_name=True).items()}
 
 
-def source_rows(run_dir: pathlib.Path) -> dict[str, int]:
+def source_rows(run_dir: pathlib.Path, job: str = "collect") -> dict[str, int]:
     """
     :param run_dir: a seed's directory, its collection finished
-    :return: the rows of each environment's data in the seed's lifetime buffer: as its ``collect/done.json`` recorded
+    :param job: the job that recorded them: ``collect``, or a sharing study's ``share`` (its merged buffer's rows)
+    :return: the rows of each environment's data in the seed's lifetime buffer: as its ``<job>/done.json`` recorded
         them (:data:`SOURCE_ROWS_RECORD`), else counted in its buffer when it is there (a study collected before the
         record existed); ``{}`` when neither is (a study exported without its buffers, say)
     """
-    done = json.loads((run_dir / "collect" / "done.json").read_text())
+    done_path = run_dir / job / "done.json"
+    if not done_path.is_file():  # (a sharing seed whose merge has not run)
+        return {}
+    done = json.loads(done_path.read_text())
     recorded = done.get(SOURCE_ROWS_RECORD)
     if isinstance(recorded, dict):
         return {str(name): int(count) for name, count in recorded.items()}
@@ -495,8 +502,11 @@ def load_study(
     problems: list[MalformedRow] = []
     preset = json.loads((output / "preset.json").read_text())
     envs = preset["env_names"]
-    ends = stage_ends(preset["stage_steps"])
+    ends = study_ends(preset)
     switch = ends[0]
+    # the stages the collector lives through, for its readings of each switch: a sharing study's first robot goes from
+    # Env-A to Env-B only (Env-C is the second robot's)
+    lived = len(left_environments(preset)) + 1
     finished = seeds_of(output)
     if seeds is not None:
         missing = sorted(set(seeds) - set(finished))
@@ -512,7 +522,11 @@ def load_study(
             if frame is None:
                 continue
             parsed = Job.parse(job)
-            if parsed.kind in ("collect", "online"):
+            if parsed.kind == "collect_agent2":  # a sharing study's second robot: its finals, on its own clock
+                for env in envs:
+                    score = last_mean(frame, env, ONLINE_LAST)
+                    finals.append(dict(seed=seed, method=AGENT2_METHOD, kind="online", env=env, score=score))
+            elif parsed.kind in ("collect", "online"):
                 method = "MPO" if parsed.kind == "collect" else f"online {parsed.name}"
                 for env in envs:
                     finals.append(
@@ -521,14 +535,14 @@ def load_study(
                     area = last_mean(frame, env, 10**9, after=switch, until=ends[1])  # Stage 2 only (of 2 or 3)
                     extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
                 # an online method's rows start after the Stage 1 it shares with MPO
-                extras += return_matrix(seed, method, frame, envs, ends, first=0 if job == "collect" else 1)
+                extras += return_matrix(seed, method, frame, envs[:lived], ends[:lived], first=0 if job == "collect" else 1)
                 if job == "collect":
-                    extras += switch_metrics(seed, frame, envs, ends)
+                    extras += switch_metrics(seed, frame, envs[:lived], ends[:lived])
                     extras += data_values(seed, job_dir / "q_sources.csv", [])  # (its problems: counted once, below)
-                    extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs, ends, problems)
+                    extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs[:lived], ends[:lived], problems)
                     extras += [
                         dict(seed=seed, metric=f"buffer|rows|{name}", value=float(rows))
-                        for name, rows in source_rows(run_dir).items()
+                        for name, rows in source_rows(run_dir, "share" if preset.get("sharing") else "collect").items()
                     ]
             else:
                 method = parsed.name  # a student's repeats score as their mean

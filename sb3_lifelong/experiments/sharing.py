@@ -1,199 +1,156 @@
 """
-Parallel data sharing (the paper's appendix): robots in different environments at the same time, each collecting
-into its own lifetime buffer on disk, run side by side on Ray workers or a local process pool
-(:func:`~sb3_lifelong.experiments.runner.map_parallel`); their buffers are then merged into one for the
-distillation, keeping a shared ancestor's transitions once.
+Parallel data sharing (the paper's appendix) on the protocol's runner: two robots at the same time, each collecting
+into its own lifetime buffer, their buffers then merged into one for the students (:attr:`Preset.sharing`).
 
-- ``"copy"``: one agent learns Env-A; it is copied (weights and buffer) into two agents that continue at the same
-  time, one in Env-B and one in Env-C.
-- ``"independent"``: one agent learns Env-A and then Env-B while a second agent learns Env-C from scratch.
+A sharing study's seed has two collection jobs and a merge beside the protocol's ``collect``:
 
-Layout of ``<output>/seed_<k>/``::
+* ``collect``: the first agent learns Env-A, then Env-B (:func:`~sb3_lifelong.experiments.collection.collect`, over
+  :attr:`Preset.collector_steps`). The runner runs it in two parts when the second agent is its copy: up to the
+  switch, then on, so that the copy starts at the switch and the two robots collect side by side.
+* ``collect_agent2`` (:func:`collect_agent2`): the second agent learns Env-C into ``buffer_agent2``: the first agent
+  at the switch, copied (its weights and its Stage-1 buffer, ``"copy"``), or a new agent (``"independent"``).
+* ``share`` (:func:`share`): the two lifetime buffers merged into ``buffer_shared`` (the copy's Env-A once), checked
+  to hold every transition collected exactly once; the students distill it.
 
-    agent1_stage1.zip            agent 1 after Env-A (the ancestor of the copies)
-    collectors.json              wall time of the two collectors (Stage 2), workers, environment steps per second
-    buffer_agent1/, buffer_agent2/   each collector's lifetime buffer (large: never commit them)
-    MPO_agent1/, MPO_agent2/     the collectors' evaluations; distilled/, distilled_indicator/: the students'
+Layout of ``<output>/seed_<k>/`` beside the protocol's::
+
+    collect_agent2/          the second agent's evaluations (eval.csv, q_sources.csv, train.csv) and final.zip
+    buffer_agent2/           its lifetime buffer (large: never commit it)
+    share/done.json          the rows of each environment in the merged buffer
+    buffer_shared/           the merged buffer the students distill (large)
 """
 
-import json
 import pathlib
-import time
-from collections.abc import Sequence
-from typing import Any, Optional
+from collections.abc import Mapping
+from typing import Any, Callable
 
-import torch as th
+from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
+from sb3_lifelong.experiments.jobs import job_callbacks, make_env, model_kwargs, start_job, tensorboard_dir
+from sb3_lifelong.experiments.presets import AGENT2_SEED_OFFSET, SHARED_BUFFER, Preset, describe_stage
+from sb3_lifelong.mpo import MPO
 
-from sb3_lifelong import CRR, MPO, LifelongReplayBuffer
-from sb3_lifelong.buffers import LifelongBufferView, merge_buffers
-from sb3_lifelong.core.atomic import write_text_atomic
-from sb3_lifelong.distill import distill
-from sb3_lifelong.envs import stage_envs
-from sb3_lifelong.experiments.runner import map_parallel
-from sb3_lifelong.experiments.sequential import (
-    Stage,
-    algo_kwargs,
-    episode_limit,
-    eval_callbacks,
-    final_returns,
-    make_collector,
-    make_schedule,
-    write_layout,
-)
+__all__ = ["AGENT2_BUFFER", "check_shared", "collect_agent2", "share"]
 
-SETUPS = ("copy", "independent")
-NAMES = ("Env-A", "Env-B", "Env-C")
+#: the second collector's lifetime buffer, in a seed's directory
+AGENT2_BUFFER = "buffer_agent2"
 
 
-def collect(
-    config: dict[str, Any],
-    stages: Sequence[Stage],
-    stage: int,
-    steps: int,
-    seed: int,
-    method_dir: str,
-    buffer_path: str,
-    model_path: Optional[str] = None,
-    tensorboard_log: Optional[str] = None,
-    tb_log_name: str = "MPO",
-    save_path: Optional[str] = None,
-) -> dict[str, Any]:
+def _name_sources(buffer: Any, preset: Preset) -> None:
+    for index in reversed(range(len(preset.env_names))):  # names in the manifest; transitions carry their stage
+        buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=describe_stage(preset.stages[index])))
+
+
+def collect_agent2(
+    preset: Preset, seed: int, run_dir: pathlib.Path, progress_bar: bool = False, log: Callable[[str], None] = print
+) -> None:
     """
-    One collector: MPO for ``steps`` environment steps in the environment of ``stage``, into the buffer at
-    ``buffer_path``; run in a worker process.
+    The ``collect_agent2`` job of a sharing study: the second robot learns Env-C for ``stage_steps[2]`` steps into
+    its own lifetime buffer (``buffer_agent2``), evaluated on every environment as the first is. An unfinished
+    attempt's directory and buffer are deleted first (only what it wrote: anything else is refused).
 
-    :param config: the experiment's settings (:func:`~sb3_lifelong.experiments.sequential.resolve_config`)
-    :param stages: the physical setting of every environment
-    :param stage: the environment this collector acts in
-    :param steps: environment steps
-    :param seed: the collector's seed
-    :param method_dir: where its evaluations go (``eval.csv`` is appended to)
-    :param buffer_path: its buffer directory: continued when ``model_path`` is given, created otherwise
-    :param model_path: a saved agent to continue (its weights and timestep count), or None: a new agent
-    :param tensorboard_log: tensorboard directory
-    :param tb_log_name: tensorboard run name
-    :param save_path: where to save the agent at the end (None: not saved)
-    :return: ``{"final": return per environment at the end, "size": transitions in its buffer, "seconds"}``
+    ``"copy"``: the first agent at the switch (``collect/stage1.zip``) with a copy of its Stage-1 buffer, its clock
+    going on from the switch; ``"independent"``: a new agent (seed ``seed + AGENT2_SEED_OFFSET``) from timestep 0.
+
+    :param preset: the study's settings (:attr:`Preset.sharing` set)
+    :param seed: the seed
+    :param run_dir: the seed's directory
+    :param progress_bar: show a progress bar
+    :param log: where a deletion is reported
+    :raises FileNotFoundError: (``"copy"``) the first agent has not reached the switch yet
     """
-    th.set_num_threads(1)
-    start = time.perf_counter()
-    env = make_schedule(config["env_id"], stages, None, config.get("max_episode_steps"))
-    env.set_stage(stage, immediate=True)
-    if model_path is None:
-        model = make_collector(env, config, seed, tensorboard_log, buffer_path=buffer_path)
+    if preset.sharing is None:
+        raise ValueError("collect_agent2 is a sharing study's job: the preset has no sharing set-up")
+    directory = run_dir / "collect_agent2"
+    stage1, stage1_buffer = run_dir / "collect" / "stage1.zip", run_dir / "buffer_stage1"
+    if preset.sharing == "copy" and not (stage1.is_file() and (stage1_buffer / "manifest.json").is_file()):
+        raise FileNotFoundError(
+            f"{stage1} and {stage1_buffer} are not there: the second agent of the copy set-up starts from the first at "
+            "the switch, so the collect job runs to the switch first (the runner does)"
+        )
+    start_job(directory, directory.name, log, beside=(AGENT2_BUFFER,))
+    env = make_env(preset)
+    env.set_stage(2, immediate=True)  # Env-C for its whole life
+    agent_seed = seed + AGENT2_SEED_OFFSET
+    if preset.sharing == "copy":
+        with LifelongReplayBuffer.open(stage1_buffer, read_only=True) as ancestor:
+            merge_buffers([ancestor], path=run_dir / AGENT2_BUFFER).close()
+        # the agent only (its saved buffer settings point at the first agent's buffer), then its own copy, extended
+        model = MPO.load(
+            stage1,
+            env=env,
+            device=preset.device,
+            custom_objects={"replay_buffer_kwargs": {}},
+            tensorboard_log=tensorboard_dir(directory),
+        )
+        model.replay_buffer = LifelongReplayBuffer.open(run_dir / AGENT2_BUFFER)
+        model.set_random_seed(agent_seed)
+        model.learning_starts = 0  # it has learnt: the copy acts by its policy from its first step
     else:
-        # the agent only (an empty in-memory buffer at load), then its own buffer, continued
-        model = MPO.load(model_path, env=env, custom_objects={"replay_buffer_kwargs": {}}, tensorboard_log=tensorboard_log)
-        model.replay_buffer = LifelongReplayBuffer.open(buffer_path)
-        model.set_random_seed(seed)
-        env.reset(seed=seed)
-        model.learning_starts = 0
-    limit = episode_limit(config.get("max_episode_steps"))
-    eval_envs = stage_envs(config["env_id"], list(stages), NAMES[: len(stages)], limit, append_params=True)
-    callbacks = eval_callbacks(pathlib.Path(method_dir), eval_envs, config, seed=seed)
-    model.learn(steps, callback=callbacks, reset_num_timesteps=model_path is None, tb_log_name=tb_log_name)
-    if save_path is not None:
-        model.save(save_path)
-    buffer = model.replay_buffer
-    assert isinstance(buffer, LifelongReplayBuffer)
-    size = buffer.size()
+        kwargs = model_kwargs(preset, agent_seed)
+        model = MPO(
+            "MlpPolicy",
+            env,
+            replay_buffer_class=LifelongReplayBuffer,
+            replay_buffer_kwargs=dict(path=run_dir / AGENT2_BUFFER),
+            learning_starts=preset.learning_starts,
+            num_samples=preset.num_samples,
+            batch_size=preset.batch_size,
+            learning_rate=preset.learning_rate,
+            tensorboard_log=tensorboard_dir(directory),
+            **kwargs,
+        )
+    buffer: Any = model.replay_buffer
+    _name_sources(buffer, preset)
+    callbacks = job_callbacks(preset, directory, preset.eval_freq, seed)
+    model.learn(preset.stage_steps[2], callback=callbacks, reset_num_timesteps=preset.sharing != "copy",
+                progress_bar=progress_bar)  # fmt: skip
+    model.save(directory / "final.zip")  # commits the buffer first
     buffer.close()
-    return dict(final=final_returns(callbacks[0]), size=size, seconds=time.perf_counter() - start)
 
 
-def run_sharing(
-    config: dict[str, Any],
-    setup: str,
-    stages: Sequence[Stage],
-    output: pathlib.Path,
-    workers: int = 2,
-    backend: str = "auto",
-    distill_students: bool = True,
-    log: Any = print,
-) -> list[dict[str, Any]]:
+def share(preset: Preset, run_dir: pathlib.Path, log: Callable[[str], None] = print) -> dict[str, int]:
     """
-    Every seed of the parallel-sharing experiment: Stage 1 in this process, then the two collectors side by side,
-    then the distillation of their merged buffers.
+    The ``share`` job of a sharing study: the two lifetime buffers merged into one (``buffer_shared``): the first
+    agent's whole, then the second's after the Env-A part a copy shares with it.
 
-    :param config: the experiment's settings (``stage_steps``: Env-A steps, then each collector's steps)
-    :param setup: ``"copy"`` or ``"independent"``
-    :param stages: the settings of Env-A, Env-B, Env-C
-    :param output: the output directory
-    :param workers: collectors at a time (1: one after the other in this process)
-    :param backend: ``"ray"``, ``"process"`` or ``"auto"`` (see :func:`~sb3_lifelong.experiments.runner.map_parallel`)
-    :param distill_students: distil the merged buffers (CRR exp beta=1 and indicator)
-    :param log: where the progress lines go
-    :return: the summary rows (seed, method, env, final_return)
-    :raises RuntimeError: when the merged buffer does not hold exactly the transitions collected
+    :param preset: the study's settings (:attr:`Preset.sharing` set)
+    :param run_dir: the seed's directory
+    :param log: where a deletion is reported
+    :return: the rows of each environment's data in the merged buffer, by its name
+    :raises RuntimeError: the merged buffer does not hold exactly the transitions collected
     """
-    if setup not in SETUPS:
-        raise ValueError(f"setup must be one of {SETUPS}, got {setup!r}")
-    first, second = config["stage_steps"][0], config["stage_steps"][1]
-    tensorboard_log = str(output / "tensorboard")
-    rows = []
-    for seed in config["seeds"]:
-        run_dir = output / f"seed_{seed}"
-        buffers = [str(run_dir / "buffer_agent1"), str(run_dir / "buffer_agent2")]
-        log(f"seed {seed}: agent 1 learns {NAMES[0]}, {first:,} steps")
-        stage1 = str(run_dir / "agent1_stage1.zip")
-        common: dict[str, Any] = dict(config=config, stages=stages, tensorboard_log=tensorboard_log)
-        collect(**common, stage=0, steps=first, seed=seed, method_dir=str(run_dir / "MPO_agent1"), buffer_path=buffers[0],
-                save_path=stage1, tb_log_name=f"agent1_s{seed}")  # fmt: skip
-        agent1 = dict(common, stage=1, steps=second, seed=seed, method_dir=str(run_dir / "MPO_agent1"),
-                      buffer_path=buffers[0], model_path=stage1, tb_log_name=f"agent1_s{seed}")  # fmt: skip
-        agent2 = dict(agent1, stage=2, seed=seed + 1000, method_dir=str(run_dir / "MPO_agent2"),
-                      buffer_path=buffers[1], tb_log_name=f"agent2_s{seed}")  # fmt: skip
-        if setup == "copy":  # the copy starts with the ancestor's weights and its whole buffer
-            with LifelongReplayBuffer.open(buffers[0], read_only=True) as ancestor:
-                merge_buffers([ancestor], path=buffers[1]).close()
-        else:
-            agent2["model_path"] = None
-        how = f"{workers} at a time" if workers > 1 else "one after the other in this process"
-        log(f"seed {seed}: agent 1 in {NAMES[1]} and agent 2 in {NAMES[2]}, {second:,} steps each, {how}")
-        start = time.perf_counter()
-        results = map_parallel(collect, [agent1, agent2], workers=workers, backend=backend)
-        seconds = time.perf_counter() - start
-        log(f"seed {seed}: both collectors done in {seconds / 60:.1f} min ({2 * second / seconds:.0f} env steps/s)")
-        timing = dict(workers=workers, backend=backend, steps_per_collector=second, seconds=seconds)
-        timing.update(env_steps_per_second=2 * second / seconds, collector_seconds=[r["seconds"] for r in results])
-        write_text_atomic(run_dir / "collectors.json", json.dumps(timing, indent=1))
-        for name, result in zip(("MPO_agent1", "MPO_agent2"), results):
-            rows += [dict(seed=seed, method=name, env=env, final_return=value) for env, value in result["final"].items()]
-        opened = [LifelongReplayBuffer.open(path, read_only=True) for path in buffers]
-        data: Any = merge_buffers(opened, starts=[0, first]) if setup == "copy" else LifelongBufferView(opened)
-        check_shared(data, {0: first, 1: second, 2: second})
-        log(f"seed {seed}: {data.size():,} transitions shared, per source {data.source_counts()}")
-        distilled = []
-        if distill_students:
-            students = (("distilled", dict(beta=1.0)), ("distilled_indicator", dict(advantage_transform="indicator")))
-            for method, kwargs in students:
-                log(f"seed {seed}: distilling {config['distill_steps']:,} updates: {method}")
-                limit = episode_limit(config.get("max_episode_steps"))
-                eval_envs = stage_envs(config["env_id"], list(stages), NAMES, limit, append_params=True)
-                callbacks = eval_callbacks(run_dir / method, eval_envs, config, source_q=True, offline=True, seed=seed)
-                distill(data, CRR, total_updates=config["distill_steps"], callback=callbacks,
-                        tensorboard_log=tensorboard_log, tb_log_name=f"{method}_s{seed}",
-                        observation_space=opened[0].observation_space, action_space=opened[0].action_space,
-                        **algo_kwargs(config, seed), **kwargs)  # fmt: skip
-                final = final_returns(callbacks[0])
-                rows += [dict(seed=seed, method=method, env=env, final_return=value) for env, value in final.items()]
-                distilled.append(method)
-        for buffer in opened:
-            buffer.close()
-        if setup == "copy":
-            switch = f"{NAMES[0]} -> {NAMES[1]} (agent 1), {NAMES[2]} (agent 2)"
-        else:  # agent 2 starts from scratch: its steps count from 0
-            switch = f"agent 1: {NAMES[0]} -> {NAMES[1]}"
-        write_layout(run_dir, NAMES, distilled, [first], [switch], stages=stages)
-    return rows
+    if preset.sharing is None:
+        raise ValueError("share is a sharing study's job: the preset has no sharing set-up")
+    directory = run_dir / "share"
+    start_job(directory, directory.name, log, beside=(SHARED_BUFFER,))
+    copied: dict[int, int] = {}  # the copy's buffer starts with the first agent's Stage-1 buffer: shared once
+    if preset.sharing == "copy":
+        with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1:
+            copied = {int(source): int(count) for source, count in stage1.source_counts().items()}
+    with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as agent1:
+        with LifelongReplayBuffer.open(run_dir / AGENT2_BUFFER, read_only=True) as agent2:
+            expected = {source: int(agent1.source_counts().get(source, 0)) for source in range(len(preset.stages))}
+            for source, count in agent2.source_counts().items():
+                expected[int(source)] += int(count) - copied.get(int(source), 0)
+            starts = [0, sum(copied.values())]
+            merged = merge_buffers([agent1, agent2], starts=starts, path=run_dir / SHARED_BUFFER)
+    try:
+        check_shared(merged, {source: count for source, count in expected.items() if count})
+        counts = {str(name): int(count) for name, count in merged.source_counts(by_name=True).items()}
+    finally:
+        merged.close()
+    log(f"  {run_dir.name}: {sum(counts.values()):,} transitions shared, per environment {counts}")
+    return counts
 
 
-def check_shared(data: Any, expected: dict[int, int]) -> None:
+def check_shared(data: Any, expected: Mapping[int, int]) -> None:
     """
     :param data: the merged buffers
     :param expected: the transitions collected in each environment (source)
     :raises RuntimeError: when a transition was lost or is there twice
     """
     counts = {source: int(n) for source, n in data.source_counts().items() if n}
-    if counts != expected:
-        raise RuntimeError(f"the shared buffer holds {counts} transitions per source; the collectors collected {expected}")
+    if counts != dict(expected):
+        raise RuntimeError(
+            f"the shared buffer holds {counts} transitions per source; the collectors collected {dict(expected)}"
+        )

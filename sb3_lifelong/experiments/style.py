@@ -1,10 +1,10 @@
 """
 One look for every figure of the package: one name and one colour per method, one colour per environment, and the
 drawing helpers (curves over seeds, a labelled change of environment, grouped bars, saving) that the figures of the
-studies and of the sequential examples (:mod:`sb3_lifelong.experiments.figures`) and the benchmarks share.
+studies and of the sequential layout (:mod:`sb3_lifelong.experiments.figures`) and the benchmarks share.
 
 A method is known by its key in the protocol (:data:`sb3_lifelong.experiments.protocol.STUDENTS`, ``"MPO"`` for the
-collector, ``"online <name>"`` for the online baselines); the sequential examples' directory names are mapped onto
+collector, ``"online <name>"`` for the online baselines); the sequential layout's directory names are mapped onto
 those keys by :data:`SEQUENTIAL_METHODS`, so that "CRR exp β=1" is red and called so in every figure of the package.
 A method this module does not know keeps its own name and gets a colour of :data:`OTHER_COLORS`.
 """
@@ -36,6 +36,7 @@ class MethodStyle:
 #: every method of the studies by its key: the collector, the online baselines and the offline students
 METHODS: dict[str, MethodStyle] = {
     "MPO": MethodStyle("MPO", "#1f77b4"),
+    "MPO agent 2": MethodStyle("MPO, the second robot", "#aec7e8"),
     "online CRR_indicator": MethodStyle("online CRR indicator", "#ff7f0e"),
     "online CRR_exp_beta1": MethodStyle("online CRR exp β=1", "#2ca02c"),
     "CRR_exp_beta1": MethodStyle("CRR exp β=1", "#d62728"),
@@ -54,7 +55,7 @@ METHODS: dict[str, MethodStyle] = {
     "SAC": MethodStyle("SAC", "#222222"),
 }
 
-#: the sequential examples' method directories (``examples/two_stage.py``) by the study method each one is
+#: the method directories of the sequential layout (the earlier examples' committed runs) by the study method each is
 SEQUENTIAL_METHODS: dict[str, str] = {
     "MPO": "MPO",
     "CRR_indicator": "online CRR_indicator",

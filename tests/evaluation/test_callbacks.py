@@ -93,17 +93,6 @@ def test_protocol_evaluations_play_the_same_episodes(tmp_path):
     assert evaluation.same_episodes and evaluation.seed == EVAL_SEED_OFFSET + 3 == 10_003
 
 
-def test_experiment_callbacks_seed_their_evaluations(tmp_path):
-    """The sequential experiments' callbacks seed the evaluations of a run with seed ``s`` from ``EVAL_SEED_OFFSET + s``."""
-    from sb3_lifelong.evaluation.callbacks import EVAL_SEED_OFFSET
-    from sb3_lifelong.experiments.sequential import eval_callbacks
-
-    config = dict(eval_freq=100, eval_episodes=1)
-    envs = {"Env-A": gym.make("Pendulum-v1")}
-    assert eval_callbacks(tmp_path / "a", envs, config, seed=3)[0].seed == EVAL_SEED_OFFSET + 3 == 10_003
-    assert eval_callbacks(tmp_path / "b", envs, config)[0].seed is None
-
-
 def test_logged_to_tensorboard(tmp_path):
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

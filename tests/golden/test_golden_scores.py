@@ -1,0 +1,160 @@
+"""
+Golden values of the study scores (``sb3_lifelong/experiments/scores.py``): each reading computed by hand on a tiny
+log written here, for the windows (which evaluations count), the counts (how many), the bounds (a spread at the
+limit) and the messages a user reads when a file is malformed.
+"""
+
+import dataclasses
+import json
+import math
+import pathlib
+import statistics
+
+import pandas as pd
+import pytest
+
+from sb3_lifelong.experiments import scores
+
+
+def evals(env: str, points: dict[int, float]) -> pd.DataFrame:
+    return pd.DataFrame({"timesteps": list(points), "env": env, "mean_reward": list(points.values())})
+
+
+def spread_by_hand(values: list[float]) -> float:
+    return statistics.stdev(values) / abs(statistics.fmean(values))
+
+
+def test_last_returns_leaves_out_the_evaluation_at_after_and_keeps_the_one_at_until() -> None:
+    frame = evals("A", {10: 1.0, 20: 2.0, 30: 4.0, 40: 8.0})
+    assert scores.last_returns(frame, "A", 10, until=30, after=10).tolist() == [2.0, 4.0]
+    assert scores.last_mean(frame, "A", 10, until=40, after=20) == pytest.approx((4.0 + 8.0) / 2)
+
+
+def test_the_switch_reading_is_the_mean_of_the_last_two_evaluations_of_the_stage() -> None:
+    frame = pd.concat([evals("A", {10: 1.0, 20: 2.0, 30: 4.0, 40: 8.0, 50: 100.0}), evals("B", {50: 7.0})])
+    rows = {row["metric"]: row["value"] for row in scores.switch_metrics(3, frame, ["A", "B"], [40, 50])}
+    assert rows["MPO|switch|A"] == pytest.approx((4.0 + 8.0) / 2)  # at 30 and 40; 50 is Env-B's stage
+    assert set(rows) == {"MPO|switch|A", "MPO|switch_spread|A"}
+
+
+def test_the_switch_spread_reads_the_last_three_evaluations_of_the_second_half() -> None:
+    frame = evals("A", {10: 5.0, 20: 50.0, 60: 1.0, 70: 2.0, 80: 3.0, 90: 5.0, 100: 9.0})
+    assert scores.switch_spread(frame, "A", 0, 100) == pytest.approx(spread_by_hand([3.0, 5.0, 9.0]))
+
+
+def test_the_switch_spread_halves_the_stage_it_is_given_not_the_whole_life() -> None:
+    # the stage (0, 5]: its second half is (2, 5], so the evaluations at 3, 4 and 5 (a start of 1 would halve (1, 5]
+    # into (3, 5] and read two)
+    frame = evals("A", {1: 100.0, 2: 10.0, 3: 1.0, 4: 2.0, 5: 4.0})
+    assert scores.switch_spread(frame, "A", 0, 5) == pytest.approx(spread_by_hand([1.0, 2.0, 4.0]))
+    rows = {row["metric"]: row["value"] for row in scores.switch_metrics(0, frame, ["A", "B"], [5, 10])}
+    assert rows["MPO|switch_spread|A"] == pytest.approx(spread_by_hand([1.0, 2.0, 4.0]))
+
+
+def test_the_switch_spread_of_a_stage_with_two_evaluations_in_its_second_half_reads_those_two() -> None:
+    # (50, 100] holds 60 and 100; a window from a third of the stage would also take 40
+    frame = evals("A", {20: 3.0, 40: 30.0, 60: 2.0, 100: 6.0})
+    assert scores.switch_spread(frame, "A", 0, 100) == pytest.approx(spread_by_hand([2.0, 6.0]))
+
+
+def test_the_switch_spread_falls_back_on_the_last_two_of_the_stage() -> None:
+    frame = evals("A", {10: 1.0, 20: 2.0, 30: 3.0, 100: 9.0})  # one evaluation in (50, 100]
+    assert scores.switch_spread(frame, "A", 0, 100) == pytest.approx(spread_by_hand([3.0, 9.0]))
+    assert math.isnan(scores.switch_spread(evals("A", {100: 9.0}), "A", 0, 100))
+
+
+def test_the_later_stage_of_three_reads_its_own_window() -> None:
+    frame = pd.concat(
+        [
+            evals("A", {60: 1.0, 80: 2.0, 100: 4.0}),
+            evals("B", {110: 50.0, 160: 1.0, 180: 3.0, 200: 5.0}),
+            evals("C", {300: 9.0}),
+        ]
+    )
+    rows = {row["metric"]: row["value"] for row in scores.switch_metrics(0, frame, ["A", "B", "C"], [100, 200, 300])}
+    assert rows["MPO|switch|B"] == pytest.approx((3.0 + 5.0) / 2)
+    assert rows["MPO|switch_spread|B"] == pytest.approx(spread_by_hand([1.0, 3.0, 5.0]))
+    assert rows["MPO|switch_spread|A"] == pytest.approx(spread_by_hand([1.0, 2.0, 4.0]))
+
+
+def test_a_level_whose_spread_is_exactly_the_limit_is_learnt() -> None:
+    values = [90.0, 110.0, 100.0]
+    spread = spread_by_hand(values)
+    mean, measured, learnt = scores.learnt_level(values, threshold=100.0, max_spread=spread)
+    assert (mean, learnt) == (100.0, True)
+    assert measured == pytest.approx(spread)
+    assert not scores.learnt_level(values, threshold=100.0, max_spread=spread * 0.999)[2]
+    assert not scores.learnt_level(values, threshold=100.5, max_spread=1.0)[2]
+
+
+def write(path: pathlib.Path, text: str) -> pathlib.Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def test_the_overestimation_of_each_environment_left_in_a_three_stage_life(tmp_path: pathlib.Path) -> None:
+    q_log = write(
+        tmp_path / "q_sources.csv",
+        "timesteps,name,source,q_mean,overestimation\n"
+        "100,A,0,1.0,0.5\n300,A,0,1.0,2.5\n"
+        "200,B,1,1.0,1.5\n300,B,1,1.0,3.5\n300,C,2,1.0,9.0\n",
+    )
+    measured = scores.collector_overestimation(1, q_log, ["A", "B", "C"], [100, 200, 300])
+    extras = {row["metric"]: row["value"] for row in measured}
+    assert extras == {
+        "MPO|overestimation_switch|A": 0.5,
+        "MPO|overestimation_end|A": 2.5,
+        "MPO|overestimation_switch|B": 1.5,
+        "MPO|overestimation_end|B": 3.5,
+    }
+
+
+def test_a_q_log_without_monte_carlo_returns_has_no_data_values(tmp_path: pathlib.Path) -> None:
+    q_log = write(tmp_path / "q_sources.csv", "timesteps,name,q_mean\n100,A,1.0\n")
+    assert scores.data_values(0, q_log) == []
+    q_log = write(tmp_path / "measured" / "q_sources.csv", "timesteps,name,q_mean,mc_return\n100,A,1.0,4.0\n200,A,1.0,6.0\n")
+    assert scores.data_values(0, q_log) == [dict(seed=0, metric="data|mc_return|A", value=6.0)]
+
+
+def test_a_students_weights_are_the_mean_of_their_last_five_logged_values(tmp_path: pathlib.Path) -> None:
+    ess = [100.0, 1.0, 2.0, None, 3.0, 4.0, 5.0]  # the empty cell is not a value
+    lines = ["timesteps,weight_ess"] + [f"{10 * (i + 1)},{'' if value is None else value}" for i, value in enumerate(ess)]
+    train_log = write(tmp_path / "train.csv", "\n".join(lines) + "\n")
+    assert scores.student_weights(0, "CRR", train_log) == [dict(seed=0, metric="CRR|weight_ess", value=3.0)]
+
+
+def test_read_eval_reads_only_a_finished_job(tmp_path: pathlib.Path) -> None:
+    job = tmp_path / "seed_0" / "collect"
+    write(job / "eval.csv", "timesteps,env,mean_reward\n10,A,1.0\n")
+    assert scores.read_eval(tmp_path, 0, "collect") is None  # no done.json: still running
+    write(job / "done.json", json.dumps({}))
+    assert scores.read_eval(tmp_path, 0, "collect")["mean_reward"].tolist() == [1.0]
+    (job / "eval.csv").unlink()
+    assert scores.read_eval(tmp_path, 0, "collect") is None
+
+
+def test_a_log_without_a_required_column_says_none_of_its_rows_is_used(tmp_path: pathlib.Path) -> None:
+    path = write(tmp_path / "eval.csv", "timesteps,mean_reward\n10,1.0\n")
+    problems: list[scores.MalformedRow] = []
+    scores.read_log(path, problems)
+    assert [str(problem) for problem in problems] == [
+        f"{path}:1: no column 'env' (its columns: timesteps, mean_reward): none of its rows is used"
+    ]
+
+
+def test_the_error_names_twenty_rows_and_counts_the_rest(tmp_path: pathlib.Path) -> None:
+    rows = [scores.MalformedRow(tmp_path / "eval.csv", line, "bad") for line in range(2, 27)]
+    message = str(scores.MalformedResultsError(rows))
+    assert message.startswith("25 malformed row(s)")
+    assert sum(f"eval.csv:{line}: bad" in message for line in range(2, 27)) == 20
+    assert "... and 5 more" in message
+    assert "... and" not in str(scores.MalformedResultsError(rows[:20]))
+    assert "... and 1 more" in str(scores.MalformedResultsError(rows[:21]))
+
+
+def test_a_malformed_row_is_a_fixed_record() -> None:
+    row = scores.MalformedRow(pathlib.Path("eval.csv"), 3, "bad")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        row.line = 4  # type: ignore[misc]
+    assert len({row, scores.MalformedRow(pathlib.Path("eval.csv"), 3, "bad")}) == 1
