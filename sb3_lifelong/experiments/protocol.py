@@ -349,7 +349,14 @@ def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pa
     :raises ValueError: when ``source`` is not a study, collected with other settings, this seed's collection there
         has not finished or lacks a buffer, or ``output``'s seed has another collection (its own, or another study's)
     :raises RuntimeError: when another process is running this seed's ``collect`` job in ``output``
+    :raises NotImplementedError: a sharing study (:attr:`Preset.sharing`): its students distill the merged buffer of
+        two collections, which are not reused
     """
+    if preset.sharing is not None:
+        raise NotImplementedError(
+            "a sharing study's collections are not reused from another study (--collection-from): its students distill "
+            "the merge of two robots' buffers; run its collect, collect_agent2 and share jobs"
+        )
     source, run_dir = pathlib.Path(source).resolve(), output / f"seed_{seed}"
     origin = source / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -108,3 +108,11 @@ def test_the_second_collection_of_a_copy_needs_the_first_robot_at_the_switch(tmp
     assert not (tmp_path / "collect_agent2").exists()  # refused before it claimed anything
     with pytest.raises(ValueError, match="no sharing set-up"):
         share(PRESETS["tiny"], tmp_path)
+
+
+def test_a_sharing_study_does_not_reuse_another_studys_collection(tmp_path: pathlib.Path):
+    from sb3_lifelong.experiments.protocol import adopt_collection
+
+    with pytest.raises(NotImplementedError, match="not reused"):
+        adopt_collection(sharing_preset("copy"), 0, tmp_path / "other", tmp_path / "this")
+    assert not (tmp_path / "this").exists()
