@@ -9,9 +9,9 @@ their data, run by the paper's protocol (its runner and its report).
   buffers are merged.
 
 The students (CRR exp beta=1, the pipeline, and CRR indicator, the imbalance baseline) distill the merged buffer and
-are evaluated in all three environments, beside the two collectors. The two collectors run side by side with
-``--workers 2`` (the default: Ray workers when Ray is installed, a local process pool otherwise); ``--workers 1`` runs
-them one after the other.
+are evaluated in all three environments, beside the two collectors. The two collectors run side by side on two
+workers (the default, ``--workers 2``: Ray workers when Ray is installed, a local process pool otherwise); on one
+worker they run one after the other.
 
 Usage::
 

@@ -100,7 +100,8 @@ def example_arguments(
     parser.add_argument("--distill-steps", type=positive, default=None, help="offline updates of every student")
     parser.add_argument("--eval-freq", type=positive, default=None, help="evaluation period of the online methods (steps)")
     parser.add_argument("--distill-eval-freq", type=positive, default=None, help="evaluation period of the students (updates)")
-    parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
+    if any(preset.online for preset in presets.values()):  # (a sharing study has none)
+        parser.add_argument("--no-baselines", action="store_true", help="skip the online CRR baselines")
     if per_source_student is not None:
         parser.add_argument(
             "--per-source-actors",
@@ -121,7 +122,7 @@ def example_arguments(
     changes = {key: value for key, value in changes.items() if value is not None}
     if setups:
         changes.update(setups[args.setup])
-    if args.no_baselines:
+    if getattr(args, "no_baselines", False):
         changes["online"] = False
     if getattr(args, "per_source_actors", False):
         changes["students"] = (*(preset.students or ()), per_source_student)

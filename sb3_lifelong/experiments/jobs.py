@@ -57,7 +57,16 @@ def claim_directory(directory: pathlib.Path, job: str, beside: Sequence[str] = (
     :param beside: names of directories beside ``directory`` that the job creates too (the collection's buffers):
         an unfinished attempt's are deleted with it
     :raises FileExistsError: ``directory`` holds files
+    :raises NotOwnedError: a directory of ``beside`` is there already: no attempt of this job wrote it (a claim names
+        only what the job is about to create), so claiming it would let a later attempt delete it; nothing was written
     """
+    for name in beside:
+        path = directory.parent / name
+        if path.exists() or path.is_symlink():
+            raise NotOwnedError(
+                f"{path} is there already, but the {job} job that would create it has not started ({directory} holds no "
+                f"claim): nothing was deleted or written. Move {path} away to run the {job} job"
+            )
     directory.mkdir(parents=True, exist_ok=True)
     if any(directory.iterdir()):
         raise FileExistsError(f"{directory} is not empty: a job starts in a new directory")

@@ -333,6 +333,18 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
     write_json_atomic(settings, described)
 
 
+def refuse_reuse(preset: Preset) -> None:
+    """
+    :raises ValueError: ``preset`` is a sharing study's (:attr:`Preset.sharing`): its students distill the merge of two
+        robots' buffers, and another study's collections are not reused for it
+    """
+    if preset.sharing is not None:
+        raise ValueError(
+            "a sharing study's collections are not reused from another study (--collection-from): its students distill "
+            "the merge of two robots' buffers; run its collect, collect_agent2 and share jobs"
+        )
+
+
 def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pathlib.Path, log: Callable = print) -> bool:
     """
     Reuse seed ``seed``'s finished collection of the study ``source`` in the study ``output``, to train other
@@ -349,14 +361,9 @@ def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pa
     :raises ValueError: when ``source`` is not a study, collected with other settings, this seed's collection there
         has not finished or lacks a buffer, or ``output``'s seed has another collection (its own, or another study's)
     :raises RuntimeError: when another process is running this seed's ``collect`` job in ``output``
-    :raises NotImplementedError: a sharing study (:attr:`Preset.sharing`): its students distill the merged buffer of
-        two collections, which are not reused
+    :raises ValueError: (also) a sharing study (:attr:`Preset.sharing`, :func:`refuse_reuse`)
     """
-    if preset.sharing is not None:
-        raise NotImplementedError(
-            "a sharing study's collections are not reused from another study (--collection-from): its students distill "
-            "the merge of two robots' buffers; run its collect, collect_agent2 and share jobs"
-        )
+    refuse_reuse(preset)
     source, run_dir = pathlib.Path(source).resolve(), output / f"seed_{seed}"
     origin = source / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -447,6 +454,8 @@ def run_seed(
         for a finished collection, so none runs while it is paused
     :return: the jobs that ran (a paused collection is not among them)
     """
+    if collection_from is not None:
+        refuse_reuse(preset)  # before anything is written
     record_settings(preset, output)
     run_dir = output / f"seed_{seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -454,7 +463,8 @@ def run_seed(
         adopt_collection(preset, seed, collection_from, output, log)
     check_linked_buffers(run_dir)
     wanted = list(jobs) if jobs is not None else preset.jobs()
-    known = job_names(student_repeats=preset.student_repeats, sharing=preset.sharing is not None)
+    sharing = preset.sharing is not None  # (a sharing study has no online baselines)
+    known = job_names(online=not sharing, student_repeats=preset.student_repeats, sharing=sharing)
     unknown = sorted(set(wanted) - set(known))
     if unknown:
         raise ValueError(f"unknown jobs {unknown}; the jobs are {known}")

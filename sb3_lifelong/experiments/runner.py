@@ -25,7 +25,7 @@ from typing import Any, Callable, Optional
 
 from sb3_lifelong.experiments import costs
 from sb3_lifelong.experiments.presets import Preset
-from sb3_lifelong.experiments.protocol import adopt_collection, record_settings, run_seed
+from sb3_lifelong.experiments.protocol import adopt_collection, record_settings, refuse_reuse, run_seed
 
 BACKENDS = ("auto", "ray", "process")
 
@@ -140,6 +140,8 @@ def run_study(
         raise ImportError('the Ray backend needs Ray: pip install "sb3_lifelong[cluster]"')
     if address and not use_ray:
         raise ValueError("--address submits to a Ray cluster: install Ray (sb3_lifelong[cluster]) or drop --address")
+    if collection_from is not None:
+        refuse_reuse(preset)  # before anything is written
     record_settings(preset, pathlib.Path(output))  # checked and recorded once, before any worker starts
     if collection_from is not None:
         for seed in seeds:
@@ -249,7 +251,8 @@ def _run_ray(
             progress.finished(result)
             if not result["error"]:
                 for other in graph:
-                    if job.key in other.after and all(dep in progress.results for dep in other.after):
+                    ready = all(dep in progress.results and not progress.failed(dep) for dep in other.after)
+                    if job.key in other.after and ready:
                         progress.started(other)
         return progress.results
 
@@ -338,8 +341,8 @@ def _after(function: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, A
         preset: Preset, output: str, seed: int, name: str, until: Optional[int], *dependencies: dict[str, Any]
     ) -> dict[str, Any]:
         failed = [d["key"] for d in dependencies if d.get("error") or d.get("blocked")]
-        if failed:
-            return dict(blocked=f"{' and '.join(failed)} failed")
+        if failed:  # (a blocked result names its job too: the jobs after it are blocked in turn)
+            return dict(key=Task(seed, name, until=until).key, blocked=f"{' and '.join(failed)} failed")
         return function(preset, output, seed, name, 1, until)
 
     return job

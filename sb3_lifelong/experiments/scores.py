@@ -483,6 +483,36 @@ class Study:
         return {int(r.seed): float(r.value) for r in rows.itertuples()}
 
 
+def collector_extras(
+    seed: int, frame: pd.DataFrame, run_dir: pathlib.Path, preset: dict[str, Any], problems: list[MalformedRow]
+) -> list[dict[str, Any]]:
+    """
+    :return: the readings of the ``collect`` job's agent at each environment it left (:func:`switch_metrics`, its
+        overestimation there), its data's discounted returns and the rows of each environment in the buffer the
+        students distill
+    """
+    left = left_environments(preset)
+    envs, ends = [*left, preset["env_names"][len(left)]], study_ends(preset)[: len(left) + 1]
+    collect_dir = run_dir / "collect"
+    extras = switch_metrics(seed, frame, envs, ends)
+    extras += data_values(seed, collect_dir / "q_sources.csv", [])  # (its problems: counted once, by the caller)
+    extras += collector_overestimation(seed, collect_dir / "q_sources.csv", envs, ends, problems)
+    rows = source_rows(run_dir, "share" if preset.get("sharing") else "collect")
+    return extras + [dict(seed=seed, metric=f"buffer|rows|{name}", value=float(count)) for name, count in rows.items()]
+
+
+def student_extras(seed: int, method: str, job_dir: pathlib.Path, problems: list[MalformedRow]) -> list[dict[str, Any]]:
+    """:return: a student's average Q per source at its last measurement (``<method>|q|<source>``) and its weights"""
+    extras = []
+    q_path = job_dir / "q_sources.csv"
+    if q_path.exists():
+        q = read_log(q_path, problems)
+        if len(q):
+            last = q[q["timesteps"] == q["timesteps"].max()]
+            extras += [dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)) for row in last.itertuples()]
+    return extras + student_weights(seed, method, job_dir / "train.csv", problems)
+
+
 def load_study(
     output: pathlib.Path, seeds: Optional[Sequence[int]] = None, malformed: Literal["refuse", "drop"] = "refuse"
 ) -> Study:
@@ -504,9 +534,6 @@ def load_study(
     envs = preset["env_names"]
     ends = study_ends(preset)
     switch = ends[0]
-    # the stages the collector lives through, for its readings of each switch: a sharing study's first robot goes from
-    # Env-A to Env-B only (Env-C is the second robot's)
-    lived = len(left_environments(preset)) + 1
     finished = seeds_of(output)
     if seeds is not None:
         missing = sorted(set(seeds) - set(finished))
@@ -535,28 +562,16 @@ def load_study(
                     area = last_mean(frame, env, 10**9, after=switch, until=ends[1])  # Stage 2 only (of 2 or 3)
                     extras.append(dict(seed=seed, metric=f"{method}|stage2_area|{env}", value=area))
                 # an online method's rows start after the Stage 1 it shares with MPO
-                extras += return_matrix(seed, method, frame, envs[:lived], ends[:lived], first=0 if job == "collect" else 1)
+                if not preset.get("sharing"):  # the field's matrix is one robot's sequence of stages
+                    extras += return_matrix(seed, method, frame, envs, ends, first=0 if job == "collect" else 1)
                 if job == "collect":
-                    extras += switch_metrics(seed, frame, envs[:lived], ends[:lived])
-                    extras += data_values(seed, job_dir / "q_sources.csv", [])  # (its problems: counted once, below)
-                    extras += collector_overestimation(seed, job_dir / "q_sources.csv", envs[:lived], ends[:lived], problems)
-                    extras += [
-                        dict(seed=seed, metric=f"buffer|rows|{name}", value=float(rows))
-                        for name, rows in source_rows(run_dir, "share" if preset.get("sharing") else "collect").items()
-                    ]
+                    extras += collector_extras(seed, frame, run_dir, preset, problems)
             else:
                 method = parsed.name  # a student's repeats score as their mean
                 for env in envs:
                     score = last_mean(frame, env, STUDENT_LAST)
                     finals.append(dict(seed=seed, method=method, kind="student", env=env, score=score))
-                q_path = job_dir / "q_sources.csv"
-                if q_path.exists():
-                    q = read_log(q_path, problems)
-                    if len(q):
-                        last = q[q["timesteps"] == q["timesteps"].max()]
-                        for row in last.itertuples():
-                            extras.append(dict(seed=seed, metric=f"{method}|q|{row.name}", value=float(row.q_mean)))
-                extras += student_weights(seed, method, job_dir / "train.csv", problems)
+                extras += student_extras(seed, method, job_dir, problems)
     finals_frame, extras_frame = pd.DataFrame(finals), pd.DataFrame(extras)
     if len(finals_frame):  # one row per (seed, method, env): the mean over a student's repeats
         groups = finals_frame.groupby(["seed", "method", "kind", "env"], as_index=False, sort=False)["score"]

@@ -24,6 +24,8 @@ import pathlib
 from collections.abc import Mapping
 from typing import Any, Callable
 
+import numpy as np
+
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
 from sb3_lifelong.experiments.jobs import job_callbacks, make_env, model_kwargs, start_job, tensorboard_dir
 from sb3_lifelong.experiments.presets import AGENT2_SEED_OFFSET, SHARED_BUFFER, Preset, describe_stage
@@ -124,11 +126,12 @@ def share(preset: Preset, run_dir: pathlib.Path, log: Callable[[str], None] = pr
     directory = run_dir / "share"
     start_job(directory, directory.name, log, beside=(SHARED_BUFFER,))
     copied: dict[int, int] = {}  # the copy's buffer starts with the first agent's Stage-1 buffer: shared once
-    if preset.sharing == "copy":
-        with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1:
-            copied = {int(source): int(count) for source, count in stage1.source_counts().items()}
     with LifelongReplayBuffer.open(run_dir / "buffer", read_only=True) as agent1:
         with LifelongReplayBuffer.open(run_dir / AGENT2_BUFFER, read_only=True) as agent2:
+            if preset.sharing == "copy":
+                with LifelongReplayBuffer.open(run_dir / "buffer_stage1", read_only=True) as stage1:
+                    check_copy(stage1, agent2, run_dir)
+                    copied = {int(source): int(count) for source, count in stage1.source_counts().items()}
             expected = {source: int(agent1.source_counts().get(source, 0)) for source in range(len(preset.stages))}
             for source, count in agent2.source_counts().items():
                 expected[int(source)] += int(count) - copied.get(int(source), 0)
@@ -141,6 +144,36 @@ def share(preset: Preset, run_dir: pathlib.Path, log: Callable[[str], None] = pr
         merged.close()
     log(f"  {run_dir.name}: {sum(counts.values()):,} transitions shared, per environment {counts}")
     return counts
+
+
+#: the fields whose rows say that two buffers hold the same transitions
+COMPARED_FIELDS = ("observations", "actions", "rewards", "next_observations", "flags", "sources")
+#: rows compared at a time
+COMPARE_BLOCK = 1 << 14
+
+
+def check_copy(stage1: Any, agent2: Any, run_dir: pathlib.Path) -> None:
+    """
+    :param stage1: the first agent's Stage-1 buffer
+    :param agent2: the copy's lifetime buffer
+    :param run_dir: the seed's directory, for the message
+    :raises RuntimeError: the copy's buffer does not start with the Stage-1 buffer (a collection redone since the
+        copy was made): the merge would pair another agent's Env-C with this Env-A
+    """
+    rows = stage1.size()
+    same = agent2.size() >= rows
+    for start in range(0, rows, COMPARE_BLOCK):
+        stop = min(rows, start + COMPARE_BLOCK)
+        for name in COMPARED_FIELDS:
+            if not same:
+                break
+            same = bool(np.array_equal(stage1.read_range(name, start, stop), agent2.read_range(name, start, stop)))
+    if not same:
+        raise RuntimeError(
+            f"{run_dir / AGENT2_BUFFER} does not start with the {rows:,} transitions of {run_dir / 'buffer_stage1'}: the "
+            "second robot was copied from another Stage 1 (the collection was redone since). Nothing was merged; move "
+            f"{run_dir / 'collect_agent2'} and {run_dir / AGENT2_BUFFER} away to collect the copy again"
+        )
 
 
 def check_shared(data: Any, expected: Mapping[int, int]) -> None:

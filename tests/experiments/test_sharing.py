@@ -113,6 +113,63 @@ def test_the_second_collection_of_a_copy_needs_the_first_robot_at_the_switch(tmp
 def test_a_sharing_study_does_not_reuse_another_studys_collection(tmp_path: pathlib.Path):
     from sb3_lifelong.experiments.protocol import adopt_collection
 
-    with pytest.raises(NotImplementedError, match="not reused"):
+    with pytest.raises(ValueError, match="not reused"):
         adopt_collection(sharing_preset("copy"), 0, tmp_path / "other", tmp_path / "this")
     assert not (tmp_path / "this").exists()
+
+
+def filled(rows, reward_at=None):
+    import gymnasium as gym
+    import numpy as np
+
+    from sb3_lifelong import LifelongReplayBuffer
+
+    buffer = LifelongReplayBuffer(0, gym.spaces.Box(-1, 1, (2,)), gym.spaces.Box(-1, 1, (1,)), device="cpu")
+    for i in range(rows):
+        reward = 9.0 if i == reward_at else float(i)
+        obs = np.full((1, 2), i, dtype=np.float32)
+        buffer.add(obs, obs + 1, np.zeros((1, 1)), np.array([reward]), np.array([False]), [{}])
+    return buffer
+
+
+def test_the_merge_refuses_a_copy_of_another_stage_1(tmp_path: pathlib.Path):
+    from sb3_lifelong.experiments.sharing import check_copy
+
+    stage1 = filled(5)
+    check_copy(stage1, filled(8), tmp_path)  # the copy's first five rows are Stage 1's: merged
+    for other in (filled(8, reward_at=4), filled(4)):  # one reward differs; fewer rows than Stage 1
+        with pytest.raises(RuntimeError, match="copied from another Stage 1"):
+            check_copy(stage1, other, tmp_path)
+
+
+def test_a_job_does_not_claim_a_buffer_it_did_not_write(tmp_path: pathlib.Path):
+    from sb3_lifelong.experiments.jobs import NotOwnedError
+    from sb3_lifelong.experiments.sharing import AGENT2_BUFFER, collect_agent2
+
+    left = tmp_path / AGENT2_BUFFER
+    left.mkdir()
+    (left / "rows.npy").write_bytes(b"kept")  # e.g. left behind when collect_agent2/ was moved away
+    with pytest.raises(NotOwnedError, match="is there already"):
+        collect_agent2(sharing_preset("independent"), 0, tmp_path)
+    assert (left / "rows.npy").read_bytes() == b"kept" and not (tmp_path / "collect_agent2").exists()
+
+
+def test_a_sharing_seed_has_no_online_jobs(tmp_path: pathlib.Path):
+    from sb3_lifelong.experiments.protocol import run_seed
+
+    with pytest.raises(ValueError, match="unknown jobs"):
+        run_seed(sharing_preset("copy"), 0, tmp_path, jobs=["online_CRR_indicator"])
+
+
+def test_a_job_after_a_blocked_one_is_blocked_and_named_on_ray():
+    """Ray passes each result on: a job after a failed one is blocked, and so are the jobs after that one."""
+    from sb3_lifelong.experiments.runner import _after
+
+    def never(*args):
+        raise AssertionError("a job after a failed one ran")
+
+    job = _after(never)
+    first = job(PRESETS["tiny"], "out", 0, "collect_agent2", None, dict(key="seed_0/collect@200", error="Traceback"))
+    assert first == dict(key="seed_0/collect_agent2", blocked="seed_0/collect@200 failed")
+    second = job(PRESETS["tiny"], "out", 0, "collect", 200, first)
+    assert second == dict(key="seed_0/collect@200", blocked="seed_0/collect_agent2 failed")

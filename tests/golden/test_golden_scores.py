@@ -158,3 +158,27 @@ def test_a_malformed_row_is_a_fixed_record() -> None:
     with pytest.raises(dataclasses.FrozenInstanceError):
         row.line = 4  # type: ignore[misc]
     assert len({row, scores.MalformedRow(pathlib.Path("eval.csv"), 3, "bad")}) == 1
+
+
+def test_a_life_of_five_stages_reads_every_switch() -> None:
+    names = ["A", "B", "C", "D", "E"]
+    frame = pd.concat([evals(env, {10 * i + 5: float(i), 10 * (i + 1): float(i + 1)}) for i, env in enumerate(names)])
+    rows = {row["metric"]: row["value"] for row in scores.switch_metrics(0, frame, names, [10, 20, 30, 40, 50])}
+    assert {metric for metric in rows if metric.startswith("MPO|switch|")} == {f"MPO|switch|{env}" for env in names[:-1]}
+    assert rows["MPO|switch|D"] == pytest.approx((3.0 + 4.0) / 2)
+    assert rows["MPO|switch_spread|D"] == pytest.approx(spread_by_hand([3.0, 4.0]))  # its own stage, (30, 40]
+
+
+def test_a_students_score_is_the_mean_of_its_last_two_evaluations(tmp_path: pathlib.Path) -> None:
+    preset = dict(env_names=["A", "B"], stage_steps=[100, 100])
+    write(tmp_path / "preset.json", json.dumps(preset))
+    run = tmp_path / "seed_0"
+    write(run / "collect" / "done.json", json.dumps({}))
+    write(run / "collect" / "eval.csv", "timesteps,env,mean_reward\n100,A,1.0\n100,B,1.0\n200,A,1.0\n200,B,1.0\n")
+    write(run / "distill_BC" / "done.json", json.dumps({}))
+    student = "timesteps,env,mean_reward\n" + "".join(
+        f"{t},{env},{r}\n" for t, r in ((10, 1.0), (20, 2.0), (30, 4.0)) for env in "AB"
+    )
+    write(run / "distill_BC" / "eval.csv", student)
+    study = scores.load_study(tmp_path)
+    assert study.score("BC", "A") == {0: 3.0}  # (2 + 4) / 2, not the first evaluation too
