@@ -258,6 +258,15 @@ def _check_counts(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
             parser.error(f"unknown job {unknown[0]!r} for preset {args.preset}: its jobs are {known} (see the 'list' command)")
 
 
+#: what ``list`` says of the jobs without a name of their own
+UNNAMED_ABOUT = {
+    "collect": "MPO through every stage",
+    "collect_first": "the first robot: MPO in Env-A, then in Env-B (a sharing study)",
+    "collect_agent2": "the second robot: MPO in Env-C, side by side with the first (a copy at the switch, or a new agent)",
+    "share": "the two robots' buffers merged into the one the students distill",
+}
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -271,8 +280,10 @@ def main(argv: Optional[list[str]] = None) -> int:
             if parsed.kind == "distill":
                 repeat = parsed.repeat
                 about = STUDENTS[parsed.name].about + (f" (repeat {repeat}, its own student seed)" if repeat else "")
+            elif parsed.kind == "online":
+                about = str(ONLINE[parsed.name])
             else:
-                about = str(ONLINE.get(parsed.name, "MPO through every stage"))
+                about = UNNAMED_ABOUT[parsed.kind if preset.sharing is None or parsed.kind != "collect" else "collect_first"]
             seconds = costs.estimate(job, times)
             print(f"  {job:<34} {'' if seconds is None else f'[{costs.minutes(seconds)}] '}{about}")
         print(_measured_cost(preset, times))

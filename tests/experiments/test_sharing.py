@@ -173,3 +173,21 @@ def test_a_job_after_a_blocked_one_is_blocked_and_named_on_ray():
     assert first == dict(key="seed_0/collect_agent2", blocked="seed_0/collect@200 failed")
     second = job(PRESETS["tiny"], "out", 0, "collect", 200, first)
     assert second == dict(key="seed_0/collect@200", blocked="seed_0/collect_agent2 failed")
+
+
+def test_list_says_what_each_job_of_a_sharing_seed_does(tmp_path: pathlib.Path, capsys):
+    from sb3_lifelong.experiments.__main__ import main
+
+    presets = tmp_path / "presets.py"
+    presets.write_text(
+        "import dataclasses\n"
+        "from sb3_lifelong.experiments.presets import PRESETS as PACKAGE\n"
+        "STAGES = ({}, {'hip_deformation': 0.3}, {'friction': 0.1})\n"
+        "PRESETS = {'shared': dataclasses.replace(PACKAGE['tiny'], stages=STAGES, stage_steps=(1, 1, 1), online=False,\n"
+        "    env_names=('Env-A', 'Env-B', 'Env-C'), students=('BC',), sharing='copy')}\n"
+    )
+    assert main(["list", "--presets", str(presets), "--preset", "shared"]) == 0
+    lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines() if line.startswith("  ")}
+    assert list(lines) == ["collect", "collect_agent2", "share", "distill_BC"]
+    assert "the first robot" in lines["collect"] and "the second robot" in lines["collect_agent2"]
+    assert "merged" in lines["share"]
