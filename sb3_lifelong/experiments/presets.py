@@ -26,7 +26,7 @@ DriftSpec = Mapping[str, tuple[float, float]]
 
 #: the critics a preset's CRR students can have
 STUDENT_CRITICS = ("mse", "categorical")
-#: the parallel data-sharing set-ups of the paper's appendix (:attr:`Preset.sharing`)
+#: the parallel data-sharing set-ups of the paper's appendix (``Preset.sharing``)
 SHARING = ("copy", "independent")
 #: the seed offset of the second collector of a sharing study (its own exploration, evaluated on the seed's episodes)
 AGENT2_SEED_OFFSET = 1000
@@ -211,7 +211,7 @@ class Preset:
         """
         :param job: one of the preset's job names
         :return: the jobs that must have finished before ``job`` starts: ``collect`` for every other job; with
-            :attr:`sharing`, ``share`` for the students and both collections for ``share`` (the second collection
+            ``sharing``, ``share`` for the students and both collections for ``share`` (the second collection
             of the ``"copy"`` set-up starts from the first one's Stage 1, the runner's ``collect`` up to the switch)
         """
         if job in ("collect", "collect_agent2"):
@@ -238,7 +238,7 @@ class Preset:
     @property
     def collector_steps(self) -> tuple[int, ...]:
         """The environment steps of each stage of the ``collect`` job's agent: every stage, or Env-A and Env-B of a
-        sharing study (:attr:`sharing`: Env-C is the second agent's)."""
+        sharing study (``sharing``: Env-C is the second agent's)."""
         return self.stage_steps[:2] if self.sharing is not None else self.stage_steps
 
     @property
@@ -440,7 +440,7 @@ class Job:
     """
     One job of a seed, parsed once from its name (which is also its directory's): ``collect``,
     ``distill_<student>`` (``distill_<student>__r<k>`` for the student's repeat ``k``), ``online_<method>``, or a
-    sharing study's ``collect_agent2`` and ``share`` (:attr:`Preset.sharing`).
+    sharing study's ``collect_agent2`` and ``share`` (``Preset.sharing``).
 
     :param kind: ``"collect"``, ``"collect_agent2"``, ``"share"``, ``"distill"`` or ``"online"``
     :param name: the student's name (:data:`STUDENTS`) or the online method's (:data:`ONLINE`); empty for the others
@@ -492,7 +492,7 @@ def job_names(
     :param students: the students (default: every one of :data:`STUDENTS`)
     :param online: with the online CRR baselines
     :param student_repeats: how many times each student is trained on the seed's buffer
-    :param sharing: a sharing study's (:attr:`Preset.sharing`): its second collection and the merge of the two
+    :param sharing: a sharing study's (``Preset.sharing``): its second collection and the merge of the two
     :return: the jobs of one seed, in the order they run (a student's repeats after all the first trainings)
     """
     if student_repeats < 1:
@@ -638,7 +638,7 @@ SHARED_BUFFER = "buffer_shared"
 
 def check_sharing(preset: Preset) -> None:
     """
-    :param preset: a preset with :attr:`Preset.sharing`
+    :param preset: a preset with ``Preset.sharing``
     :raises ValueError: naming the problem: an unknown set-up, not three stages, a drift (one robot's life), or the
         online baselines (they continue one robot's Stage 1 through its later stages)
     """

@@ -335,7 +335,7 @@ def record_settings(preset: Preset, output: pathlib.Path) -> None:
 
 def refuse_reuse(preset: Preset) -> None:
     """
-    :raises ValueError: ``preset`` is a sharing study's (:attr:`Preset.sharing`): its students distill the merge of two
+    :raises ValueError: ``preset`` is a sharing study's (``Preset.sharing``): its students distill the merge of two
         robots' buffers, and another study's collections are not reused for it
     """
     if preset.sharing is not None:
@@ -361,7 +361,7 @@ def adopt_collection(preset: Preset, seed: int, source: pathlib.Path, output: pa
     :raises ValueError: when ``source`` is not a study, collected with other settings, this seed's collection there
         has not finished or lacks a buffer, or ``output``'s seed has another collection (its own, or another study's)
     :raises RuntimeError: when another process is running this seed's ``collect`` job in ``output``
-    :raises ValueError: (also) a sharing study (:attr:`Preset.sharing`, :func:`refuse_reuse`)
+    :raises ValueError: (also) a sharing study (``Preset.sharing``, :func:`refuse_reuse`)
     """
     refuse_reuse(preset)
     source, run_dir = pathlib.Path(source).resolve(), output / f"seed_{seed}"

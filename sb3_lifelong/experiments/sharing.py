@@ -1,6 +1,6 @@
 """
 Parallel data sharing (the paper's appendix) on the protocol's runner: two robots at the same time, each collecting
-into its own lifetime buffer, their buffers then merged into one for the students (:attr:`Preset.sharing`).
+into its own lifetime buffer, their buffers then merged into one for the students (``Preset.sharing``).
 
 A sharing study's seed has two collection jobs and a merge beside the protocol's ``collect``:
 
@@ -53,7 +53,7 @@ def collect_agent2(
     ``"copy"``: the first agent at the switch (``collect/stage1.zip``) with a copy of its Stage-1 buffer, its clock
     going on from the switch; ``"independent"``: a new agent (seed ``seed + AGENT2_SEED_OFFSET``) from timestep 0.
 
-    :param preset: the study's settings (:attr:`Preset.sharing` set)
+    :param preset: the study's settings (``Preset.sharing`` set)
     :param seed: the seed
     :param run_dir: the seed's directory
     :param progress_bar: show a progress bar
@@ -115,7 +115,7 @@ def share(preset: Preset, run_dir: pathlib.Path, log: Callable[[str], None] = pr
     The ``share`` job of a sharing study: the two lifetime buffers merged into one (``buffer_shared``): the first
     agent's whole, then the second's after the Env-A part a copy shares with it.
 
-    :param preset: the study's settings (:attr:`Preset.sharing` set)
+    :param preset: the study's settings (``Preset.sharing`` set)
     :param run_dir: the seed's directory
     :param log: where a deletion is reported
     :return: the rows of each environment's data in the merged buffer, by its name
