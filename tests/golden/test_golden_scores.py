@@ -182,3 +182,44 @@ def test_a_students_score_is_the_mean_of_its_last_two_evaluations(tmp_path: path
     write(run / "distill_BC" / "eval.csv", student)
     study = scores.load_study(tmp_path)
     assert study.score("BC", "A") == {0: 3.0}  # (2 + 4) / 2, not the first evaluation too
+
+
+def stored(path: pathlib.Path, rows: int):
+    import gymnasium as gym
+    import numpy as np
+
+    from sb3_lifelong import LifelongReplayBuffer
+
+    buffer = LifelongReplayBuffer(0, gym.spaces.Box(-1, 1, (2,)), gym.spaces.Box(-1, 1, (1,)), device="cpu", path=path)
+    buffer.set_source(0, name="Env-A")
+    for i in range(rows):
+        obs = np.full((1, 2), i, dtype=np.float32)
+        buffer.add(obs, obs, np.zeros((1, 1)), np.array([1.0]), np.array([False]), [{}])
+    buffer.flush()
+    return buffer
+
+
+def test_the_rows_of_a_buffer_are_counted_while_its_writer_holds_it(tmp_path: pathlib.Path) -> None:
+    writer = stored(tmp_path / "buffer", 7)  # a collection still writing: only a read-only open may count
+    try:
+        assert scores.count_source_rows(tmp_path / "buffer") == {"Env-A": 7}
+    finally:
+        writer.close()
+
+
+def test_an_unreadable_buffer_leaves_the_report_without_its_rows_and_says_so_where_it_was_asked(tmp_path) -> None:
+    run = tmp_path / "seed_0"
+    write(run / "collect" / "done.json", json.dumps({}))  # no record of the rows: they are counted in the buffer
+    write(run / "buffer" / "manifest.json", "{not json")
+    with pytest.warns(UserWarning, match="its rows per source could not be counted") as caught:
+        assert scores.source_rows(run) == {}
+    assert caught[0].filename == __file__  # the caller's line, not the module's
+    assert str(run / "buffer") in str(caught[0].message)
+
+
+def test_the_return_matrix_starts_at_the_first_stage_by_default() -> None:
+    frame = pd.concat([evals("A", {100: 1.0, 200: 3.0}), evals("B", {100: 2.0, 200: 4.0})])
+    rows = {row["metric"]: row["value"] for row in scores.return_matrix(0, "MPO", frame, ["A", "B"], [100, 200])}
+    assert rows == {"MPO|R|0|A": 1.0, "MPO|R|0|B": 2.0, "MPO|R|1|A": 2.0, "MPO|R|1|B": 3.0}
+    later = scores.return_matrix(0, "online X", frame, ["A", "B"], [100, 200], first=1)
+    assert {row["metric"] for row in later} == {"online X|R|1|A", "online X|R|1|B"}
