@@ -223,3 +223,24 @@ def test_the_return_matrix_starts_at_the_first_stage_by_default() -> None:
     assert rows == {"MPO|R|0|A": 1.0, "MPO|R|0|B": 2.0, "MPO|R|1|A": 2.0, "MPO|R|1|B": 3.0}
     later = scores.return_matrix(0, "online X", frame, ["A", "B"], [100, 200], first=1)
     assert {row["metric"] for row in later} == {"online X|R|1|A", "online X|R|1|B"}
+
+
+def test_the_stage_2_area_is_the_mean_of_every_evaluation_of_stage_2(tmp_path: pathlib.Path) -> None:
+    write(tmp_path / "preset.json", json.dumps(dict(env_names=["A", "B"], stage_steps=[100, 1000])))
+    run = tmp_path / "seed_0"
+    write(run / "collect" / "done.json", json.dumps({"source_rows": {"A": 100, "B": 1000}}))
+    stage2 = {100 + 10 * k: float(k) for k in range(1, 101)}  # 100 evaluations in (100, 1100]
+    points = {50: 1000.0, 100: 2000.0, **stage2}  # Stage 1's two are not in the area
+    lines = "".join(f"{t},{env},{r}\n" for t, r in points.items() for env in "AB")
+    write(run / "collect" / "eval.csv", "timesteps,env,mean_reward\n" + lines)
+    study = scores.load_study(tmp_path)
+    assert study.extra("MPO|stage2_area|A") == {0: pytest.approx(sum(range(1, 101)) / 100)}
+    assert study.extra("buffer|rows|B") == {0: 1000.0}
+
+
+def test_a_students_extras_are_its_last_q_per_source_and_its_weights(tmp_path: pathlib.Path) -> None:
+    q = "timesteps,source,name,q_mean\n10,0,A,1.0\n10,1,B,2.0\n20,0,A,5.0\n20,1,B,7.0\n"
+    write(tmp_path / "q_sources.csv", q)
+    write(tmp_path / "train.csv", "timesteps,weight_ess\n10,0.5\n20,0.7\n")
+    extras = {row["metric"]: row["value"] for row in scores.student_extras(0, "BC", tmp_path, [])}
+    assert extras == {"BC|q|A": 5.0, "BC|q|B": 7.0, "BC|weight_ess": pytest.approx(0.6)}
