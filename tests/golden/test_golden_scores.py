@@ -244,3 +244,31 @@ def test_a_students_extras_are_its_last_q_per_source_and_its_weights(tmp_path: p
     write(tmp_path / "train.csv", "timesteps,weight_ess\n10,0.5\n20,0.7\n")
     extras = {row["metric"]: row["value"] for row in scores.student_extras(0, "BC", tmp_path, [])}
     assert extras == {"BC|q|A": 5.0, "BC|q|B": 7.0, "BC|weight_ess": pytest.approx(0.6)}
+
+
+def two_repeats_study(path: pathlib.Path, malformed_row: bool = False) -> None:
+    write(path / "preset.json", json.dumps(dict(env_names=["A", "B"], stage_steps=[100, 100])))
+    run = path / "seed_0"
+    write(run / "collect" / "done.json", json.dumps({"source_rows": {"A": 100, "B": 100}}))
+    write(run / "collect" / "eval.csv", "timesteps,env,mean_reward\n200,A,1.0\n200,B,1.0\n")
+    for job, ess, reward in (("distill_BC", 0.4, 2.0), ("distill_BC__r1", 0.8, 4.0)):
+        write(run / job / "done.json", json.dumps({}))
+        write(run / job / "eval.csv", f"timesteps,env,mean_reward\n10,A,{reward}\n10,B,{reward}\n")
+        write(run / job / "train.csv", f"timesteps,weight_ess\n10,{ess}\n" + ("x,1\n" if malformed_row else ""))
+
+
+def test_a_students_repeats_score_and_weigh_as_their_mean_in_the_order_of_the_jobs(tmp_path: pathlib.Path) -> None:
+    two_repeats_study(tmp_path)
+    study = scores.load_study(tmp_path)
+    assert study.score("BC", "A") == {0: 3.0} and study.extra("BC|weight_ess") == {0: pytest.approx(0.6)}
+    assert list(study.finals["method"]) == ["MPO", "MPO", "BC", "BC"]  # the collector first, as the jobs run
+    assert list(study.finals["repeats"]) == [1, 1, 2, 2]
+    metrics = list(study.extras["metric"])
+    assert metrics.index("MPO|stage2_area|A") < metrics.index("buffer|rows|A") < metrics.index("BC|weight_ess")
+
+
+def test_a_dropped_malformed_row_is_named_at_the_callers_line(tmp_path: pathlib.Path) -> None:
+    two_repeats_study(tmp_path, malformed_row=True)
+    with pytest.warns(scores.MalformedRowWarning, match="timesteps is .x., not a number") as caught:
+        study = scores.load_study(tmp_path, malformed="drop")
+    assert {warning.filename for warning in caught} == {__file__} and len(study.dropped) == 2
