@@ -281,11 +281,19 @@ def _new_collection(preset: Preset, seed: int, run_dir: pathlib.Path, log: Calla
     directory = run_dir / "collect"
     remove_unfinished_collection(preset, run_dir, log)
     claim_directory(directory, "collect", beside=COLLECTED_BUFFERS)  # before the buffer is created
+    return new_collector(preset, make_env(preset, switch_at=switch_points(preset)), seed, run_dir / "buffer", directory)
+
+
+def new_collector(preset: Preset, env: Any, seed: int, buffer_path: pathlib.Path, directory: pathlib.Path) -> MPO:
+    """
+    :return: a new MPO collector of the preset's settings in ``env``, its lifetime buffer created at ``buffer_path``
+        with the stages' names as its sources', logging to ``directory``'s tensorboard
+    """
     model = MPO(
         "MlpPolicy",
-        make_env(preset, switch_at=switch_points(preset)),
+        env,
         replay_buffer_class=LifelongReplayBuffer,
-        replay_buffer_kwargs=dict(path=run_dir / "buffer"),
+        replay_buffer_kwargs=dict(path=buffer_path),
         learning_starts=preset.learning_starts,
         num_samples=preset.num_samples,
         batch_size=preset.batch_size,
@@ -293,7 +301,11 @@ def _new_collection(preset: Preset, seed: int, run_dir: pathlib.Path, log: Calla
         tensorboard_log=tensorboard_dir(directory),
         **model_kwargs(preset, seed),
     )
-    buffer: Any = model.replay_buffer
-    for index in reversed(range(len(preset.env_names))):  # names in the manifest; transitions carry their stage
-        buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=describe_stage(preset.stages[index])))
+    name_sources(model.replay_buffer, preset)
     return model
+
+
+def name_sources(buffer: Any, preset: Preset) -> None:
+    """Name a lifetime buffer's sources after the preset's environments (in its manifest; transitions carry their stage)."""
+    for index in reversed(range(len(preset.env_names))):
+        buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=describe_stage(preset.stages[index])))

@@ -27,19 +27,15 @@ from typing import Any, Callable
 import numpy as np
 
 from sb3_lifelong.buffers import LifelongReplayBuffer, merge_buffers
-from sb3_lifelong.experiments.jobs import job_callbacks, make_env, model_kwargs, start_job, tensorboard_dir
-from sb3_lifelong.experiments.presets import AGENT2_SEED_OFFSET, SHARED_BUFFER, Preset, describe_stage
+from sb3_lifelong.experiments.collection import name_sources, new_collector
+from sb3_lifelong.experiments.jobs import job_callbacks, make_env, start_job, tensorboard_dir
+from sb3_lifelong.experiments.presets import AGENT2_SEED_OFFSET, SHARED_BUFFER, Preset
 from sb3_lifelong.mpo import MPO
 
 __all__ = ["AGENT2_BUFFER", "check_shared", "collect_agent2", "share"]
 
 #: the second collector's lifetime buffer, in a seed's directory
 AGENT2_BUFFER = "buffer_agent2"
-
-
-def _name_sources(buffer: Any, preset: Preset) -> None:
-    for index in reversed(range(len(preset.env_names))):  # names in the manifest; transitions carry their stage
-        buffer.set_source(index, name=preset.env_names[index], metadata=dict(setting=describe_stage(preset.stages[index])))
 
 
 def collect_agent2(
@@ -87,22 +83,10 @@ def collect_agent2(
         model.replay_buffer = LifelongReplayBuffer.open(run_dir / AGENT2_BUFFER)
         model.set_random_seed(agent_seed)
         model.learning_starts = 0  # it has learnt: the copy acts by its policy from its first step
+        name_sources(model.replay_buffer, preset)
     else:
-        kwargs = model_kwargs(preset, agent_seed)
-        model = MPO(
-            "MlpPolicy",
-            env,
-            replay_buffer_class=LifelongReplayBuffer,
-            replay_buffer_kwargs=dict(path=run_dir / AGENT2_BUFFER),
-            learning_starts=preset.learning_starts,
-            num_samples=preset.num_samples,
-            batch_size=preset.batch_size,
-            learning_rate=preset.learning_rate,
-            tensorboard_log=tensorboard_dir(directory),
-            **kwargs,
-        )
+        model = new_collector(preset, env, agent_seed, run_dir / AGENT2_BUFFER, directory)
     buffer: Any = model.replay_buffer
-    _name_sources(buffer, preset)
     callbacks = job_callbacks(preset, directory, preset.eval_freq, seed)
     model.learn(preset.stage_steps[2], callback=callbacks, reset_num_timesteps=preset.sharing != "copy",
                 progress_bar=progress_bar)  # fmt: skip
