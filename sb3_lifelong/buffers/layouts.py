@@ -1,7 +1,8 @@
 """
 Where a row store's rows live: its layout. ``"memory"``: in this process only (the pending rows are the storage,
-nothing is ever written); ``"single"`` (no capacity): one append-only file per field; ``"chunked"`` (with a
-capacity): one file per flushed chunk, deleted once a committed manifest no longer lists it.
+nothing is ever written); ``"chunked"``: one file per flushed chunk, deleted once a committed manifest no longer lists
+it (with a capacity); ``"single"``: one append-only file per field, as earlier versions wrote a directory without a
+capacity, read only (a writer copies it into chunk files when it opens it).
 
 A layout creates, checks, writes and describes its data as segments of committed rows (which a reader of
 ``readers`` reads), keeps the directory's writer lock and writes its manifest; a layout without a directory
@@ -130,7 +131,7 @@ class Layout(Protocol):
     manifest's chunks, the global row after the last committed row) unless said otherwise.
     """
 
-    #: "memory", "single" or "chunked" (the manifest's ``layout``)
+    #: "memory", "chunked" or "single" (the manifest's ``layout``; read only)
     name: str
     #: whether the rows are written to a directory (False: in memory, where ``flush()`` has nothing to do)
     persistent: bool
@@ -263,7 +264,7 @@ class MemoryLayout:
         return []
 
 
-class _DirectoryLayout:
+class DirectoryLayout:
     """What the layouts of a directory share: its writer lock, its manifest, the deletion of dropped files."""
 
     persistent = True
@@ -386,11 +387,12 @@ class _DirectoryLayout:
         return kept
 
 
-class SingleFileLayout(_DirectoryLayout):
+class SingleFileLayout(DirectoryLayout):
     """
-    Layout "single": one append-only file per field, ``<field>.bin``, row ``i`` at byte ``i * row_bytes``. Every
-    row is kept (no capacity), so the committed rows are one segment. A flush cuts each file back to its committed
-    length (bytes after it are left by a failed flush or a crash) and appends the new chunks to it.
+    Layout "single", read only: one append-only file per field, ``<field>.bin``, row ``i`` at byte ``i * row_bytes``,
+    as earlier versions wrote a directory without a capacity; the committed rows are one segment, and bytes after
+    them (an unflushed tail of a writer that died) are ignored. A writer never writes it: it copies the rows into the
+    chunk files of layout "chunked" first (:meth:`migrate`), and its open-time commit makes the directory that layout.
     """
 
     name = "single"
@@ -398,10 +400,12 @@ class SingleFileLayout(_DirectoryLayout):
     def field_file(self, name: str) -> str:
         return os.path.join(self.path, name + ".bin")
 
+    def field_files(self) -> list[str]:
+        """:return: the field files (what a migrated directory deletes once its chunked manifest is in place)"""
+        return [self.field_file(name) for name in self.state.fields]
+
     def create(self) -> None:
-        os.makedirs(self.path, exist_ok=True)
-        for name in self.state.fields:  # empty field files left by an interrupted creation are reused (cut to 0 bytes)
-            os.close(files.open_for_writing(self.field_file(name), os.O_CREAT | os.O_TRUNC))
+        raise RuntimeError("layout 'single' is no longer written: new directories are 'chunked'")
 
     def open_existing(self, chunks: list[dict[str, Any]], num_committed: int, verify: str) -> tuple[int, list[str]]:
         state, discarded = self.state, 0
@@ -409,28 +413,18 @@ class SingleFileLayout(_DirectoryLayout):
             file_name = self.field_file(name)
             if not os.path.isfile(file_name) or os.path.islink(file_name):
                 raise BufferFormatError(f"{self.path}: field file {name}.bin is missing or not a regular file")
-        for name in state.fields:
-            file_name, need = self.field_file(name), num_committed * state.row_bytes[name]
-            have = os.path.getsize(file_name)
+            need, have = num_committed * state.row_bytes[name], os.path.getsize(file_name)
             if have < need:
                 raise BufferFormatError(
                     f"{file_name}: {have} bytes but the manifest commits {num_committed} rows ({need} bytes); "
                     f"the file was truncated or replaced. {SALVAGE_HINT.format(path=self.path)}"
                 )
-            if have > need and not state.read_only:
-                # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
-                fd = files.open_for_writing(file_name)
-                try:
-                    os.ftruncate(fd, need)
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-                discarded += have - need
+            discarded += have - need
         for chunk in checked_chunks(chunks, verify):
             damage = self.chunk_damage(chunk)
             if damage is not None:
                 raise BufferFormatError(f"{damage} (corrupted data). {SALVAGE_HINT.format(path=self.path)}")
-        return discarded, []
+        return (0 if state.read_only else discarded), []
 
     def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:
         """
@@ -458,42 +452,75 @@ class SingleFileLayout(_DirectoryLayout):
         return [Segment(0, num_committed, {name: (self.field_file(name), 0) for name in self.state.fields})]
 
     def write(self, chunks: list[dict[str, Any]], base: int, block: BlockSource) -> None:
-        for name in self.state.fields:
-            committed_bytes = base * self.state.row_bytes[name]
-            fd = files.open_for_writing(self.field_file(name))
-            try:
-                # bytes after the committed rows are left by a failed flush: cut them off so that this one writes the
-                # same rows to the same place (the manifest's offsets)
-                os.ftruncate(fd, committed_bytes)
-                os.lseek(fd, committed_bytes, os.SEEK_SET)
-                for chunk in chunks:
-                    _write_field(fd, chunk, name, block(name, chunk["start"] - base, chunk["start"] - base + chunk["rows"]))
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+        raise RuntimeError(f"{self.path}: layout 'single' is read only (a writer migrates it when it opens)")
 
     def discard(self, chunks: list[dict[str, Any]], num_committed: int) -> None:
-        for name in self.state.fields:  # best effort: the bytes after the committed rows are ignored anyway
-            try:
-                fd = files.open_for_writing(self.field_file(name))  # not os.truncate(path): it follows links
-                try:
-                    os.ftruncate(fd, num_committed * self.state.row_bytes[name])
-                finally:
-                    os.close(fd)
-            except OSError:
-                pass
+        pass
 
     def retain(
         self, chunks: list[dict[str, Any]], num_committed: int, committed_first: int
     ) -> tuple[list[dict[str, Any]], int, list[str]]:
         return chunks, committed_first, []
 
+    def migrate(self, chunks: list[dict[str, Any]]) -> None:
+        """
+        Copy every committed chunk into its chunk file of layout "chunked" (in blocks), checking each field's checksum
+        against the manifest's, then fsync the files and the directory. The chunks and checksums stay the manifest's:
+        the store's next commit, naming layout "chunked", makes them the rows; until then the field files (unchanged)
+        are the buffer and the chunk files are unreferenced (which the next writer deletes).
 
-class ChunkFileLayout(_DirectoryLayout):
+        :param chunks: The manifest's chunks
+        :raises BufferFormatError: a chunk's rows do not match their checksum (the chunk files written are removed)
+        """
+        written: list[str] = []
+        sources = {name: os.open(self.field_file(name), os.O_RDONLY | files.NOFOLLOW) for name in self.state.fields}
+        try:
+            for chunk in chunks:
+                target = os.path.join(self.path, chunk_file_name(chunk["start"]))
+                fd = files.create_new_file(target)
+                written.append(target)
+                try:
+                    for name, source in sources.items():
+                        row_bytes = self.state.row_bytes[name]
+                        crc = _copy_bytes(source, fd, chunk["start"] * row_bytes, chunk["rows"] * row_bytes)
+                        if crc != chunk["crc32"][name]:
+                            raise BufferFormatError(
+                                f"{self.field_file(name)}: checksum mismatch in chunk starting at row {chunk['start']} "
+                                f"(corrupted data; found while copying the directory into chunk files, which it "
+                                f"leaves unchanged). {SALVAGE_HINT.format(path=self.path)}"
+                            )
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            files.fsync_dir(self.path, strict=True)  # the files' entries are durable before a manifest names them
+        except BaseException:
+            for file_name in written:
+                files.remove_quietly(file_name)
+            raise
+        finally:
+            for source in sources.values():
+                os.close(source)
+
+
+def _copy_bytes(source: int, target: int, offset: int, size: int, block: int = 1 << 22) -> int:
+    """Copy ``size`` bytes at ``offset`` of ``source`` to the file offset of ``target``. :return: their CRC-32"""
+    crc = 0
+    while size > 0:
+        data = os.pread(source, min(block, size), offset)
+        if not data:
+            raise BufferFormatError(f"a field file ends {size} bytes before the rows its manifest commits (truncated)")
+        files.write_all(target, data)
+        crc = zlib.crc32(data, crc)
+        offset, size = offset + len(data), size - len(data)
+    return crc
+
+
+class ChunkFileLayout(DirectoryLayout):
     """
-    Layout "chunked": one file per flushed chunk, ``chunk.<start>.bin``, holding each field's rows one field after
-    the other; each chunk is a segment. A commit keeps the last ``capacity`` committed rows: the files of the chunks
-    with none of them are deleted once the manifest that drops them is synced.
+    Layout "chunked", the one every writer writes: one file per flushed chunk, ``chunk.<start>.bin``, holding each
+    field's rows one field after the other; each chunk is a segment. With a capacity, a commit keeps the last
+    ``capacity`` committed rows: the files of the chunks with none of them are deleted once the manifest that drops
+    them is synced; without one (None), every row is kept.
     """
 
     name = "chunked"
@@ -550,15 +577,19 @@ class ChunkFileLayout(_DirectoryLayout):
 
     def remove_orphans(self, chunks: list[dict[str, Any]]) -> tuple[int, list[str]]:
         """Delete the chunk files the manifest does not list: evicted ones left by a crash after a commit, or the
-        unflushed chunk of a crash before it (writer only). :return: the bytes and the names of the files deleted"""
+        unflushed chunk of a crash before it (writer only); and the field files of layout "single" that a crash
+        after a migration's commit left (their rows are in the chunk files). :return: the bytes of the chunk files
+        and the names of every file deleted"""
         listed = {chunk_file_name(chunk["start"]) for chunk in chunks}
+        migrated = {name + ".bin" for name in self.state.fields}
         discarded, removed = 0, []
         for entry in sorted(os.listdir(self.path)):
-            if CHUNK_FILE_PATTERN.fullmatch(entry) and entry not in listed:
+            chunk_file = CHUNK_FILE_PATTERN.fullmatch(entry) is not None
+            if (chunk_file and entry not in listed) or entry in migrated:
                 file_name = os.path.join(self.path, entry)
                 if os.path.islink(file_name) or not os.path.isfile(file_name):
                     continue
-                discarded += os.path.getsize(file_name)
+                discarded += os.path.getsize(file_name) if chunk_file else 0
                 files.delete_file(file_name)
                 removed.append(entry)
         if removed:
@@ -599,20 +630,18 @@ class ChunkFileLayout(_DirectoryLayout):
         return chunks[len(dropped) :], committed_first, [self.chunk_file(chunk) for chunk in dropped]
 
 
-_LAYOUTS: dict[str, Callable[[LayoutState], Layout]] = {
-    "memory": MemoryLayout,
-    "single": SingleFileLayout,
-    "chunked": ChunkFileLayout,
-}
-
-
 def make_layout(name: str, state: LayoutState) -> Layout:
     """
-    :param name: "memory", "single" or "chunked"
+    :param name: "memory", "chunked" or "single" (read only)
     :param state: What the layout knows of its store
     :return: The layout
     """
-    return _LAYOUTS[name](state)
+    layouts: dict[str, Callable[[LayoutState], Layout]] = {
+        "memory": MemoryLayout,
+        "chunked": ChunkFileLayout,
+        "single": SingleFileLayout,
+    }
+    return layouts[name](state)
 
 
 def _write_field(fd: int, chunk: dict[str, Any], name: str, data: memoryview) -> None:
@@ -654,10 +683,11 @@ def owned_buffer_files(path: str) -> list[str]:
     """
     The files of the buffer in ``path`` that ``mode="overwrite"`` may delete: only what provably belongs to a buffer
     of this package. ``manifest.json`` must be a regular file (not a link) that this code parses and validates as
-    its own format; the files are then the data files its manifest names (the field files of layout "single", the
-    listed chunk files of layout "chunked"), the chunk files it does not list (layout "chunked": what a writer
-    deletes on opening anyway, left by a crash), the temporary ``manifest.json.tmp``, and the manifest itself,
-    last. ``writer.lock`` and every other entry of the directory are kept.
+    its own format; the files are then the data files its manifest names (the listed chunk files of layout
+    "chunked", the field files of layout "single"), the chunk files it does not list and the field files of its
+    fields in layout "chunked" (what a writer deletes on opening anyway, left by a crash), the temporary
+    ``manifest.json.tmp``, and the manifest itself, last. ``writer.lock`` and every other entry of the directory are
+    kept.
 
     :param path: The directory
     :return: The names of those files (relative to ``path``) that exist, the manifest last; ``[]`` without a manifest
@@ -680,12 +710,9 @@ def owned_buffer_files(path: str) -> list[str]:
             f"{refusal}: its {MANIFEST_NAME} is not the manifest of such a buffer ({error}). Choose another path (or, if "
             "this directory holds nothing you need, delete it yourself)"
         ) from None
-    if manifest.get("layout", "single") == "single":
-        named = [f"{name}.bin" for name in validate_fields(manifest["fields"])]
-    else:
-        listed = [chunk_file_name(chunk["start"]) for chunk in manifest["chunks"]]
-        unlisted = sorted(e for e in os.listdir(path) if CHUNK_FILE_PATTERN.fullmatch(e) and e not in set(listed))
-        named = listed + unlisted
+    listed = [chunk_file_name(c["start"]) for c in manifest["chunks"]] if manifest.get("layout") == "chunked" else []
+    unlisted = sorted(e for e in os.listdir(path) if CHUNK_FILE_PATTERN.fullmatch(e) and e not in set(listed))
+    named = listed + unlisted + [f"{name}.bin" for name in validate_fields(manifest["fields"])]
     names = [name for name in [*named, MANIFEST_NAME + ".tmp"] if os.path.lexists(os.path.join(path, name))]
     for name in names:
         file_name = os.path.join(path, name)

@@ -7,7 +7,8 @@ tools can load them in light subprocesses:
 
 - ``files``: writing every byte, fsync, files never opened through a link, the atomic JSON write;
 - ``manifest``: the directory format, reading, validating and making the manifest;
-- ``layouts``: where the rows live (``"memory"``, ``"single"``, ``"chunked"``), the data files and the writer lock;
+- ``layouts``: where the rows live (``"memory"``, ``"chunked"``; ``"single"`` of earlier versions, read and
+  migrated), the data files and the writer lock;
 - ``readers``: how committed rows are read (``"mmap"``, ``"pread"``);
 - ``writers``: the directories this process holds open for writing, and what a forked child may not do;
 - ``rowstore`` (this module): :class:`RowStore`, the commit protocol over a layout and a reader.
@@ -24,7 +25,7 @@ from typing import Any, Optional
 import numpy as np
 
 from sb3_lifelong.buffers import files, writers
-from sb3_lifelong.buffers.layouts import Layout, LayoutState, check_buffer_path, make_layout
+from sb3_lifelong.buffers.layouts import Layout, LayoutState, SingleFileLayout, check_buffer_path, make_layout
 from sb3_lifelong.buffers.manifest import (
     BufferFormatError,
     ManifestRecords,
@@ -51,9 +52,11 @@ class RowStore(ManifestRecords):
 
     Rows are committed or pending. With a path, committed rows are read from the files (memory-mapped, or with
     positioned reads, see ``read_mode``) and the unflushed rows wait in a tail of ``chunk_size`` pending rows, written
-    out (appended, fsync'd, manifest replaced atomically) when full or on ``flush()``. Without a capacity the
-    directory has one append-only file per field (layout "single"); with one, a file per chunk (layout "chunked"),
-    deleted once the committed manifest no longer lists it. In memory (``path=None``, layout "memory") nothing is
+    out (one file per chunk, fsync'd, manifest replaced atomically) when full or on ``flush()`` (layout "chunked");
+    with a capacity, a chunk's file is deleted once the committed manifest no longer lists it. A directory that
+    earlier versions wrote in layout "single" (one append-only file per field) is read as it is; a writer first
+    copies its rows into chunk files and commits it as layout "chunked" (its rows, checksums and identity unchanged).
+    In memory (``path=None``, layout "memory") nothing is
     ever committed: the pending rows are the storage, preallocated arrays that double when full (with a capacity,
     the evicted rows at their front are dropped by moving the retained ones down instead).
 
@@ -126,9 +129,7 @@ class RowStore(ManifestRecords):
         self.chunk_size = chunk_size
         self._state = LayoutState(self.path, chunk_size, None if capacity is None else int(capacity), read_only)
         # the layout of a new store; an existing directory's is the one its manifest names
-        self._layout: Layout = make_layout(
-            "memory" if self.path is None else "single" if capacity is None else "chunked", self._state
-        )
+        self._layout: Layout = make_layout("memory" if self.path is None else "chunked", self._state)
         super().__init__()  # the manifest's records: stream ids, sources, spaces
         self.chunks: list[dict[str, Any]] = []
         self.num_committed = 0  # global row after the last committed row
@@ -154,6 +155,7 @@ class RowStore(ManifestRecords):
                 self._layout.remove_buffer()  # under the lock: a live writer was refused above
             self._open_or_create(fields, capacity, verify, evict)
         except BaseException:
+            self._closed = True  # a store that failed to open writes nothing, now or when it is collected
             self._release_lock()
             raise
         self._tail_start = self.num_committed
@@ -161,8 +163,14 @@ class RowStore(ManifestRecords):
         self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
         self.num_tail = 0
         self._reader_stale = False  # True while the maps (or read files) may not cover every committed row
-        if self.layout == "chunked" and not read_only:
-            self._commit(self.chunks, self.num_committed)  # a smaller capacity than the stored one evicts now; maps
+        if not read_only and self._layout.persistent and (self.capacity is not None or self._undeleted):
+            # a smaller capacity than the stored one evicts now; a migrated directory becomes layout "chunked"; maps
+            try:
+                self._commit(self.chunks, self.num_committed)
+            except BaseException:
+                self._closed = True
+                self._release_lock()
+                raise
         else:
             self._sync_maps()
         self.recovered = len(self)
@@ -210,20 +218,15 @@ class RowStore(ManifestRecords):
             layout = manifest.get("layout", "single")
             stored_capacity = manifest.get("capacity")
             if capacity is not None and capacity != stored_capacity:
-                if layout == "single":
-                    raise ValueError(
-                        f"{self.path} keeps every transition in one file per field (it was created without a capacity) "
-                        "and cannot evict: copy it into a new directory with a capacity, e.g. "
-                        "merge_buffers([LifelongReplayBuffer.open(old, read_only=True)], path=new, capacity=N)"
-                    )
                 if self.read_only:
                     raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
                 retained = manifest["num_transitions"] - manifest.get("first_row", 0)
                 if capacity < retained and not evict:
+                    kept = "every transition" if stored_capacity is None else f"capacity {stored_capacity:,}"
                     raise ValueError(
-                        f"{self.path} retains {retained:,} transitions (capacity {stored_capacity:,}): reopening it with "
+                        f"{self.path} retains {retained:,} transitions ({kept}): reopening it with "
                         f"capacity={capacity:,} would evict the oldest {retained - capacity:,} of them at once, for good. "
-                        f"Pass evict=True to do that; or capacity=None (keeps {stored_capacity:,}) or a capacity >= "
+                        f"Pass evict=True to do that; or capacity=None (keeps {kept}) or a capacity >= "
                         f"{retained:,}. Nothing was changed"
                     )
             self._state.capacity = stored_capacity if capacity is None else int(capacity)
@@ -231,6 +234,12 @@ class RowStore(ManifestRecords):
             self._load_manifest(manifest)
             self._set_row_format(stored)
             self.discarded_bytes, self.removed_files = self._layout.open_existing(self.chunks, self.num_committed, verify)
+            if isinstance(self._layout, SingleFileLayout) and not self.read_only:
+                # written by an earlier version: copy into chunk files; the open-time commit names layout "chunked",
+                # then the field files go (kept until a synced manifest no longer needs them)
+                self._layout.migrate(self.chunks)
+                self._undeleted.extend(self._layout.field_files())
+                self._layout = make_layout("chunked", self._state)
         else:
             self._layout.refuse_orphans()  # data files without a manifest would be overwritten
             if fields is None:
@@ -280,7 +289,8 @@ class RowStore(ManifestRecords):
 
     @property
     def layout(self) -> str:
-        """Where the rows live: ``"memory"``, ``"single"`` (one file per field) or ``"chunked"`` (one file per chunk)."""
+        """Where the rows live: ``"memory"``, ``"chunked"`` (one file per chunk) or ``"single"`` (one file per field: a
+        directory of an earlier version, open read-only)."""
         return self._layout.name
 
     @property
@@ -358,7 +368,9 @@ class RowStore(ManifestRecords):
                 "and created again while open, so its rows are not the ones read so far. Refusing to refresh rather than "
                 "serve old and new rows together; open it again to read the new buffer"
             )
-        if validate_fields(manifest["fields"]) != self._fields or manifest.get("layout", "single") != self.layout:
+        layout = manifest.get("layout", "single")
+        migrated = (self.layout, layout) == ("single", "chunked")  # a writer copied it into chunk files
+        if validate_fields(manifest["fields"]) != self._fields or (layout != self.layout and not migrated):
             raise BufferFormatError(f"{self.path}: fields or layout changed while open")
         if manifest["num_transitions"] < self.num_committed or manifest.get("first_row", 0) < self.committed_first:
             raise BufferFormatError(
@@ -366,6 +378,8 @@ class RowStore(ManifestRecords):
                 "buffer was replaced or cut back while open; open it again to read what it holds now"
             )
         changed = manifest["num_transitions"] != self.num_committed or manifest.get("first_row", 0) != self.committed_first
+        if migrated:
+            self._layout, changed = make_layout(layout, self._state), True
         self._state.capacity = manifest.get("capacity")
         self._load_manifest(manifest)
         self._tail_start = self.num_committed
@@ -478,9 +492,8 @@ class RowStore(ManifestRecords):
 
     def flush(self) -> None:
         """
-        Write the pending rows as one chunk: the field files (layout "single": each cut back to its committed length
-        first, then appended to) or the chunk file (layout "chunked") are written and fsync'd, then the manifest is
-        replaced atomically, then the files of evicted chunks are deleted. In memory, there is nothing to write.
+        Write the pending rows as one chunk: its chunk file is written and fsync'd, then the manifest is replaced
+        atomically, then the files of evicted chunks are deleted. In memory, there is nothing to write.
 
         Only once the new manifest is in place does this object count the rows as committed. If anything fails
         before (e.g. ``OSError`` ENOSPC, disk full), it raises with the committed state (on disk and in memory)
@@ -526,7 +539,7 @@ class RowStore(ManifestRecords):
     def _write_chunks(self, extra: Optional[dict[str, np.ndarray]] = None, extra_rows: int = 0) -> None:
         """
         Write the pending rows followed by the first ``extra_rows`` rows of ``extra`` as chunks of at most
-        ``chunk_size`` rows (appended to the field files, or one chunk file each, fsync'd), then commit them all with
+        ``chunk_size`` rows (one chunk file each, fsync'd), then commit them all with
         one manifest (:meth:`_commit`, which empties the tail).
 
         If anything fails before the manifest is in place, this raises with nothing changed: the committed state (in

@@ -102,17 +102,23 @@ def test_capacity_errors(tmp_path):
     for bad in (0, -5, 2.5, True, "10"):
         with pytest.raises(ValueError, match="capacity must be a positive int"):
             LifelongReplayBuffer(0, OBS, ACT, capacity=bad)
-    # a directory created without a capacity keeps every row in one file per field: it cannot start evicting
+    # a directory created without a capacity keeps every row; reopening it with a smaller capacity evicts only when
+    # asked to, and then keeps the newest rows
     plain = LifelongReplayBuffer(0, OBS, ACT, path=tmp_path / "plain", chunk_size=8)
     add_rows(plain, 0, 20)
     plain.close()
-    with pytest.raises(ValueError, match=r"cannot evict.*merge_buffers"):
+    with pytest.raises(ValueError, match=r"retains 20 transitions \(every transition\).*evict=True.*Nothing was changed"):
         LifelongReplayBuffer.open(tmp_path / "plain", capacity=10)
-    # ... but it can be copied into a capped one
+    with LifelongReplayBuffer.open(tmp_path / "plain", read_only=True) as unchanged:
+        assert unchanged.size() == 20 and unchanged.store.capacity is None
+    # ... it can be copied into a capped one
     source = LifelongReplayBuffer.open(tmp_path / "plain", read_only=True)
     copy = merge_buffers([source], path=tmp_path / "copy", capacity=10, chunk_size=4)
     assert copy.size() == 10 and all_rows(copy)["rewards"].tolist() == list(range(10, 20))
     copy.close()
+    source.close()
+    with LifelongReplayBuffer.open(tmp_path / "plain", capacity=12, evict=True) as capped:  # or capped in place
+        assert capped.store.capacity == 12 and all_rows(capped)["rewards"].tolist() == list(range(8, 20))
     with pytest.raises(ValueError, match="read-only"):
         LifelongReplayBuffer.open(tmp_path / "copy", read_only=True, capacity=5)
 
@@ -312,7 +318,8 @@ def test_capacity_crash_sigkill(tmp_path):
     "mutate, message",
     [
         (lambda m: m.update(capacity=0), "capacity"),
-        (lambda m: m.update(capacity=None), "capacity"),
+        (lambda m: m.update(capacity="10"), "capacity"),
+        (lambda m: m.update(capacity=True), "capacity"),
         (lambda m: m.update(layout="../evil"), "layout"),
         (lambda m: m.update(first_row=m["chunks"][0]["start"] + m["chunks"][0]["rows"]), "first chunk"),
         (lambda m: m.update(first_row=-1), "first_row"),

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from sb3_lifelong import LifelongReplayBuffer
+from sb3_lifelong.buffers import BufferFormatError
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "data"))
 from make_single_file_fixtures import SPECS, V1_OBS, V2_OBS, rows
@@ -101,3 +102,137 @@ def test_a_writer_continues_a_single_file_directory(tmp_path, version):
         assert reopened.size() == 2 * held and reopened.buffer_id == buffer_id
         check_rows(reopened, version)
         check_rows(reopened, version, first=held)
+
+
+def chunk_names(chunks) -> list[str]:
+    return [f"chunk.{chunk['start']:012d}.bin" for chunk in chunks]
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_a_writer_migrates_a_single_file_directory_to_chunk_files(tmp_path, version):
+    """Opening for writing copies the rows into layout "chunked": the same chunks, checksums, sources and identity;
+    the field files are gone once the new manifest is in place."""
+    path = fixture_copy(tmp_path, version)
+    old = json.load(open(os.path.join(path, "manifest.json")))
+    with LifelongReplayBuffer.open(path, device="cpu") as buffer:
+        assert buffer.store.layout == "chunked" and buffer.store.capacity is None
+    new = json.load(open(os.path.join(path, "manifest.json")))
+    assert (new["version"], new["layout"], new["capacity"], new["first_row"]) == (2, "chunked", None, 0)
+    for key in ("buffer_id", "chunks", "fields", "sources", "num_transitions", "next_stream_id", "spaces"):
+        assert new[key] == old[key], key
+    assert sorted(os.listdir(path)) == sorted([*chunk_names(old["chunks"]), "manifest.json", "writer.lock"])
+    with LifelongReplayBuffer.open(path, read_only=True, device="cpu", verify="all") as reopened:
+        check_rows(reopened, version)
+
+
+def test_a_damaged_single_file_directory_is_not_migrated(tmp_path):
+    """A flipped bit found while copying: the writer refuses (naming the file and salvage), the directory unchanged."""
+    path = fixture_copy(tmp_path, 1)
+    rewards = bytearray(open(os.path.join(path, "rewards.bin"), "rb").read())
+    rewards[4 * 13] ^= 0x08  # row 13: the second chunk, which verify="last" (the default) does not read
+    open(os.path.join(path, "rewards.bin"), "wb").write(bytes(rewards))
+    before = directory_bytes(path)
+    with pytest.raises(BufferFormatError, match=r"rewards\.bin: checksum mismatch in chunk starting at row 10.*salvage"):
+        LifelongReplayBuffer.open(path, device="cpu")
+    assert directory_bytes(path) == before  # no chunk file left, no field file changed
+    report = LifelongReplayBuffer.check_directory(path)
+    assert [chunk.start for chunk in report.damaged] == [10] and report.layout == "single"
+
+
+def test_a_field_file_that_is_a_link_is_refused(tmp_path):
+    outside = tmp_path / "someone_elses_file.bin"
+    outside.write_bytes(b"precious")
+    path = fixture_copy(tmp_path, 1)
+    os.remove(os.path.join(path, "rewards.bin"))
+    os.symlink(outside, os.path.join(path, "rewards.bin"))
+    before = directory_bytes(path)
+    for read_only in (True, False):
+        with pytest.raises(BufferFormatError, match=r"field file rewards\.bin is missing or not a regular file"):
+            LifelongReplayBuffer.open(path, device="cpu", read_only=read_only)
+    assert outside.read_bytes() == b"precious" and directory_bytes(path) == before
+    os.remove(os.path.join(path, "rewards.bin"))
+    shutil.copy(os.path.join(DATA, "single_file_v1", "rewards.bin"), os.path.join(path, "rewards.bin"))
+    os.remove(os.path.join(path, "flags.bin"))
+    with pytest.raises(BufferFormatError, match=r"field file flags\.bin is missing") as error:
+        LifelongReplayBuffer.open(path, device="cpu", read_only=True)
+    assert "chunk" not in str(error.value)
+
+
+def test_a_truncated_field_file_keeps_the_chunks_before(tmp_path):
+    path = fixture_copy(tmp_path, 1)
+    with open(os.path.join(path, "rewards.bin"), "r+b") as file:
+        file.truncate(15 * 4)  # rows 15.. lost: chunks 10-19 and 20-23
+    with pytest.raises(BufferFormatError, match=r"rewards\.bin.*truncated"):
+        LifelongReplayBuffer.open(path, device="cpu", verify="none")
+    report = LifelongReplayBuffer.check_directory(path)
+    assert [chunk.start for chunk in report.damaged] == [10, 20]
+    copy, report = LifelongReplayBuffer.salvage(path, tmp_path / "copy", read_only=True, device="cpu")
+    assert report.copied == 10 and copy.store.layout == "chunked"
+    np.testing.assert_array_equal(copy.read_range("rewards", 0, 10), expected(1)["rewards"][:10])
+
+
+def test_a_migration_interrupted_before_its_commit_is_done_again(tmp_path, monkeypatch):
+    """Killed after the chunk files were written, before the manifest: still layout "single" (readers ignore the chunk
+    files); the next writer copies again and commits."""
+    from sb3_lifelong.buffers.rowstore import RowStore
+
+    path = fixture_copy(tmp_path, 2)
+    manifest = open(os.path.join(path, "manifest.json"), "rb").read()
+
+    def interrupted(self, chunks, num_committed):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(RowStore, "_commit", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            LifelongReplayBuffer.open(path, device="cpu")
+    assert open(os.path.join(path, "manifest.json"), "rb").read() == manifest
+    assert {"chunk.000000000000.bin", "rewards.bin"} <= set(os.listdir(path))
+    with LifelongReplayBuffer.open(path, read_only=True, device="cpu", verify="all") as reader:
+        assert reader.store.layout == "single"
+        check_rows(reader, 2)
+    with LifelongReplayBuffer.open(path, device="cpu") as writer:  # the lock was released: a writer opens
+        assert writer.store.layout == "chunked"
+        check_rows(writer, 2)
+    assert not [name for name in os.listdir(path) if name.endswith(".bin") and not name.startswith("chunk.")]
+
+
+def test_field_files_left_after_a_migration_are_removed_by_the_next_writer(tmp_path):
+    """Killed after the migration's commit, before the field files were deleted: readers read the chunk files; the
+    next writer deletes the field files; ``mode="overwrite"`` deletes them too."""
+    path = fixture_copy(tmp_path, 1)
+    LifelongReplayBuffer.open(path, device="cpu").close()
+    for name in os.listdir(os.path.join(DATA, "single_file_v1")):
+        if name.endswith(".bin"):
+            shutil.copy(os.path.join(DATA, "single_file_v1", name), os.path.join(path, name))
+    with LifelongReplayBuffer.open(path, read_only=True, device="cpu", verify="all") as reader:
+        check_rows(reader, 1)
+    assert "rewards.bin" in os.listdir(path)
+    with LifelongReplayBuffer.open(path, device="cpu") as writer:
+        check_rows(writer, 1)
+    assert not [name for name in os.listdir(path) if name.endswith(".bin") and not name.startswith("chunk.")]
+    for name in os.listdir(os.path.join(DATA, "single_file_v1")):
+        if name.endswith(".bin"):
+            shutil.copy(os.path.join(DATA, "single_file_v1", name), os.path.join(path, name))
+    from sb3_lifelong.buffers.layouts import owned_buffer_files
+
+    owned = owned_buffer_files(path)
+    assert "rewards.bin" in owned and "chunk.000000000020.bin" in owned and owned[-1] == "manifest.json"
+
+
+@pytest.mark.parametrize("read_mode", ["mmap", "pread"])
+def test_a_reader_follows_a_migration(tmp_path, read_mode):
+    """A reader of the single-file directory keeps its rows while a writer migrates it and appends, and refresh()
+    then serves the new layout's rows, old and new."""
+    path = fixture_copy(tmp_path, 1)
+    held = 24
+    reader = LifelongReplayBuffer.open(path, read_only=True, device="cpu", read_mode=read_mode)
+    assert reader.store.layout == "single"
+    with LifelongReplayBuffer.open(path, device="cpu") as writer:
+        writer.append_rows({name: writer.read_range(name, 0, held) for name in writer.store.fields})
+        writer.flush()
+        check_rows(reader, 1)  # the field files are deleted, the reader's open files and maps still read them
+        assert reader.refresh() == 2 * held and reader.store.layout == "chunked"
+        check_rows(reader, 1)
+        check_rows(reader, 1, first=held)
+    reader.close()
