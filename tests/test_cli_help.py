@@ -7,7 +7,6 @@ import pytest
 
 import sb3_lifelong.buffers.__main__ as buffers_cli
 import sb3_lifelong.experiments.__main__ as experiments_cli
-import sb3_lifelong.plotting as plotting_cli
 import sb3_lifelong.zoo.__main__ as zoo_cli
 from sb3_lifelong.core.cli import plain_text
 
@@ -18,7 +17,6 @@ MARKUP = ("``", ":mod:", ":class:", ":func:", ":meth:", ":data:", "::")
 COMMANDS = [
     pytest.param(experiments_cli.main, "python -m sb3_lifelong.experiments", ["run"], id="experiments"),
     pytest.param(buffers_cli.main, "python -m sb3_lifelong.buffers", ["verify"], id="buffers"),
-    pytest.param(plotting_cli.main, "python -m sb3_lifelong.plotting", [], id="plotting"),
 ]
 
 
@@ -50,9 +48,6 @@ def test_the_descriptions_keep_their_words_and_examples(capsys):
     text = help_of(experiments_cli.main, [], capsys)
     assert "(and its three-stage variant: a study's own presets, --presets\nbenchmarks/" in text
     assert "Run one seed (every job of it that has not finished yet):\n\n    python -m sb3_lifelong.experiments run" in text
-    text = help_of(plotting_cli.main, [], capsys)
-    assert "in the sequential layout of the package's earlier examples (the committed\nbenchmarks/studies/" in text
-    assert "keeps its name and colour in every figure. Usage:\n\n    python -m sb3_lifelong.plotting benchmarks/" in text
 
 
 def test_the_zoo_help_is_plain_text(capsys):

@@ -23,7 +23,6 @@ LAYERS = [
     ("sb3_lifelong", 5),  # the package's __init__ (the public names), and names imported from it
     ("sb3_lifelong.zoo", 6),
     ("sb3_lifelong.experiments", 6),
-    ("sb3_lifelong.plotting", 7),
 ]
 #: names the package's __init__ exports (``from sb3_lifelong import MPO`` is an import of layer 5)
 PUBLIC = {"sb3_lifelong.BC", "sb3_lifelong.CRR", "sb3_lifelong.MPO", "sb3_lifelong.LifelongReplayBuffer"}

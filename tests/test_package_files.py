@@ -128,10 +128,10 @@ model = MPO("MlpPolicy", "Pendulum-v1", learning_starts=20, batch_size=8, policy
             replay_buffer_class=LifelongReplayBuffer, replay_buffer_kwargs={"path": "buffer"})
 model.learn(40)
 found["learned"] = model.num_timesteps
-import sb3_lifelong.buffers.__main__, sb3_lifelong.experiments.__main__, sb3_lifelong.plotting, sb3_lifelong.zoo.__main__
+import sb3_lifelong.buffers.__main__, sb3_lifelong.experiments.__main__, sb3_lifelong.zoo.__main__
 found["help"] = {}
 for name, module in [("experiments", sb3_lifelong.experiments.__main__), ("buffers", sb3_lifelong.buffers.__main__),
-                     ("plotting", sb3_lifelong.plotting), ("zoo", sb3_lifelong.zoo.__main__)]:
+                     ("zoo", sb3_lifelong.zoo.__main__)]:
     text = io.StringIO()
     with contextlib.redirect_stdout(text), contextlib.suppress(SystemExit):
         module.main(["--help"])

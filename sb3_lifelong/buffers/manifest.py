@@ -2,7 +2,7 @@
 The format of a buffer directory: its files, the manifest (what it holds, reading and validating it, writing a new
 one) and the format's constants (fields, dtypes, the flags of a row).
 
-Directory format (versions 1 and 2), see ``docs/modules/buffer.md``::
+Directory format (versions 1 to 3), see ``docs/modules/buffer.md``::
 
     <path>/manifest.json     committed state (JSON, rewritten atomically after each flushed chunk)
     <path>/chunk.<start>.bin layout "chunked": one file per flushed chunk, each field's rows one field after the
@@ -13,7 +13,9 @@ Directory format (versions 1 and 2), see ``docs/modules/buffer.md``::
     <path>/writer.lock       advisory lock held by the (single) writer process
 
 Dict observations store one field per key, ``observations.<key>`` and ``next_observations.<key>``. Every manifest
-written is version 2; version 1 (layout "single", one observation field) is read.
+written is version 3 when it keeps every row (layout "chunked", capacity null: version 2 cannot describe it, so that
+earlier code refuses it as an unknown version), else version 2; version 1 (layout "single", one observation field) is
+read.
 
 Only the rows of the chunks listed in the manifest are committed; a chunk file it does not list is an unflushed
 chunk of a crashed writer (or one evicted), ignored by readers and deleted by the next writer.
@@ -36,8 +38,8 @@ from typing import Any, Optional
 import numpy as np
 
 FORMAT_NAME = "sb3-lifelong-buffer"
-FORMAT_VERSION = 2  # the version written
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3  # the newest version written (version 2 where it describes the buffer: a capacity)
+READABLE_VERSIONS = (1, 2, 3)
 # manifest keys added by version 2 (version 1 means layout "single", capacity null, first_row 0)
 V2_KEYS = ("layout", "capacity", "first_row")
 # "chunked": one file per flushed chunk, "chunk.<start>.bin", holding each field's rows one field after the other
@@ -382,6 +384,8 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     if not _is_int(num) or not 0 <= num < 2**62:
         raise BufferFormatError(f"manifest 'num_transitions' must be a non-negative int, got {num!r}")
     _validate_layout(manifest, list(fields))
+    if version == 2 and manifest["layout"] == "chunked" and manifest["capacity"] is None:
+        raise BufferFormatError("manifest: layout 'chunked' without a capacity needs format version 3")
     sources = manifest["sources"]
     if not isinstance(sources, dict):
         raise BufferFormatError("manifest 'sources' must be an object")
@@ -513,7 +517,8 @@ def make_manifest(
     buffer_id: Optional[str] = None,
 ) -> dict[str, Any]:
     """
-    The manifest of a committed state (version 2).
+    The manifest of a committed state: version 3 without a capacity (version 2 has none for layout "chunked"), else
+    version 2.
 
     :param fields: field name -> (dtype string, row shape)
     :param layout: "chunked" (the layout every writer writes)
@@ -529,7 +534,7 @@ def make_manifest(
     """
     manifest: dict[str, Any] = {
         "format": FORMAT_NAME,
-        "version": FORMAT_VERSION,
+        "version": FORMAT_VERSION if capacity is None else 2,
         "fields": {name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in fields.items()},
         "num_transitions": num_transitions,
         "chunks": chunks,

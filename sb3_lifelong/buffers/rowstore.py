@@ -5,10 +5,9 @@ in memory or in a crash-safe buffer directory, and its commit protocol.
 The store's modules import only numpy, the standard library and one another (never torch), so that crash tests and
 tools can load them in light subprocesses:
 
-- ``files``: writing every byte, fsync, files never opened through a link, the atomic JSON write;
+- ``files``: writing every byte, fsync, files never opened through a link; ``ownership``: what a directory owns;
 - ``manifest``: the directory format, reading, validating and making the manifest;
-- ``layouts``: where the rows live (``"memory"``, ``"chunked"``; ``"single"`` of earlier versions, read and
-  migrated), the data files and the writer lock;
+- ``layouts``: where the rows live (``"memory"``, ``"chunked"``; ``"single"`` read and migrated), the writer lock;
 - ``readers``: how committed rows are read (``"mmap"``, ``"pread"``);
 - ``writers``: the directories this process holds open for writing, and what a forked child may not do;
 - ``rowstore`` (this module): :class:`RowStore`, the commit protocol over a layout and a reader.
@@ -25,7 +24,13 @@ from typing import Any, Optional
 import numpy as np
 
 from sb3_lifelong.buffers import files, writers
-from sb3_lifelong.buffers.layouts import Layout, LayoutState, SingleFileLayout, check_buffer_path, make_layout
+from sb3_lifelong.buffers.layouts import (
+    ChunkFileLayout,
+    Layout,
+    LayoutState,
+    SingleFileLayout,
+    make_layout,
+)
 from sb3_lifelong.buffers.manifest import (
     BufferFormatError,
     ManifestRecords,
@@ -35,6 +40,7 @@ from sb3_lifelong.buffers.manifest import (
     validate_fields,
     validated_fields,
 )
+from sb3_lifelong.buffers.ownership import check_buffer_path
 from sb3_lifelong.buffers.readers import Reader, check_read_mode, make_reader
 from sb3_lifelong.buffers.writers import ForkedWriterError
 
@@ -86,14 +92,14 @@ class RowStore(ManifestRecords):
         into fresh arrays, one call per run of nearby rows: no file page is mapped, the RSS stays at the anonymous
         memory; one file descriptor per field file or chunk file, closed by :meth:`close`). No effect in memory
     :param overwrite: Writers: delete the buffer the directory holds first
-        (:func:`~sb3_lifelong.buffers.layouts.remove_buffer_files`), once this store holds the directory's writer lock
+        (:func:`~sb3_lifelong.buffers.ownership.remove_buffer_files`), once this store holds the directory's writer lock
         (a live writer makes this raise before anything is deleted); a directory whose manifest is not one of this
         package's buffers is refused (``BufferFormatError``)
     :param evict: Reopening a directory with a capacity smaller than the number of transitions it retains evicts the
         oldest of them at once: only with ``evict=True``; otherwise that raises ``ValueError`` and nothing changes
     :param allow_foreign_files: Writers: create a buffer in a directory that holds other files (no manifest) all the
         same; by default that raises ``FileExistsError`` naming some of them (see
-        :func:`~sb3_lifelong.buffers.layouts.check_buffer_path`), and a ``path`` that is a file ``NotADirectoryError``,
+        :func:`~sb3_lifelong.buffers.ownership.check_buffer_path`), and a ``path`` that is a file ``NotADirectoryError``,
         before anything is written
     """
 
@@ -238,8 +244,10 @@ class RowStore(ManifestRecords):
                 # written by an earlier version: copy into chunk files; the open-time commit names layout "chunked",
                 # then the field files go (kept until a synced manifest no longer needs them)
                 self._layout.migrate(self.chunks)
-                self._undeleted.extend(self._layout.field_files())
                 self._layout = make_layout("chunked", self._state)
+            if isinstance(self._layout, ChunkFileLayout) and not self.read_only:
+                # the field files of a migration (this one, or one whose commit may not be synced)
+                self._undeleted.extend(self._layout.left_field_files())
         else:
             self._layout.refuse_orphans()  # data files without a manifest would be overwritten
             if fields is None:
@@ -378,8 +386,9 @@ class RowStore(ManifestRecords):
                 "buffer was replaced or cut back while open; open it again to read what it holds now"
             )
         changed = manifest["num_transitions"] != self.num_committed or manifest.get("first_row", 0) != self.committed_first
-        if migrated:
+        if migrated:  # the field files are gone: map the chunk files (no map of a field file is kept)
             self._layout, changed = make_layout(layout, self._state), True
+            self._reader.sync([], fresh=True)
         self._state.capacity = manifest.get("capacity")
         self._load_manifest(manifest)
         self._tail_start = self.num_committed

@@ -1,11 +1,10 @@
 """
 One look for every figure of the package: one name and one colour per method, one colour per environment, and the
 drawing helpers (curves over seeds, a labelled change of environment, grouped bars, saving) that the figures of the
-studies and of the sequential layout (:mod:`sb3_lifelong.experiments.figures`) and the benchmarks share.
+studies (:mod:`sb3_lifelong.experiments.figures`) and the benchmarks share.
 
 A method is known by its key in the protocol (:data:`sb3_lifelong.experiments.protocol.STUDENTS`, ``"MPO"`` for the
-collector, ``"online <name>"`` for the online baselines); the sequential layout's directory names are mapped onto
-those keys by :data:`SEQUENTIAL_METHODS`, so that "CRR exp β=1" is red and called so in every figure of the package.
+collector, ``"online <name>"`` for the online baselines), so that "CRR exp β=1" is red and called so in every figure.
 A method this module does not know keeps its own name and gets a colour of :data:`OTHER_COLORS`.
 """
 
@@ -53,16 +52,6 @@ METHODS: dict[str, MethodStyle] = {
     "CRR_exp_beta1_ratio_1to1": MethodStyle("CRR exp β=1, sampled 1:1", "#843c39"),
     "CRR_exp_beta1_ratio_1to10": MethodStyle("CRR exp β=1, sampled 1:10", "#7b4173"),
     "SAC": MethodStyle("SAC", "#222222"),
-}
-
-#: the method directories of the sequential layout (the earlier examples' committed runs) by the study method each is
-SEQUENTIAL_METHODS: dict[str, str] = {
-    "MPO": "MPO",
-    "CRR_indicator": "online CRR_indicator",
-    "CRR_beta1": "online CRR_exp_beta1",
-    "distilled": "CRR_exp_beta1",
-    "distilled_indicator": "CRR_indicator",
-    "distilled_per_source": "CRR_exp_beta1_two_actors",
 }
 
 #: colours for the methods :data:`METHODS` does not know, in order (none of them a known method's)

@@ -124,7 +124,7 @@ def test_dict_on_disk_reopen_nstep_and_sources(tmp_path):
     buffer.close()
     # one field per key, listed in a version 2 manifest; each chunk's file holds every field's rows of the chunk
     manifest = json.loads((path / "manifest.json").read_text())
-    assert manifest["version"] == 2 and manifest["num_transitions"] == 160
+    assert manifest["version"] == 3 and manifest["num_transitions"] == 160  # no capacity: version 3
     assert manifest["fields"]["observations.image"] == {"dtype": "|u1", "shape": [2, 4, 4]}
     assert "observations" not in manifest["fields"] and "next_observations.pos" in manifest["fields"]
     row_bytes = sum(np.dtype(f["dtype"]).itemsize * int(np.prod(f["shape"])) for f in manifest["fields"].values())

@@ -117,7 +117,7 @@ def test_a_writer_migrates_a_single_file_directory_to_chunk_files(tmp_path, vers
     with LifelongReplayBuffer.open(path, device="cpu") as buffer:
         assert buffer.store.layout == "chunked" and buffer.store.capacity is None
     new = json.load(open(os.path.join(path, "manifest.json")))
-    assert (new["version"], new["layout"], new["capacity"], new["first_row"]) == (2, "chunked", None, 0)
+    assert (new["version"], new["layout"], new["capacity"], new["first_row"]) == (3, "chunked", None, 0)
     for key in ("buffer_id", "chunks", "fields", "sources", "num_transitions", "next_stream_id", "spaces"):
         assert new[key] == old[key], key
     assert sorted(os.listdir(path)) == sorted([*chunk_names(old["chunks"]), "manifest.json", "writer.lock"])
@@ -214,7 +214,7 @@ def test_field_files_left_after_a_migration_are_removed_by_the_next_writer(tmp_p
     for name in os.listdir(os.path.join(DATA, "single_file_v1")):
         if name.endswith(".bin"):
             shutil.copy(os.path.join(DATA, "single_file_v1", name), os.path.join(path, name))
-    from sb3_lifelong.buffers.layouts import owned_buffer_files
+    from sb3_lifelong.buffers.ownership import owned_buffer_files
 
     owned = owned_buffer_files(path)
     assert "rewards.bin" in owned and "chunk.000000000020.bin" in owned and owned[-1] == "manifest.json"
@@ -236,3 +236,93 @@ def test_a_reader_follows_a_migration(tmp_path, read_mode):
         check_rows(reader, 1)
         check_rows(reader, 1, first=held)
     reader.close()
+
+
+def test_left_field_files_wait_for_a_synced_commit(tmp_path, monkeypatch):
+    """A migration whose commit was not synced (the directory's fsync failed) may be undone by a power loss: the next
+    writer deletes the field files only after its own commit is synced."""
+    import errno
+    import stat
+
+    from sb3_lifelong.buffers.files import CommitNotDurableError
+
+    path = fixture_copy(tmp_path, 1)
+    real_fsync = os.fsync
+
+    def failing_fsync(fd):
+        if (
+            stat.S_ISDIR(os.fstat(fd).st_mode)
+            and "manifest.json" in os.listdir(path)
+            and json.load(open(os.path.join(path, "manifest.json"))).get("layout") == "chunked"
+        ):
+            raise OSError(errno.EIO, "Input/output error (injected)")
+        return real_fsync(fd)
+
+    for attempt in range(2):  # the migrating writer, then one that finds its field files
+        with monkeypatch.context() as patch:
+            patch.setattr(os, "fsync", failing_fsync)
+            with pytest.raises(CommitNotDurableError, match="opening it again"):
+                LifelongReplayBuffer.open(path, device="cpu")
+        assert "rewards.bin" in os.listdir(path), attempt  # kept: the synced manifest may still be the single one
+    with LifelongReplayBuffer.open(path, device="cpu") as writer:
+        check_rows(writer, 1)
+    assert not [name for name in os.listdir(path) if name.endswith(".bin") and not name.startswith("chunk.")]
+
+
+def test_the_versions_written(tmp_path):
+    """Without a capacity a manifest is version 3 (version 2 cannot say so: earlier code refuses it as unknown); with
+    one, version 2. A version 2 manifest of layout "chunked" without a capacity is refused."""
+    from gymnasium import spaces as gym_spaces
+
+    obs, act = gym_spaces.Box(-1, 1, (2,), np.float32), gym_spaces.Box(-1, 1, (1,), np.float32)
+    for capacity, version in ((None, 3), (100, 2)):
+        path = tmp_path / f"c{capacity}"
+        buffer = LifelongReplayBuffer(0, obs, act, path=path, capacity=capacity, device="cpu")
+        buffer.add(np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 1)), np.zeros(1), np.zeros(1), [{}])
+        buffer.close()
+        manifest = json.load(open(path / "manifest.json"))
+        assert (manifest["version"], manifest["layout"], manifest["capacity"]) == (version, "chunked", capacity)
+    manifest = json.load(open(tmp_path / "cNone" / "manifest.json"))
+    (tmp_path / "cNone" / "manifest.json").write_text(json.dumps(dict(manifest, version=2)))
+    with pytest.raises(BufferFormatError, match="without a capacity needs format version 3"):
+        LifelongReplayBuffer.open(tmp_path / "cNone", read_only=True, device="cpu")
+
+
+def test_a_refreshed_reader_keeps_no_map_of_the_field_files(tmp_path):
+    """One chunk: the chunk file's segment has the rows of the single segment; the reader maps it, not the deleted
+    field files (which would keep their disk space)."""
+    path = fixture_copy(tmp_path, 1)
+    manifest = json.load(open(os.path.join(path, "manifest.json")))
+    manifest.update(num_transitions=10, chunks=manifest["chunks"][:1])  # the rows after the first chunk: an unflushed tail
+    with open(os.path.join(path, "manifest.json"), "w") as file:
+        json.dump(manifest, file)
+    reader = LifelongReplayBuffer.open(path, read_only=True, device="cpu", read_mode="mmap")
+    reader.sample(4)
+    LifelongReplayBuffer.open(path, device="cpu").close()  # migrated: one chunk file
+    assert reader.refresh() == 10 and reader.store.layout == "chunked"
+    reader.sample(4)
+    with open("/proc/self/maps") as maps:
+        mapped = [line for line in maps if path in line]
+    assert mapped and all("chunk.000000000000.bin" in line for line in mapped), mapped
+    np.testing.assert_array_equal(reader.read_range("rewards", 0, 10), expected(1)["rewards"][:10])
+    reader.close()
+
+
+def test_no_space_for_the_copy_is_explained_and_changes_nothing(tmp_path, monkeypatch):
+    import errno
+
+    path = fixture_copy(tmp_path, 2)
+    before = directory_bytes(path)
+    real_write = os.write
+
+    def full(fd, data):
+        if os.path.basename(os.readlink(f"/proc/self/fd/{fd}")).startswith("chunk."):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(OSError, match=r"copying this directory of an earlier version .* needs free space") as error:
+        LifelongReplayBuffer.open(path, device="cpu")
+    assert error.value.errno == errno.ENOSPC
+    monkeypatch.setattr(os, "write", real_write)
+    assert directory_bytes(path) == before

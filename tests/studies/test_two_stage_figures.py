@@ -1,16 +1,22 @@
-"""The figures of the sequential layout (the earlier examples' committed runs): methods and names read from the
+"""The figures of the sequential layout (the earlier examples' committed runs, ``benchmarks/studies/two_stage_quick``
+and ``two_stage_50k``), drawn by ``benchmarks/studies/two_stage_quick/figures.py``: methods and names read from the
 directory, every figure readable."""
 
 import json
 import os
+import pathlib
 import subprocess
 import sys
 
 import numpy as np
 import pandas as pd
 import pytest
+from testkit import benchmark_module
 
-from sb3_lifelong.experiments.figures import draw_figure, experiment_figures, load_experiment, plot_experiment, source_labels
+FIGURES = benchmark_module("figures")  # benchmarks/studies/two_stage_quick/figures.py
+SCRIPT = pathlib.Path(FIGURES.__file__)
+draw_figure, experiment_figures, load_experiment = FIGURES.draw_figure, FIGURES.experiment_figures, FIGURES.load_experiment
+plot_experiment, source_labels = FIGURES.plot_experiment, FIGURES.source_labels
 
 ENVS = ["Env-A", "Env-B"]
 
@@ -127,7 +133,7 @@ def test_outputs_without_the_new_layout_fields(experiment_dir):
 def test_command_line_writes_the_figures_without_a_display(experiment_dir):
     env = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "MPLBACKEND")}
     result = subprocess.run(
-        [sys.executable, "-m", "sb3_lifelong.plotting", str(experiment_dir)],
+        [sys.executable, str(SCRIPT), str(experiment_dir)],
         capture_output=True,
         text=True,
         env=env,
@@ -139,20 +145,6 @@ def test_command_line_writes_the_figures_without_a_display(experiment_dir):
         assert f"wrote {experiment_dir / name}" in result.stdout
     written = plot_experiment(experiment_dir)  # and from Python, after the command line: the same files
     assert sorted(path.name for path in written) == sorted(path.name for path in experiment_dir.glob("*.png"))
-
-
-def test_one_style_for_every_method():
-    from sb3_lifelong.experiments.presets import ONLINE, STUDENTS
-    from sb3_lifelong.experiments.style import METHODS, SEQUENTIAL_METHODS, method_color
-
-    known = ["MPO", *(f"online {name}" for name in ONLINE), *STUDENTS]
-    assert set(known) <= set(METHODS)  # every method of the studies has its name and colour
-    assert len({style.color for style in METHODS.values()}) == len(METHODS)
-    assert len({style.label for style in METHODS.values()}) == len(METHODS)
-    assert set(SEQUENTIAL_METHODS.values()) <= set(METHODS)
-    others = ["x", "y", "MPO", "z"]
-    colors = [method_color(name, others) for name in others]
-    assert len(set(colors)) == 4 and not set(colors) - {METHODS["MPO"].color} & {s.color for s in METHODS.values()}
 
 
 def test_the_examples_name_methods_as_the_studies(tmp_path):
@@ -174,31 +166,27 @@ def test_the_examples_name_methods_as_the_studies(tmp_path):
     assert ticks == ["MPO", METHODS["CRR_exp_beta1"].label, METHODS["CRR_indicator"].label]
 
 
-def test_a_diverging_seed_drags_no_summary():
-    """Q over seeds: one line per seed, the median and an interquartile band of the seeds' own values."""
+def test_every_study_method_has_the_studies_style():
+    from sb3_lifelong.experiments.style import METHODS
+
+    assert set(FIGURES.SEQUENTIAL_METHODS.values()) <= set(METHODS)
+
+
+def test_the_committed_figures_are_redrawn_byte_for_byte(tmp_path):
+    """The committed run in this layout: its figures, drawn again from its logs, are the committed PNGs (byte for byte
+    with the matplotlib that drew them, which each PNG names; another draws other bytes)."""
+    import shutil
+
     import matplotlib
+    from PIL import Image
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from sb3_lifelong.experiments.style import seed_lines, value_scale
-
-    steps = np.arange(1, 7) * 5000
-    rows = [dict(seed=s, timesteps=t, q=100.0 + s + k) for s in range(3) for k, t in enumerate(steps)]
-    rows += [dict(seed=3, timesteps=t, q=100.0 * 3.0**k) for k, t in enumerate(steps)]  # diverges to 24,300
-    frame = pd.DataFrame(rows)
-    fig, ax = plt.subplots()
-    assert seed_lines(ax, frame, "student", "red", y="q") == 4
-    lines = [line for line in ax.get_lines() if len(line.get_xdata())]
-    assert len(lines) == 5  # four seeds and their median
-    median = lines[-1].get_ydata()
-    assert median.max() < 110 and lines[-1].get_label() == "student (n=4)"
-    band = ax.collections[0].get_paths()[0].vertices[:, 1]
-    assert band.max() < 110  # the upper quartile is a seed's own value, not a point pulled towards the diverged one
-    assert value_scale(ax, list(frame["q"]), "average Q") == "average Q (log scale)" and ax.get_yscale() == "log"
-    plt.close(fig)
-    fig, ax = plt.subplots()
-    seed_lines(ax, frame[frame["seed"] < 2], "student", "red", y="q")
-    assert len([line for line in ax.get_lines() if len(line.get_xdata())]) == 2 and not ax.collections  # no summary
-    assert value_scale(ax, [100.0, 120.0], "average Q") == "average Q" and ax.get_yscale() == "linear"
-    plt.close(fig)
+    study = SCRIPT.parent
+    drawn_by = Image.open(study / "q_sources.png").info.get("Software", "")
+    if f"Matplotlib version{matplotlib.__version__}," not in drawn_by:
+        pytest.skip(f"the committed PNGs were drawn by {drawn_by!r}, not matplotlib {matplotlib.__version__}")
+    copy = tmp_path / study.name
+    shutil.copytree(study, copy, ignore=shutil.ignore_patterns("*.png", "*.py"))
+    written = plot_experiment(copy)
+    assert sorted(path.name for path in written) == sorted(path.name for path in study.glob("*.png"))
+    for path in written:
+        assert path.read_bytes() == (study / path.name).read_bytes(), path.name
