@@ -539,7 +539,11 @@ class ChunkFileLayout(DirectoryLayout):
 
     def create(self) -> None:
         os.makedirs(self.path, exist_ok=True)
-        self.remove_orphans([])  # empty chunk files (non-empty ones without a manifest are refused before)
+        # empty chunk files, and the empty field files of an earlier version's creation (non-empty ones without a
+        # manifest are refused before)
+        self.remove_orphans([])
+        for name in self.left_field_files():
+            files.delete_file(name)
 
     def open_existing(self, chunks: list[dict[str, Any]], num_committed: int, verify: str) -> tuple[int, list[str]]:
         for chunk in chunks:
