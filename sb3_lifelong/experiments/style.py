@@ -1,7 +1,7 @@
 """
-One look for every figure of the package: one name and one colour per method, one colour per environment, and the
-drawing helpers (curves over seeds, a labelled change of environment, grouped bars, saving) that the figures of the
-studies (:mod:`sb3_lifelong.experiments.figures`) and the benchmarks share.
+One look for every figure of the package: one name and one colour per method, and the drawing helpers (curves over
+seeds, a labelled change of environment, saving) that the figures of the studies
+(:mod:`sb3_lifelong.experiments.figures`) and the benchmarks share.
 
 A method is known by its key in the protocol (:data:`sb3_lifelong.experiments.protocol.STUDENTS`, ``"MPO"`` for the
 collector, ``"online <name>"`` for the online baselines), so that "CRR exp β=1" is red and called so in every figure.
@@ -9,7 +9,7 @@ A method this module does not know keeps its own name and gets a colour of :data
 """
 
 import pathlib
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -57,8 +57,6 @@ METHODS: dict[str, MethodStyle] = {
 #: colours for the methods :data:`METHODS` does not know, in order (none of them a known method's)
 OTHER_COLORS = ["#000075", "#469990", "#9a6324", "#f58231", "#911eb4", "#42d4f4", "#808000", "#e6194b", "#3cb44b"]
 
-#: one colour per environment or source of data, in the order of the stages (matplotlib's "Dark2")
-ENV_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666"]
 
 #: curves with at most this many points are drawn with markers (each evaluation visible)
 MARKERS_UP_TO = 12
@@ -83,11 +81,6 @@ def method_color(method: str, others: Sequence[str] = ()) -> str:
     unknown = [name for name in others if name not in METHODS]
     position = unknown.index(method) if method in unknown else 0
     return OTHER_COLORS[position % len(OTHER_COLORS)]
-
-
-def env_color(index: int) -> str:
-    """:return: the colour of the environment (or source of data) of stage ``index``"""
-    return ENV_COLORS[index % len(ENV_COLORS)]
 
 
 def over_seeds(count: int, what: str = "mean ± std") -> str:
@@ -251,41 +244,3 @@ def switch(ax: Any, timestep: float, label: str, row: int = 0) -> None:
         xytext=(4, 0),
         textcoords="offset points",
     )
-
-
-def grouped_bars(
-    ax: Any,
-    groups: Sequence[str],
-    bars: Sequence[str],
-    scores: Callable[[str, str], Sequence[float]],
-    colors: Optional[Sequence[str]] = None,
-    labels: Optional[Sequence[str]] = None,
-) -> None:
-    """
-    Grouped bars: for every group, one bar per entry of ``bars`` (the mean over seeds), error bar +- std, and each
-    seed's value as a dot (so that the number of seeds is seen).
-
-    :param ax: the matplotlib axes
-    :param groups: the groups, along the x axis
-    :param bars: the bars of each group (legend entries)
-    :param scores: the per-seed values of (group, bar) (empty: no bar)
-    :param colors: one colour per bar (default: :data:`ENV_COLORS`)
-    :param labels: the groups' tick labels (default: ``groups``)
-    """
-    colors = list(colors) if colors else ENV_COLORS
-    width = 0.8 / len(bars)
-    x = np.arange(len(groups))
-    for k, bar in enumerate(bars):
-        offset = (k - (len(bars) - 1) / 2) * width
-        means, stds = [], []
-        for index, group in enumerate(groups):
-            values = [float(v) for v in scores(group, bar)]
-            means.append(np.mean(values) if values else np.nan)
-            stds.append(np.std(values) if values else 0.0)
-            ax.plot(np.full(len(values), x[index] + offset), values, "o", color="black", markersize=2.5, zorder=3)
-        ax.bar(x + offset, means, width, yerr=stds, capsize=3, label=bar, color=colors[k % len(colors)])
-    names = list(labels) if labels is not None else list(groups)
-    long = max((len(name) for name in names), default=0) > 12
-    ax.set_xticks(x)
-    ax.set_xticklabels(names, rotation=25 if long else 0, ha="right" if long else "center", fontsize=9)
-    ax.grid(axis="y", alpha=0.3)

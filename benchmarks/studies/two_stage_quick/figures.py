@@ -29,18 +29,17 @@ import argparse
 import functools
 import json
 import pathlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Optional, Union
 
+import numpy as np
 import pandas as pd
 
 from sb3_lifelong.core.cli import plain_text
 from sb3_lifelong.core.contract import stage_name
 from sb3_lifelong.experiments.style import (
     band,
-    env_color,
-    grouped_bars,
     method_color,
     method_label,
     over_seeds,
@@ -51,6 +50,53 @@ from sb3_lifelong.experiments.style import (
     switch,
     value_scale,
 )
+
+#: one colour per environment or source of data, in the order of the stages (matplotlib's "Dark2")
+ENV_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666"]
+
+
+def env_color(index: int) -> str:
+    """:return: the colour of the environment (or source of data) of stage ``index``"""
+    return ENV_COLORS[index % len(ENV_COLORS)]
+
+
+def grouped_bars(
+    ax: Any,
+    groups: Sequence[str],
+    bars: Sequence[str],
+    scores: Callable[[str, str], Sequence[float]],
+    colors: Optional[Sequence[str]] = None,
+    labels: Optional[Sequence[str]] = None,
+) -> None:
+    """
+    Grouped bars: for every group, one bar per entry of ``bars`` (the mean over seeds), error bar +- std, and each
+    seed's value as a dot (so that the number of seeds is seen).
+
+    :param ax: the matplotlib axes
+    :param groups: the groups, along the x axis
+    :param bars: the bars of each group (legend entries)
+    :param scores: the per-seed values of (group, bar) (empty: no bar)
+    :param colors: one colour per bar (default: ``ENV_COLORS``)
+    :param labels: the groups' tick labels (default: ``groups``)
+    """
+    colors = list(colors) if colors else ENV_COLORS
+    width = 0.8 / len(bars)
+    x = np.arange(len(groups))
+    for k, bar in enumerate(bars):
+        offset = (k - (len(bars) - 1) / 2) * width
+        means, stds = [], []
+        for index, group in enumerate(groups):
+            values = [float(v) for v in scores(group, bar)]
+            means.append(np.mean(values) if values else np.nan)
+            stds.append(np.std(values) if values else 0.0)
+            ax.plot(np.full(len(values), x[index] + offset), values, "o", color="black", markersize=2.5, zorder=3)
+        ax.bar(x + offset, means, width, yerr=stds, capsize=3, label=bar, color=colors[k % len(colors)])
+    names = list(labels) if labels is not None else list(groups)
+    long = max((len(name) for name in names), default=0) > 12
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=25 if long else 0, ha="right" if long else "center", fontsize=9)
+    ax.grid(axis="y", alpha=0.3)
+
 
 #: the method directories of the sequential layout (the earlier examples' committed runs) by the study method each is
 SEQUENTIAL_METHODS: dict[str, str] = {
