@@ -1,11 +1,11 @@
 """
-Fault injection into LifelongReplayBuffer directories (layout "chunked": one file per chunk), keeping every row
-("unbounded", no capacity) or the most recent ones ("capped"). Prints a table and writes it to
+Fault injection into LifelongReplayBuffer directories, both layouts ("single": one file per field, no capacity;
+"chunked": one file per chunk, with a capacity). Prints a table and writes it to
 ``benchmarks/results/faults/buffer_faults.md``:
 faults injected, transitions committed, transitions recovered bit-identical, lost, wrong rows served (the goal is 0
 lost and 0 wrong).
 
-Cases, for each of the two:
+Cases, for each layout:
 
 - ``SIGKILL``: a child process appends transitions (batches of 1 to 3 chunks, chunks of 5 to 199 rows) and is killed
   with SIGKILL at a random moment (every fourth one possibly while it starts or creates the directory); the next
@@ -28,7 +28,7 @@ Cases, for each of the two:
 - ``crash after save``: a child trains MPO with a directory buffer, saves the model (a checkpoint) and is killed with
   SIGKILL right after; every transition of the checkpoint must be in the directory.
 - ``planted symlinks``: links to a file outside the directory planted at ``manifest.json.tmp``, at the next chunk file
-  and at ``writer.lock``: nothing may be written
+  (layout "chunked") or instead of a field file (layout "single"), and at ``writer.lock``: nothing may be written
   through them.
 - ``forked writer``, ``add of non-real dtypes``, ``damaged chunk: salvage``, ``hostile manifest``: a writer's forked
   child writing and exiting; complex, datetime, string and object observations; a bit flip in one chunk, then
@@ -86,12 +86,12 @@ from sb3_lifelong.buffers.rowstore import RowStore
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
 PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
-LAYOUTS = ("unbounded", "capped")  # no capacity, or one
+LAYOUTS = ("single", "chunked")
 CHUNK = 50
 CHECKED = ("observations", "next_observations", "actions", "rewards", "flags", "sources")
 NOTES = """
-Cases, for each layout column ("unbounded": no capacity; "capped": capacity 3,000 in the SIGKILL loop, 100,000
-elsewhere; both one file per chunk, layout "chunked"; until 2026-12-03, "single" was one file per field):
+Cases, for each layout ("single": one file per field, no capacity; "chunked": one file per chunk, capacity 3,000 in the
+SIGKILL loop, 100,000 elsewhere):
 
 - *SIGKILL*: a child appends batches of 1 to 3 chunks (chunks of 5 to 199 rows) and is killed at a random moment
   (every fourth kill possibly while it starts or creates the directory); the next child continues the directory;
@@ -128,7 +128,8 @@ elsewhere; both one file per chunk, layout "chunked"; until 2026-12-03, "single"
   1,000, 64 or 100 transitions), saves the model and kills itself with SIGKILL; the transitions of the checkpoint
   (the model's timesteps, also recorded in the zip) must be in the directory, bit-identical to what the child held.
 - *planted symlinks*: a link to a 16 KiB file outside the directory is planted at `manifest.json.tmp` (then a flush),
-  at the next chunk file (then a flush), and at `writer.lock` of a closed buffer (opening it
+  at the next chunk file (layout "chunked", then a flush) or instead of `rewards.bin` (layout "single": the flush
+  must fail, then the file is put back and the flush repeated), and at `writer.lock` of a closed buffer (opening it
   as a writer must fail; readers still open it). A fault counts as not reported when a write went through a link.
   These four cases came with their fixes (issue 32). The store before them (commit 3291fb1, run with `--kills 2`)
   lost 956 of their transitions (the live writer's 140 per layout, written into re-created files; 198 per layout
@@ -278,7 +279,7 @@ def make_buffer(
         device="cpu",
         path=path,
         chunk_size=chunk_size,
-        capacity=None if layout == "unbounded" else capacity,
+        capacity=None if layout == "single" else capacity,
         **kwargs,
     )
 
@@ -473,7 +474,7 @@ def reader_fails_case(root: str, layout: str, tally: Tally, read_mode: str) -> N
     tally.runs += 1
     buffer = LifelongReplayBuffer(
         0, OBS, ACT, device="cpu", path=path, chunk_size=CHUNK, read_mode=read_mode,
-        capacity=None if layout == "unbounded" else 100_000,
+        capacity=None if layout == "single" else 100_000,
     )  # fmt: skip
     add_rows(buffer, 0, 120)
     reader = type(buffer.store._reader)
@@ -612,7 +613,7 @@ def file_size_limit_case(root: str, layout: str, tally: Tally, env: dict[str, st
     path = os.path.join(root, f"rlimit-{layout}")
     tally.runs += 1
     out = subprocess.run(
-        [sys.executable, "-c", RLIMIT_CHILD, PACKAGE_DIR, path, "none" if layout == "unbounded" else "100000"],
+        [sys.executable, "-c", RLIMIT_CHILD, PACKAGE_DIR, path, "none" if layout == "single" else "100000"],
         capture_output=True,
         text=True,
         env=env,
@@ -643,7 +644,7 @@ def lost_manifest_case(root: str, layout: str, tally: Tally) -> None:
     files = snapshot()
     attempts: list[Callable[[], Any]] = [
         lambda: make_buffer(path, layout),
-        lambda: make_buffer(path, "capped" if layout == "unbounded" else "unbounded"),
+        lambda: make_buffer(path, "chunked" if layout == "single" else "single"),
         lambda: LifelongReplayBuffer.open(path),
         lambda: LifelongReplayBuffer.open(path, read_only=True),
         lambda: RowStore({name: ("<f4", ()) for name in FIELD_NAMES}, path=path),
@@ -709,7 +710,7 @@ obs = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 act = gym.spaces.Box(-1, 1, (2,), np.float32)
 try:
     LifelongReplayBuffer(0, obs, act, device="cpu", path=path, chunk_size=50,
-                         capacity=None if layout == "unbounded" else 100_000, mode="overwrite")
+                         capacity=None if layout == "single" else 100_000, mode="overwrite")
     print("accepted", flush=True)
 except Exception as error:
     print("refused", type(error).__name__, error, flush=True)
@@ -799,7 +800,7 @@ def crash_after_save_case(root: str, layout: str, tally: Tally, env: dict[str, s
         out = subprocess.run(
             [
                 sys.executable, "-c", SAVE_CHILD, path, path + ".zip", path + ".npz", str(steps), str(chunk),
-                "none" if layout == "unbounded" else "100000",
+                "none" if layout == "single" else "100000",
             ],
             capture_output=True, text=True, env=env, timeout=600,
         ).stdout  # fmt: skip
@@ -862,16 +863,29 @@ def planted_symlinks_case(root: str, layout: str, tally: Tally) -> None:
     tally.wrong += served_wrong(buffer, 120)
     add_rows(buffer, 120, 140)  # pending again
 
-    # the next data file: a new chunk file (created anew)
+    # the next data file: a new chunk file (created anew), or a field file replaced by a link (writing must fail)
     tally.runs += 1
     tally.faults += 1
     outside, content = planted_link(root, layout, "data")
-    os.symlink(outside, os.path.join(path, f"chunk.{buffer.store.num_committed:012d}.bin"))
-    try:
+    if layout == "chunked":
+        os.symlink(outside, os.path.join(path, f"chunk.{buffer.store.num_committed:012d}.bin"))
+        try:
+            buffer.flush()
+        except OSError as error:
+            print(f"  planted symlinks {layout}: {type(error).__name__}: {error}", file=sys.stderr)
+        tally.unreported += int(outside_changed(outside, content) > 0)
+    else:
+        field = os.path.join(path, "rewards.bin")
+        os.rename(field, field + ".aside")
+        os.symlink(outside, field)
+        try:
+            buffer.flush()
+            tally.unreported += 1
+        except OSError:
+            pass
+        os.remove(field)  # the real file put back, the flush repeated
+        os.rename(field + ".aside", field)
         buffer.flush()
-    except OSError as error:
-        print(f"  planted symlinks {layout}: {type(error).__name__}: {error}", file=sys.stderr)
-    tally.unreported += int(outside_changed(outside, content) > 0)
     tally.foreign += outside_changed(outside, content)
     tally.wrong += served_wrong(buffer, 140)
     buffer.close()
@@ -963,7 +977,10 @@ def damaged_chunk_case(root: str, layout: str, tally: Tally) -> None:
     buffer = make_buffer(path, layout)
     add_rows(buffer, 0, 150)
     buffer.close()
-    data_file, offset = os.path.join(path, f"chunk.{CHUNK:012d}.bin"), CHUNK * (12 + 12 + 8) + 7 * 4
+    if layout == "single":
+        data_file, offset = os.path.join(path, "rewards.bin"), (CHUNK + 7) * 4
+    else:
+        data_file, offset = os.path.join(path, f"chunk.{CHUNK:012d}.bin"), CHUNK * (12 + 12 + 8) + 7 * 4
     with open(data_file, "r+b") as file:
         file.seek(offset)
         byte = file.read(1)[0]
@@ -1069,7 +1086,7 @@ while True:
 def sigkill_loop(root: str, layout: str, kills: int, seed: int, tally: Tally, env: dict[str, str]) -> None:
     rng = np.random.default_rng(seed)
     path = os.path.join(root, f"sigkill-{layout}")
-    capacity = "none" if layout == "unbounded" else "3000"
+    capacity = "none" if layout == "single" else "3000"
     committed_before = 0
     for trial in range(kills):
         chunk = int(rng.integers(5, 200))

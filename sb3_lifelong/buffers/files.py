@@ -3,9 +3,9 @@ File operations of a buffer directory: writing every byte, fsync of files and di
 opened through a symbolic link. The manifest's commit is ``sb3_lifelong.core.atomic.write_json_atomic``, whose
 :class:`CommitNotDurableError` this module re-exports.
 
-The modules of the row store (``files``, ``manifest``, ``ownership``, ``layouts``, ``readers``, ``rowstore``) import
-only numpy, the standard library, ``core/atomic.py`` (the standard library only) and one another, never torch: crash
-tests and tools can load them in light subprocesses.
+The modules of the row store (``files``, ``manifest``, ``layouts``, ``readers``, ``rowstore``) import only numpy,
+the standard library, ``core/atomic.py`` (the standard library only) and one another, never torch: crash tests and
+tools can load them in light subprocesses.
 """
 
 from __future__ import annotations

@@ -1,8 +1,7 @@
 """
 Where a row store's rows live: its layout. ``"memory"``: in this process only (the pending rows are the storage,
-nothing is ever written); ``"chunked"``: one file per flushed chunk, deleted once a committed manifest no longer lists
-it (with a capacity); ``"single"``: one append-only file per field, as earlier versions wrote a directory without a
-capacity, read only (a writer copies it into chunk files when it opens it).
+nothing is ever written); ``"single"`` (no capacity): one append-only file per field; ``"chunked"`` (with a
+capacity): one file per flushed chunk, deleted once a committed manifest no longer lists it.
 
 A layout creates, checks, writes and describes its data as segments of committed rows (which a reader of
 ``readers`` reads), keeps the directory's writer lock and writes its manifest; a layout without a directory
@@ -10,8 +9,7 @@ A layout creates, checks, writes and describes its data as segments of committed
 size, capacity) and the committed state the store passes to each call; only the store changes that state (the
 commit protocol is :class:`~sb3_lifelong.buffers.rowstore.RowStore`'s).
 
-The files a buffer directory owns (what ``mode="overwrite"`` may delete, what a lost manifest leaves) are
-:mod:`~sb3_lifelong.buffers.ownership`'s.
+The files a buffer directory owns (what ``mode="overwrite"`` may delete, what a lost manifest leaves) are here too.
 """
 
 from __future__ import annotations
@@ -28,14 +26,15 @@ import numpy as np
 from sb3_lifelong.buffers import files
 from sb3_lifelong.buffers.manifest import (
     CHUNK_FILE_PATTERN,
+    DATA_FILE_PATTERN,
     LOCK_NAME,
     MANIFEST_NAME,
     BufferFormatError,
     chunk_file_name,
     committed_transitions,
     read_manifest,
+    validate_fields,
 )
-from sb3_lifelong.buffers.ownership import orphaned_data_files, remove_buffer_files
 from sb3_lifelong.core.atomic import write_json_atomic
 
 if sys.platform == "win32":  # pragma: no cover: no flock; the writer lock goes through filelock (LockFileEx)
@@ -131,7 +130,7 @@ class Layout(Protocol):
     manifest's chunks, the global row after the last committed row) unless said otherwise.
     """
 
-    #: "memory", "chunked" or "single" (the manifest's ``layout``; read only)
+    #: "memory", "single" or "chunked" (the manifest's ``layout``)
     name: str
     #: whether the rows are written to a directory (False: in memory, where ``flush()`` has nothing to do)
     persistent: bool
@@ -264,7 +263,7 @@ class MemoryLayout:
         return []
 
 
-class DirectoryLayout:
+class _DirectoryLayout:
     """What the layouts of a directory share: its writer lock, its manifest, the deletion of dropped files."""
 
     persistent = True
@@ -328,17 +327,12 @@ class DirectoryLayout:
         return os.path.isfile(os.path.join(self.path, MANIFEST_NAME))
 
     def read_manifest(self, consistent: bool = False) -> dict[str, Any]:
-        # readers: a manifest whose data files all exist (a writer deletes evicted chunks after a commit, and the field
-        # files of a directory it migrated)
+        # readers: a manifest whose chunk files all exist (a writer deletes evicted chunks after a commit)
         for _ in range(20 if consistent else 1):
             manifest = read_manifest(self.path)
-            if not consistent:
+            if not consistent or manifest.get("layout") != "chunked":
                 return manifest
-            if manifest.get("layout", "single") == "single":  # a writer may be migrating it, then deleting these
-                needed = [name + ".bin" for name in manifest["fields"]]
-            else:
-                needed = [chunk_file_name(c["start"]) for c in manifest["chunks"]]
-            if all(os.path.isfile(os.path.join(self.path, name)) for name in needed):
+            if all(os.path.isfile(os.path.join(self.path, chunk_file_name(c["start"]))) for c in manifest["chunks"]):
                 return manifest
         return manifest  # opening it names the missing file
 
@@ -371,8 +365,7 @@ class DirectoryLayout:
                 f"{self.path}: the new {MANIFEST_NAME} is in place, so its {manifest['num_transitions']:,} transitions are "
                 f"committed and readable, but the fsync of the directory failed ({error.strerror}): this commit may not "
                 "survive a power loss or an operating-system crash (a crash of this process is fine). flush() (or "
-                "close(); or, when opening raised this, opening it again) writes and syncs the manifest again; until "
-                "then, files the previous manifest needs are kept",
+                "close()) writes and syncs the manifest again; until then, files the previous manifest needs are kept",
             ) from error
 
     def committed_on_disk(self, num_committed: int) -> Optional[bool]:
@@ -393,12 +386,11 @@ class DirectoryLayout:
         return kept
 
 
-class SingleFileLayout(DirectoryLayout):
+class SingleFileLayout(_DirectoryLayout):
     """
-    Layout "single", read only: one append-only file per field, ``<field>.bin``, row ``i`` at byte ``i * row_bytes``,
-    as earlier versions wrote a directory without a capacity; the committed rows are one segment, and bytes after
-    them (an unflushed tail of a writer that died) are ignored. A writer never writes it: it copies the rows into the
-    chunk files of layout "chunked" first (:meth:`migrate`), and its open-time commit makes the directory that layout.
+    Layout "single": one append-only file per field, ``<field>.bin``, row ``i`` at byte ``i * row_bytes``. Every
+    row is kept (no capacity), so the committed rows are one segment. A flush cuts each file back to its committed
+    length (bytes after it are left by a failed flush or a crash) and appends the new chunks to it.
     """
 
     name = "single"
@@ -407,7 +399,9 @@ class SingleFileLayout(DirectoryLayout):
         return os.path.join(self.path, name + ".bin")
 
     def create(self) -> None:
-        raise RuntimeError("layout 'single' is no longer written: new directories are 'chunked'")
+        os.makedirs(self.path, exist_ok=True)
+        for name in self.state.fields:  # empty field files left by an interrupted creation are reused (cut to 0 bytes)
+            os.close(files.open_for_writing(self.field_file(name), os.O_CREAT | os.O_TRUNC))
 
     def open_existing(self, chunks: list[dict[str, Any]], num_committed: int, verify: str) -> tuple[int, list[str]]:
         state, discarded = self.state, 0
@@ -415,18 +409,28 @@ class SingleFileLayout(DirectoryLayout):
             file_name = self.field_file(name)
             if not os.path.isfile(file_name) or os.path.islink(file_name):
                 raise BufferFormatError(f"{self.path}: field file {name}.bin is missing or not a regular file")
-            need, have = num_committed * state.row_bytes[name], os.path.getsize(file_name)
+        for name in state.fields:
+            file_name, need = self.field_file(name), num_committed * state.row_bytes[name]
+            have = os.path.getsize(file_name)
             if have < need:
                 raise BufferFormatError(
                     f"{file_name}: {have} bytes but the manifest commits {num_committed} rows ({need} bytes); "
                     f"the file was truncated or replaced. {SALVAGE_HINT.format(path=self.path)}"
                 )
-            discarded += have - need
+            if have > need and not state.read_only:
+                # an unflushed tail of a writer that died: cut it off so that appends continue at the committed end
+                fd = files.open_for_writing(file_name)
+                try:
+                    os.ftruncate(fd, need)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                discarded += have - need
         for chunk in checked_chunks(chunks, verify):
             damage = self.chunk_damage(chunk)
             if damage is not None:
                 raise BufferFormatError(f"{damage} (corrupted data). {SALVAGE_HINT.format(path=self.path)}")
-        return (0 if state.read_only else discarded), []
+        return discarded, []
 
     def chunk_damage(self, chunk: dict[str, Any]) -> Optional[str]:
         """
@@ -454,82 +458,42 @@ class SingleFileLayout(DirectoryLayout):
         return [Segment(0, num_committed, {name: (self.field_file(name), 0) for name in self.state.fields})]
 
     def write(self, chunks: list[dict[str, Any]], base: int, block: BlockSource) -> None:
-        raise RuntimeError(f"{self.path}: layout 'single' is read only (a writer migrates it when it opens)")
+        for name in self.state.fields:
+            committed_bytes = base * self.state.row_bytes[name]
+            fd = files.open_for_writing(self.field_file(name))
+            try:
+                # bytes after the committed rows are left by a failed flush: cut them off so that this one writes the
+                # same rows to the same place (the manifest's offsets)
+                os.ftruncate(fd, committed_bytes)
+                os.lseek(fd, committed_bytes, os.SEEK_SET)
+                for chunk in chunks:
+                    _write_field(fd, chunk, name, block(name, chunk["start"] - base, chunk["start"] - base + chunk["rows"]))
+                os.fsync(fd)
+            finally:
+                os.close(fd)
 
     def discard(self, chunks: list[dict[str, Any]], num_committed: int) -> None:
-        pass
+        for name in self.state.fields:  # best effort: the bytes after the committed rows are ignored anyway
+            try:
+                fd = files.open_for_writing(self.field_file(name))  # not os.truncate(path): it follows links
+                try:
+                    os.ftruncate(fd, num_committed * self.state.row_bytes[name])
+                finally:
+                    os.close(fd)
+            except OSError:
+                pass
 
     def retain(
         self, chunks: list[dict[str, Any]], num_committed: int, committed_first: int
     ) -> tuple[list[dict[str, Any]], int, list[str]]:
         return chunks, committed_first, []
 
-    def migrate(self, chunks: list[dict[str, Any]]) -> None:
-        """
-        Copy every committed chunk into its chunk file of layout "chunked" (in blocks), checking each field's checksum
-        against the manifest's, then fsync the files and the directory. The chunks and checksums stay the manifest's:
-        the store's next commit, naming layout "chunked", makes them the rows; until then the field files (unchanged)
-        are the buffer and the chunk files are unreferenced (which the next writer deletes).
 
-        :param chunks: The manifest's chunks
-        :raises BufferFormatError: a chunk's rows do not match their checksum (the chunk files written are removed)
-        """
-        written: list[str] = []
-        sources = {name: os.open(self.field_file(name), os.O_RDONLY | files.NOFOLLOW) for name in self.state.fields}
-        try:
-            for chunk in chunks:
-                target = os.path.join(self.path, chunk_file_name(chunk["start"]))
-                fd = files.create_new_file(target)
-                written.append(target)
-                try:
-                    for name, source in sources.items():
-                        row_bytes = self.state.row_bytes[name]
-                        crc = _copy_bytes(source, fd, chunk["start"] * row_bytes, chunk["rows"] * row_bytes)
-                        if crc != chunk["crc32"][name]:
-                            raise BufferFormatError(
-                                f"{self.field_file(name)}: checksum mismatch in chunk starting at row {chunk['start']} "
-                                f"(corrupted data; found while copying the directory into chunk files, which it "
-                                f"leaves unchanged). {SALVAGE_HINT.format(path=self.path)}"
-                            )
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-            files.fsync_dir(self.path, strict=True)  # the files' entries are durable before a manifest names them
-        except BaseException as error:
-            for file_name in written:
-                files.remove_quietly(file_name)
-            if isinstance(error, OSError):
-                raise files.explained(
-                    error,
-                    f"{self.path}: copying this directory of an earlier version (one file per field) into chunk files, as "
-                    "a writer does when it opens one, failed (it needs free space for a copy of its rows); the "
-                    "directory is unchanged, and read_only=True reads it as it is",
-                ) from error
-            raise
-        finally:
-            for source in sources.values():
-                os.close(source)
-
-
-def _copy_bytes(source: int, target: int, offset: int, size: int, block: int = 1 << 22) -> int:
-    """Copy ``size`` bytes at ``offset`` of ``source`` to the file offset of ``target``. :return: their CRC-32"""
-    crc = 0
-    while size > 0:
-        data = os.pread(source, min(block, size), offset)
-        if not data:
-            raise BufferFormatError(f"a field file ends {size} bytes before the rows its manifest commits (truncated)")
-        files.write_all(target, data)
-        crc = zlib.crc32(data, crc)
-        offset, size = offset + len(data), size - len(data)
-    return crc
-
-
-class ChunkFileLayout(DirectoryLayout):
+class ChunkFileLayout(_DirectoryLayout):
     """
-    Layout "chunked", the one every writer writes: one file per flushed chunk, ``chunk.<start>.bin``, holding each
-    field's rows one field after the other; each chunk is a segment. With a capacity, a commit keeps the last
-    ``capacity`` committed rows: the files of the chunks with none of them are deleted once the manifest that drops
-    them is synced; without one (None), every row is kept.
+    Layout "chunked": one file per flushed chunk, ``chunk.<start>.bin``, holding each field's rows one field after
+    the other; each chunk is a segment. A commit keeps the last ``capacity`` committed rows: the files of the chunks
+    with none of them are deleted once the manifest that drops them is synced.
     """
 
     name = "chunked"
@@ -539,11 +503,7 @@ class ChunkFileLayout(DirectoryLayout):
 
     def create(self) -> None:
         os.makedirs(self.path, exist_ok=True)
-        # empty chunk files, and the empty field files of an earlier version's creation (non-empty ones without a
-        # manifest are refused before)
-        self.remove_orphans([])
-        for name in self.left_field_files():
-            files.delete_file(name)
+        self.remove_orphans([])  # empty chunk files (non-empty ones without a manifest are refused before)
 
     def open_existing(self, chunks: list[dict[str, Any]], num_committed: int, verify: str) -> tuple[int, list[str]]:
         for chunk in chunks:
@@ -605,12 +565,6 @@ class ChunkFileLayout(DirectoryLayout):
             files.fsync_dir(self.path)
         return discarded, removed
 
-    def left_field_files(self) -> list[str]:
-        """:return: the field files of layout "single" still here (a migration whose commit may not be synced yet; the
-        store deletes them after a synced commit, as files of dropped chunks)"""
-        names = [os.path.join(self.path, name + ".bin") for name in self.state.fields]
-        return [name for name in names if os.path.isfile(name) and not os.path.islink(name)]
-
     def segments(self, chunks: list[dict[str, Any]], num_committed: int) -> list[Segment]:
         segments = []
         for chunk in chunks:
@@ -645,18 +599,20 @@ class ChunkFileLayout(DirectoryLayout):
         return chunks[len(dropped) :], committed_first, [self.chunk_file(chunk) for chunk in dropped]
 
 
+_LAYOUTS: dict[str, Callable[[LayoutState], Layout]] = {
+    "memory": MemoryLayout,
+    "single": SingleFileLayout,
+    "chunked": ChunkFileLayout,
+}
+
+
 def make_layout(name: str, state: LayoutState) -> Layout:
     """
-    :param name: "memory", "chunked" or "single" (read only)
+    :param name: "memory", "single" or "chunked"
     :param state: What the layout knows of its store
     :return: The layout
     """
-    layouts: dict[str, Callable[[LayoutState], Layout]] = {
-        "memory": MemoryLayout,
-        "chunked": ChunkFileLayout,
-        "single": SingleFileLayout,
-    }
-    return layouts[name](state)
+    return _LAYOUTS[name](state)
 
 
 def _write_field(fd: int, chunk: dict[str, Any], name: str, data: memoryview) -> None:
@@ -689,3 +645,129 @@ def file_crc32(file_name: str, offset: int, size: int, block: int = 1 << 22) -> 
 def checked_chunks(chunks: list[dict[str, Any]], verify: str) -> list[dict[str, Any]]:
     """The chunks whose checksums ``verify`` ("all", "last" or "none") asks to check when opening."""
     return chunks if verify == "all" else chunks[-1:] if verify == "last" else []
+
+
+# ---------------------------------------------------------------------------------------------- the files a directory owns
+
+
+def owned_buffer_files(path: str) -> list[str]:
+    """
+    The files of the buffer in ``path`` that ``mode="overwrite"`` may delete: only what provably belongs to a buffer
+    of this package. ``manifest.json`` must be a regular file (not a link) that this code parses and validates as
+    its own format; the files are then the data files its manifest names (the field files of layout "single", the
+    listed chunk files of layout "chunked"), the chunk files it does not list (layout "chunked": what a writer
+    deletes on opening anyway, left by a crash), the temporary ``manifest.json.tmp``, and the manifest itself,
+    last. ``writer.lock`` and every other entry of the directory are kept.
+
+    :param path: The directory
+    :return: The names of those files (relative to ``path``) that exist, the manifest last; ``[]`` without a manifest
+    :raises BufferFormatError: the manifest is not one of this package's buffers, or one of those names is a
+        directory: nothing may be deleted
+    """
+    manifest_name = os.path.join(path, MANIFEST_NAME)
+    if not os.path.lexists(manifest_name):
+        return []
+    refusal = (
+        f"refusing to overwrite {path}: mode='overwrite' deletes only a buffer directory written by this package, and "
+        "nothing was deleted"
+    )
+    if os.path.islink(manifest_name) or not os.path.isfile(manifest_name):
+        raise BufferFormatError(f"{refusal}: its {MANIFEST_NAME} is a link or not a regular file. Choose another path")
+    try:
+        manifest = read_manifest(path)
+    except (BufferFormatError, OSError) as error:
+        raise BufferFormatError(
+            f"{refusal}: its {MANIFEST_NAME} is not the manifest of such a buffer ({error}). Choose another path (or, if "
+            "this directory holds nothing you need, delete it yourself)"
+        ) from None
+    if manifest.get("layout", "single") == "single":
+        named = [f"{name}.bin" for name in validate_fields(manifest["fields"])]
+    else:
+        listed = [chunk_file_name(chunk["start"]) for chunk in manifest["chunks"]]
+        unlisted = sorted(e for e in os.listdir(path) if CHUNK_FILE_PATTERN.fullmatch(e) and e not in set(listed))
+        named = listed + unlisted
+    names = [name for name in [*named, MANIFEST_NAME + ".tmp"] if os.path.lexists(os.path.join(path, name))]
+    for name in names:
+        file_name = os.path.join(path, name)
+        if os.path.isdir(file_name) and not os.path.islink(file_name):
+            raise BufferFormatError(f"{refusal}: {file_name} is a directory, not a file of the buffer")
+    return [*names, MANIFEST_NAME]
+
+
+def remove_buffer_files(path: str) -> list[str]:
+    """
+    Delete the buffer in ``path`` (``mode="overwrite"``): the files :func:`owned_buffer_files` lists, data files
+    first and the manifest last (so that an interrupted deletion leaves a manifest that still names what is left,
+    which the next overwrite deletes), then fsync the directory. Links are removed, never what they point to. The
+    caller holds the directory's writer lock, so no live writer is affected.
+
+    :param path: The directory
+    :return: The names deleted
+    :raises BufferFormatError: see :func:`owned_buffer_files` (then nothing is deleted)
+    """
+    names = owned_buffer_files(path)
+    for name in names:
+        try:
+            os.unlink(os.path.join(path, name))
+        except FileNotFoundError:  # pragma: no cover (removed meanwhile)
+            pass
+    if names:
+        files.fsync_dir(path)
+    return names
+
+
+def orphaned_data_files(path: str) -> list[str]:
+    """
+    :param path: A directory with no manifest
+    :return: The names of the buffer data files in it (field or chunk files) that are not empty or not regular files
+        (a directory whose manifest was lost). Empty field files are what a writer killed while creating the
+        directory leaves: nothing to lose
+    """
+    try:
+        entries = sorted(os.listdir(path))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    found = []
+    for entry in entries:
+        if DATA_FILE_PATTERN.fullmatch(entry):
+            file_name = os.path.join(path, entry)
+            if os.path.islink(file_name) or not os.path.isfile(file_name) or os.path.getsize(file_name) > 0:
+                found.append(entry)
+    return found
+
+
+def check_buffer_path(path: str, allow_foreign_files: bool = False, writing: bool = True) -> None:
+    """
+    Refuse, before anything is written there, a buffer path that is not a directory, and (writers) a directory that
+    holds no buffer but files that are not a buffer's: creating a buffer among them would mix its files with someone
+    else's (and ``mode="overwrite"`` of that buffer later would leave theirs in its directory).
+
+    :param path: The buffer directory (absolute)
+    :param allow_foreign_files: Create the buffer among other files all the same (they are never read, changed or
+        deleted)
+    :param writing: Whether the buffer is opened for writing (a reader only needs a directory)
+    :raises NotADirectoryError: ``path`` is an existing file (or a link to one, or a dangling link)
+    :raises FileExistsError: ``path`` is a directory without ``manifest.json`` that holds other files than a buffer's
+        (``writer.lock``, ``manifest.json.tmp`` and data files, which :meth:`Layout.refuse_orphans` checks), naming
+        a few of them, unless ``allow_foreign_files``
+    """
+    if not os.path.lexists(path):
+        return
+    if not os.path.isdir(path):
+        kind = "a symbolic link to no directory" if os.path.islink(path) else "an existing file"
+        raise NotADirectoryError(
+            f"buffer path {path!r} is {kind}, not a directory: a buffer's path names a directory (a new one, or one that "
+            "holds a buffer). Choose another path; nothing was written"
+        )
+    if not writing or allow_foreign_files or os.path.lexists(os.path.join(path, MANIFEST_NAME)):
+        return
+    buffer_names = {LOCK_NAME, MANIFEST_NAME + ".tmp"}
+    foreign = sorted(e for e in os.listdir(path) if e not in buffer_names and DATA_FILE_PATTERN.fullmatch(e) is None)
+    if foreign:
+        listed = ", ".join(repr(name) for name in foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise FileExistsError(
+            f"buffer path {path!r} is a directory that holds no buffer (no {MANIFEST_NAME}) but {len(foreign)} other "
+            f"entries: {listed}. Refusing to create a buffer among them. Choose a new (or empty) directory, e.g. a "
+            "subdirectory; or pass allow_foreign_files=True to create it there all the same (those entries are never "
+            "read, changed or deleted); nothing was written"
+        )

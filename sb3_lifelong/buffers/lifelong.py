@@ -23,6 +23,7 @@ from stable_baselines3.common.utils import get_device
 from sb3_lifelong.buffers import interop
 from sb3_lifelong.buffers.add_checks import AddChecks
 from sb3_lifelong.buffers.files import CommitNotDurableError
+from sb3_lifelong.buffers.layouts import owned_buffer_files
 from sb3_lifelong.buffers.manifest import (
     FLAG_TIMEOUT,
     MANIFEST_NAME,
@@ -32,7 +33,6 @@ from sb3_lifelong.buffers.manifest import (
     committed_transitions,
     obs_keys_of,
 )
-from sb3_lifelong.buffers.ownership import owned_buffer_files
 from sb3_lifelong.buffers.rowstore import RowStore
 from sb3_lifelong.buffers.salvage import BufferCheck, check_buffer, salvage_buffer
 from sb3_lifelong.buffers.sampling import LifelongSampler, RunIndex

@@ -2,23 +2,21 @@
 The format of a buffer directory: its files, the manifest (what it holds, reading and validating it, writing a new
 one) and the format's constants (fields, dtypes, the flags of a row).
 
-Directory format (versions 1 to 3), see ``docs/modules/buffer.md``::
+Directory format (versions 1 and 2), see ``docs/modules/buffer.md``::
 
     <path>/manifest.json     committed state (JSON, rewritten atomically after each flushed chunk)
-    <path>/chunk.<start>.bin layout "chunked": one file per flushed chunk, each field's rows one field after the
-                             other; deleted once no committed manifest lists it
-    <path>/<field>.bin       layout "single", read only (written by earlier versions, with no capacity): one
-                             append-only file per field, raw little-endian C-order rows, no header; a writer that
-                             opens such a directory copies it into chunk files first (see ``layouts``)
+    <path>/<field>.bin       layout "single" (no capacity): one append-only file per field, raw little-endian
+                             C-order rows, no header
+    <path>/chunk.<start>.bin layout "chunked" (with a capacity): one file per flushed chunk, each field's rows one
+                             field after the other; deleted once no committed manifest lists it
     <path>/writer.lock       advisory lock held by the (single) writer process
 
-Dict observations store one field per key, ``observations.<key>`` and ``next_observations.<key>``. Every manifest
-written is version 3 when it keeps every row (layout "chunked", capacity null: version 2 cannot describe it, so that
-earlier code refuses it as an unknown version), else version 2; version 1 (layout "single", one observation field) is
-read.
+Dict observations store one field per key, ``observations.<key>`` and ``next_observations.<key>`` (version 2;
+plain buffers are still written as version 1).
 
-Only the rows of the chunks listed in the manifest are committed; a chunk file it does not list is an unflushed
-chunk of a crashed writer (or one evicted), ignored by readers and deleted by the next writer.
+A row ``i`` of field ``f`` lives at byte offset ``i * row_bytes(f)`` of ``f.bin``. Only the first
+``num_transitions`` rows (sum of the chunk sizes listed in the manifest) are committed; bytes after
+them are an unflushed tail of a crashed writer and are ignored by readers and cut off by the next writer.
 
 Like every module of the row store, this one imports only numpy and the standard library (see ``files``).
 """
@@ -38,12 +36,12 @@ from typing import Any, Optional
 import numpy as np
 
 FORMAT_NAME = "sb3-lifelong-buffer"
-FORMAT_VERSION = 3  # the newest version written (version 2 where it describes the buffer: a capacity)
-READABLE_VERSIONS = (1, 2, 3)
+FORMAT_VERSION = 2  # the newest version written (version 1 is still written when it can describe the buffer)
+READABLE_VERSIONS = (1, 2)
 # manifest keys added by version 2 (version 1 means layout "single", capacity null, first_row 0)
 V2_KEYS = ("layout", "capacity", "first_row")
+# "single": one append-only file per field, "<field>.bin", rows from 0 (every row kept);
 # "chunked": one file per flushed chunk, "chunk.<start>.bin", holding each field's rows one field after the other
-# (capacity null: every row kept); "single" (read only): one append-only file per field, "<field>.bin", rows from 0
 LAYOUTS = ("single", "chunked")
 CHUNK_FILE_PATTERN = re.compile(r"chunk\.([0-9]{12,19})\.bin")
 # the data files any buffer directory may hold (field files of layout "single", chunk files of layout "chunked")
@@ -333,8 +331,8 @@ def _validate_layout(manifest: dict[str, Any], names: list[str]) -> None:
         raise BufferFormatError(f"manifest 'layout' must be one of {list(LAYOUTS)}, got {layout!r}")
     if layout == "single" and (capacity is not None or first_row != 0):
         raise BufferFormatError("manifest: layout 'single' keeps every row: 'capacity' must be null and 'first_row' 0")
-    if layout == "chunked" and capacity is not None and (not _is_int(capacity) or not 1 <= capacity < 2**62):
-        raise BufferFormatError(f"manifest 'capacity' must be null or a positive int with layout 'chunked', got {capacity!r}")
+    if layout == "chunked" and (not _is_int(capacity) or not 1 <= capacity < 2**62):
+        raise BufferFormatError(f"manifest 'capacity' must be a positive int with layout 'chunked', got {capacity!r}")
     end = _validate_chunks(manifest["chunks"], names, start=0 if layout == "single" else None)
     if end != num:
         raise BufferFormatError(f"manifest chunks hold rows up to {end} but 'num_transitions' is {num}")
@@ -349,7 +347,7 @@ def _validate_layout(manifest: dict[str, Any], names: list[str]) -> None:
             )
         if not chunks and first_row != num:
             raise BufferFormatError("manifest: with no chunk, 'first_row' must equal 'num_transitions'")
-        if capacity is not None and num - first_row > capacity:
+        if num - first_row > capacity:
             raise BufferFormatError(f"manifest: {num - first_row} retained rows exceed the capacity {capacity}")
 
 
@@ -384,8 +382,6 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     if not _is_int(num) or not 0 <= num < 2**62:
         raise BufferFormatError(f"manifest 'num_transitions' must be a non-negative int, got {num!r}")
     _validate_layout(manifest, list(fields))
-    if version == 2 and manifest["layout"] == "chunked" and manifest["capacity"] is None:
-        raise BufferFormatError("manifest: layout 'chunked' without a capacity needs format version 3")
     sources = manifest["sources"]
     if not isinstance(sources, dict):
         raise BufferFormatError("manifest 'sources' must be an object")
@@ -517,12 +513,12 @@ def make_manifest(
     buffer_id: Optional[str] = None,
 ) -> dict[str, Any]:
     """
-    The manifest of a committed state: version 3 without a capacity (version 2 has none for layout "chunked"), else
-    version 2.
+    The manifest of a committed state: version 1 when it can describe it (layout "single", one observation field),
+    else version 2.
 
     :param fields: field name -> (dtype string, row shape)
-    :param layout: "chunked" (the layout every writer writes)
-    :param capacity: The number of most recent rows kept (None: every row)
+    :param layout: "single" or "chunked"
+    :param capacity: The number of most recent rows kept (None: every row, layout "single")
     :param num_transitions: Global row after the last committed row
     :param first_row: Global row of the oldest retained committed row
     :param chunks: The committed chunks (``start``, ``rows``, ``crc32`` per field)
@@ -532,19 +528,19 @@ def make_manifest(
     :param buffer_id: The buffer's identity (see :func:`new_buffer_id`); None: a buffer created without one
     :return: The document (see :func:`validate_manifest`)
     """
+    plain = layout == "single" and obs_keys_of(fields) is None
     manifest: dict[str, Any] = {
         "format": FORMAT_NAME,
-        "version": FORMAT_VERSION if capacity is None else 2,
+        "version": 1 if plain else 2,
         "fields": {name: {"dtype": dt, "shape": list(shape)} for name, (dt, shape) in fields.items()},
         "num_transitions": num_transitions,
         "chunks": chunks,
         "sources": {str(k): v for k, v in sorted(sources.items())},
         "next_stream_id": next_stream_id,
         "spaces": spaces,
-        "layout": layout,
-        "capacity": capacity,
-        "first_row": first_row,
     }
+    if not plain:
+        manifest.update(layout=layout, capacity=capacity, first_row=first_row)
     if buffer_id is not None:
         manifest[ID_KEY] = buffer_id
     return manifest

@@ -5,9 +5,9 @@ in memory or in a crash-safe buffer directory, and its commit protocol.
 The store's modules import only numpy, the standard library and one another (never torch), so that crash tests and
 tools can load them in light subprocesses:
 
-- ``files``: writing every byte, fsync, files never opened through a link; ``ownership``: what a directory owns;
+- ``files``: writing every byte, fsync, files never opened through a link, the atomic JSON write;
 - ``manifest``: the directory format, reading, validating and making the manifest;
-- ``layouts``: where the rows live (``"memory"``, ``"chunked"``; ``"single"`` read and migrated), the writer lock;
+- ``layouts``: where the rows live (``"memory"``, ``"single"``, ``"chunked"``), the data files and the writer lock;
 - ``readers``: how committed rows are read (``"mmap"``, ``"pread"``);
 - ``writers``: the directories this process holds open for writing, and what a forked child may not do;
 - ``rowstore`` (this module): :class:`RowStore`, the commit protocol over a layout and a reader.
@@ -24,13 +24,7 @@ from typing import Any, Optional
 import numpy as np
 
 from sb3_lifelong.buffers import files, writers
-from sb3_lifelong.buffers.layouts import (
-    ChunkFileLayout,
-    Layout,
-    LayoutState,
-    SingleFileLayout,
-    make_layout,
-)
+from sb3_lifelong.buffers.layouts import Layout, LayoutState, check_buffer_path, make_layout
 from sb3_lifelong.buffers.manifest import (
     BufferFormatError,
     ManifestRecords,
@@ -40,7 +34,6 @@ from sb3_lifelong.buffers.manifest import (
     validate_fields,
     validated_fields,
 )
-from sb3_lifelong.buffers.ownership import check_buffer_path
 from sb3_lifelong.buffers.readers import Reader, check_read_mode, make_reader
 from sb3_lifelong.buffers.writers import ForkedWriterError
 
@@ -58,11 +51,9 @@ class RowStore(ManifestRecords):
 
     Rows are committed or pending. With a path, committed rows are read from the files (memory-mapped, or with
     positioned reads, see ``read_mode``) and the unflushed rows wait in a tail of ``chunk_size`` pending rows, written
-    out (one file per chunk, fsync'd, manifest replaced atomically) when full or on ``flush()`` (layout "chunked");
-    with a capacity, a chunk's file is deleted once the committed manifest no longer lists it. A directory that
-    earlier versions wrote in layout "single" (one append-only file per field) is read as it is; a writer first
-    copies its rows into chunk files and commits it as layout "chunked" (its rows, checksums and identity unchanged).
-    In memory (``path=None``, layout "memory") nothing is
+    out (appended, fsync'd, manifest replaced atomically) when full or on ``flush()``. Without a capacity the
+    directory has one append-only file per field (layout "single"); with one, a file per chunk (layout "chunked"),
+    deleted once the committed manifest no longer lists it. In memory (``path=None``, layout "memory") nothing is
     ever committed: the pending rows are the storage, preallocated arrays that double when full (with a capacity,
     the evicted rows at their front are dropped by moving the retained ones down instead).
 
@@ -92,14 +83,14 @@ class RowStore(ManifestRecords):
         into fresh arrays, one call per run of nearby rows: no file page is mapped, the RSS stays at the anonymous
         memory; one file descriptor per field file or chunk file, closed by :meth:`close`). No effect in memory
     :param overwrite: Writers: delete the buffer the directory holds first
-        (:func:`~sb3_lifelong.buffers.ownership.remove_buffer_files`), once this store holds the directory's writer lock
+        (:func:`~sb3_lifelong.buffers.layouts.remove_buffer_files`), once this store holds the directory's writer lock
         (a live writer makes this raise before anything is deleted); a directory whose manifest is not one of this
         package's buffers is refused (``BufferFormatError``)
     :param evict: Reopening a directory with a capacity smaller than the number of transitions it retains evicts the
         oldest of them at once: only with ``evict=True``; otherwise that raises ``ValueError`` and nothing changes
     :param allow_foreign_files: Writers: create a buffer in a directory that holds other files (no manifest) all the
         same; by default that raises ``FileExistsError`` naming some of them (see
-        :func:`~sb3_lifelong.buffers.ownership.check_buffer_path`), and a ``path`` that is a file ``NotADirectoryError``,
+        :func:`~sb3_lifelong.buffers.layouts.check_buffer_path`), and a ``path`` that is a file ``NotADirectoryError``,
         before anything is written
     """
 
@@ -135,7 +126,9 @@ class RowStore(ManifestRecords):
         self.chunk_size = chunk_size
         self._state = LayoutState(self.path, chunk_size, None if capacity is None else int(capacity), read_only)
         # the layout of a new store; an existing directory's is the one its manifest names
-        self._layout: Layout = make_layout("memory" if self.path is None else "chunked", self._state)
+        self._layout: Layout = make_layout(
+            "memory" if self.path is None else "single" if capacity is None else "chunked", self._state
+        )
         super().__init__()  # the manifest's records: stream ids, sources, spaces
         self.chunks: list[dict[str, Any]] = []
         self.num_committed = 0  # global row after the last committed row
@@ -169,10 +162,9 @@ class RowStore(ManifestRecords):
         self._tail = {name: np.empty((rows, *shape), dtype=self._dtypes[name]) for name, (_, shape) in self._fields.items()}
         self.num_tail = 0
         self._reader_stale = False  # True while the maps (or read files) may not cover every committed row
-        if not read_only and self._layout.persistent and (self.capacity is not None or self._undeleted):
-            # a smaller capacity than the stored one evicts now; a migrated directory becomes layout "chunked"; maps
+        if self.layout == "chunked" and not read_only:
             try:
-                self._commit(self.chunks, self.num_committed)
+                self._commit(self.chunks, self.num_committed)  # a smaller capacity than the stored one evicts now; maps
             except BaseException:
                 self._closed = True
                 self._release_lock()
@@ -224,15 +216,20 @@ class RowStore(ManifestRecords):
             layout = manifest.get("layout", "single")
             stored_capacity = manifest.get("capacity")
             if capacity is not None and capacity != stored_capacity:
+                if layout == "single":
+                    raise ValueError(
+                        f"{self.path} keeps every transition in one file per field (it was created without a capacity) "
+                        "and cannot evict: copy it into a new directory with a capacity, e.g. "
+                        "merge_buffers([LifelongReplayBuffer.open(old, read_only=True)], path=new, capacity=N)"
+                    )
                 if self.read_only:
                     raise ValueError(f"{self.path} has capacity {stored_capacity}: a read-only buffer cannot change it")
                 retained = manifest["num_transitions"] - manifest.get("first_row", 0)
                 if capacity < retained and not evict:
-                    kept = "every transition" if stored_capacity is None else f"capacity {stored_capacity:,}"
                     raise ValueError(
-                        f"{self.path} retains {retained:,} transitions ({kept}): reopening it with "
+                        f"{self.path} retains {retained:,} transitions (capacity {stored_capacity:,}): reopening it with "
                         f"capacity={capacity:,} would evict the oldest {retained - capacity:,} of them at once, for good. "
-                        f"Pass evict=True to do that; or capacity=None (keeps {kept}) or a capacity >= "
+                        f"Pass evict=True to do that; or capacity=None (keeps {stored_capacity:,}) or a capacity >= "
                         f"{retained:,}. Nothing was changed"
                     )
             self._state.capacity = stored_capacity if capacity is None else int(capacity)
@@ -240,14 +237,6 @@ class RowStore(ManifestRecords):
             self._load_manifest(manifest)
             self._set_row_format(stored)
             self.discarded_bytes, self.removed_files = self._layout.open_existing(self.chunks, self.num_committed, verify)
-            if isinstance(self._layout, SingleFileLayout) and not self.read_only:
-                # written by an earlier version: copy into chunk files; the open-time commit names layout "chunked",
-                # then the field files go (kept until a synced manifest no longer needs them)
-                self._layout.migrate(self.chunks)
-                self._layout = make_layout("chunked", self._state)
-            if isinstance(self._layout, ChunkFileLayout) and not self.read_only:
-                # the field files of a migration (this one, or one whose commit may not be synced)
-                self._undeleted.extend(self._layout.left_field_files())
         else:
             self._layout.refuse_orphans()  # data files without a manifest would be overwritten
             if fields is None:
@@ -297,8 +286,7 @@ class RowStore(ManifestRecords):
 
     @property
     def layout(self) -> str:
-        """Where the rows live: ``"memory"``, ``"chunked"`` (one file per chunk) or ``"single"`` (one file per field: a
-        directory of an earlier version, open read-only)."""
+        """Where the rows live: ``"memory"``, ``"single"`` (one file per field) or ``"chunked"`` (one file per chunk)."""
         return self._layout.name
 
     @property
@@ -376,9 +364,7 @@ class RowStore(ManifestRecords):
                 "and created again while open, so its rows are not the ones read so far. Refusing to refresh rather than "
                 "serve old and new rows together; open it again to read the new buffer"
             )
-        layout = manifest.get("layout", "single")
-        migrated = (self.layout, layout) == ("single", "chunked")  # a writer copied it into chunk files
-        if validate_fields(manifest["fields"]) != self._fields or (layout != self.layout and not migrated):
+        if validate_fields(manifest["fields"]) != self._fields or manifest.get("layout", "single") != self.layout:
             raise BufferFormatError(f"{self.path}: fields or layout changed while open")
         if manifest["num_transitions"] < self.num_committed or manifest.get("first_row", 0) < self.committed_first:
             raise BufferFormatError(
@@ -386,9 +372,6 @@ class RowStore(ManifestRecords):
                 "buffer was replaced or cut back while open; open it again to read what it holds now"
             )
         changed = manifest["num_transitions"] != self.num_committed or manifest.get("first_row", 0) != self.committed_first
-        if migrated:  # the field files are gone: map the chunk files (no map of a field file is kept)
-            self._layout, changed = make_layout(layout, self._state), True
-            self._reader.sync([], fresh=True)
         self._state.capacity = manifest.get("capacity")
         self._load_manifest(manifest)
         self._tail_start = self.num_committed
@@ -501,8 +484,9 @@ class RowStore(ManifestRecords):
 
     def flush(self) -> None:
         """
-        Write the pending rows as one chunk: its chunk file is written and fsync'd, then the manifest is replaced
-        atomically, then the files of evicted chunks are deleted. In memory, there is nothing to write.
+        Write the pending rows as one chunk: the field files (layout "single": each cut back to its committed length
+        first, then appended to) or the chunk file (layout "chunked") are written and fsync'd, then the manifest is
+        replaced atomically, then the files of evicted chunks are deleted. In memory, there is nothing to write.
 
         Only once the new manifest is in place does this object count the rows as committed. If anything fails
         before (e.g. ``OSError`` ENOSPC, disk full), it raises with the committed state (on disk and in memory)
@@ -548,7 +532,7 @@ class RowStore(ManifestRecords):
     def _write_chunks(self, extra: Optional[dict[str, np.ndarray]] = None, extra_rows: int = 0) -> None:
         """
         Write the pending rows followed by the first ``extra_rows`` rows of ``extra`` as chunks of at most
-        ``chunk_size`` rows (one chunk file each, fsync'd), then commit them all with
+        ``chunk_size`` rows (appended to the field files, or one chunk file each, fsync'd), then commit them all with
         one manifest (:meth:`_commit`, which empties the tail).
 
         If anything fails before the manifest is in place, this raises with nothing changed: the committed state (in

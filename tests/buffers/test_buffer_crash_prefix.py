@@ -52,7 +52,7 @@ def expected(count: int) -> dict:
 
 
 def new_buffer(path: str, layout: str, chunk_size: int, n_envs: int) -> LifelongReplayBuffer:
-    capacity = None if layout == "unbounded" else 100_000  # chunked, never evicting: the rows stay a prefix
+    capacity = None if layout == "single" else 100_000  # chunked, never evicting: the rows stay a prefix
     return LifelongReplayBuffer(0, OBS, ACT, device="cpu", n_envs=n_envs, path=path, chunk_size=chunk_size, capacity=capacity)
 
 
@@ -142,7 +142,7 @@ def crash_child(path: str, root: str, crash_at: int, shared: mmap.mmap, **scenar
 @pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self/fd (Linux) to tell a descriptor's file")
 @settings(max_examples=60, deadline=None)
 @given(
-    layout=st.sampled_from(["unbounded", "capped"]),
+    layout=st.sampled_from(["single", "chunked"]),
     chunk_size=st.integers(3, 40),
     n_envs=st.integers(1, 3),
     adds=st.integers(1, 60),

@@ -122,13 +122,12 @@ def test_dict_on_disk_reopen_nstep_and_sources(tmp_path):
     fill(buffer, 40, 1, seed=2, stage=1)
     before = all_rows(buffer)
     buffer.close()
-    # one field per key, listed in a version 2 manifest; each chunk's file holds every field's rows of the chunk
+    # one file per field and key, listed in a version 2 manifest
     manifest = json.loads((path / "manifest.json").read_text())
-    assert manifest["version"] == 3 and manifest["num_transitions"] == 160  # no capacity: version 3
+    assert manifest["version"] == 2 and manifest["num_transitions"] == 160
     assert manifest["fields"]["observations.image"] == {"dtype": "|u1", "shape": [2, 4, 4]}
-    assert "observations" not in manifest["fields"] and "next_observations.pos" in manifest["fields"]
-    row_bytes = sum(np.dtype(f["dtype"]).itemsize * int(np.prod(f["shape"])) for f in manifest["fields"].values())
-    assert [os.path.getsize(path / f"chunk.{start:012d}.bin") for start in range(0, 160, 32)] == [32 * row_bytes] * 5
+    assert os.path.getsize(path / "next_observations.pos.bin") == 160 * 3 * 4
+    assert not (path / "observations.bin").exists()
     reopened = LifelongReplayBuffer.open(path, n_steps=3, gamma=0.9)
     assert reopened.observation_space == OBS and reopened.obs_shape == {"image": (2, 4, 4), "mode": (1,), "pos": (3,)}
     for name, values in all_rows(reopened).items():

@@ -97,14 +97,13 @@ def disk_full(monkeypatch, directory, budget=0, names=None):
 
 
 def make_buffer(path, layout, chunk_size=50, **kwargs):
-    """A buffer directory (layout "chunked") that keeps every row ("unbounded") or the last 10,000 ("capped")."""
-    capacity = None if layout == "unbounded" else 10_000
+    capacity = None if layout == "single" else 10_000
     return LifelongReplayBuffer(0, OBS, ACT, device="cpu", path=path, chunk_size=chunk_size, capacity=capacity, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------- disk full in a flush
 @needs_proc
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 @pytest.mark.parametrize("budget", [0, 7, 130, 1500])
 def test_disk_full_during_flush_then_retry(tmp_path, monkeypatch, layout, budget):
     path = tmp_path / "b"
@@ -127,12 +126,13 @@ def test_disk_full_during_flush_then_retry(tmp_path, monkeypatch, layout, budget
     buffer.close()
     reopened = LifelongReplayBuffer.open(path, device="cpu", verify="all")
     check_rows(reopened, 170)
-    listed = [f"chunk.{chunk['start']:012d}.bin" for chunk in reopened.store.chunks]
-    assert sorted(e for e in os.listdir(path) if e.endswith(".bin")) == listed  # no stray file of the failed flushes
+    if layout == "single":
+        for name in FIELD_NAMES:  # no stray bytes after the committed rows
+            assert os.path.getsize(path / f"{name}.bin") == 170 * reopened.store.row_bytes[name]
 
 
 @needs_proc
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 @pytest.mark.parametrize("n_envs", [1, 3])
 def test_disk_full_in_add_then_retry(tmp_path, monkeypatch, layout, n_envs):
     path = tmp_path / "b"
@@ -220,7 +220,7 @@ def test_file_size_limit_during_flush_then_retry(tmp_path, capacity):
 
 # ---------------------------------------------------------------------------------------------- disk full in the manifest
 @needs_proc
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 @pytest.mark.parametrize("fault", ["write", "short write", "fsync", "replace"])
 def test_manifest_write_fails_then_retry(tmp_path, monkeypatch, layout, fault):
     path = tmp_path / "b"
@@ -291,7 +291,7 @@ def snapshot(path):
     return {name: (path / name).read_bytes() for name in sorted(os.listdir(path)) if name != "writer.lock"}
 
 
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 def test_lost_manifest_is_not_overwritten(tmp_path, layout):
     path = tmp_path / "b"
     buffer = make_buffer(path, layout)
@@ -299,10 +299,10 @@ def test_lost_manifest_is_not_overwritten(tmp_path, layout):
     buffer.close()
     os.remove(path / "manifest.json")
     files = snapshot(path)
-    data_file = "chunk.000000000000.bin"
+    data_file = "observations.bin" if layout == "single" else "chunk.000000000000.bin"
     attempts = [
         lambda: make_buffer(path, layout),  # the same constructor call that created it
-        lambda: make_buffer(path, "capped" if layout == "unbounded" else "unbounded"),
+        lambda: make_buffer(path, "chunked" if layout == "single" else "single"),
         lambda: LifelongReplayBuffer.open(path),
         lambda: LifelongReplayBuffer.open(path, read_only=True),
         lambda: RowStore({name: ("<f4", ()) for name in FIELD_NAMES}, path=str(path)),
@@ -322,20 +322,29 @@ def test_lost_manifest_is_not_overwritten(tmp_path, layout):
 
 
 def test_empty_files_of_an_interrupted_creation_are_reused(tmp_path):
-    """A writer of an earlier version killed while creating a directory left empty field files and no manifest:
-    nothing to lose; a new buffer there removes them."""
+    """A writer killed while creating a directory leaves empty field files and no manifest: nothing to lose."""
     path = tmp_path / "b"
     path.mkdir()
     for name in FIELD_NAMES:
         (path / f"{name}.bin").write_bytes(b"")
-    buffer = make_buffer(path, "unbounded")
+    buffer = make_buffer(path, "single")
     add_rows(buffer, 0, 60)
     buffer.close()
-    assert sorted(os.listdir(path)) == ["chunk.000000000000.bin", "chunk.000000000050.bin", "manifest.json", "writer.lock"]
     check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 60)
 
 
 # ---------------------------------------------------------------------------------------------- file errors
+def test_missing_field_file_is_called_a_field_file(tmp_path):
+    path = tmp_path / "b"
+    buffer = make_buffer(path, "single")
+    add_rows(buffer, 0, 60)
+    buffer.close()
+    os.remove(path / "flags.bin")
+    with pytest.raises(BufferFormatError, match=r"field file flags\.bin is missing") as error:
+        LifelongReplayBuffer.open(path, read_only=True)
+    assert "chunk" not in str(error.value)
+
+
 def test_from_d4rl_names_the_file_it_cannot_read(tmp_path):
     single = tmp_path / "single.npz"
     with open(single, "wb") as file:  # np.save into a file named .npz: one array, no names
@@ -354,7 +363,7 @@ def test_from_d4rl_names_the_file_it_cannot_read(tmp_path):
         LifelongReplayBuffer.from_d4rl(tmp_path / "missing.npz")
 
 
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 def test_default_verify_checks_only_the_last_chunk(tmp_path, layout):
     """Documented behaviour: verify="last" (default) serves a flipped byte of an earlier chunk; "all" refuses it."""
     assert "earlier chunk" in " ".join(LifelongReplayBuffer.__doc__.split()) and "NOT detected" in LifelongReplayBuffer.__doc__
@@ -362,9 +371,9 @@ def test_default_verify_checks_only_the_last_chunk(tmp_path, layout):
     buffer = make_buffer(path, layout)
     add_rows(buffer, 0, 100)  # two chunks of 50 rows
     buffer.close()
-    data_file = path / "chunk.000000000000.bin"
+    data_file = path / ("rewards.bin" if layout == "single" else "chunk.000000000000.bin")
     data = bytearray(data_file.read_bytes())
-    block = 50 * (12 + 12 + 8)  # the rewards of the first chunk
+    block = 0 if layout == "single" else 50 * (12 + 12 + 8)  # the rewards of the first chunk
     data[block + 4 * 3] ^= 0x40  # a byte of the reward of row 3
     data_file.write_bytes(bytes(data))
     reopened = LifelongReplayBuffer.open(path, device="cpu")  # default verify="last": not detected
@@ -379,7 +388,7 @@ def test_default_verify_checks_only_the_last_chunk(tmp_path, layout):
 def directory_fsync_fails(monkeypatch, after_rename=True):
     """
     ``os.fsync`` of a directory fails with EIO: only the first one after the manifest's rename (``after_rename``), or
-    the first one before it (the sync of the new chunk file's directory entry).
+    the first one before it (layout "chunked": the sync of the new chunk file's directory entry).
     """
     real_fsync, real_replace = os.fsync, os.replace
     state = {"armed": not after_rename, "failures": 0}
@@ -406,7 +415,7 @@ def directory_fsync_fails(monkeypatch, after_rename=True):
         monkeypatch.setattr(os, "replace", real_replace)
 
 
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 def test_directory_fsync_fails_after_the_manifest_rename(tmp_path, monkeypatch, layout):
     """
     The new manifest is in place but may not be durable: flush() raises CommitNotDurableError (it does not claim a
@@ -478,7 +487,7 @@ def test_directory_fsync_fails_before_the_manifest(tmp_path, monkeypatch):
     """Layout "chunked": the new chunk file's entry is synced before a manifest names it; if that fails, nothing is
     committed (an ordinary failed flush)."""
     path = tmp_path / "b"
-    buffer = make_buffer(path, "capped")
+    buffer = make_buffer(path, "chunked")
     add_rows(buffer, 0, 120)
     files = snapshot(path)
     with directory_fsync_fails(monkeypatch, after_rename=False) as fault:
@@ -512,7 +521,7 @@ def interrupted_after_the_rename(monkeypatch):
         monkeypatch.setattr(os, "replace", real_replace)
 
 
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 def test_interrupt_after_the_manifest_rename_keeps_the_commit(tmp_path, monkeypatch, layout):
     """
     Ctrl-C after the new manifest's rename (in the directory's fsync): the rows are committed, so none of their bytes
@@ -533,7 +542,7 @@ def test_interrupt_after_the_manifest_rename_keeps_the_commit(tmp_path, monkeypa
     check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 160)
 
 
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 def test_interrupt_after_the_manifest_rename_in_add_keeps_every_row(tmp_path, monkeypatch, layout):
     """The same in an add() of three envs whose rows complete a chunk: the committed rows and the call's rows after
     them (pending) are all stored."""
@@ -550,7 +559,7 @@ def test_interrupt_after_the_manifest_rename_in_add_keeps_every_row(tmp_path, mo
 
 
 @pytest.mark.parametrize("read_mode", ["mmap", "pread"])
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 def test_reader_that_cannot_follow_a_commit_does_not_undo_it(tmp_path, monkeypatch, layout, read_mode):
     """
     Mapping (or opening) the new rows fails after the commit (ENOMEM, EMFILE): add() does not report the call as not
@@ -579,7 +588,7 @@ def test_reader_that_cannot_follow_a_commit_does_not_undo_it(tmp_path, monkeypat
     check_rows(LifelongReplayBuffer.open(path, device="cpu", verify="all"), 51)
 
 
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 def test_writer_takes_the_lock_before_reading_the_manifest(tmp_path, monkeypatch, layout):
     """
     A second writer opens the directory while the first one commits and closes: it reads the manifest only once it
@@ -611,7 +620,7 @@ def test_writer_takes_the_lock_before_reading_the_manifest(tmp_path, monkeypatch
 
 # ---------------------------------------------------------------------------------------------- a large append fails
 @needs_proc
-@pytest.mark.parametrize("layout", ["unbounded", "capped"])
+@pytest.mark.parametrize("layout", ["single", "chunked"])
 @pytest.mark.parametrize("budget", [0, 2500, 6000])
 def test_large_add_that_fails_midway_stores_nothing(tmp_path, monkeypatch, layout, budget):
     """

@@ -23,7 +23,7 @@ from sb3_lifelong.buffers.rowstore import ForkedWriterError, RowStore
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-LAYOUTS = {"unbounded": None, "capped": 100_000}
+LAYOUTS = {"single": None, "chunked": 100_000}
 needs_fork = pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork (POSIX)")
 PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
 

@@ -16,7 +16,7 @@ from sb3_lifelong.buffers import BufferFormatError
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-LAYOUTS = {"unbounded": None, "capped": 1000}
+LAYOUTS = {"single": None, "chunked": 1000}
 
 
 def add_rows(buffer: LifelongReplayBuffer, start: int, stop: int) -> None:
@@ -97,11 +97,11 @@ def test_a_buffer_without_an_id_keeps_working(tmp_path, layout):
 def test_a_replaced_buffer_without_ids_is_caught_when_its_rows_go_down(tmp_path):
     """Without ids the replacement can only be seen when the new buffer holds fewer rows (documented)."""
     path = tmp_path / "buffer"
-    written(path, "unbounded", 10)
+    written(path, "single", 10)
     strip_id(path)
     reader = LifelongReplayBuffer.open(path, read_only=True)
     shutil.rmtree(path)
-    written(path, "unbounded", 4)
+    written(path, "single", 4)
     strip_id(path)
     with pytest.raises(BufferFormatError, match="committed rows went down from 10 to 4: the buffer was replaced"):
         reader.refresh()
@@ -111,7 +111,7 @@ def test_a_replaced_buffer_without_ids_is_caught_when_its_rows_go_down(tmp_path)
 @pytest.mark.parametrize("bad", [17, "not-hex", "ABCDEF0123456789ABCDEF0123456789", "0" * 31])
 def test_a_malformed_id_is_refused(tmp_path, bad):
     path = tmp_path / "buffer"
-    written(path, "unbounded", 3)
+    written(path, "single", 3)
     document = manifest(path)
     document["buffer_id"] = bad
     (path / "manifest.json").write_text(json.dumps(document))

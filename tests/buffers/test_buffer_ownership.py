@@ -17,7 +17,7 @@ from sb3_lifelong.buffers import BufferFormatError
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-LAYOUTS = {"unbounded": None, "capped": 100_000}
+LAYOUTS = {"single": None, "chunked": 100_000}
 
 
 def add_rows(buffer: LifelongReplayBuffer, start: int, stop: int) -> None:
@@ -112,20 +112,20 @@ def test_overwrite_refuses_a_directory_that_is_not_a_buffer(tmp_path, manifest):
     (project / "static" / "thesis.tex").write_text("\\chapter{Results}")
     before = snapshot(project)
     with pytest.raises(BufferFormatError, match=rf"refusing to overwrite {project}: mode='overwrite' deletes only"):
-        make(project, "unbounded", mode="overwrite")
+        make(project, "single", mode="overwrite")
     assert snapshot(project) == before  # nothing deleted, nothing created (no writer.lock)
 
 
 def test_overwrite_refuses_a_manifest_that_is_a_link(tmp_path):
     elsewhere = tmp_path / "elsewhere"
-    real = make(elsewhere, "unbounded")
+    real = make(elsewhere, "single")
     add_rows(real, 0, 60)
     real.close()
     path = tmp_path / "buffer"
     path.mkdir()
     os.symlink(elsewhere / "manifest.json", path / "manifest.json")
     with pytest.raises(BufferFormatError, match="is a link or not a regular file"):
-        make(path, "unbounded", mode="overwrite")
+        make(path, "single", mode="overwrite")
     again = reopen(elsewhere)
     assert_rows(again, 60)
     again.close()
@@ -154,7 +154,7 @@ def test_a_link_planted_at_the_next_chunk_file_is_never_written_through(tmp_path
     outside = tmp_path / "someone_elses_file.txt"
     outside.write_text("precious")
     path = tmp_path / "buffer"
-    buffer = make(path, "capped")
+    buffer = make(path, "chunked")
     add_rows(buffer, 0, 60)  # chunk 0 committed, the next one starts at row 50
     os.symlink(outside, path / "chunk.000000000050.bin")
     add_rows(buffer, 60, 130)
@@ -166,13 +166,28 @@ def test_a_link_planted_at_the_next_chunk_file_is_never_written_through(tmp_path
     again.close()
 
 
+def test_a_field_file_replaced_by_a_link_is_never_written_through(tmp_path):
+    outside = tmp_path / "someone_elses_file.txt"
+    outside.write_text("precious")
+    path = tmp_path / "buffer"
+    buffer = make(path, "single")
+    add_rows(buffer, 0, 60)
+    os.rename(path / "rewards.bin", tmp_path / "rewards_moved.bin")
+    os.symlink(outside, path / "rewards.bin")
+    with pytest.raises(OSError, match=rf"{path}: flush\(\) failed before the commit"):
+        buffer.flush()
+    assert outside.read_text() == "precious"
+    assert buffer.size() == 60  # the pending rows stay pending
+    buffer.store._closed = True  # its directory was tampered with: do not flush again at garbage collection
+
+
 @pytest.mark.parametrize("target_exists", [True, False])
 def test_a_writer_lock_that_is_a_link_is_refused(tmp_path, target_exists):
     outside = tmp_path / "someone_elses_file.txt"
     if target_exists:
         outside.write_text("precious")
     path = tmp_path / "buffer"
-    made = make(path, "unbounded")
+    made = make(path, "single")
     add_rows(made, 0, 60)
     made.close()
     os.remove(path / "writer.lock")

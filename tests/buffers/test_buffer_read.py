@@ -28,7 +28,7 @@ DICT_OBS = spaces.Dict(
         "mode": spaces.Discrete(4),
     }
 )
-LAYOUTS = {"unbounded": None, "capped": 150}  # capacity of each layout
+LAYOUTS = {"single": None, "chunked": 150}  # capacity of each layout
 PACKAGE_DIR = os.path.dirname(sb3_lifelong.__file__)  # where a light child process imports the row store from
 linux_only = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc/self (Linux)")
 
@@ -227,7 +227,7 @@ def test_same_reads_as_mmap(tmp_path, layout, observation_space):
     fill(writers, 13, 2, seed=3)  # leaves unflushed rows in the tails
     mmap_writer, pread_writer = writers
     assert mmap_writer.store.num_tail > 0 and pread_writer.read_mode == "pread"
-    assert mmap_writer.size() == pread_writer.size() == (150 if layout == "capped" else 231)
+    assert mmap_writer.size() == pread_writer.size() == (150 if layout == "chunked" else 231)
     rng = np.random.default_rng(0)
     assert_same_samples(mmap_writer, pread_writer)  # committed rows and the writer's tail
     assert_same_ranges(mmap_writer, pread_writer)
@@ -252,7 +252,7 @@ def test_same_reads_as_mmap(tmp_path, layout, observation_space):
 def test_merge_gap_and_short_reads(tmp_path, monkeypatch, merge_gap):
     """Rows read one call each, runs of nearby rows, or everything in one call; reads that return fewer bytes."""
     monkeypatch.setattr(readers, "PREAD_MERGE_GAP", merge_gap)
-    writers = make_pair(tmp_path, "capped", chunk_size=30)
+    writers = make_pair(tmp_path, "chunked", chunk_size=30)
     fill(writers, 200, 1, seed=4)
     assert_same_gather(*writers, np.random.default_rng(1))
     assert_same_samples(*writers)
@@ -283,7 +283,7 @@ def test_followers_read_the_same_while_writer_appends(tmp_path, layout):
         assert_same_samples(*followers, seeds=[step], batch_size=32)
         assert_same_ranges(*followers)
         assert followers[0].source_counts() == followers[1].source_counts()
-    if layout == "capped":
+    if layout == "chunked":
         assert len(os.listdir(tmp_path / "b")) < 12  # chunk files were deleted
         if os.path.isdir("/proc/self/fd"):  # the pread follower keeps the files of the retained chunks open, no other
             store = followers[1].store
@@ -400,7 +400,7 @@ def test_file_descriptors_closed_on_close(tmp_path, layout):
     before = fd_count()
     assert not mapped_files(tmp_path / "b")
     reader = LifelongReplayBuffer.open(tmp_path / "b", read_only=True, read_mode="pread")
-    files = len(reader.store.chunks)  # one descriptor per chunk file
+    files = len(reader.store.fields) if layout == "single" else len(reader.store.chunks)
     assert fd_count() == before + files
     reader.sample(32)
     assert not mapped_files(tmp_path / "b")  # no page of the buffer's files is mapped into this process
@@ -433,7 +433,7 @@ def test_file_truncated_while_open(tmp_path):
     fill([buffer], 40, 1, seed=9)
     buffer.close()
     reader = LifelongReplayBuffer.open(tmp_path / "b", read_only=True, read_mode="pread")
-    with open(tmp_path / "b" / "chunk.000000000030.bin", "r+b") as file:
+    with open(tmp_path / "b" / "observations.bin", "r+b") as file:
         file.truncate(100)
     with pytest.raises(BufferFormatError, match="truncated or replaced"):
         reader.store.read_range("observations", 0, 40)

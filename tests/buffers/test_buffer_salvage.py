@@ -18,7 +18,7 @@ from sb3_lifelong.buffers.__main__ import main
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
 ACT = gym.spaces.Box(-1, 1, (2,), np.float32)
-LAYOUTS = {"unbounded": None, "capped": 1_000}
+LAYOUTS = {"single": None, "chunked": 1_000}
 ROW_BYTES = {"observations": 12, "next_observations": 12, "actions": 8, "rewards": 4}  # then flags, sources, ...
 
 
@@ -33,9 +33,12 @@ def make(path, layout, rows=100, n_envs=2):
     buffer.close()
 
 
-def flip(path, chunk, row=3):
+def flip(path, layout, chunk, row=3):
     """Flip a bit of the reward of row ``row`` of chunk ``chunk`` (rows 20 * chunk ...)."""
-    name, offset = path / f"chunk.{20 * chunk:012d}.bin", 20 * (12 + 12 + 8) + row * 4
+    if layout == "single":
+        name, offset = path / "rewards.bin", (20 * chunk + row) * 4
+    else:
+        name, offset = path / f"chunk.{20 * chunk:012d}.bin", 20 * (12 + 12 + 8) + row * 4
     data = bytearray(name.read_bytes())
     data[offset] ^= 0x10
     name.write_bytes(bytes(data))
@@ -49,7 +52,7 @@ def snapshot(directory):
 def test_a_bit_flip_is_served_by_default_found_by_verify_all_and_salvaged(tmp_path, layout):
     path = tmp_path / "b"
     make(path, layout)
-    flip(path, chunk=1)
+    flip(path, layout, chunk=1)
     before = snapshot(path)
     # documented: verify="last" (the default) does not read earlier chunks, so the flipped reward is served
     served = LifelongReplayBuffer.open(path, read_only=True)
@@ -74,8 +77,8 @@ def test_streams_never_chain_across_a_left_out_chunk(tmp_path):
     """Rows after the gap get new stream ids: an n-step return of row 19 (the last before the gap) must not add the
     rewards of rows 41, 43 (after it: the same env, 20 rows later in the copy)."""
     path = tmp_path / "b"
-    make(path, "unbounded")
-    flip(path, chunk=1)
+    make(path, "single")
+    flip(path, "single", chunk=1)
     copy, _ = LifelongReplayBuffer.salvage(path, tmp_path / "copy", read_only=True, n_steps=3, gamma=0.5, device="cpu")
     streams = copy.read_range("streams", 0, 80)
     assert set(streams[:20].tolist()).isdisjoint(streams[20:].tolist())
@@ -88,7 +91,7 @@ def test_streams_never_chain_across_a_left_out_chunk(tmp_path):
 @pytest.mark.parametrize("damage", ["missing", "truncated"])
 def test_a_missing_or_truncated_chunk_file(tmp_path, damage):
     path = tmp_path / "b"
-    make(path, "capped")
+    make(path, "chunked")
     chunk = path / "chunk.000000000040.bin"
     if damage == "missing":
         chunk.unlink()
@@ -101,6 +104,18 @@ def test_a_missing_or_truncated_chunk_file(tmp_path, damage):
     assert main(["salvage", str(path), str(tmp_path / "copy")]) == 1
     copy = LifelongReplayBuffer.open(tmp_path / "copy", read_only=True, verify="all")
     np.testing.assert_array_equal(copy.read_range("rewards", 0, 80), np.r_[0:40, 60:100])
+
+
+def test_a_truncated_field_file_keeps_the_chunks_before(tmp_path):
+    path = tmp_path / "b"
+    make(path, "single")
+    rewards = path / "rewards.bin"
+    rewards.write_bytes(rewards.read_bytes()[: 50 * 4])  # rows 50.. lost: chunks 2 (40-59), 3 and 4
+    report = LifelongReplayBuffer.check_directory(path)
+    assert [c.start for c in report.damaged] == [40, 60, 80]
+    copy, report = LifelongReplayBuffer.salvage(path, tmp_path / "copy", read_only=True)
+    np.testing.assert_array_equal(copy.read_range("rewards", 0, 40), np.arange(40))
+    assert report.copied == 40
 
 
 def test_an_evicted_prefix_is_not_copied(tmp_path):
@@ -118,7 +133,7 @@ def test_an_evicted_prefix_is_not_copied(tmp_path):
 
 def test_salvage_refuses_to_write_over_anything(tmp_path):
     path = tmp_path / "b"
-    make(path, "unbounded")
+    make(path, "single")
     with pytest.raises(FileExistsError, match="not an empty directory"):
         LifelongReplayBuffer.salvage(path, path)
     (tmp_path / "full").mkdir()
@@ -143,10 +158,10 @@ def run_module(monkeypatch, *args):
 
 def test_command_line(tmp_path, monkeypatch, capsys):
     path = tmp_path / "b"
-    make(path, "capped")
+    make(path, "chunked")
     assert run_module(monkeypatch, "verify", str(path)) == 0
     assert "0 damaged; 100 transitions intact" in capsys.readouterr().out
-    flip(path, chunk=4)
+    flip(path, "chunked", chunk=4)
     assert run_module(monkeypatch, "verify", str(path)) == 1
     out = capsys.readouterr().out
     assert "rows 80 to 99" in out and "checksum mismatch" in out

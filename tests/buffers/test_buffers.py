@@ -163,9 +163,7 @@ def test_round_trip_reopen_append(tmp_path):
     # the format is plain JSON + raw files
     manifest = json.loads((path / "manifest.json").read_text())
     assert manifest["num_transitions"] == 120 and manifest["sources"]["0"]["name"] == "Env-A"
-    chunk_files = [f"chunk.{start:012d}.bin" for start in (0, 50, 100)]  # one file per chunk, every field in it
-    assert sorted(os.listdir(path)) == [*chunk_files, "manifest.json", "writer.lock"]
-    assert os.path.getsize(path / chunk_files[0]) * 20 == os.path.getsize(path / chunk_files[2]) * 50
+    assert os.path.getsize(path / "observations.bin") == 120 * 3 * 4
     reopened = LifelongReplayBuffer.open(path, n_steps=3)
     assert reopened.recovered == 120 and reopened.observation_space.shape == (3,)
     for name, values in all_rows(reopened).items():
@@ -291,8 +289,7 @@ def test_crash_sigkill_loses_only_unflushed_tail(tmp_path):
         assert store.num_committed >= least and store.recovered == store.num_committed
         for name, values in expected_rows(store.num_committed).items():
             np.testing.assert_array_equal(store.read_range(name, 0, store.num_committed), values, err_msg=name)
-        listed = {f"chunk.{chunk['start']:012d}.bin" for chunk in store.chunks}
-        assert {entry for entry in os.listdir(path) if entry.startswith("chunk.")} == listed  # unflushed chunks removed
+            assert os.path.getsize(os.path.join(path, name + ".bin")) == values.nbytes  # tail cut off
         total_before = store.num_committed
         store.close()
     assert total_before > 0
@@ -364,19 +361,17 @@ def test_corrupted_files(tmp_path):
             LifelongReplayBuffer.open(path, read_only=True)
     (path / "manifest.json").write_bytes(good)
     # flipped bit in a committed chunk: caught by the checksum
-    first = path / "chunk.000000000000.bin"
-    data = bytearray(first.read_bytes())
+    data = bytearray((path / "rewards.bin").read_bytes())
     data[5] ^= 1
-    first.write_bytes(bytes(data))
+    (path / "rewards.bin").write_bytes(bytes(data))
     with pytest.raises(BufferFormatError, match="checksum"):
         LifelongReplayBuffer.open(path, read_only=True, verify="all")
-    # truncated chunk file
-    first.write_bytes(bytes(data[:40]))
+    # truncated field file
+    (path / "rewards.bin").write_bytes(bytes(data[:40]))
     with pytest.raises(BufferFormatError, match="truncated"):
         LifelongReplayBuffer.open(path, read_only=True, verify="none")
-    first.write_bytes(bytes(data))
-    os.remove(path / "chunk.000000000010.bin")
-    with pytest.raises(BufferFormatError, match=r"chunk\.000000000010\.bin: chunk file is missing"):
+    os.remove(path / "flags.bin")
+    with pytest.raises(BufferFormatError, match="missing"):
         LifelongReplayBuffer.open(path, read_only=True)
     with pytest.raises(FileNotFoundError):
         LifelongReplayBuffer.open(tmp_path / "nothing")
