@@ -137,3 +137,35 @@ def test_the_op3_stage1_rule_picks_the_shortest_length_every_seed_meets(bench, t
     assert "| 300k | s0: 0.0 / 3.00; s1: 1.3 / 2.03 | no |" in lines
     assert "| 400k | s0: 0.0 / 3.00; s1: 0.0 / 3.00 | yes |" in lines
     assert lines[-1] == "Stage-1 length by the rule: 400k"
+
+
+def test_the_queue_runs_what_is_pending_in_order_and_a_held_run_is_refused(bench, tmp_path, monkeypatch, capsys):
+    """Pending: the registered runs that reached --steps neither in --results nor in the committed results; a run is
+    one command at a time (its lock)."""
+    committed, results = tmp_path / "committed", tmp_path / "res"
+    committed.mkdir()
+    results.mkdir()
+    monkeypatch.setattr(bench, "RESULTS", committed)
+    monkeypatch.setattr(bench, "REGISTERED", [("mpo", "Pendulum-v1", 0), ("sac", "Pendulum-v1", 0), ("mpo", "Pendulum-v1", 1)])
+    bench._write_rows(committed / "mpo_Pendulum-v1_s0.csv", [{"timesteps": 400}])  # done, committed
+    bench._write_rows(results / "sac_Pendulum-v1_s0.csv", [{"timesteps": 200}])  # stopped half-way
+    assert bench.pending(results, 400) == [("sac", "Pendulum-v1", 0), ("mpo", "Pendulum-v1", 1)]
+    bench.main(["queue", "--runs", str(tmp_path / "runs"), "--results", str(results), "--steps", "400", "--dry-run"])
+    assert "2 runs pending: sac_Pendulum-v1_s0, mpo_Pendulum-v1_s1" in capsys.readouterr().out
+    # one run to 400 steps through the queue (a command of its own); then nothing is pending
+    monkeypatch.setattr(bench, "REGISTERED", [("mpo", "Pendulum-v1", 1)])
+    bench.main(["queue", "--runs", str(tmp_path / "runs"), "--results", str(results), "--steps", "400", "--poll", "0.5"])
+    assert "mpo_Pendulum-v1_s1 ended (exit status 0)" in capsys.readouterr().out
+    assert [int(row["timesteps"]) for row in rows(results / "mpo_Pendulum-v1_s1.csv")] == [0, 400]
+    assert bench.pending(results, 400) == []
+    # a run held by another command is refused, and nothing of it is written
+    import fcntl
+
+    folder = tmp_path / "runs" / "mpo_Pendulum-v1_s2"
+    folder.mkdir(parents=True)
+    with open(folder / "run.lock", "a") as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(SystemExit, match="mpo_Pendulum-v1_s2 is being run by another command"):
+            held_run = ["run", "--algo", "mpo", "--env", "Pendulum-v1", "--seed", "2", "--steps", "400"]
+            bench.main([*held_run, "--runs", str(tmp_path / "runs"), "--results", str(results)])
+    assert not (results / "mpo_Pendulum-v1_s2.csv").exists()

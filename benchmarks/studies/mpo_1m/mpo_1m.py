@@ -10,6 +10,12 @@ One command is one run; it checkpoints (model, optimisers, replay buffer, random
         --runs /work/runs/mpo_1m
     python benchmarks/studies/mpo_1m/mpo_1m.py report       # results.md and curves.png from results/*.csv
 
+``queue`` runs every registered run that has not reached ``--steps`` (MPO and SAC of a task and seed side by side,
+tasks then seeds in order), ``--slots`` at a time, each as its own ``run`` command, until all are done or it is
+stopped; a run another command holds (its lock, ``<runs>/<name>/run.lock``) is left to it::
+
+    nohup python benchmarks/studies/mpo_1m/mpo_1m.py queue --runs /work/runs/mpo_1m --results /work/results/mpo_1m &
+
 The same command measures OP3's Stage 1 for the paper's study (``--env sb3_lifelong/OP3Walk-v0 --appended
 hip_deformation``: the observation carries the hip's true parameter, as in the study's Stage 1), with the distance
 walked and the falls of each evaluation beside the return. Small results go to ``--results``; checkpoints and
@@ -18,6 +24,7 @@ buffers stay in ``--runs``.
 
 import argparse
 import csv
+import fcntl
 import json
 import math
 import os
@@ -183,6 +190,11 @@ def run(args: argparse.Namespace) -> None:
     name = run_name(args.algo, args.env, args.seed, args.appended)
     folder = pathlib.Path(args.runs) / name
     folder.mkdir(parents=True, exist_ok=True)
+    lock = open(folder / "run.lock", "a")  # held until this process ends: one command per run at a time
+    try:
+        fcntl.flock(lock.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        raise SystemExit(f"{name} is being run by another command (it holds {folder / 'run.lock'})") from None
     results = pathlib.Path(args.results)
     results.mkdir(parents=True, exist_ok=True)
     csv_path, meta_path, state_path = results / f"{name}.csv", results / f"{name}.json", folder / "state.json"
@@ -463,6 +475,47 @@ def draw(runs: list[dict[str, Any]], path: pathlib.Path) -> None:
     save(plt, fig, path)
 
 
+#: the registered runs, in the order ``queue`` starts them: per task (the issue's bar first: HalfCheetah and
+#: Walker2d), per seed, MPO then SAC
+REGISTERED = [(algo, task, seed) for task in TASKS for seed in (0, 1, 2) for algo in ("mpo", "sac")]
+
+
+def reached(folders: list[pathlib.Path], name: str, steps: int) -> bool:
+    """:return: whether the run's CSV in one of ``folders`` has an evaluation at ``steps`` or later"""
+    paths = [folder / f"{name}.csv" for folder in folders]
+    return any(path.exists() and any(int(row["timesteps"]) >= steps for row in _read_rows(path)) for path in paths)
+
+
+def pending(results: pathlib.Path, steps: int) -> list[tuple[str, str, int]]:
+    """:return: the registered runs that have not reached ``steps`` (in ``results`` or the committed ones), in order"""
+    folders = [results, RESULTS]
+    return [run for run in REGISTERED if not reached(folders, run_name(run[0], run[1], run[2], None), steps)]
+
+
+def queue(args: argparse.Namespace) -> None:
+    """Run the pending registered runs, ``--slots`` at a time, each a ``run`` command (one thread)."""
+    results = pathlib.Path(args.results)
+    todo = pending(results, args.steps)
+    print(f"{len(todo)} runs pending: " + ", ".join(run_name(a, t, s, None) for a, t, s in todo), flush=True)
+    if args.dry_run:
+        return
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    running: list[tuple[str, subprocess.Popen]] = []
+    while todo or running:
+        while todo and len(running) < args.slots:
+            algo, task, seed = todo.pop(0)
+            command = [sys.executable, __file__, "run", "--algo", algo, "--env", task, "--seed", str(seed)]
+            command += ["--steps", str(args.steps), "--checkpoint-every", str(args.checkpoint_every)]
+            command += ["--runs", args.runs, "--results", args.results]
+            running.append((run_name(algo, task, seed, None), subprocess.Popen(command, env=env)))
+            print(f"started {running[-1][0]}", flush=True)
+        time.sleep(args.poll)
+        for name, process in list(running):
+            if process.poll() is not None:
+                running.remove((name, process))
+                print(f"{name} ended (exit status {process.returncode})", flush=True)
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     parser = argparse.ArgumentParser(prog="mpo_1m.py", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -481,9 +534,19 @@ def main(argv: Optional[list[str]] = None) -> None:
     summary = commands.add_parser("report", help="results.md and curves.png from the runs' CSV files")
     summary.add_argument("--results", default=str(RESULTS), help="folder of the runs' CSV and JSON files")
     summary.add_argument("--out", default=str(STUDY), help="folder of results.md and curves.png")
+    line = commands.add_parser("queue", help="every registered run not at --steps yet, --slots at a time")
+    line.add_argument("--slots", type=int, default=2, help="runs at once (one core each)")
+    line.add_argument("--steps", type=int, default=1_000_000)
+    line.add_argument("--checkpoint-every", type=int, default=100_000)
+    line.add_argument("--runs", required=True, help="folder of the checkpoints and buffers (not committed)")
+    line.add_argument("--results", default=str(RESULTS), help="folder of the CSV and JSON of each run")
+    line.add_argument("--poll", type=float, default=30.0, help="seconds between looks at the running commands")
+    line.add_argument("--dry-run", action="store_true", help="list the pending runs, start none")
     args = parser.parse_args(argv)
     if args.command == "run":
         run(args)
+    elif args.command == "queue":
+        queue(args)
     else:
         report(args)
 
