@@ -372,3 +372,86 @@ def test_a_saw_wave_of_no_half_period_is_refused():
 def test_switch_at_of_the_wrong_length_says_how_many_it_needs():
     with pytest.raises(ValueError, match=r"2 values for 3 stages, got 1"):
         DynamicsSchedule(gym.make("HalfCheetah-v5"), stages=[{}, {"mass_scale": 1.5}, {"mass_scale": 2.0}], switch_at=[100])
+
+
+# ------------------------------------------------------------------------------------- each check at its boundary
+@pytest.mark.parametrize(
+    "scheduler, match",
+    [
+        (LinearRamp(1.0, 1.5, begin=100, finish=100), r"LinearRamp for friction: need 0 <= begin < finish, got begin=100"),
+        (LinearRamp(1.0, 1.5, begin=-1, finish=100), r"need 0 <= begin < finish, got begin=-1, finish=100"),
+        (RandomWalk(1.0, 0.1, period=0), r"RandomWalk for friction: need period >= 1 and std >= 0"),
+        (RandomWalk(1.0, -0.1), r"need period >= 1 and std >= 0"),
+        (RandomWalk(5.0, 0.1, low=0.5, high=2.0), r"RandomWalk for friction: start=5.0 outside \[0.5, 2.0\]"),
+        (RandomWalk(0.49, 0.1, low=0.5, high=2.0), r"start=0.49 outside \[0.5, 2.0\]"),
+    ],
+)
+def test_scheduler_checks_name_the_parameter_and_the_value(scheduler, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        wrapped(schedules={"friction": scheduler})
+
+
+def test_scheduler_checks_accept_their_boundaries() -> None:
+    ramp = LinearRamp(1.0, 1.5, begin=0, finish=1)
+    walk = RandomWalk(0.5, 0.0, period=1, low=0.5, high=2.0)  # start at low, no noise, a step every timestep
+    env = wrapped(schedules={"friction": ramp, "mass_scale": walk})
+    assert (ramp.value(0), ramp.value(1), ramp.value(10)) == (1.0, 1.5, 1.5)
+    assert [walk.value(t) for t in (0, 1, 5, 50)] == [0.5, 0.5, 0.5, 0.5]
+    env.close()
+
+
+def test_a_constant_ramp_takes_the_parameters_physical_range() -> None:
+    ramp = LinearRamp(1.2, 1.2, begin=0, finish=10)
+    env = wrapped(schedules={"friction": ramp})
+    assert (ramp.low, ramp.high) == env.editor.valid_range("friction")
+    assert ramp.value(0) == ramp.value(5) == ramp.value(100) == 1.2
+    env.close()
+
+
+def test_drift_direction_is_plus_or_minus_one() -> None:
+    with pytest.raises(ValueError, match=r"direction must be \+1 or -1, got 0"):
+        Drift(1.0, 0.1, direction=0)
+    for direction in (1, -1):
+        drift = Drift(1.0, 0.1, direction=direction, period=1, low=0.5, high=1.5, seed=0)
+        env = wrapped(schedules={"friction": drift})
+        values = [drift.value(t) for t in range(6)]
+        assert all(direction * (b - a) >= 0 for a, b in zip(values, values[1:])) and values[-1] != values[0]
+        env.close()
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        (dict(stages=[]), ValueError, r"stages must hold at least one setting \(use \[\{\}\] for the nominal robot\)"),
+        (dict(schedules={"friction": 1.0}), TypeError, r"schedules\['friction'\] must be a Scheduler .* got 1.0"),
+        (dict(stages=[{}, 5]), TypeError, r"stages\[1\] must be a dict of parameter values or a named stage, got 5"),
+    ],
+)
+def test_wrong_kinds_are_named(kwargs, error, match) -> None:
+    with pytest.raises(error, match=match):
+        wrapped(**kwargs)
+
+
+def test_append_params_needs_a_flat_box() -> None:
+    flat = DynamicsSchedule(gym.make(ENV_ID), stages=[{}, {"friction": 1.5}], append_params=True)
+    assert flat.observation_space.shape == (17 + 1,)
+    flat.close()
+    with pytest.raises(ValueError, match=r"append_params needs a flat Box observation space, got Box\(.*\(1, 17\)"):
+        DynamicsSchedule(gym.wrappers.ReshapeObservation(gym.make(ENV_ID), (1, 17)), append_params=True)
+
+
+def test_the_timestep_hook_refuses_no_envs_and_stages_are_copies() -> None:
+    env = wrapped(stages=[{}, {"friction": 1.5}], switch_at=[100])
+    sync = getattr(env, SYNC_TIMESTEP_METHOD)
+    with pytest.raises(ValueError, match=r"n_envs must be >= 1, got 0"):
+        sync(10, 0)
+    sync(100, 1)
+    assert env.timestep == 100 and env.stage == 0  # the change waits for the next episode (mid_episode=False)
+    env.reset(seed=0)
+    assert env.stage == 1
+    stages = env.stages
+    stages[1]["friction"] = 9.0
+    assert env.stages[1] == {"friction": 1.5}  # a copy: the env's stages are unchanged
+    index = env.set_params({"friction": 1.2})
+    assert index == 2 and env.stages == [{}, {"friction": 1.5}, {"friction": 1.2}]
+    env.close()
