@@ -383,3 +383,29 @@ def test_unlimited_position_servos_scale_their_stiffness():
     env.set_params({"actuator_strength": 0.5}, immediate=True)
     np.testing.assert_allclose(model.actuator_gainprm[:, 0], 0.5 * kp)
     np.testing.assert_allclose(model.actuator_biasprm[:, 1], -0.5 * kp)
+
+
+def test_a_mujoco_env_without_a_robot_description_is_refused_with_the_way_out() -> None:
+    with pytest.raises(
+        ValueError,
+        match=r"No robot description for InvertedPendulumEnv: known envs are HalfCheetahEnv, "
+        r"HopperEnv, HumanoidEnv, Walker2dEnv, OP3WalkEnv, DMCWalkerEnv\. Give the env an attribute "
+        r"`robot_description`",
+    ):
+        DynamicsSchedule(gym.make("InvertedPendulum-v5"))
+
+
+def test_a_recompiled_foot_scale_is_cached_and_the_same_again() -> None:
+    """foot_scale recompiles the model once per value; the second time the cached arrays give the same model."""
+    env = DynamicsSchedule(gym.make("Hopper-v5"))
+    model = env.unwrapped.model
+    env.set_params({"foot_scale": 1.4}, immediate=True)
+    first = {name: np.array(getattr(model, name)) for name in ("geom_size", "geom_rbound", "body_mass")}
+    assert len(env.editor._compiled) == 1
+    env.set_params({}, immediate=True)
+    assert not np.array_equal(model.geom_size, first["geom_size"])  # back to the nominal feet
+    env.set_params({"foot_scale": 1.4}, immediate=True)
+    assert len(env.editor._compiled) == 1  # the cached recompile, not a second one
+    for name, values in first.items():
+        np.testing.assert_array_equal(getattr(model, name), values, err_msg=name)
+    env.close()
