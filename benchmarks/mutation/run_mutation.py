@@ -105,7 +105,10 @@ MODULES: dict[str, list[str]] = {
         "tests/golden/test_golden_sampling.py",
         "tests/golden/test_golden_views.py",
         "tests/golden/test_golden_student_rows.py",
+        "tests/buffers/test_sampling_checks.py",
         "tests/buffers/test_buffers.py",
+        "tests/common/test_offline_data.py",  # the next actions of the data (CRR's SARSA target)
+        "tests/buffers/test_buffer_dict.py",  # Dict observations
     ],
     "sb3_lifelong/buffers/views.py": [
         "tests/golden/test_golden_views.py",
