@@ -180,3 +180,71 @@ def test_a_train_log_of_no_frequency_is_refused(tmp_path):
 
     with pytest.raises(ValueError, match="log_freq must be >= 1, got 0"):
         TrainLogCallback(tmp_path / "train.csv", log_freq=0)
+
+
+# ------------------------------------------------------------------------------------- each check at its boundary
+def test_the_callbacks_checks_name_the_problem() -> None:
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback, TrainLogCallback
+
+    envs = {"Env-A": gym.make("Pendulum-v1")}
+    with pytest.raises(ValueError, match=r"sources names environments \['Env-B'\] that are not evaluated \(\['Env-A'\]\)"):
+        MultiEnvEvalCallback(envs, sources={"Env-A": 0, "Env-B": 1})
+    with pytest.raises(ValueError, match="same_episodes=True needs a seed"):
+        MultiEnvEvalCallback(envs, same_episodes=True)
+    assert MultiEnvEvalCallback(envs, same_episodes=True, seed=0).seed == 0  # the smallest seed
+    for kwargs in (dict(log_freq=0), dict(batch_size=0)):
+        with pytest.raises(ValueError, match=r"log_freq and batch_size must be >= 1"):
+            SourceQCallback(**kwargs)
+    with pytest.raises(ValueError, match=r"log_freq must be >= 1, got 0"):
+        TrainLogCallback("train.csv", log_freq=0)
+    assert TrainLogCallback("train.csv", log_freq=1).log_freq == 1
+
+
+def test_sources_need_a_model_with_one_actor_per_source() -> None:
+    envs = {"Env-A": gym.make("Pendulum-v1")}
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
+    with pytest.raises(
+        TypeError, match=r"MultiEnvEvalCallback\(sources=...\) needs a model with one actor per source, got MPO"
+    ):
+        model.learn(60, callback=MultiEnvEvalCallback(envs, eval_freq=50, n_eval_episodes=1, sources={"Env-A": 0}))
+
+
+def test_source_q_needs_a_critic_and_logs_nothing_from_an_empty_buffer() -> None:
+    from sb3_lifelong import LifelongReplayBuffer
+    from sb3_lifelong.evaluation.callbacks import SourceQCallback
+
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, replay_buffer_class=LifelongReplayBuffer, **SMALL)
+    callback = SourceQCallback(log_freq=20, batch_size=16, monte_carlo=False)
+    callback.init_callback(model)
+    assert model.replay_buffer.size() == 0 and callback.measure() == {}
+    del model.critic
+    with pytest.raises(TypeError, match="SourceQCallback needs a model with a critic, got MPO"):
+        SourceQCallback(log_freq=20).init_callback(model)
+
+
+def test_eval_at_start_evaluates_the_untrained_policy_at_step_0(tmp_path) -> None:
+    envs = {"Env-A": gym.make("Pendulum-v1")}
+    callback = MultiEnvEvalCallback(envs, eval_freq=100, n_eval_episodes=1, eval_at_start=True, seed=0)
+    MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL).learn(100, callback=callback)
+    assert [row["timesteps"] for row in callback.results] == [0, 100]
+    late = MultiEnvEvalCallback(envs, eval_freq=100, n_eval_episodes=1, seed=0)
+    MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL).learn(100, callback=late)
+    assert [row["timesteps"] for row in late.results] == [100]
+
+
+def test_train_log_writes_the_train_values_every_log_freq_and_a_resume_keeps_its_columns(tmp_path) -> None:
+    from sb3_lifelong.evaluation.callbacks import TrainLogCallback
+
+    path = tmp_path / "logs" / "train.csv"
+    model = MPO("MlpPolicy", "Pendulum-v1", seed=0, **SMALL)
+    model.learn(200, callback=TrainLogCallback(path, log_freq=50))
+    with open(path, newline="") as handle:
+        first = list(csv.reader(handle))
+    header = first[0]
+    assert header[0] == "timesteps" and "critic_loss" in header and header[1:] == sorted(header[1:])
+    # no train/ values before the first update (learning_starts=50): rows from then on, one per 50 steps
+    assert [int(row[0]) for row in first[1:]] == [100, 150, 200]
+    model.learn(100, callback=TrainLogCallback(path, log_freq=50), reset_num_timesteps=False)
+    with open(path, newline="") as handle:
+        again = list(csv.reader(handle))
+    assert again[0] == header and [int(row[0]) for row in again[1:]] == [100, 150, 200, 250, 300]
