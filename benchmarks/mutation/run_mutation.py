@@ -71,6 +71,7 @@ MODULES: dict[str, list[str]] = {
     ],
     "sb3_lifelong/common/policies.py": [
         "tests/common/test_policies.py",
+        "tests/mpo/test_presets.py",  # the heads' init scale (Acme's MuJoCo baseline)
         "tests/common/test_properties.py",
         "tests/mpo/test_mpo_losses.py",
         "tests/crr/test_crr_losses.py",
