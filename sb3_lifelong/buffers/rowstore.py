@@ -154,8 +154,7 @@ class RowStore(ManifestRecords):
                 self._layout.remove_buffer()  # under the lock: a live writer was refused above
             self._open_or_create(fields, capacity, verify, evict)
         except BaseException:
-            self._closed = True  # a store that failed to open writes nothing, now or when it is collected
-            self._release_lock()
+            self.abandon()  # a store that failed to open writes nothing, now or when it is collected
             raise
         self._tail_start = self.num_committed
         rows = self._first_tail_rows()
@@ -166,8 +165,7 @@ class RowStore(ManifestRecords):
             try:
                 self._commit(self.chunks, self.num_committed)  # a smaller capacity than the stored one evicts now; maps
             except BaseException:
-                self._closed = True
-                self._release_lock()
+                self.abandon()
                 raise
         else:
             self._sync_maps()
