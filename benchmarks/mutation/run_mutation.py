@@ -34,6 +34,7 @@ import copy
 import csv
 import datetime
 import importlib
+import json
 import os
 import pathlib
 import platform
@@ -48,6 +49,8 @@ from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from typing import Any, Callable, Optional
+
+import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
@@ -603,6 +606,205 @@ def run_forked(
             shutil.rmtree(copy_root, ignore_errors=True)
 
 
+# ---------------------------------------------------------------------------------------------------------------------
+# The tests that run a mutant's statement (``--select covering``)
+# ---------------------------------------------------------------------------------------------------------------------
+
+#: where a line ran outside any test (at import, at collection): a mutant there may change what every test sees
+IMPORT_CONTEXT = ""
+FIXTURE_CONTEXT = "fixture:"
+
+
+@dataclass
+class CoverageMap:
+    """
+    Which of a module's targeted tests run each of its lines, read once from the unmutated tests under coverage
+    (:func:`coverage_map`). A test that never runs a statement runs the same code in a mutant of that statement up to
+    its end, so it cannot kill the mutant: only the tests that run it are needed. Where that is not known, every test
+    runs (:meth:`tests_for` returns None).
+
+    :param order: the tests (pytest node ids) in the order they ran
+    :param lines: line -> the contexts that ran it: a test's node id, ``fixture:<name>`` (a fixture of class, module
+        or session scope set up for the tests that use it) or ``""`` (at import or collection)
+    :param fixtures: test -> the fixtures it uses
+    :param spawning: the contexts that started a process (``subprocess``, ``multiprocessing``): what the process ran
+        is not measured, so their tests run with every mutant
+    """
+
+    order: list[str]
+    lines: dict[int, list[str]]
+    fixtures: dict[str, list[str]]
+    spawning: list[str]
+
+    def _tests_of(self, context: str) -> set[str]:
+        if context.startswith(FIXTURE_CONTEXT):
+            name = context[len(FIXTURE_CONTEXT) :]
+            return {test for test in self.order if name in self.fixtures.get(test, ())}
+        return {context} if context in self.fixtures else set()
+
+    def tests_for(self, first: int, last: int) -> Optional[list[str]]:
+        """
+        :param first: the first line of the mutated statement (see :func:`statement_lines`)
+        :param last: its last line
+        :return: the tests that ran a line of it, with those that start processes, in their order; None (run every
+            test) when a line of it ran at import or collection, or in no test of this process
+        """
+        contexts = {context for line in range(first, last + 1) for context in self.lines.get(line, ())}
+        if not contexts or IMPORT_CONTEXT in contexts:
+            return None
+        chosen: set[str] = set()
+        for context in contexts | set(self.spawning):
+            chosen |= self._tests_of(context)
+        return [test for test in self.order if test in chosen] or None
+
+
+def statement_lines(tree: ast.AST, line: int) -> tuple[int, int]:
+    """
+    :return: the lines of the innermost statement that holds ``line``: all of a simple statement's, a compound one's
+        header (``if``, ``for``, ``def``... up to its first inner statement, decorators included), an ``except``
+        clause's
+    """
+    best: Optional[tuple[int, int]] = None
+    for node in ast.walk(tree):
+        if not isinstance(node, (ast.stmt, ast.excepthandler)):
+            continue
+        start = min([node.lineno, *(d.lineno for d in getattr(node, "decorator_list", []))])
+        end = node.end_lineno or node.lineno
+        inner = [
+            child.lineno
+            for field in ("body", "orelse", "finalbody", "handlers")
+            for child in getattr(node, field, [])
+            if isinstance(child, (ast.stmt, ast.excepthandler))
+        ]
+        if inner:
+            end = min(end, min(inner) - 1)
+        if start <= line <= end and (best is None or end - start < best[1] - best[0]):
+            best = (start, end)
+    return best if best is not None else (line, line)
+
+
+class _Contexts:
+    """A pytest plugin that tells coverage which test (or shared fixture) runs, and notes the ones that start processes."""
+
+    def __init__(self, cov: Any) -> None:
+        self.cov = cov
+        self.current = IMPORT_CONTEXT
+        self.order: list[str] = []
+        self.fixtures: dict[str, list[str]] = {}
+        self.spawning: set[str] = set()
+
+    def switch(self, context: str) -> str:
+        previous, self.current = self.current, context
+        self.cov.switch_context(context)
+        return previous
+
+    def spawned(self) -> None:
+        self.spawning.add(self.current)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(self, item: Any, nextitem: Any) -> Iterator[None]:
+        self.order.append(item.nodeid)
+        self.fixtures[item.nodeid] = list(item.fixturenames)
+        self.switch(item.nodeid)
+        yield
+        self.switch(IMPORT_CONTEXT)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_fixture_setup(self, fixturedef: Any, request: Any) -> Iterator[None]:
+        if fixturedef.scope == "function":  # the test's own: its context already
+            yield
+            return
+        previous = self.switch(FIXTURE_CONTEXT + fixturedef.argname)
+        yield
+        self.switch(previous)
+
+
+def _watch_processes(plugin: _Contexts) -> None:
+    """Note the context of every process started from here on (``subprocess.Popen``, ``multiprocessing``)."""
+    import multiprocessing.process
+
+    popen_init = subprocess.Popen.__init__
+    process_start = multiprocessing.process.BaseProcess.start
+
+    def init(self: Any, *args: Any, **kwargs: Any) -> None:
+        plugin.spawned()
+        popen_init(self, *args, **kwargs)
+
+    def start(self: Any) -> None:
+        plugin.spawned()
+        process_start(self)
+
+    subprocess.Popen.__init__ = init  # type: ignore[method-assign]
+    multiprocessing.process.BaseProcess.start = start  # type: ignore[method-assign]
+
+
+def coverage_map(
+    copy_root: pathlib.Path, module: str, tests: Sequence[str], timeout: float
+) -> tuple[tuple[str, float, str], Optional[CoverageMap]]:
+    """
+    Run a module's targeted tests, unmutated, in a forked child under coverage (every test, not stopping at a
+    failure): the baseline of the module, and which tests run each of its lines.
+
+    :return: the baseline's outcome (``survived``: every test passed), and the map (None when the baseline failed)
+    """
+    record = copy_root / "coverage_map.json"
+    started = time.perf_counter()
+    pid = os.fork()
+    if pid == 0:
+        code = 4
+        try:
+            descriptor = os.open(copy_root / "pytest.log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            os.dup2(descriptor, 1)
+            os.dup2(descriptor, 2)
+            sys.stdout = open(1, "w", closefd=False)
+            sys.stderr = open(2, "w", closefd=False)
+            os.chdir(copy_root)
+            sys.path.insert(0, str(copy_root))
+            import coverage
+
+            path = str((copy_root / module).resolve())
+            cov = coverage.Coverage(data_file=None, include=[path], config_file=False)
+            plugin = _Contexts(cov)
+            _watch_processes(plugin)
+            cov.start()
+            args = [arg for arg in PYTEST_ARGS if arg != "-x"]
+            code = int(pytest.main([*args, *tests], plugins=[plugin]))
+            cov.stop()
+            lines = cov.get_data().contexts_by_lineno(path)
+            data = dict(order=plugin.order, lines=lines, fixtures=plugin.fixtures, spawning=sorted(plugin.spawning))
+            record.write_text(json.dumps(data))
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        seconds = time.perf_counter() - started
+        if done:
+            break
+        if seconds > timeout:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            return ("timeout", seconds, f"over {timeout:g} s"), None
+        time.sleep(0.05)
+    output = (copy_root / "pytest.log").read_text(errors="replace") if (copy_root / "pytest.log").exists() else ""
+    result = _classify(os.waitstatus_to_exitcode(status), output, seconds)
+    if result[0] != "survived" or not record.exists():
+        return result, None
+    data = json.loads(record.read_text())
+    lines = {int(line): contexts for line, contexts in data["lines"].items()}
+    return result, CoverageMap(data["order"], lines, data["fixtures"], data["spawning"])
+
+
+def chosen_tests(mutant: Mutant, tests: Sequence[str], where: Optional[CoverageMap], tree: ast.AST) -> list[str]:
+    """:return: the tests a mutant runs: those that run its statement (``where``), or all of ``tests``"""
+    if where is None:
+        return list(tests)
+    return where.tests_for(*statement_lines(tree, mutant.line)) or list(tests)
+
+
 def run_mutant(mutant: Mutant, tests: Sequence[str], timeout: float, scratch: pathlib.Path) -> Outcome:
     """Write the mutant into a fresh copy of the repository, run its module's tests there (a subprocess), remove it."""
     copy_root = _fresh_copy(scratch, f"mutant_{mutant.index}_", mutant)
@@ -754,6 +956,54 @@ def _cell(code: str) -> str:
     return code if len(code) <= 90 else code[:87] + "..."
 
 
+def forked_jobs(
+    chosen: Sequence[Mutant],
+    targets: dict[str, list[str]],
+    select: str,
+    workers: int,
+    timeout: float,
+    scratch: pathlib.Path,
+    baseline_failed: Callable[[str, tuple[str, float, str]], bool],
+) -> Optional[list[tuple[str, Optional[Mutant], Sequence[str]]]]:
+    """
+    Each module's baseline (with ``select="covering"`` under coverage: which tests run each line), then the mutants'
+    runs for :func:`run_forked`, each with its tests (:func:`chosen_tests`).
+
+    :return: the runs; None when a module's unmutated tests do not pass
+    """
+    maps: dict[str, Optional[CoverageMap]] = {}
+    if select == "covering":
+        for module in targets:
+            copy_root = _fresh_copy(scratch, "coverage_")
+            try:  # coverage slows the tests down: thrice the time of a mutant's run
+                result, maps[module] = coverage_map(copy_root, module, targets[module], 3 * timeout)
+            finally:
+                shutil.rmtree(copy_root, ignore_errors=True)
+            if baseline_failed(module, result):
+                return None
+    else:
+        modules = list(targets)
+        baselines = [(f"baseline_{k}", None, targets[module]) for k, module in enumerate(modules)]
+        for name, _, result in run_forked(baselines, workers, timeout, scratch):
+            if baseline_failed(modules[int(name.rsplit("_", 1)[1])], result):
+                return None
+    trees = {module: ast.parse((ROOT / module).read_text()) for module in targets}
+    jobs: list[tuple[str, Optional[Mutant], Sequence[str]]] = [
+        (f"mutant_{m.index}", m, chosen_tests(m, targets[m.module], maps.get(m.module), trees[m.module])) for m in chosen
+    ]
+    for module, where in maps.items():
+        if where is not None:
+            runs = [list(tests) for _, m, tests in jobs if m is not None and m.module == module]
+            parts = [len(tests) for tests in runs if tests != list(targets[module])]
+            mean = f" ({sum(parts) / len(parts):.1f} tests on average)" if parts else ""
+            print(
+                f"{module}: {len(where.order)} targeted tests; {len(parts)} of {len(runs)} mutants run only those that run "
+                f"their statement{mean}, the others every one",
+                flush=True,
+            )
+    return jobs
+
+
 def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, list[tuple[int, ...]]]:
     """:return: the command line's arguments, and its ``--lines`` as ranges"""
     parser = argparse.ArgumentParser(
@@ -797,6 +1047,14 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
         "module's survivors against a wider part of the suite)",
     )
     parser.add_argument(
+        "--select",
+        choices=("covering", "all"),
+        default=None,
+        help="covering (the default with the forking runner): each mutant runs only the targeted tests that run its "
+        "statement, read once from the unmutated tests under coverage (every test where a line ran at import, or in "
+        "no test of the process; tests that start processes always); all: every targeted test for every mutant",
+    )
+    parser.add_argument(
         "--keep-others",
         action="store_true",
         help="keep the rows of the modules not run now from the output's mutation.csv (a measurement in parts)",
@@ -807,6 +1065,10 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
         parser.error(f"no targeted tests known for {unknown}: one of {list(MODULES)}")
     if args.workers < 1:
         parser.error("--workers must be >= 1")
+    if args.select is None:
+        args.select = "covering" if args.runner == "fork" else "all"
+    if args.select == "covering" and args.runner != "fork":
+        parser.error("--select covering needs the forking runner (--runner fork)")
     try:
         ranges = [tuple(int(x) for x in text.split("-", 1)) for text in args.lines or []]
     except ValueError:
@@ -863,11 +1125,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     if args.runner == "fork":
         preload()
-        baselines = [(f"baseline_{k}", None, targets[module]) for k, module in enumerate(args.modules)]
-        for name, _, result in run_forked(baselines, args.workers, args.timeout, scratch):
-            if baseline_failed(args.modules[int(name.rsplit("_", 1)[1])], result):
-                return 1
-        jobs = [(f"mutant_{m.index}", m, targets[m.module]) for m in chosen]
+        jobs = forked_jobs(chosen, targets, args.select, args.workers, args.timeout, scratch, baseline_failed)
+        if jobs is None:
+            return 1
         for done, (_, mutant, result) in enumerate(run_forked(jobs, args.workers, args.timeout, scratch), 1):
             assert mutant is not None
             report(done, outcome_of(mutant, result))

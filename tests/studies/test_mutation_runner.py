@@ -157,7 +157,96 @@ def test_tests_option_replaces_the_targeted_files(monkeypatch, tmp_path: pathlib
 
     monkeypatch.setattr(runner, "run_forked", run_forked)
     monkeypatch.setattr(runner, "preload", lambda: None)
-    argv = ["--modules", module, "--limit", "1", "--runner", "fork", "--output", str(tmp_path)]
+    argv = ["--modules", module, "--limit", "1", "--runner", "fork", "--select", "all", "--output", str(tmp_path)]
     assert runner.main(argv + (["--tests", *tests] if tests else [])) == 0
     assert seen == [tests or runner.MODULES[module]] * 2  # the baseline, then the one mutant
     assert ("--tests tests/buffers" in (tmp_path / "mutation.md").read_text()) == bool(tests)  # the command is recorded
+
+
+COVERED_MODULE = """X = 1
+
+
+def f(a):
+    if (a >
+            2):
+        return a + X
+    return a
+
+
+def g(a):
+    return f(a) * 2
+
+
+def never(a):
+    return a - 1
+"""
+
+COVERED_TESTS = """import subprocess
+import sys
+
+import pytest
+
+import mod
+
+
+@pytest.fixture(scope="module")
+def big():
+    return mod.g(5)
+
+
+def test_f():
+    assert mod.f(1) == 1
+
+
+@pytest.mark.parametrize("v", [3, 4])
+def test_g(v, big):
+    assert mod.g(v) == 2 * (v + 1) and big == 12
+
+
+def test_starts_a_process():
+    subprocess.run([sys.executable, "-c", "pass"], check=True)
+
+
+def test_shares_the_fixture(big):
+    assert big == 12
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="the coverage map runs the tests in a forked child")
+def test_covering_selection_runs_the_tests_that_run_a_statement(tmp_path: pathlib.Path):
+    runner = benchmark_module("run_mutation")
+    (tmp_path / "mod.py").write_text(COVERED_MODULE)
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "test_mod.py").write_text(COVERED_TESTS)
+    result, where = runner.coverage_map(tmp_path, "mod.py", ["tests"], timeout=120)
+    assert result[0] == "survived" and where is not None, (tmp_path / "pytest.log").read_text()
+    names = [test.rsplit("::", 1)[1] for test in where.order]
+    assert names == ["test_f", "test_g[3]", "test_g[4]", "test_starts_a_process", "test_shares_the_fixture"]
+    tree = runner.ast.parse(COVERED_MODULE)
+
+    def chosen(line: int):
+        tests = where.tests_for(*runner.statement_lines(tree, line))
+        return None if tests is None else [test.rsplit("::", 1)[1] for test in tests]
+
+    # a statement only g's callers run: the module fixture's users (it called g first), the tests that start a
+    # process (what the process runs is not measured), never test_f
+    assert chosen(7) == ["test_g[3]", "test_g[4]", "test_starts_a_process", "test_shares_the_fixture"]
+    # the second line of a two-line if: the whole header, which test_f runs too
+    assert runner.statement_lines(tree, 6) == (5, 6) and runner.statement_lines(tree, 7) == (7, 7)
+    assert chosen(6) == ["test_f", "test_g[3]", "test_g[4]", "test_starts_a_process", "test_shares_the_fixture"]
+    assert chosen(8) == ["test_f", "test_starts_a_process"]
+    # at import (a constant, a def line), or in no test: every test runs
+    assert chosen(1) is None and chosen(4) is None and chosen(16) is None
+    assert runner.statement_lines(tree, 4) == (4, 4)
+    mutant = runner.Mutant("mod.py", 0, 16, "op", "a - 1", "a + 1", "")
+    assert runner.chosen_tests(mutant, ["tests"], where, tree) == ["tests"]
+    assert runner.chosen_tests(mutant, ["tests"], None, tree) == ["tests"]
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="the coverage map runs the tests in a forked child")
+def test_a_failing_baseline_gives_no_coverage_map(tmp_path: pathlib.Path):
+    runner = benchmark_module("run_mutation")
+    (tmp_path / "mod.py").write_text(COVERED_MODULE)
+    (tmp_path / "test_mod.py").write_text("import mod\n\n\ndef test_f():\n    assert mod.f(1) == 2\n")
+    result, where = runner.coverage_map(tmp_path, "mod.py", ["test_mod.py"], timeout=120)
+    assert result[0] == "killed" and where is None
