@@ -17,7 +17,9 @@ Each mutant is the module with one site changed (``ast.unparse``), written into 
 Python files (``sb3_lifelong/``, ``tests/``, ``benchmarks/**.py``, the configuration files); the module's targeted test
 files then run there with ``PYTHONPATH`` at the copy (``pytest -x -q -p no:cacheprovider``). A failing run kills the
 mutant, a passing one lets it survive, a run past ``--timeout`` counts as killed (a mutant that hangs is caught) and is
-reported as such. Mutants run in parallel (``--workers``), one thread each.
+reported as such; with the forking runner the timeout counts CPU seconds (:func:`overdue`), so the runs may share the
+cores with other jobs, even at a low priority. By default a mutant runs only the targeted tests that run its statement
+(``--select covering``, :class:`CoverageMap`). Mutants run in parallel (``--workers``), one thread each.
 
 Writes ``results/mutation.csv`` (one row per mutant: module, line, operator, original and mutated code, outcome,
 seconds), ``results/summary.csv`` (kill rate per module) and ``results/mutation.md`` (the table, and every survivor
@@ -552,13 +554,46 @@ class ForkedTests:
         pid, status = os.waitpid(self.pid, os.WNOHANG)
         seconds = time.perf_counter() - self.started
         if pid == 0:
-            if seconds <= self.timeout:
+            late = overdue(self.pid, seconds, self.timeout)
+            if late is None:
                 return None
             os.kill(self.pid, signal.SIGKILL)
             os.waitpid(self.pid, 0)
-            return "timeout", seconds, f"over {self.timeout:g} s"
+            return "timeout", seconds, late
         output = self.log.read_text(errors="replace") if self.log.exists() else ""
         return _classify(os.waitstatus_to_exitcode(status), output, seconds)
+
+
+#: a run that takes no CPU (a deadlock) is stopped after this many times its timeout of wall-clock time
+WALL_FACTOR = 30
+
+
+def cpu_seconds(pid: int) -> Optional[float]:
+    """:return: the CPU seconds of a running process and of its children it has waited for (Linux); None elsewhere"""
+    try:
+        fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return sum(int(value) for value in fields[11:15]) / os.sysconf("SC_CLK_TCK")  # utime, stime, cutime, cstime
+
+
+def overdue(pid: int, seconds: float, timeout: float) -> Optional[str]:
+    """
+    A run's timeout counts its CPU seconds where they can be read, so that a run slowed by other jobs on the machine
+    (or started at a low priority, to use the cores they leave) is not taken for a mutant that hangs; a run that
+    takes no CPU at all is stopped after :data:`WALL_FACTOR` times the timeout.
+
+    :param pid: the run's process
+    :param seconds: its wall-clock seconds so far
+    :param timeout: its timeout, in seconds
+    :return: why it is overdue, or None while it is not
+    """
+    cpu = cpu_seconds(pid)
+    if cpu is None:
+        return f"over {timeout:g} s" if seconds > timeout else None
+    if cpu > timeout:
+        return f"over {timeout:g} s of CPU"
+    return f"over {WALL_FACTOR * timeout:g} s, {cpu:.0f} s of CPU" if seconds > WALL_FACTOR * timeout else None
 
 
 def _fresh_copy(scratch: pathlib.Path, prefix: str, mutant: Optional[Mutant] = None) -> pathlib.Path:
@@ -784,10 +819,11 @@ def coverage_map(
         seconds = time.perf_counter() - started
         if done:
             break
-        if seconds > timeout:
+        late = overdue(pid, seconds, timeout)
+        if late is not None:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-            return ("timeout", seconds, f"over {timeout:g} s"), None
+            return ("timeout", seconds, late), None
         time.sleep(0.05)
     output = (copy_root / "pytest.log").read_text(errors="replace") if (copy_root / "pytest.log").exists() else ""
     result = _classify(os.waitstatus_to_exitcode(status), output, seconds)
@@ -1012,7 +1048,12 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
     parser.add_argument("--modules", nargs="+", default=list(MODULES), help="modules to mutate (paths from the root)")
     parser.add_argument("--workers", type=int, default=1, help="mutants run at once (one torch thread each)")
     parser.add_argument("--limit", type=int, default=None, help="at most this many mutants per module (spread evenly)")
-    parser.add_argument("--timeout", type=float, default=300.0, help="seconds a mutant's tests may take (then: killed)")
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=300.0,
+        help="seconds a mutant's tests may take, of CPU where it can be read (then: killed)",
+    )
     parser.add_argument("--output", type=pathlib.Path, default=RESULTS, help="where the csv and markdown go")
     parser.add_argument("--scratch", type=pathlib.Path, default=None, help="where the copies go (default: the temp dir)")
     parser.add_argument("--list", action="store_true", help="list the mutants and stop")

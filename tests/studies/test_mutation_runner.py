@@ -250,3 +250,32 @@ def test_a_failing_baseline_gives_no_coverage_map(tmp_path: pathlib.Path):
     (tmp_path / "test_mod.py").write_text("import mod\n\n\ndef test_f():\n    assert mod.f(1) == 2\n")
     result, where = runner.coverage_map(tmp_path, "mod.py", ["test_mod.py"], timeout=120)
     assert result[0] == "killed" and where is None
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc/self/stat").exists(), reason="CPU seconds of a process are read from /proc")
+def test_a_timeout_counts_cpu_seconds_and_a_run_without_cpu_stops_at_the_wall_limit():
+    runner = benchmark_module("run_mutation")
+    sleeper = runner.subprocess.Popen([runner.sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        import time
+
+        time.sleep(0.5)
+        cpu = runner.cpu_seconds(sleeper.pid)
+        assert cpu is not None and cpu < 0.5  # asleep: no CPU, whatever the wall clock says
+        assert runner.overdue(sleeper.pid, seconds=10.0, timeout=1.0) is None  # slow beside other jobs: not a hang
+        late = runner.overdue(sleeper.pid, seconds=runner.WALL_FACTOR * 1.0 + 1, timeout=1.0)
+        assert late is not None and "of CPU" in late  # no CPU for 30 times its timeout: a deadlock, stopped
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    busy = runner.subprocess.Popen([runner.sys.executable, "-c", "while True: pass"])
+    try:
+        deadline = time.perf_counter() + 60
+        while (runner.cpu_seconds(busy.pid) or 0.0) < 0.3 and time.perf_counter() < deadline:
+            time.sleep(0.05)
+        assert runner.overdue(busy.pid, seconds=0.5, timeout=0.2) == "over 0.2 s of CPU"
+    finally:
+        busy.kill()
+        busy.wait()
+    assert runner.cpu_seconds(2**22 + 12345) is None  # no such process: the wall clock decides
+    assert runner.overdue(2**22 + 12345, seconds=2.0, timeout=1.0) == "over 1 s"
