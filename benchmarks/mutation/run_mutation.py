@@ -506,12 +506,16 @@ class ForkedTests:
     A module's targeted tests, run by ``pytest.main`` in a forked child of this process, with the copy first on
     ``sys.path`` (the libraries are imported already: see :func:`preload`). The child checks that it imports the
     package from the copy and not from anywhere else; its output goes to ``pytest.log`` in the copy.
+
+    :param covering: a module (a path from the copy's root) to measure: every test runs (no ``-x``) under coverage,
+        and which tests ran each of its lines goes to ``coverage_map.json`` in the copy (see :func:`coverage_map`)
     """
 
-    def __init__(self, copy_root: pathlib.Path, tests: Sequence[str], timeout: float):
+    def __init__(self, copy_root: pathlib.Path, tests: Sequence[str], timeout: float, covering: Optional[str] = None):
         self.copy_root = copy_root
         self.tests = list(tests)
         self.timeout = timeout
+        self.covering = covering
         self.log = copy_root / "pytest.log"
         self.started = time.perf_counter()
         self.pid = os.fork()
@@ -528,6 +532,12 @@ class ForkedTests:
             sys.stderr = open(2, "w", closefd=False)
             os.chdir(self.copy_root)
             sys.path.insert(0, str(self.copy_root))
+            cov = None
+            if self.covering is not None:  # before the package's import: its lines at import are in the "" context
+                import coverage
+
+                cov = coverage.Coverage(data_file=None, include=[str(self.copy_root / self.covering)], config_file=False)
+                cov.start()
             try:
                 import sb3_lifelong  # noqa: F401 (the mutant may break its import: killed, as pytest would say)
             except Exception:
@@ -539,15 +549,26 @@ class ForkedTests:
                     print(f"sb3_lifelong was imported from {where}, not from the copy")
                     code = 3
                 else:
-                    import pytest
-
-                    code = int(pytest.main([*PYTEST_ARGS, *self.tests]))
+                    code = self._pytest(cov)
         except BaseException:
             traceback.print_exc()
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(code)
+
+    def _pytest(self, cov: Any) -> int:
+        if cov is None:
+            return int(pytest.main([*PYTEST_ARGS, *self.tests]))
+        assert self.covering is not None
+        plugin = _Contexts(cov)
+        _watch_processes(plugin)
+        code = int(pytest.main([*(arg for arg in PYTEST_ARGS if arg != "-x"), *self.tests], plugins=[plugin]))
+        cov.stop()
+        lines = cov.get_data().contexts_by_lineno(str(self.copy_root / self.covering))
+        data = dict(order=plugin.order, lines=lines, fixtures=plugin.fixtures, spawning=sorted(plugin.spawning))
+        (self.copy_root / "coverage_map.json").write_text(json.dumps(data))
+        return code
 
     def poll(self) -> Optional[tuple[str, float, str]]:
         """:return: the outcome once the child has ended (it is killed past its timeout), None while it runs"""
@@ -778,55 +799,16 @@ def coverage_map(
 ) -> tuple[tuple[str, float, str], Optional[CoverageMap]]:
     """
     Run a module's targeted tests, unmutated, in a forked child under coverage (every test, not stopping at a
-    failure): the baseline of the module, and which tests run each of its lines.
+    failure: :class:`ForkedTests` with ``covering``): the baseline of the module, and which tests run each of its lines.
 
     :return: the baseline's outcome (``survived``: every test passed), and the map (None when the baseline failed)
     """
-    record = copy_root / "coverage_map.json"
-    started = time.perf_counter()
-    pid = os.fork()
-    if pid == 0:
-        code = 4
-        try:
-            descriptor = os.open(copy_root / "pytest.log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-            os.dup2(descriptor, 1)
-            os.dup2(descriptor, 2)
-            sys.stdout = open(1, "w", closefd=False)
-            sys.stderr = open(2, "w", closefd=False)
-            os.chdir(copy_root)
-            sys.path.insert(0, str(copy_root))
-            import coverage
-
-            path = str((copy_root / module).resolve())
-            cov = coverage.Coverage(data_file=None, include=[path], config_file=False)
-            plugin = _Contexts(cov)
-            _watch_processes(plugin)
-            cov.start()
-            args = [arg for arg in PYTEST_ARGS if arg != "-x"]
-            code = int(pytest.main([*args, *tests], plugins=[plugin]))
-            cov.stop()
-            lines = cov.get_data().contexts_by_lineno(path)
-            data = dict(order=plugin.order, lines=lines, fixtures=plugin.fixtures, spawning=sorted(plugin.spawning))
-            record.write_text(json.dumps(data))
-        except BaseException:
-            traceback.print_exc()
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(code)
-    while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
-        seconds = time.perf_counter() - started
-        if done:
-            break
-        late = overdue(pid, seconds, timeout)
-        if late is not None:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-            return ("timeout", seconds, late), None
+    child = ForkedTests(copy_root, tests, timeout, covering=module)
+    result = child.poll()
+    while result is None:
         time.sleep(0.05)
-    output = (copy_root / "pytest.log").read_text(errors="replace") if (copy_root / "pytest.log").exists() else ""
-    result = _classify(os.waitstatus_to_exitcode(status), output, seconds)
+        result = child.poll()
+    record = copy_root / "coverage_map.json"
     if result[0] != "survived" or not record.exists():
         return result, None
     data = json.loads(record.read_text())

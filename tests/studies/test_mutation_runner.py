@@ -212,13 +212,37 @@ def test_shares_the_fixture(big):
 """
 
 
+def _coverage_map_elsewhere(runner, copy_root: pathlib.Path, tests: list):
+    """coverage_map in a new Python process: this one has imported sb3_lifelong, which a forked child would inherit"""
+    import json
+    import subprocess
+    import sys
+
+    script = (
+        "import dataclasses, json, pathlib, sys\n"
+        f"sys.path.insert(0, {str(pathlib.Path(runner.__file__).parent)!r})\n"
+        "import run_mutation as r\n"
+        f"result, where = r.coverage_map(pathlib.Path({str(copy_root)!r}), 'mod.py', {tests!r}, 120)\n"
+        "print(json.dumps([result, None if where is None else dataclasses.asdict(where)]))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], cwd=copy_root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    result, where = json.loads(done.stdout.splitlines()[-1])
+    if where is not None:
+        where["lines"] = {int(line): contexts for line, contexts in where["lines"].items()}
+        where = runner.CoverageMap(**where)
+    return tuple(result), where
+
+
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="the coverage map runs the tests in a forked child")
 def test_covering_selection_runs_the_tests_that_run_a_statement(tmp_path: pathlib.Path):
     runner = benchmark_module("run_mutation")
+    (tmp_path / "sb3_lifelong").mkdir()  # the child checks that it imports the package from the copy
+    (tmp_path / "sb3_lifelong" / "__init__.py").write_text("")
     (tmp_path / "mod.py").write_text(COVERED_MODULE)
     (tmp_path / "tests").mkdir()
     (tmp_path / "tests" / "test_mod.py").write_text(COVERED_TESTS)
-    result, where = runner.coverage_map(tmp_path, "mod.py", ["tests"], timeout=120)
+    result, where = _coverage_map_elsewhere(runner, tmp_path, ["tests"])
     assert result[0] == "survived" and where is not None, (tmp_path / "pytest.log").read_text()
     names = [test.rsplit("::", 1)[1] for test in where.order]
     assert names == ["test_f", "test_g[3]", "test_g[4]", "test_starts_a_process", "test_shares_the_fixture"]
@@ -246,9 +270,11 @@ def test_covering_selection_runs_the_tests_that_run_a_statement(tmp_path: pathli
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="the coverage map runs the tests in a forked child")
 def test_a_failing_baseline_gives_no_coverage_map(tmp_path: pathlib.Path):
     runner = benchmark_module("run_mutation")
+    (tmp_path / "sb3_lifelong").mkdir()
+    (tmp_path / "sb3_lifelong" / "__init__.py").write_text("")
     (tmp_path / "mod.py").write_text(COVERED_MODULE)
     (tmp_path / "test_mod.py").write_text("import mod\n\n\ndef test_f():\n    assert mod.f(1) == 2\n")
-    result, where = runner.coverage_map(tmp_path, "mod.py", ["test_mod.py"], timeout=120)
+    result, where = _coverage_map_elsewhere(runner, tmp_path, ["test_mod.py"])
     assert result[0] == "killed" and where is None
 
 
