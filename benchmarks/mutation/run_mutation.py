@@ -702,16 +702,20 @@ class CoverageMap:
         """
         :param first: the first line of the mutated statement (see :func:`statement_lines`)
         :param last: its last line
-        :return: the tests that ran a line of it, with those that start processes, in their order; None (run every
+        :return: the tests that ran a line of it in their order, then those that start processes; None (run every
             test) when a line of it ran at import or collection, or in no test of this process
         """
         contexts = {context for line in range(first, last + 1) for context in self.lines.get(line, ())}
         if not contexts or IMPORT_CONTEXT in contexts:
             return None
         chosen: set[str] = set()
-        for context in contexts | set(self.spawning):
+        for context in contexts:
             chosen |= self._tests_of(context)
-        return [test for test in self.order if test in chosen] or None
+        spawning = set().union(*(self._tests_of(context) for context in self.spawning))
+        if not chosen:
+            return None
+        # the tests that start processes last: they are often the slow ones, and a mutant killed earlier skips them
+        return [test for test in self.order if test in chosen - spawning] + [test for test in self.order if test in spawning]
 
 
 def statement_lines(tree: ast.AST, line: int) -> tuple[int, int]:

@@ -252,12 +252,15 @@ def test_covering_selection_runs_the_tests_that_run_a_statement(tmp_path: pathli
         tests = where.tests_for(*runner.statement_lines(tree, line))
         return None if tests is None else [test.rsplit("::", 1)[1] for test in tests]
 
-    # a statement only g's callers run: the module fixture's users (it called g first), the tests that start a
+    # a statement only g's callers run: the module fixture's users (it called g first), then the tests that start a
     # process (what the process runs is not measured), never test_f
-    assert chosen(7) == ["test_g[3]", "test_g[4]", "test_starts_a_process", "test_shares_the_fixture"]
+    assert chosen(7) == ["test_g[3]", "test_g[4]", "test_shares_the_fixture", "test_starts_a_process"]
     # the second line of a two-line if: the whole header, which test_f runs too
     assert runner.statement_lines(tree, 6) == (5, 6) and runner.statement_lines(tree, 7) == (7, 7)
-    assert chosen(6) == ["test_f", "test_g[3]", "test_g[4]", "test_starts_a_process", "test_shares_the_fixture"]
+    assert chosen(6) == ["test_f", "test_g[3]", "test_g[4]", "test_shares_the_fixture", "test_starts_a_process"]
+    assert chosen(8) == ["test_f", "test_starts_a_process"]
+    # the tests that start processes come last, whatever their place in the file
+    where.order.insert(0, where.order.pop(3))
     assert chosen(8) == ["test_f", "test_starts_a_process"]
     # at import (a constant, a def line), or in no test: every test runs
     assert chosen(1) is None and chosen(4) is None and chosen(16) is None
