@@ -446,7 +446,18 @@ class Outcome:
     detail: str
 
 
-PYTEST_ARGS = ("-x", "-q", "-p", "no:cacheprovider", "-W", "ignore::DeprecationWarning", "-o", "addopts=")
+#: (``--hypothesis-seed``: every run draws the same examples, so the coverage map's tests are the mutants' tests)
+PYTEST_ARGS = (
+    "-x",
+    "-q",
+    "-p",
+    "no:cacheprovider",
+    "-W",
+    "ignore::DeprecationWarning",
+    "-o",
+    "addopts=",
+    "--hypothesis-seed=0",
+)
 TEST_ENV = dict(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1", CUDA_VISIBLE_DEVICES="")
 
 #: what the forking runner imports once, before its first fork (never the package itself: each child imports its copy)
@@ -518,6 +529,7 @@ class ForkedTests:
         self.covering = covering
         self.log = copy_root / "pytest.log"
         self.started = time.perf_counter()
+        self.looked = 0.0  # when its CPU was last read (once a second: reading a group scans /proc)
         self.pid = os.fork()
         if self.pid == 0:  # the child never returns
             self._child()
@@ -525,6 +537,7 @@ class ForkedTests:
     def _child(self) -> None:
         code = 4
         try:
+            os.setpgid(0, 0)  # its own process group: the processes its tests start are timed and stopped with it
             descriptor = os.open(self.log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
             os.dup2(descriptor, 1)
             os.dup2(descriptor, 2)
@@ -536,7 +549,7 @@ class ForkedTests:
             if self.covering is not None:  # before the package's import: its lines at import are in the "" context
                 import coverage
 
-                cov = coverage.Coverage(data_file=None, include=[str(self.copy_root / self.covering)], config_file=False)
+                cov = coverage.Coverage(data_file=None, include=[str(self.measured())], config_file=False)
                 cov.start()
             try:
                 import sb3_lifelong  # noqa: F401 (the mutant may break its import: killed, as pytest would say)
@@ -557,15 +570,19 @@ class ForkedTests:
             sys.stderr.flush()
             os._exit(code)
 
+    def measured(self) -> pathlib.Path:
+        """:return: the module measured, as coverage names it (a path through no link)"""
+        assert self.covering is not None
+        return (self.copy_root / self.covering).resolve()
+
     def _pytest(self, cov: Any) -> int:
         if cov is None:
             return int(pytest.main([*PYTEST_ARGS, *self.tests]))
-        assert self.covering is not None
         plugin = _Contexts(cov)
         _watch_processes(plugin)
         code = int(pytest.main([*(arg for arg in PYTEST_ARGS if arg != "-x"), *self.tests], plugins=[plugin]))
         cov.stop()
-        lines = cov.get_data().contexts_by_lineno(str(self.copy_root / self.covering))
+        lines = cov.get_data().contexts_by_lineno(str(self.measured()))
         data = dict(order=plugin.order, lines=lines, fixtures=plugin.fixtures, spawning=sorted(plugin.spawning))
         (self.copy_root / "coverage_map.json").write_text(json.dumps(data))
         return code
@@ -575,11 +592,13 @@ class ForkedTests:
         pid, status = os.waitpid(self.pid, os.WNOHANG)
         seconds = time.perf_counter() - self.started
         if pid == 0:
+            if seconds - self.looked < 1.0:
+                return None
+            self.looked = seconds
             late = overdue(self.pid, seconds, self.timeout)
             if late is None:
                 return None
-            os.kill(self.pid, signal.SIGKILL)
-            os.waitpid(self.pid, 0)
+            stop(self.pid)
             return "timeout", seconds, late
         output = self.log.read_text(errors="replace") if self.log.exists() else ""
         return _classify(os.waitstatus_to_exitcode(status), output, seconds)
@@ -589,13 +608,31 @@ class ForkedTests:
 WALL_FACTOR = 30
 
 
-def cpu_seconds(pid: int) -> Optional[float]:
-    """:return: the CPU seconds of a running process and of its children it has waited for (Linux); None elsewhere"""
+def _stat(pid: Any) -> Optional[list[str]]:
+    """:return: the fields of ``/proc/<pid>/stat`` after the command's name (the process state first), or None"""
     try:
-        fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except (OSError, IndexError):
         return None
-    return sum(int(value) for value in fields[11:15]) / os.sysconf("SC_CLK_TCK")  # utime, stime, cutime, cstime
+
+
+def cpu_seconds(pid: int) -> Optional[float]:
+    """
+    :return: the CPU seconds of a running process and of the children it has waited for, and where it leads a
+        process group (the forked runs do), of every process of its group (Linux); None elsewhere
+    """
+    fields = _stat(pid)
+    if fields is None:
+        return None
+    members = [fields]
+    if int(fields[2]) == pid:  # a group's leader: the processes its tests started, while they run, count too
+        for entry in os.listdir("/proc"):
+            if entry.isdigit() and int(entry) != pid:
+                other = _stat(entry)
+                if other is not None and int(other[2]) == pid:
+                    members.append(other)
+    ticks = sum(int(value) for member in members for value in member[11:15])  # utime, stime, cutime, cstime
+    return ticks / os.sysconf("SC_CLK_TCK")
 
 
 def overdue(pid: int, seconds: float, timeout: float) -> Optional[str]:
@@ -615,6 +652,19 @@ def overdue(pid: int, seconds: float, timeout: float) -> Optional[str]:
     if cpu > timeout:
         return f"over {timeout:g} s of CPU"
     return f"over {WALL_FACTOR * timeout:g} s, {cpu:.0f} s of CPU" if seconds > WALL_FACTOR * timeout else None
+
+
+def stop(pid: int) -> None:
+    """Kill a run and the processes of its group (what its tests started), and reap it."""
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    try:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    except (ProcessLookupError, ChildProcessError):
+        pass
 
 
 def _fresh_copy(scratch: pathlib.Path, prefix: str, mutant: Optional[Mutant] = None) -> pathlib.Path:
@@ -654,11 +704,7 @@ def run_forked(
                     yield name, mutant, result
     finally:  # interrupted: no child outlives the runner, no copy is left behind
         for _, _, copy_root, child in running:
-            try:
-                os.kill(child.pid, signal.SIGKILL)
-                os.waitpid(child.pid, 0)
-            except (ProcessLookupError, ChildProcessError):
-                pass
+            stop(child.pid)
             shutil.rmtree(copy_root, ignore_errors=True)
 
 
@@ -675,16 +721,19 @@ FIXTURE_CONTEXT = "fixture:"
 class CoverageMap:
     """
     Which of a module's targeted tests run each of its lines, read once from the unmutated tests under coverage
-    (:func:`coverage_map`). A test that never runs a statement runs the same code in a mutant of that statement up to
-    its end, so it cannot kill the mutant: only the tests that run it are needed. Where that is not known, every test
-    runs (:meth:`tests_for` returns None).
+    (:func:`coverage_map`). A test that never runs a statement runs the same code in a mutant of that statement, so
+    only the tests that run it are needed, unless one test leaves state for another (a cache, a global) or the
+    statement runs in a thread or a finalizer while another test runs (coverage's context is the process's). Where it
+    is not known which tests run a line, every test runs (:meth:`tests_for` returns None). A kill by a part of the
+    tests is checked by running that part unmutated (``main``'s ``--verify-kills``).
 
     :param order: the tests (pytest node ids) in the order they ran
     :param lines: line -> the contexts that ran it: a test's node id, ``fixture:<name>`` (a fixture of class, module
         or session scope set up for the tests that use it) or ``""`` (at import or collection)
     :param fixtures: test -> the fixtures it uses
-    :param spawning: the contexts that started a process (``subprocess``, ``multiprocessing``): what the process ran
-        is not measured, so their tests run with every mutant
+    :param spawning: the contexts that started a process (``subprocess``, ``multiprocessing``, ``os.fork``): what the
+        process ran is not measured, so their tests run with every mutant (a process started at import or collection
+        is not any test's: a line it alone runs looks unmeasured, and every test runs)
     """
 
     order: list[str]
@@ -722,7 +771,7 @@ def statement_lines(tree: ast.AST, line: int) -> tuple[int, int]:
     """
     :return: the lines of the innermost statement that holds ``line``: all of a simple statement's, a compound one's
         header (``if``, ``for``, ``def``... up to its first inner statement, decorators included), an ``except``
-        clause's
+        clause's; a ``match`` statement's whole (its cases are no statements)
     """
     best: Optional[tuple[int, int]] = None
     for node in ast.walk(tree):
@@ -774,13 +823,18 @@ class _Contexts:
         if fixturedef.scope == "function":  # the test's own: its context already
             yield
             return
-        previous = self.switch(FIXTURE_CONTEXT + fixturedef.argname)
+        context = FIXTURE_CONTEXT + fixturedef.argname
+        during: list[str] = []  # the context its teardown interrupts (the test being torn down, or "")
+        # finalizers run last in, first out: these two bracket the fixture's own teardown, added in between
+        fixturedef.addfinalizer(lambda: self.switch(during.pop() if during else IMPORT_CONTEXT))
+        previous = self.switch(context)
         yield
         self.switch(previous)
+        fixturedef.addfinalizer(lambda: during.append(self.switch(context)))
 
 
 def _watch_processes(plugin: _Contexts) -> None:
-    """Note the context of every process started from here on (``subprocess.Popen``, ``multiprocessing``)."""
+    """Note the context of every process started from here on (``subprocess.Popen``, ``multiprocessing``, a fork)."""
     import multiprocessing.process
 
     popen_init = subprocess.Popen.__init__
@@ -796,6 +850,7 @@ def _watch_processes(plugin: _Contexts) -> None:
 
     subprocess.Popen.__init__ = init  # type: ignore[method-assign]
     multiprocessing.process.BaseProcess.start = start  # type: ignore[method-assign]
+    os.register_at_fork(before=plugin.spawned)  # a test's own fork: what the child runs is not saved either
 
 
 def coverage_map(
@@ -988,26 +1043,27 @@ def forked_jobs(
     baseline_failed: Callable[[str, tuple[str, float, str]], bool],
 ) -> Optional[list[tuple[str, Optional[Mutant], Sequence[str]]]]:
     """
-    Each module's baseline (with ``select="covering"`` under coverage: which tests run each line), then the mutants'
-    runs for :func:`run_forked`, each with its tests (:func:`chosen_tests`).
+    Each module's baseline (all its targeted tests, as a mutant runs them; with ``select="covering"`` also under
+    coverage: which tests run each line), then the mutants' runs for :func:`run_forked`, each with its tests
+    (:func:`chosen_tests`).
 
     :return: the runs; None when a module's unmutated tests do not pass
     """
+    modules = list(targets)
+    # the baseline as a mutant runs (all its tests, within the timeout), with either selection
+    baselines = [(f"baseline_{k}", None, targets[module]) for k, module in enumerate(modules)]
+    for name, _, result in run_forked(baselines, workers, timeout, scratch):
+        if baseline_failed(modules[int(name.rsplit("_", 1)[1])], result):
+            return None
     maps: dict[str, Optional[CoverageMap]] = {}
     if select == "covering":
-        for module in targets:
+        for module in modules:
             copy_root = _fresh_copy(scratch, "coverage_")
             try:  # coverage slows the tests down: thrice the time of a mutant's run
                 result, maps[module] = coverage_map(copy_root, module, targets[module], 3 * timeout)
             finally:
                 shutil.rmtree(copy_root, ignore_errors=True)
-            if baseline_failed(module, result):
-                return None
-    else:
-        modules = list(targets)
-        baselines = [(f"baseline_{k}", None, targets[module]) for k, module in enumerate(modules)]
-        for name, _, result in run_forked(baselines, workers, timeout, scratch):
-            if baseline_failed(modules[int(name.rsplit("_", 1)[1])], result):
+            if baseline_failed(f"{module} (under coverage)", result):
                 return None
     trees = {module: ast.parse((ROOT / module).read_text()) for module in targets}
     jobs: list[tuple[str, Optional[Mutant], Sequence[str]]] = [
@@ -1026,6 +1082,48 @@ def forked_jobs(
     return jobs
 
 
+def verify_kills(
+    outcomes: list[Outcome],
+    jobs: Sequence[tuple[str, Optional[Mutant], Sequence[str]]],
+    targets: dict[str, list[str]],
+    workers: int,
+    timeout: float,
+    scratch: pathlib.Path,
+) -> int:
+    """
+    Run unmutated, once each, the parts of the targeted tests that killed mutants (:func:`chosen_tests`), in the order
+    the mutants ran them. A part that fails without a mutant (a test that needs state an earlier test left, or one
+    moved after the others) killed nothing: its mutants' outcomes become ``error``, naming the part.
+
+    :param outcomes: the mutants' outcomes, changed in place
+    :param jobs: the mutants' runs (name, mutant, tests)
+    :return: how many kills were withdrawn
+    """
+    tests_of = {(m.module, m.index): tuple(tests) for _, m, tests in jobs if m is not None}
+    parts = sorted(
+        {
+            tests_of[(o.module, o.index)]
+            for o in outcomes
+            if o.outcome == "killed" and tests_of.get((o.module, o.index), ()) not in ((), tuple(targets[o.module]))
+        }
+    )
+    failed: dict[tuple[str, ...], str] = {}
+    runs = [(f"part_{k}", None, list(part)) for k, part in enumerate(parts)]
+    for name, _, (result, _, detail) in run_forked(runs, workers, timeout, scratch):
+        if result != "survived":
+            failed[parts[int(name.rsplit("_", 1)[1])]] = detail
+    withdrawn = 0
+    for position, o in enumerate(outcomes):
+        part = tests_of.get((o.module, o.index))
+        if o.outcome == "killed" and part in failed:
+            detail = f"its {len(part)} chosen tests fail unmutated: {failed[part]}"[:200]
+            outcomes[position] = Outcome(**{**asdict(o), "outcome": "error", "detail": detail})
+            withdrawn += 1
+    print(f"verified {len(parts)} parts of the tests that killed mutants unmutated: {len(failed)} failed, "
+          f"{withdrawn} kills withdrawn", flush=True)  # fmt: skip
+    return withdrawn
+
+
 def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, list[tuple[int, ...]]]:
     """:return: the command line's arguments, and its ``--lines`` as ranges"""
     parser = argparse.ArgumentParser(
@@ -1038,7 +1136,7 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
         "--timeout",
         type=float,
         default=300.0,
-        help="seconds a mutant's tests may take, of CPU where it can be read (then: killed)",
+        help="seconds a mutant's tests may take (then: killed); with the forking runner, CPU seconds where /proc has them",
     )
     parser.add_argument("--output", type=pathlib.Path, default=RESULTS, help="where the csv and markdown go")
     parser.add_argument("--scratch", type=pathlib.Path, default=None, help="where the copies go (default: the temp dir)")
@@ -1082,6 +1180,13 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
         "no test of the process; tests that start processes always); all: every targeted test for every mutant",
     )
     parser.add_argument(
+        "--no-verify-kills",
+        dest="verify_kills",
+        action="store_false",
+        help="with --select covering, do not run unmutated the part of the tests that killed a mutant (by default each "
+        "such part runs once; a part that fails unmutated makes its mutants errors, not kills)",
+    )
+    parser.add_argument(
         "--keep-others",
         action="store_true",
         help="keep the rows of the modules not run now from the output's mutation.csv (a measurement in parts)",
@@ -1097,7 +1202,7 @@ def parse_arguments(argv: Optional[Sequence[str]]) -> tuple[argparse.Namespace, 
     if args.select == "covering" and args.runner != "fork":
         parser.error("--select covering needs the forking runner (--runner fork)")
     try:
-        ranges = [tuple(int(x) for x in text.split("-", 1)) for text in args.lines or []]
+        ranges = [tuple(int(x) for x in (text.split("-", 1) if "-" in text else [text, text])) for text in args.lines or []]
     except ValueError:
         parser.error(f"--lines takes FIRST-LAST ranges, got {args.lines}")
     return args, ranges
@@ -1158,6 +1263,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         for done, (_, mutant, result) in enumerate(run_forked(jobs, args.workers, args.timeout, scratch), 1):
             assert mutant is not None
             report(done, outcome_of(mutant, result))
+        if args.select == "covering" and args.verify_kills:
+            verify_kills(outcomes, jobs, targets, args.workers, args.timeout, scratch)
+            write_results(outcomes, args.output, command.strip(), total)
     else:
         with ThreadPoolExecutor(max_workers=args.workers) as pool:
             futures_of = {module: pool.submit(baseline, targets[module], args.timeout, scratch) for module in args.modules}

@@ -179,6 +179,10 @@ def g(a):
 
 def never(a):
     return a - 1
+
+
+def closed(a):
+    return a + 100
 """
 
 COVERED_TESTS = """import subprocess
@@ -192,6 +196,16 @@ import mod
 @pytest.fixture(scope="module")
 def big():
     return mod.g(5)
+
+
+@pytest.fixture(scope="module")
+def resource():
+    yield 1
+    mod.closed(1)  # its teardown runs after the module's last test, which does not use it
+
+
+def test_uses_the_resource(resource):
+    assert resource == 1
 
 
 def test_f():
@@ -245,7 +259,14 @@ def test_covering_selection_runs_the_tests_that_run_a_statement(tmp_path: pathli
     result, where = _coverage_map_elsewhere(runner, tmp_path, ["tests"])
     assert result[0] == "survived" and where is not None, (tmp_path / "pytest.log").read_text()
     names = [test.rsplit("::", 1)[1] for test in where.order]
-    assert names == ["test_f", "test_g[3]", "test_g[4]", "test_starts_a_process", "test_shares_the_fixture"]
+    assert names == [
+        "test_uses_the_resource",
+        "test_f",
+        "test_g[3]",
+        "test_g[4]",
+        "test_starts_a_process",
+        "test_shares_the_fixture",
+    ]
     tree = runner.ast.parse(COVERED_MODULE)
 
     def chosen(line: int):
@@ -259,8 +280,10 @@ def test_covering_selection_runs_the_tests_that_run_a_statement(tmp_path: pathli
     assert runner.statement_lines(tree, 6) == (5, 6) and runner.statement_lines(tree, 7) == (7, 7)
     assert chosen(6) == ["test_f", "test_g[3]", "test_g[4]", "test_shares_the_fixture", "test_starts_a_process"]
     assert chosen(8) == ["test_f", "test_starts_a_process"]
+    # a shared fixture's teardown is its users' (it ran after the last test, which does not use it)
+    assert chosen(20) == ["test_uses_the_resource", "test_starts_a_process"]
     # the tests that start processes come last, whatever their place in the file
-    where.order.insert(0, where.order.pop(3))
+    where.order.insert(0, where.order.pop(4))
     assert chosen(8) == ["test_f", "test_starts_a_process"]
     # at import (a constant, a def line), or in no test: every test runs
     assert chosen(1) is None and chosen(4) is None and chosen(16) is None
@@ -306,5 +329,56 @@ def test_a_timeout_counts_cpu_seconds_and_a_run_without_cpu_stops_at_the_wall_li
     finally:
         busy.kill()
         busy.wait()
+    # a group's leader counts the processes of its group while they run; stop() ends them with it
+    script = "import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', 'while True: pass']); time.sleep(60)"
+    leader = runner.subprocess.Popen([runner.sys.executable, "-c", script], start_new_session=True)
+    try:
+        deadline = time.perf_counter() + 60
+        while (runner.cpu_seconds(leader.pid) or 0.0) < 0.3 and time.perf_counter() < deadline:
+            time.sleep(0.05)
+        own = runner._stat(leader.pid)
+        assert sum(int(v) for v in own[11:15]) / os.sysconf("SC_CLK_TCK") < 0.2  # the leader itself sleeps
+        assert runner.cpu_seconds(leader.pid) >= 0.3
+    finally:
+        runner.stop(leader.pid)
+
+    def alive() -> list:  # the group's processes that still run (a killed one may stay a zombie until it is reaped)
+        stats = [runner._stat(entry) for entry in os.listdir("/proc") if entry.isdigit()]
+        return [fields for fields in stats if fields and fields[2] == str(leader.pid) and fields[0] != "Z"]
+
+    deadline = time.perf_counter() + 10
+    while alive() and time.perf_counter() < deadline:
+        time.sleep(0.05)
+    assert not alive()
     assert runner.cpu_seconds(2**22 + 12345) is None  # no such process: the wall clock decides
     assert runner.overdue(2**22 + 12345, seconds=2.0, timeout=1.0) == "over 1 s"
+
+
+def test_a_kill_by_a_part_that_fails_unmutated_is_withdrawn(monkeypatch, tmp_path: pathlib.Path):
+    runner = benchmark_module("run_mutation")
+    mutants = [runner.Mutant("m.py", k, k + 1, "op", "a", "b", "") for k in range(4)]
+    jobs = [("mutant_0", mutants[0], ["t::a"]), ("mutant_1", mutants[1], ["t::b", "t::c"]),
+            ("mutant_2", mutants[2], ["t"]), ("mutant_3", mutants[3], ["t::b", "t::c"])]  # fmt: skip
+    outcomes = [
+        runner.outcome_of(m, (result, 1.0, "FAILED")) for m, result in zip(mutants, ["killed", "killed", "killed", "survived"])
+    ]
+    ran = []
+
+    def run_forked(runs, workers, timeout, scratch):
+        for name, mutant, tests in runs:
+            assert mutant is None  # unmutated
+            ran.append(tests)
+            yield name, None, ("killed" if tests == ["t::b", "t::c"] else "survived", 0.5, "FAILED t::c")
+
+    monkeypatch.setattr(runner, "run_forked", run_forked)
+    assert runner.verify_kills(outcomes, jobs, {"m.py": ["t"]}, 1, 60.0, tmp_path) == 1
+    # one run per part that killed: not the whole set (mutant 2), not a survivor's part (mutant 3 shares mutant 1's)
+    assert sorted(ran) == [["t::a"], ["t::b", "t::c"]]
+    assert [o.outcome for o in outcomes] == ["killed", "error", "killed", "survived"]
+    assert "2 chosen tests fail unmutated" in outcomes[1].detail
+
+
+def test_lines_take_ranges_and_single_lines():
+    runner = benchmark_module("run_mutation")
+    _, ranges = runner.parse_arguments(["--lines", "17", "20-22", "--runner", "spawn"])
+    assert ranges == [(17, 17), (20, 22)]
