@@ -152,6 +152,13 @@ def test_the_queue_runs_what_is_pending_in_order_and_a_held_run_is_refused(bench
     assert bench.pending(results, 400) == [("sac", "Pendulum-v1", 0), ("mpo", "Pendulum-v1", 1)]
     bench.main(["queue", "--runs", str(tmp_path / "runs"), "--results", str(results), "--steps", "400", "--dry-run"])
     assert "2 runs pending: sac_Pendulum-v1_s0, mpo_Pendulum-v1_s1" in capsys.readouterr().out
+    # --limit: the first pending runs only (those a session's time allows)
+    bench.main(
+        ["queue", "--runs", str(tmp_path / "runs"), "--results", str(results), "--steps", "400", "--dry-run", "--limit", "1"]
+    )
+    assert "starting the first 1: sac_Pendulum-v1_s0\n" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        bench.main(["queue", "--runs", str(tmp_path / "runs"), "--limit", "0"])
     # one run to 400 steps through the queue (a command of its own); then nothing is pending
     monkeypatch.setattr(bench, "REGISTERED", [("mpo", "Pendulum-v1", 1)])
     bench.main(["queue", "--runs", str(tmp_path / "runs"), "--results", str(results), "--steps", "400", "--poll", "0.5"])

@@ -205,7 +205,8 @@ def run(args: argparse.Namespace) -> None:
         model = algo_class.load(folder / "model.zip", env=env)
         model.load_replay_buffer(folder / "replay.pkl")
         done, wall = int(state["timesteps"]), float(state["wall_s"])
-        rows = [row for row in _read_rows(csv_path) if int(row["timesteps"]) <= done]  # later rows are evaluated again
+        # the rows after the checkpoint are evaluated again
+        rows: list[dict[str, Any]] = [row for row in _read_rows(csv_path) if int(row["timesteps"]) <= done]
         print(f"{name}: resumed at {done} steps ({wall / 3600:.2f} h so far)", flush=True)
     else:
         model, done, wall = make_model(args.algo, env, args.seed, args.net_arch), 0, 0.0
@@ -497,6 +498,9 @@ def queue(args: argparse.Namespace) -> None:
     results = pathlib.Path(args.results)
     todo = pending(results, args.steps)
     print(f"{len(todo)} runs pending: " + ", ".join(run_name(a, t, s, None) for a, t, s in todo), flush=True)
+    if args.limit is not None and len(todo) > args.limit:
+        todo = todo[: args.limit]  # those a session's time allows: a run not started is not lost with it
+        print(f"starting the first {args.limit}: " + ", ".join(run_name(a, t, s, None) for a, t, s in todo), flush=True)
     if args.dry_run:
         return
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -541,8 +545,11 @@ def main(argv: Optional[list[str]] = None) -> None:
     line.add_argument("--runs", required=True, help="folder of the checkpoints and buffers (not committed)")
     line.add_argument("--results", default=str(RESULTS), help="folder of the CSV and JSON of each run")
     line.add_argument("--poll", type=float, default=30.0, help="seconds between looks at the running commands")
+    line.add_argument("--limit", type=int, default=None, help="start at most this many runs (the first pending ones)")
     line.add_argument("--dry-run", action="store_true", help="list the pending runs, start none")
     args = parser.parse_args(argv)
+    if args.command == "queue" and args.limit is not None and args.limit < 1:
+        parser.error(f"--limit must be at least 1, got {args.limit}")
     if args.command == "run":
         run(args)
     elif args.command == "queue":
