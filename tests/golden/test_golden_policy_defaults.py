@@ -38,3 +38,24 @@ def test_the_critics_and_observation_mixins_defaults():
     assert signature_defaults(policies.ImageObservationsMixin.__init__) == dict(features_extractor_class=NatureCNN)
     assert signature_defaults(policies.mlp_layers) == dict(layer_norm=False)
     assert signature_defaults(policies.sample_gaussian) == dict(noise=None)
+
+
+def test_adam_is_fused_unless_the_user_chose_an_implementation():
+    assert policies.with_fast_optimizer(th.optim.Adam, None) == dict(fused=True)
+    assert policies.with_fast_optimizer(th.optim.AdamW, dict(eps=1e-5)) == dict(eps=1e-5, fused=True)
+    assert policies.with_fast_optimizer(th.optim.Adam, dict(foreach=False)) == dict(foreach=False)
+    assert policies.with_fast_optimizer(th.optim.Adam, dict(fused=False)) == dict(fused=False)
+    assert policies.with_fast_optimizer(th.optim.SGD, None) == {}
+
+
+def test_the_target_networks_are_frozen_copies():
+    from sb3_lifelong import MPO
+
+    for share in (False, True):
+        policy = MPO("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8], share_features_extractor=share)).policy
+        for target in (policy.actor_target, policy.critic_target):
+            assert not target.training and all(not p.requires_grad for p in target.parameters())
+        for trained in (policy.actor, policy.critic):
+            assert all(p.requires_grad for p in trained.parameters())
+        critic_trains = {id(p) for group in policy.critic.optimizer.param_groups for p in group["params"]}
+        assert critic_trains == {id(p) for p in policy.critic.parameters()}  # the critic's optimizer trains all of it
