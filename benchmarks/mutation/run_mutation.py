@@ -76,6 +76,7 @@ MODULES: dict[str, list[str]] = {
     ],
     "sb3_lifelong/common/policies.py": [
         "tests/golden/test_golden_policy_defaults.py",  # every default (the full run found them free to change)
+        "tests/golden/test_golden_policies.py",  # the survivors of the full run: flags, layers, heads, archs
         "tests/common/test_policies.py",
         "tests/mpo/test_presets.py",  # the heads' init scale (Acme's MuJoCo baseline)
         "tests/common/test_properties.py",
@@ -129,6 +130,7 @@ MODULES: dict[str, list[str]] = {
         "tests/evaluation/test_overestimation.py",
     ],
     "sb3_lifelong/evaluation/callbacks.py": [
+        "tests/golden/test_golden_callbacks.py",
         "tests/golden/test_golden_eval_sources.py",
         "tests/evaluation/test_callbacks.py",
         "tests/evaluation/test_eval_callback_parity.py",

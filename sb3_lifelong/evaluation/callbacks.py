@@ -414,7 +414,12 @@ class SourceQCallback(BaseCallback):
             raise TypeError(f"SourceQCallback needs a model with a critic, got {type(self.model).__name__}")
         self._next = (self.model.num_timesteps // self.log_freq + 1) * self.log_freq
         if self.monte_carlo and self._probe is None:
-            gamma = float(getattr(self.model, "gamma", 0.99))
+            if not hasattr(self.model, "gamma"):
+                raise TypeError(
+                    "SourceQCallback(monte_carlo=True) needs the model's discount factor gamma for the returns, "
+                    f"got {type(self.model).__name__} without one (monte_carlo=False measures the Q-values only)"
+                )
+            gamma = float(self.model.gamma)  # type: ignore[attr-defined]
             self._probe = MonteCarloProbe(buffer, gamma, self.batch_size, reward_scale=self.reward_scale)
         if self.log_path is not None:
             if not self.log_path.exists() or self.log_path.stat().st_size == 0:
@@ -423,12 +428,17 @@ class SourceQCallback(BaseCallback):
                     csv.writer(handle).writerow(Q_CSV_FIELDS)
             with open(self.log_path, newline="") as handle:
                 header = next(csv.reader(handle), [])
+            if not header:
+                raise ValueError(
+                    f"{str(self.log_path)!r} starts with an empty line: it has no header to append Q-values under "
+                    "(give a new file, or remove the empty line)"
+                )
             if header and header != Q_CSV_FIELDS and header == Q_CSV_FIELDS[: len(header)]:
                 # an older run's file, without the Monte-Carlo columns: widened (its rows keep their values, the new
                 # columns empty), so that a resumed run does not drop what it measures
                 _widen_csv(self.log_path, Q_CSV_FIELDS)
                 header = list(Q_CSV_FIELDS)
-            self._fields = header or Q_CSV_FIELDS[:5]  # a file of other columns keeps them
+            self._fields = header  # a file of other columns keeps them
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
