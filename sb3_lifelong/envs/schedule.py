@@ -141,6 +141,7 @@ class LinearRamp(Scheduler):
             raise ValueError(
                 f"LinearRamp for {self.name}: need 0 <= begin < finish, got begin={self.begin}, finish={self.finish}"
             )
+        self._in_bounds("start", self.start)  # a flat ramp's bounds are the parameter's range: its value must be in it
 
     def value(self, timestep: int) -> float:
         frac = min(max((timestep - self.begin) / (self.finish - self.begin), 0.0), 1.0)

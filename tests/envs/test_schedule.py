@@ -384,6 +384,10 @@ def test_switch_at_of_the_wrong_length_says_how_many_it_needs():
         (RandomWalk(1.0, -0.1), r"need period >= 1 and std >= 0"),
         (RandomWalk(5.0, 0.1, low=0.5, high=2.0), r"RandomWalk for friction: start=5.0 outside \[0.5, 2.0\]"),
         (RandomWalk(0.49, 0.1, low=0.5, high=2.0), r"start=0.49 outside \[0.5, 2.0\]"),
+        (LinearRamp(-1.0, 1.5, begin=0, finish=10), r"LinearRamp for friction: bounds \[-1.0, 1.5\] must satisfy 0 <= low"),
+        (LinearRamp(1.5, 11.0, begin=0, finish=10), r"bounds \[1.5, 11.0\] must satisfy 0 <= low < high <= 10"),
+        (LinearRamp(11.0, 11.0, begin=0, finish=10), r"LinearRamp for friction: start=11.0 outside \[0.0, 10.0\]"),
+        (UniformPerEpisode(0.5, 0.5), r"UniformPerEpisode for friction: bounds \[0.5, 0.5\] must satisfy 0 <= low < high"),
     ],
 )
 def test_scheduler_checks_name_the_parameter_and_the_value(scheduler, match) -> None:
@@ -397,7 +401,15 @@ def test_scheduler_checks_accept_their_boundaries() -> None:
     env = wrapped(schedules={"friction": ramp, "mass_scale": walk})
     assert (ramp.value(0), ramp.value(1), ramp.value(10)) == (1.0, 1.5, 1.5)
     assert [walk.value(t) for t in (0, 1, 5, 50)] == [0.5, 0.5, 0.5, 0.5]
+    assert (ramp.low, ramp.high) == (1.0, 1.5)  # a ramp's bounds are its two ends (the physical range: a flat one's)
     env.close()
+    down, flat = LinearRamp(1.5, 0.0, begin=0, finish=1), LinearRamp(10.0, 10.0, begin=0, finish=1)
+    wrapped(schedules={"friction": down, "gravity": flat}).close()
+    assert (down.low, down.high, flat.low, flat.high) == (0.0, 1.5, 0.0, 100.0)
+
+
+def test_the_incremental_schedulers_step_every_thousand_timesteps_by_default() -> None:
+    assert RandomWalk(1.0, 0.1).period == Drift(1.0, 0.1).period == 1000
 
 
 def test_a_constant_ramp_takes_the_parameters_physical_range() -> None:
