@@ -123,7 +123,11 @@ MODULES: dict[str, list[str]] = {
         "tests/golden/test_golden_sampling.py",
         "tests/buffers/test_buffers.py",
     ],
-    "sb3_lifelong/envs/perturbations.py": ["tests/golden/test_golden_schedule.py", "tests/envs/test_perturbations.py"],
+    "sb3_lifelong/envs/perturbations.py": [
+        "tests/golden/test_golden_perturbations.py",  # the table (module constants: every test runs for them)
+        "tests/golden/test_golden_schedule.py",
+        "tests/envs/test_perturbations.py",
+    ],
     "sb3_lifelong/envs/schedule.py": ["tests/golden/test_golden_schedule.py", "tests/envs/test_schedule.py"],
     "sb3_lifelong/evaluation/overestimation.py": [
         "tests/golden/test_golden_overestimation.py",

@@ -409,24 +409,3 @@ def test_a_recompiled_foot_scale_is_cached_and_the_same_again() -> None:
     for name, values in first.items():
         np.testing.assert_array_equal(getattr(model, name), values, err_msg=name)
     env.close()
-
-
-# ------------------------------------------------------------------------------------ the table users read
-def test_the_docs_table_of_perturbations_is_the_codes() -> None:
-    """``docs/modules/envs.md`` lists every perturbation with its unit, range and observation scale: each as in
-    ``PERTURBATIONS`` (a range or scale changed in one place and not the other fails here)."""
-    import dataclasses
-    import pathlib
-
-    docs = (pathlib.Path(__file__).resolve().parents[2] / "docs" / "modules" / "envs.md").read_text()
-    rows = re.findall(r"^\| `(\w+)` \| ([^|]+) \| [^|]+ \| \[([^,\]]+), ([^\]]+)\][^|]* \| ([^|]+) \|$", docs, re.M)
-    number = {"pi": np.pi}
-    table = {
-        name: (unit.strip(), eval(low, {"__builtins__": {}}, number), eval(high, {"__builtins__": {}}, number), float(scale))
-        for name, unit, low, high, scale in rows
-    }
-    assert list(table) == list(PERTURBATIONS)
-    for name, p in PERTURBATIONS.items():
-        assert table[name] == (p.unit, pytest.approx(p.low, rel=1e-12), pytest.approx(p.high, rel=1e-12), p.obs_scale), name
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        PERTURBATIONS["friction"].low = -1.0  # type: ignore[misc]
