@@ -281,6 +281,10 @@ def test_a_q_log_keeps_its_own_columns_gets_a_header_when_empty_and_refuses_a_bl
     with open(other, newline="") as handle:
         rows = list(csv.reader(handle))
     assert rows[0] == ["timesteps", "name", "q_mean"] and [len(row) for row in rows[1:]] == [3, 3]
+    nested = tmp_path / "runs" / "seed_0" / "q.csv"  # its folders are made, with their parents
+    SourceQCallback(log_path=nested, monte_carlo=False).init_callback(stub_model(buffer))
+    with open(nested, newline="") as handle:
+        assert list(csv.reader(handle)) == [Q_CSV_FIELDS]
     empty = tmp_path / "logs" / "q.csv"
     empty.parent.mkdir()
     empty.touch()
