@@ -433,7 +433,7 @@ class SourceQCallback(BaseCallback):
                     f"{str(self.log_path)!r} starts with an empty line: it has no header to append Q-values under "
                     "(give a new file, or remove the empty line)"
                 )
-            if header and header != Q_CSV_FIELDS and header == Q_CSV_FIELDS[: len(header)]:
+            if header != Q_CSV_FIELDS and header == Q_CSV_FIELDS[: len(header)]:
                 # an older run's file, without the Monte-Carlo columns: widened (its rows keep their values, the new
                 # columns empty), so that a resumed run does not drop what it measures
                 _widen_csv(self.log_path, Q_CSV_FIELDS)
