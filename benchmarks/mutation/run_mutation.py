@@ -128,7 +128,11 @@ MODULES: dict[str, list[str]] = {
         "tests/golden/test_golden_schedule.py",
         "tests/envs/test_perturbations.py",
     ],
-    "sb3_lifelong/envs/schedule.py": ["tests/golden/test_golden_schedule.py", "tests/envs/test_schedule.py"],
+    "sb3_lifelong/envs/schedule.py": [
+        "tests/golden/test_golden_schedulers.py",
+        "tests/golden/test_golden_schedule.py",
+        "tests/envs/test_schedule.py",
+    ],
     "sb3_lifelong/evaluation/overestimation.py": [
         "tests/golden/test_golden_overestimation.py",
         "tests/evaluation/test_overestimation.py",
