@@ -82,6 +82,13 @@ def test_a_saw_wave_from_inside_its_range_goes_up_first_and_turns_at_the_bounds(
     assert [saw.value(t) for t in times] == pytest.approx([0.75, 1.0, 1.25, 1.5, 1.25, 0.75, 0.5, 0.75, 1.5, 0.5])
 
 
+def test_a_saw_wave_over_a_span_of_two_starts_where_it_is_told():
+    saw = bound(SawWave(0.5, 2.5, half_period=100, start=1.0))
+    # by hand: 0.02 per timestep, up from 1.0 to 2.5 (t = 75), down to 0.5 (t = 175), up again
+    times = [0, 25, 75, 100, 175, 200]
+    assert [saw.value(t) for t in times] == pytest.approx([1.0, 1.5, 2.5, 2.0, 0.5, 1.0])
+
+
 def test_a_saw_wave_of_one_timestep_per_half_period_alternates():
     saw = bound(SawWave(0.5, 1.5, half_period=1))
     assert [saw.value(t) for t in range(5)] == pytest.approx([0.5, 1.5, 0.5, 1.5, 0.5])
