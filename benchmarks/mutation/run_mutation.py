@@ -189,7 +189,7 @@ SCOPES: dict[str, tuple[str, ...]] = {
 }
 
 #: what the copy of the repository holds (``benchmarks``: its Python files only, not its results)
-COPIED = ("sb3_lifelong", "tests")
+COPIED = ("sb3_lifelong", "tests", "docs/modules")  # docs/modules: the tables that golden tests check against the code
 COPIED_FILES = ("setup.cfg", "pyproject.toml", "setup.py", "conftest.py")
 
 
