@@ -202,3 +202,22 @@ def test_hip_deformation_turns_about_the_bodys_own_axis():
     np.testing.assert_allclose(model.body_quat[2], hamilton(nominal, turn), rtol=1e-12, atol=1e-15)
     assert np.abs(hamilton(turn, nominal) - hamilton(nominal, turn)).max() > 0.05  # the other order is another turn
     np.testing.assert_array_equal(model.body_quat[:2], [[1.0, 0.0, 0.0, 0.0]] * 2)
+
+
+def test_a_description_without_an_axis_deforms_about_x_and_descriptions_cannot_change():
+    """``hip_axis`` left out is the body's own x axis (roll), as the docs say; a description is frozen, because the
+    registry's descriptions are shared by every env of that robot."""
+    import dataclasses
+
+    from sb3_lifelong.envs.perturbations import ROBOTS, MujocoHandle, PhysicsEditor, RobotDescription
+
+    description = RobotDescription("Toy", "floor", ("foot",), "thigh", perturbations=("hip_deformation",))
+    assert description.hip_axis == (1.0, 0.0, 0.0)
+    model = mujoco.MjModel.from_xml_string(TOY)
+    nominal = model.body_quat[2].copy()
+    PhysicsEditor(MujocoHandle(model, mujoco.MjData(model), description)).apply({"hip_deformation": 0.3})
+    turn = np.array([np.cos(0.15), np.sin(0.15), 0.0, 0.0])
+    np.testing.assert_allclose(model.body_quat[2], hamilton(nominal, turn), rtol=1e-12, atol=1e-15)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ROBOTS["HopperEnv"].hip_axis = (1.0, 0.0, 0.0)  # type: ignore[misc]
+    assert ROBOTS["HopperEnv"].hip_axis == (0.0, 1.0, 0.0)
