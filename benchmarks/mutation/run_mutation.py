@@ -125,6 +125,7 @@ MODULES: dict[str, list[str]] = {
     ],
     "sb3_lifelong/envs/perturbations.py": [
         "tests/golden/test_golden_perturbations.py",  # the table (module constants: every test runs for them)
+        "tests/golden/test_golden_model_edits.py",  # every field edit on a toy model, in about 3 s
         "tests/golden/test_golden_schedule.py",
         "tests/envs/test_perturbations.py",
     ],
