@@ -340,3 +340,29 @@ def test_limb_parts_that_the_model_lacks_are_refused_by_name():
     assert "leg_motor_scale" not in editor.supported and "joint_lock" not in editor.supported
     _, editor = toy(perturbations=("friction", "joint_lock"))
     assert editor.supported == ("friction", "joint_lock")
+
+
+def test_feet_with_mass_are_recompiled_to_the_robot_built_with_scaled_feet():
+    """Feet that carry mass change the bodies' inertia when they grow: the model is recompiled, and every array of it
+    is then that of the robot written with the scaled feet (a capsule given by ``fromto`` scaled about its centre);
+    back at the nominal value the model is the nominal one bit for bit, and the scaled one again comes from the cache."""
+    xml = TOY.replace('size="0.01 0.03" pos="0.05 0 0"', 'size="0.01" fromto="0.02 0 0 0.08 0 0"')
+    xml = xml.replace('size="0.05 0.04 0.01" mass="0.1"', 'size="0.05 0.04 0.01"')  # its mass from its volume: the foot's
+    # centre of mass moves toward the box as it grows (body_ipos, which only a compile computes)
+    scaled = xml.replace('fromto="0.02 0 0 0.08 0 0"', 'fromto="0.005 0 0 0.095 0 0"')
+    scaled = scaled.replace('size="0.05 0.04 0.01"', 'size="0.075 0.06 0.01"')
+    model = mujoco.MjModel.from_xml_string(xml)
+    desc = RobotDescription("Toy", "floor", ("foot_box", "toe"), "thigh")
+    editor = PhysicsEditor(MujocoHandle(model, mujoco.MjData(model), desc, make_spec=lambda: mujoco.MjSpec.from_string(xml)))
+    before = snapshot(model)
+    editor.apply({"foot_scale": 1.5})
+    assert editor.last_apply_recompiled
+    want = snapshot(mujoco.MjModel.from_xml_string(scaled))
+    differ = [name for name, value in snapshot(model).items() if not np.allclose(value, want[name], rtol=1e-9, atol=1e-12)]
+    assert differ == []
+    assert {"body_mass", "body_inertia", "body_ipos", "geom_size"} <= changed(model, before)  # geom_pos stays
+    editor.apply({})
+    assert changed(model, before) == set() and not editor.last_apply_recompiled
+    editor.apply({"foot_scale": 1.5})
+    assert list(editor._compiled) == [1.5]
+    assert [name for name, value in snapshot(model).items() if not np.allclose(value, want[name], rtol=1e-9, atol=1e-12)] == []
